@@ -1,0 +1,186 @@
+"""Two-view geometry shared by the matchers and the metrics.
+
+Everything is numpy in, numpy out. Points are N x 2 float arrays in pixel-centre
+coordinates (the centre of the top-left pixel is (0, 0)). Fundamental and essential
+matrices follow OpenCV's convention: ``x1^T F x0 = 0`` for a point x0 of image 0
+and its match x1 in image 1. Estimation is delegated to OpenCV; this module only
+adds the conventions, the failure handling and the distances OpenCV lacks in
+vectorised form.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def to_homogeneous(points: np.ndarray) -> np.ndarray:
+    """N x 2 -> N x 3 with a trailing column of ones."""
+    points = np.asarray(points, dtype=np.float64)
+    return np.concatenate([points, np.ones((len(points), 1))], axis=1)
+
+
+# --------------------------------------------------------------------------- F
+
+
+def fundamental_8point(x0: np.ndarray, x1: np.ndarray) -> np.ndarray | None:
+    """Normalised 8-point fundamental matrix (rank 2) from >= 8 correspondences.
+
+    Returns None for fewer than 8 points or a degenerate configuration.
+    """
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    x1 = np.ascontiguousarray(x1, dtype=np.float64)
+    if len(x0) < 8:
+        return None
+    F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_8POINT)
+    if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
+        return None
+    return F
+
+
+def fundamental_ransac(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    threshold_px: float,
+    confidence: float = 0.999,
+    max_iters: int = 2000,
+) -> np.ndarray | None:
+    """Robust fundamental matrix (OpenCV RANSAC, Sampson error threshold in pixels)."""
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    x1 = np.ascontiguousarray(x1, dtype=np.float64)
+    if len(x0) < 8:
+        return None
+    F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_RANSAC, threshold_px, confidence, max_iters)
+    if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
+        return None
+    return F
+
+
+def sampson_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """First-order geometric error of each match w.r.t. F, in squared pixels (paper Eq. 4)."""
+    p0 = to_homogeneous(x0)
+    p1 = to_homogeneous(x1)
+    Fp0 = p0 @ F.T  # rows: F p0
+    Ftp1 = p1 @ F  # rows: F^T p1
+    numerator = np.sum(p1 * Fp0, axis=1) ** 2
+    denominator = Fp0[:, 0] ** 2 + Fp0[:, 1] ** 2 + Ftp1[:, 0] ** 2 + Ftp1[:, 1] ** 2
+    return numerator / np.maximum(denominator, 1e-300)
+
+
+# --------------------------------------------------------------------------- E and pose
+
+
+def skew(t: np.ndarray) -> np.ndarray:
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """E = [t]_x R for the transform x_1 = R x_0 + t (camera 0 to camera 1)."""
+    return skew(t) @ np.asarray(R, dtype=np.float64)
+
+
+def normalize_keypoints(points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels -> normalised image coordinates (K^-1 x), N x 2."""
+    points = np.asarray(points, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    return (points - K[[0, 1], [2, 2]][None]) / K[[0, 1], [0, 1]][None]
+
+
+def symmetric_epipolar_distance(E: np.ndarray, x0n: np.ndarray, x1n: np.ndarray) -> np.ndarray:
+    """Squared symmetric epipolar distance of normalised points w.r.t. E (PROTOCOLS §3)."""
+    p0 = to_homogeneous(x0n)
+    p1 = to_homogeneous(x1n)
+    Ep0 = p0 @ E.T
+    Etp1 = p1 @ E
+    algebraic = np.sum(p1 * Ep0, axis=1) ** 2
+    return algebraic * (
+        1.0 / np.maximum(Ep0[:, 0] ** 2 + Ep0[:, 1] ** 2, 1e-300)
+        + 1.0 / np.maximum(Etp1[:, 0] ** 2 + Etp1[:, 1] ** 2, 1e-300)
+    )
+
+
+def estimate_relative_pose(
+    kpts0: np.ndarray,
+    kpts1: np.ndarray,
+    K0: np.ndarray,
+    K1: np.ndarray,
+    threshold_px: float = 0.5,
+    confidence: float = 0.99999,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Essential-matrix RANSAC on normalised points, then the best cheirality check.
+
+    Returns (R, t, inlier_mask) or None (fewer than 5 matches or no E). The pixel
+    threshold is turned into normalised units by the mean focal length of both cameras.
+    """
+    if len(kpts0) < 5:
+        return None
+    K0 = np.asarray(K0, dtype=np.float64)
+    K1 = np.asarray(K1, dtype=np.float64)
+    x0 = normalize_keypoints(kpts0, K0)
+    x1 = normalize_keypoints(kpts1, K1)
+    norm_threshold = threshold_px / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
+    E, mask = cv2.findEssentialMat(
+        x0, x1, np.eye(3), threshold=norm_threshold, prob=confidence, method=cv2.RANSAC
+    )
+    if E is None:
+        return None
+    best = None
+    best_count = 0
+    # findEssentialMat may stack several solutions (3k x 3); keep the one with most inliers.
+    for candidate in np.split(E, len(E) // 3):
+        count, R, t, _ = cv2.recoverPose(candidate, x0, x1, np.eye(3), 1e9, mask=mask.copy())
+        if count > best_count:
+            best_count = count
+            best = (R, t[:, 0], mask.ravel() > 0)
+    return best
+
+
+def rotation_angle_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
+    """Angle of the rotation R_est^T R_gt, in degrees."""
+    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def translation_angle_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:
+    """Angle between translation directions, folded to [0, 90] (the sign of t is unobservable)."""
+    t_est = np.asarray(t_est, dtype=np.float64).ravel()
+    t_gt = np.asarray(t_gt, dtype=np.float64).ravel()
+    n = np.linalg.norm(t_est) * np.linalg.norm(t_gt)
+    if n < 1e-12:
+        return 0.0 if np.linalg.norm(t_gt) < 1e-12 else 90.0
+    angle = float(np.degrees(np.arccos(np.clip(np.dot(t_est, t_gt) / n, -1.0, 1.0))))
+    return min(angle, 180.0 - angle)
+
+
+# --------------------------------------------------------------------------- H
+
+
+def estimate_homography(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    threshold_px: float = 3.0,
+    max_iters: int = 5000,
+    confidence: float = 0.9999,
+) -> np.ndarray | None:
+    """RANSAC homography mapping image-0 pixels to image-1 pixels, or None."""
+    if len(x0) < 4:
+        return None
+    H, _ = cv2.findHomography(
+        np.ascontiguousarray(x0, dtype=np.float64),
+        np.ascontiguousarray(x1, dtype=np.float64),
+        cv2.RANSAC,
+        threshold_px,
+        maxIters=max_iters,
+        confidence=confidence,
+    )
+    if H is None or not np.all(np.isfinite(H)):
+        return None
+    return H
+
+
+def warp_points(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 homography to N x 2 points."""
+    p = to_homogeneous(points) @ np.asarray(H, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:3]
