@@ -1,0 +1,23 @@
+"""Benchmark datasets: each yields ``Pair`` objects (image paths and ground truth), never images."""
+
+from e3cm_bench.datasets.base import DatasetError, Pair
+from e3cm_bench.datasets.hpatches import LARGE_SEQUENCES, HPatches, PairList
+from e3cm_bench.datasets.megadepth import MegaDepth1500
+from e3cm_bench.datasets.yfcc import YFCC100M
+
+DATASETS = {
+    "hpatches": HPatches,
+    "megadepth": MegaDepth1500,
+    "yfcc": YFCC100M,
+}
+
+__all__ = [
+    "DATASETS",
+    "LARGE_SEQUENCES",
+    "DatasetError",
+    "HPatches",
+    "MegaDepth1500",
+    "Pair",
+    "PairList",
+    "YFCC100M",
+]

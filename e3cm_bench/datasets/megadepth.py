@@ -1,0 +1,137 @@
+"""MegaDepth-1500: the LoFTR ``scene_info/*.npz`` pair lists, images relative to the root."""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from e3cm_bench.datasets.base import DatasetError, Pair
+from e3cm_bench.datasets.hpatches import PairList, require_directory
+
+SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
+
+
+class MegaDepth1500(PairList):
+    """Pairs from every ``root/scene_info/*.npz`` (sorted), or from the ``scene_info`` paths given.
+
+    Each npz holds per-image ``image_paths`` (relative to root, None for unused images),
+    ``intrinsics`` (3x3), ``poses`` (world-to-camera 4x4) and ``pair_infos``, entries
+    ``((i, j), overlap, central_matches)``. T_0to1 = poses[j] @ inv(poses[i]).
+    """
+
+    name = "megadepth"
+
+    def __init__(
+        self,
+        root: str | Path,
+        scene_info: Sequence[str | Path] | None = None,
+        skip_missing: bool = False,
+    ) -> None:
+        self.root = require_directory(root, "MegaDepth")
+        if scene_info is None:
+            self.scene_info = sorted((self.root / "scene_info").glob("*.npz"))
+            if not self.scene_info:
+                raise DatasetError(f"{self.root / 'scene_info'}: no *.npz scene_info files")
+        else:
+            self.scene_info = [Path(p) for p in scene_info]
+        pairs = [pair for path in self.scene_info for pair in self._read_scene_info(path)]
+        # Name the one file when there is one; otherwise the folder the lists usually live in.
+        source = self.scene_info[0] if len(self.scene_info) == 1 else self.root / "scene_info"
+        super().__init__(pairs, source, skip_missing)
+
+    def _read_scene_info(self, path: Path) -> list[Pair]:
+        scene = load_scene_info(path)
+        image_paths = scene["image_paths"]
+        pairs = []
+        for index, info in enumerate(scene["pair_infos"]):
+            i, j = _image_indices(info, len(image_paths), path, index)
+            for image_index in (i, j):
+                if image_paths[image_index] is None:
+                    raise DatasetError(
+                        f"{path}: pair_infos[{index}] uses image {image_index}, which has no path"
+                    )
+            K0 = _matrix(scene["intrinsics"][i], (3, 3), path, f"intrinsics[{i}]")
+            K1 = _matrix(scene["intrinsics"][j], (3, 3), path, f"intrinsics[{j}]")
+            pose0 = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
+            pose1 = _matrix(scene["poses"][j], (4, 4), path, f"poses[{j}]")
+            image0 = self.root / str(image_paths[i])
+            image1 = self.root / str(image_paths[j])
+            pairs.append(
+                Pair(
+                    name=f"{path.stem}/{image0.stem}--{image1.stem}",
+                    image0=image0,
+                    image1=image1,
+                    K0=K0,
+                    K1=K1,
+                    T_0to1=_relative_pose(pose0, pose1, path, i),
+                    meta={"scene": path.stem},
+                )
+            )
+        return pairs
+
+    def settings(self) -> dict:
+        return {
+            "dataset": self.name,
+            "root": str(self.root),
+            "scene_info": [str(p) for p in self.scene_info],
+        }
+
+
+def load_scene_info(path: Path) -> dict:
+    """The four arrays of a scene_info file; an unreadable or incomplete one is a DatasetError.
+
+    The LoFTR MegaDepth-1500 lists are pickled dicts despite their .npz suffix; lists written
+    with np.savez are real npz archives. Both load through np.load with pickles allowed.
+    """
+    if not path.is_file():
+        raise DatasetError(f"{path}: scene_info file not found")
+    try:
+        loaded = np.load(path, allow_pickle=True)
+        if isinstance(loaded, np.lib.npyio.NpzFile):
+            with loaded:
+                loaded = {key: loaded[key] for key in loaded.files}
+    except (OSError, ValueError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        reason = " ".join(str(error).split())
+        raise DatasetError(f"{path}: not a readable scene_info file ({reason})") from None
+    if not isinstance(loaded, dict):
+        raise DatasetError(f"{path}: expected an npz archive or a pickled dict")
+    missing = [key for key in SCENE_INFO_KEYS if key not in loaded]
+    if missing:
+        raise DatasetError(f"{path}: scene_info lacks the key(s) {', '.join(missing)}")
+    return {key: loaded[key] for key in SCENE_INFO_KEYS}
+
+
+def _image_indices(info, n_images: int, path: Path, index: int) -> tuple[int, int]:
+    try:
+        i, j = (int(v) for v in info[0])
+    except (TypeError, ValueError, IndexError):
+        raise DatasetError(
+            f"{path}: pair_infos[{index}] is not ((i, j), overlap, central_matches)"
+        ) from None
+    if not (0 <= i < n_images and 0 <= j < n_images):
+        raise DatasetError(
+            f"{path}: pair_infos[{index}] = ({i}, {j}) is out of range for {n_images} images"
+        )
+    return i, j
+
+
+def _matrix(value, shape: tuple[int, int], path: Path, what: str) -> np.ndarray:
+    try:
+        matrix = np.asarray(value, dtype=np.float64).reshape(shape)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: {what} is not a {shape[0]}x{shape[1]} matrix") from None
+    if not np.all(np.isfinite(matrix)):
+        raise DatasetError(f"{path}: {what} has non-finite entries")
+    return matrix
+
+
+def _relative_pose(world_to_cam0: np.ndarray, world_to_cam1: np.ndarray, path: Path, i: int):
+    """Camera 0 to camera 1: T_0to1 = P1 @ inv(P0) for world-to-camera poses P."""
+    try:
+        return world_to_cam1 @ np.linalg.inv(world_to_cam0)
+    except np.linalg.LinAlgError:
+        raise DatasetError(f"{path}: poses[{i}] is singular") from None

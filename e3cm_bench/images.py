@@ -1,0 +1,50 @@
+"""Image loading and resizing, with the coordinate mapping back to original pixels.
+
+Matchers see RGB uint8 arrays, often shrunk so the longer side fits a budget; metrics
+need keypoints in the original image. Coordinates are pixel-centre (the centre of the
+top-left pixel is (0, 0)), so a resize by s maps x to (x + 0.5) * s - 0.5, not x * s:
+pixel edges, not pixel centres, scale linearly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """H x W x 3 uint8 RGB; grayscale files are replicated to three channels."""
+    # IMREAD_COLOR always yields 3 channels: gray is replicated, alpha dropped, 16-bit scaled.
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"cannot read image {path} (missing, unreadable or not an image)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def resize_max_side(image: np.ndarray, max_side: int | None) -> tuple[np.ndarray, tuple[float, float]]:
+    """Shrink so the longer side is at most ``max_side``; never enlarge.
+
+    Returns the image and ``scale_xy = (w / w', h / h')`` (original over resized size,
+    per axis, since rounding makes the two differ slightly). ``max_side`` None or 0
+    means no resize.
+    """
+    if max_side is not None and max_side < 0:
+        raise ValueError(f"max_side must be positive, 0 or None, got {max_side}")
+    height, width = image.shape[:2]
+    if not max_side or max(height, width) <= max_side:
+        return image, (1.0, 1.0)
+    factor = max_side / max(height, width)
+    new_width = max(1, round(width * factor))
+    new_height = max(1, round(height * factor))
+    # Area averaging avoids the aliasing that bilinear sampling shows when shrinking.
+    resized = cv2.resize(image, (new_width, new_height), interpolation=cv2.INTER_AREA)
+    return resized, (width / new_width, height / new_height)
+
+
+def to_original_pixels(kpts: np.ndarray, scale_xy: tuple[float, float]) -> np.ndarray:
+    """Pixel-centre coordinates in the resized image -> the same in the original, N x 2 float32."""
+    kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
+    scale = np.asarray(scale_xy, dtype=np.float64).reshape(1, 2)
+    return ((kpts + 0.5) * scale - 0.5).astype(np.float32)

@@ -1,0 +1,145 @@
+"""The E3CM matching pipeline on two feature pyramids: tensors in, a dict of arrays out.
+
+initial mutual-NN + ratio at the deepest level -> for each level l = L-1 .. 1:
+    [cascade] confidence of the level-l matches, F_l from them
+    refine the matches to level l-1 (DFM 2x2 step)
+    [cascade] drop the level-(l-1) candidates whose Sampson distance to F_l exceeds the
+              threshold of level l-1
+The result is at level 0 (one cell per original pixel).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental
+from .dense import match_dense_level
+from .levels import cell_centres, valid_extent
+from .refine import refine_to_children
+
+
+@dataclass
+class E3CMSettings:
+    """Every knob of the pipeline (all of it is written next to the results).
+
+    ratio: ratio-test threshold per level 0..4 (the deepest level used takes its own entry).
+    sampson_px: rejection threshold in pixels for the candidates of level 0..3, i.e. the
+        threshold applied after refining into that level with F of the level above.
+    estimator: how F_l is estimated (top8 = the paper; ransac / prosac = ablations).
+    ransac_px: RANSAC threshold of F_l at level l, as a multiple of the cell size 2^l.
+    """
+
+    cascade: bool = True
+    estimator: str = "top8"
+    ratio: tuple[float, ...] = (0.9, 0.9, 0.9, 0.9, 0.9)
+    sampson_px: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0)
+    ransac_px: float = 0.5
+    max_per_parent: int = 2
+    confidence_eps: float = 1e-3
+    drop_border: bool = True
+    dense_chunk: int = 2048
+    notes: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.ratio = tuple(float(r) for r in self.ratio)
+        self.sampson_px = tuple(float(s) for s in self.sampson_px)
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+        if len(self.ratio) < 5 or len(self.sampson_px) < 4:
+            raise ValueError("ratio needs 5 values (levels 0..4) and sampson_px 4 (levels 0..3)")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("notes")
+        d["ratio"] = list(self.ratio)
+        d["sampson_px"] = list(self.sampson_px)
+        return d
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy()
+
+
+def match_pyramids(
+    feats0: list[torch.Tensor],
+    feats1: list[torch.Tensor],
+    size0: tuple[int, int],
+    size1: tuple[int, int],
+    settings: E3CMSettings,
+) -> dict:
+    """Match two feature pyramids (level l: C_l x H_l x W_l, stride 2^l in original pixels).
+
+    size0/size1: (width, height) of the original images (the maps may cover padding).
+    Returns keypoints0/1 (N x 2 float, original pixels), scores (cosine similarity at
+    level 0), and diagnostics: per-level counts before/after rejection, the F of each
+    level, whether rejection ran, and stage times in seconds.
+    """
+    top = len(feats0) - 1
+    timings: dict[str, float] = {}
+    feats0 = [F.normalize(f, dim=0) for f in feats0]
+    feats1 = [F.normalize(f, dim=0) for f in feats1]
+
+    t = time.perf_counter()
+    cells0, cells1, dist = match_dense_level(
+        feats0[top], feats1[top], valid_extent(size0, top), valid_extent(size1, top),
+        settings.ratio[top], settings.drop_border, settings.dense_chunk,
+    )
+    timings["initial"] = time.perf_counter() - t
+
+    counts_before = {top: len(cells0)}
+    counts_after = {top: len(cells0)}
+    fundamentals: dict[int, np.ndarray | None] = {}
+    rejection: dict[int, str] = {}
+    timings["cascade"] = 0.0
+    for level in range(top, 0, -1):
+        F_l = None
+        if settings.cascade:
+            t = time.perf_counter()
+            x0 = _np(cell_centres(cells0, level))
+            x1 = _np(cell_centres(cells1, level))
+            conf = None
+            if settings.estimator in ("top8", "prosac") and len(cells0) >= 8:
+                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps))
+            F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_px * 2**level)
+            fundamentals[level] = F_l
+            timings["cascade"] += time.perf_counter() - t
+
+        t = time.perf_counter()
+        cells0, cells1, dist, _ = refine_to_children(
+            feats0[level - 1], feats1[level - 1], cells0, cells1,
+            valid_extent(size0, level - 1), valid_extent(size1, level - 1),
+            settings.ratio[level - 1], settings.max_per_parent,
+        )
+        timings[f"refine_l{level - 1}"] = time.perf_counter() - t
+        counts_before[level - 1] = len(cells0)
+
+        if settings.cascade:
+            t = time.perf_counter()
+            if F_l is None:
+                rejection[level - 1] = "skipped: fewer than 8 matches or degenerate F at level %d" % level
+            else:
+                keep = epipolar_inliers(
+                    F_l, _np(cell_centres(cells0, level - 1)), _np(cell_centres(cells1, level - 1)),
+                    settings.sampson_px[level - 1],
+                )
+                keep_t = torch.from_numpy(keep).to(cells0.device)
+                cells0, cells1, dist = cells0[keep_t], cells1[keep_t], dist[keep_t]
+                rejection[level - 1] = "applied"
+            timings["cascade"] += time.perf_counter() - t
+        counts_after[level - 1] = len(cells0)
+
+    return {
+        "keypoints0": _np(cell_centres(cells0, 0)).astype(np.float32),
+        "keypoints1": _np(cell_centres(cells1, 0)).astype(np.float32),
+        "scores": (1 - _np(dist)).astype(np.float32),
+        "counts_before": counts_before,
+        "counts_after": counts_after,
+        "fundamentals": fundamentals,
+        "rejection": rejection,
+        "timings": timings,
+    }

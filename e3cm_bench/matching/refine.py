@@ -1,0 +1,80 @@
+"""Hierarchical refinement from DFM: a match at level l proposes matches among its 2x2 children.
+
+Each child of the A cell looks for its nearest child of the B cell (and vice versa); pairs
+that are mutual and pass the ratio test survive, at most `max_per_parent` per parent
+(lowest distances first).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .dense import passes_ratio
+from .levels import inside
+
+CHILD_OFFSETS = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]])
+
+
+def refine_to_children(
+    feat0: torch.Tensor,
+    feat1: torch.Tensor,
+    cells0: torch.Tensor,
+    cells1: torch.Tensor,
+    extent0: tuple[int, int],
+    extent1: tuple[int, int],
+    ratio: float,
+    max_per_parent: int = 2,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Refine N parent matches to level l-1.
+
+    feat0/feat1: L2-normalised maps of level l-1 (C x H x W). cells0/cells1: N x 2 parent
+    cells (x, y) at level l. extent0/extent1: valid (w, h) of level l-1 in cells.
+    Returns child cells0, cells1 (M x 2), distance (M) and the parent index of each child.
+    """
+    device = feat0.device
+    n = len(cells0)
+    if n == 0:
+        empty = torch.zeros(0, 2, dtype=torch.long, device=device)
+        return empty, empty, torch.zeros(0, device=device), torch.zeros(0, dtype=torch.long, device=device)
+    offsets = CHILD_OFFSETS.to(device)
+    kids0 = (2 * cells0)[:, None, :] + offsets[None]  # N x 4 x 2
+    kids1 = (2 * cells1)[:, None, :] + offsets[None]
+    d0 = feat0[:, kids0[..., 1], kids0[..., 0]].permute(1, 2, 0)  # N x 4 x C
+    d1 = feat1[:, kids1[..., 1], kids1[..., 0]].permute(1, 2, 0)
+    dist = 1 - d0 @ d1.transpose(1, 2)  # N x 4 (children of A) x 4 (children of B)
+
+    best_a, nn_a = dist.topk(2, dim=2, largest=False)  # for each A child, over B children
+    best_b, nn_b = dist.topk(2, dim=1, largest=False)  # for each B child, over A children
+    a_idx = torch.arange(4, device=device)[None].expand(n, 4)
+    b_of_a = nn_a[..., 0]  # N x 4
+    mutual = nn_b[:, 0, :].gather(1, b_of_a) == a_idx
+    ok_a = passes_ratio(best_a[..., 0], best_a[..., 1], ratio)
+    ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio).gather(1, b_of_a)
+    child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b), float("inf"))
+
+    # Keep the best `max_per_parent` children per parent; padding children are dropped.
+    k = min(max_per_parent, 4)
+    top_dist, top_a = child_dist.topk(k, dim=1, largest=False)
+    parent = torch.arange(n, device=device)[:, None].expand(n, k)
+    top_b = b_of_a.gather(1, top_a)
+    out0 = kids0[parent, top_a].reshape(-1, 2)
+    out1 = kids1[parent, top_b].reshape(-1, 2)
+    out_dist = top_dist.reshape(-1)
+    parent = parent.reshape(-1)
+    keep = torch.isfinite(out_dist) & inside(out0, extent0) & inside(out1, extent1)
+    out0, out1, out_dist, parent = out0[keep], out1[keep], out_dist[keep], parent[keep]
+    # Distinct parents have disjoint children, but guard against duplicate input matches.
+    key = torch.cat([out0, out1], 1)
+    _, first = _unique_rows(key)
+    return out0[first], out1[first], out_dist[first], parent[first]
+
+
+def _unique_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unique rows and the index of the first occurrence of each (order kept)."""
+    if len(rows) == 0:
+        return rows, torch.zeros(0, dtype=torch.long, device=rows.device)
+    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
+    first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
+    first = first.sort().values
+    return rows[first], first

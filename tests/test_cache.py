@@ -1,0 +1,139 @@
+"""MatchCache: round trips, empty entries, and resuming after an interrupted run."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from e3cm_bench.cache import MatchCache
+from e3cm_bench.matchers.base import Matches
+
+
+def make_matches(n: int, seed: int = 0) -> Matches:
+    rng = np.random.default_rng(seed)
+    return Matches(rng.uniform(0, 640, (n, 2)), rng.uniform(0, 480, (n, 2)), rng.uniform(0, 1, n))
+
+
+def test_round_trip_with_nested_names(tmp_path):
+    cache = MatchCache(tmp_path / "sub" / "matches.h5")  # parent folder created on write
+    first, second = make_matches(50, seed=1), make_matches(7, seed=2)
+    cache.write("v_graffiti/1-2", first, {"size0": (800, 640), "size1": (800, 600), "seconds": 0.25, "method": "sift"})
+    cache.write("kitti00_seq/000100--000103", second)
+
+    assert cache.has("v_graffiti/1-2") and cache.has("kitti00_seq/000100--000103")
+    assert not cache.has("v_graffiti/1-3") and not cache.has("v_graffiti")
+    assert cache.names() == ["kitti00_seq/000100--000103", "v_graffiti/1-2"]
+
+    back = cache.read("v_graffiti/1-2")
+    for name in ("keypoints0", "keypoints1", "scores"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(first, name))
+        assert getattr(back, name).dtype == np.float32
+    assert back.keypoints0.shape == (50, 2) and back.scores.shape == (50,)
+    np.testing.assert_array_equal(back.info["size0"], [800, 640])
+    assert back.info["seconds"] == 0.25 and isinstance(back.info["seconds"], float)
+    assert back.info["method"] == "sift"
+    assert "complete" not in back.info
+    assert cache.read("kitti00_seq/000100--000103").info == {}
+
+
+def test_zero_matches(tmp_path):
+    cache = MatchCache(tmp_path / "matches.h5")
+    cache.write("v_boat/1-6", Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)))
+    back = cache.read("v_boat/1-6")
+    assert len(back) == 0
+    assert back.keypoints0.shape == (0, 2) and back.keypoints1.shape == (0, 2) and back.scores.shape == (0,)
+
+
+def test_write_replaces_an_existing_entry(tmp_path):
+    cache = MatchCache(tmp_path / "matches.h5")
+    cache.write("a/b", make_matches(20), {"old": 1})
+    cache.write("a/b", make_matches(3, seed=5), {"new": 2})
+    back = cache.read("a/b")
+    assert len(back) == 3 and back.info == {"new": 2}
+
+
+def test_entry_without_complete_mark_is_absent(tmp_path):
+    path = tmp_path / "matches.h5"
+    with h5py.File(path, "w") as file:
+        group = file.create_group("v_boat/1-2")
+        group.create_dataset("keypoints0", data=np.zeros((4, 2), np.float32))
+    cache = MatchCache(path)
+    assert not cache.has("v_boat/1-2")
+    assert cache.names() == []
+    with pytest.raises(KeyError, match="v_boat/1-2"):
+        cache.read("v_boat/1-2")
+
+
+def test_interrupted_run_resumes(tmp_path):
+    path = tmp_path / "matches.h5"
+    cache = MatchCache(path)
+    cache.write("v_boat/1-2", make_matches(10))
+    cache.write("v_boat/1-3", make_matches(11))
+    # A run killed while writing the third pair: its group exists, half filled, unmarked.
+    with h5py.File(path, "a") as file:
+        group = file.create_group("v_boat/1-4")
+        group.create_dataset("keypoints0", data=np.zeros((12, 2), np.float32))
+        group.create_dataset("keypoints1", data=np.zeros((12, 2), np.float32))
+    assert cache.names() == ["v_boat/1-2", "v_boat/1-3"]
+    assert not cache.has("v_boat/1-4")
+
+    # The next run skips what is done and rewrites the interrupted pair.
+    cache.write("v_boat/1-4", make_matches(12, seed=3))
+    assert cache.names() == ["v_boat/1-2", "v_boat/1-3", "v_boat/1-4"]
+    assert len(cache.read("v_boat/1-4")) == 12
+
+
+def test_delete_keeps_other_entries(tmp_path):
+    cache = MatchCache(tmp_path / "matches.h5")
+    cache.write("scene/a", make_matches(5))
+    cache.write("scene/b", make_matches(6))
+    cache.write("other/c", make_matches(7))
+    cache.delete("scene/a")
+    cache.delete("scene/never-written")  # absent: no error
+    assert cache.names() == ["other/c", "scene/b"]
+    cache.delete("other/c")
+    with h5py.File(cache.path, "r") as file:
+        assert "other" not in file  # emptied parent groups are pruned
+
+
+def test_missing_file_reads_as_empty(tmp_path):
+    cache = MatchCache(tmp_path / "absent.h5")
+    assert cache.names() == [] and not cache.has("x/y")
+    assert not cache.path.exists()
+
+
+def test_invalid_names_rejected(tmp_path):
+    cache = MatchCache(tmp_path / "matches.h5")
+    for bad in ("", "/abs", "a//b", "a/../b", "trailing/"):
+        with pytest.raises(ValueError, match="invalid pair name"):
+            cache.write(bad, make_matches(1))
+
+
+def test_not_hdf5_file_raises_value_error(tmp_path):
+    path = tmp_path / "matches.h5"
+    path.write_text("not an hdf5 file\n")
+    cache = MatchCache(path)
+    for action in (cache.names, lambda: cache.has("a/b"), lambda: cache.write("a/b", make_matches(2))):
+        with pytest.raises(ValueError, match="not a readable HDF5 match cache") as error:
+            action()
+        assert str(path) in str(error.value) and "--overwrite" in str(error.value)
+    assert path.read_text() == "not an hdf5 file\n"  # left untouched
+
+
+def test_truncated_hdf5_file_raises_value_error(tmp_path):
+    path = tmp_path / "matches.h5"
+    MatchCache(path).write("a/b", make_matches(20000))
+    content = path.read_bytes()
+    path.write_bytes(content[: len(content) // 2])  # a copy cut short keeps the HDF5 signature
+    with pytest.raises(ValueError, match="not a readable HDF5 match cache"):
+        MatchCache(path).names()
+
+
+def test_unstorable_attribute_names_the_key(tmp_path):
+    cache = MatchCache(tmp_path / "matches.h5")
+    with pytest.raises(TypeError, match="'levels'"):
+        cache.write("a/b", make_matches(2), {"levels": {"coarse": 1}})
+    assert not cache.has("a/b")
+    with pytest.raises(ValueError, match="reserved"):
+        cache.write("a/b", make_matches(2), {"complete": 1})
