@@ -1,7 +1,7 @@
 """Benchmark datasets: each yields ``Pair`` objects (image paths and ground truth), never images."""
 
-from e3cm_bench.datasets.base import DatasetError, Pair
-from e3cm_bench.datasets.hpatches import LARGE_SEQUENCES, HPatches, PairList
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList
+from e3cm_bench.datasets.hpatches import LARGE_SEQUENCES, HPatches
 from e3cm_bench.datasets.megadepth import MegaDepth1500
 from e3cm_bench.datasets.yfcc import YFCC100M
 

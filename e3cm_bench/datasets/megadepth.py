@@ -9,8 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair
-from e3cm_bench.datasets.hpatches import PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
 
 SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
 

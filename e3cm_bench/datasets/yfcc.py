@@ -13,8 +13,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair
-from e3cm_bench.datasets.hpatches import PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
 
 DEFAULT_PAIRS_FILE = "yfcc_test_pairs_with_gt.txt"
 N_FIELDS = 2 + 2 + 9 + 9 + 16
