@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import time
 from pathlib import Path
@@ -15,6 +14,8 @@ from rich.console import Console
 
 from .backbones import BACKBONES, BackboneError
 from .datasets.base import DatasetError
+from .experiments import make_dataset, matcher_settings, run_method, write_table
+from .experiments import reproduce as reproduce_experiment
 from .matchers import MATCHERS, NEEDS_BACKBONE, build_matcher
 from .matching.cascade import ESTIMATORS
 
@@ -47,15 +48,7 @@ def _floats(text: str | None, option: str) -> tuple[float, ...] | None:
 
 
 def _matcher_settings(matcher: str, estimator: str, sampson_px: str | None, ratio: str | None) -> dict:
-    """Matcher options given on the command line (only those that apply to the matcher)."""
-    settings: dict = {}
-    if matcher in ("e3cm", "direct", "dfm") and ratio is not None:
-        settings["ratio"] = _floats(ratio, "--ratio")
-    if matcher == "e3cm":
-        settings["estimator"] = estimator
-        if sampson_px is not None:
-            settings["sampson_px"] = _floats(sampson_px, "--sampson-px")
-    return settings
+    return matcher_settings(matcher, estimator, _floats(sampson_px, "--sampson-px"), _floats(ratio, "--ratio"))
 
 
 def friendly_errors(command):
@@ -138,45 +131,24 @@ def match(
     console.print("time per stage (s): " + ", ".join(f"{k} {v:.3f}" for k, v in timings.items()))
 
 
-def _benchmark_command(benchmark: str, dataset_factory, **opts) -> None:
-    from .runner import DEFAULT_MAX_SIDE, EvalSettings, RunSpec, run_benchmark
-
+def _benchmark_command(benchmark: str, dataset_options: dict, opts: dict) -> None:
     import torch
 
     torch.manual_seed(opts["seed"])
-    dataset = dataset_factory()
-    n_total = len(dataset) + getattr(dataset, "n_skipped", 0)
-    console.print(f"{benchmark}: {len(dataset)} pairs" + (f" ({dataset.n_skipped} of {n_total} skipped: images missing)" if dataset.n_skipped else "")
-                  + (f", limited to the first {opts['limit']}" if opts["limit"] else ""))
-    matcher, backbone = opts["matcher"], opts["backbone"]
-    settings = _matcher_settings(matcher, opts["cascade_estimator"], opts["sampson_px"], opts["ratio"])
-    max_side = opts["max_side"] if opts["max_side"] is not None else DEFAULT_MAX_SIDE[benchmark]
-    max_side = max_side or None
-    label = opts["label"] or (matcher if matcher not in NEEDS_BACKBONE or backbone == "vgg19" else f"{matcher}-{backbone}")
-    match_options = {
-        "matcher": matcher,
-        "backbone": backbone if matcher in NEEDS_BACKBONE else None,
-        "weights": str(opts["weights"]) if opts["weights"] else None,
-        "settings": json.loads(json.dumps(settings)),
-        "max_side": max_side,
-    }
-    ev = EvalSettings(seed=opts["seed"])
-    if opts.get("ransac_px") is not None:
-        if benchmark == "hpatches":
-            ev.homography_ransac_px = opts["ransac_px"]
-        else:
-            ev.pose_ransac_px = opts["ransac_px"]
-    spec = RunSpec(
-        benchmark=benchmark, out=opts["out"], method=label, match_options=match_options, max_side=max_side,
-        limit=opts["limit"], overwrite=opts["overwrite"], eval_only=opts["eval_only"], viz=opts["viz"], eval=ev,
+    dataset = make_dataset(benchmark, opts["root"], skip_missing=opts["skip_missing"], **dataset_options)
+    n_total = len(dataset) + dataset.n_skipped
+    console.print(
+        f"{benchmark}: {len(dataset)} pairs"
+        + (f" ({dataset.n_skipped} of {n_total} skipped: images missing)" if dataset.n_skipped else "")
+        + (f", limited to the first {opts['limit']}" if opts["limit"] else "")
     )
-    console.print(f"resize: longer side {'at most ' + str(max_side) + ' px' if max_side else 'unchanged (full resolution)'}; "
-                  f"seed {ev.seed}; matcher {matcher}" + (f" ({backbone})" if matcher in NEEDS_BACKBONE else ""))
-
-    def make_matcher():
-        return build_matcher(matcher, backbone, match_options["weights"], opts["device"], settings=settings)
-
-    run_benchmark(spec, dataset, make_matcher, console)
+    run_method(
+        benchmark, dataset, opts["out"], matcher=opts["matcher"], backbone=opts["backbone"],
+        weights=str(opts["weights"]) if opts["weights"] else None, device=opts["device"],
+        settings=_matcher_settings(opts["matcher"], opts["cascade_estimator"], opts["sampson_px"], opts["ratio"]),
+        max_side=opts["max_side"], limit=opts["limit"], seed=opts["seed"], overwrite=opts["overwrite"],
+        eval_only=opts["eval_only"], viz=opts["viz"], label=opts["label"], ransac_px=opts["ransac_px"], console=console,
+    )
 
 
 # Options of the three benchmark commands.
@@ -204,9 +176,7 @@ def hpatches(
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
-    from .datasets import HPatches
-
-    _benchmark_command("hpatches", lambda: HPatches(root, exclude_large=exclude_large, sequences=sequences, skip_missing=skip_missing), **locals())
+    _benchmark_command("hpatches", {"exclude_large": exclude_large, "sequences": sequences}, locals())
 
 
 @app.command()
@@ -220,9 +190,7 @@ def megadepth(
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
-    from .datasets import MegaDepth1500
-
-    _benchmark_command("megadepth", lambda: MegaDepth1500(root, scene_info=scene_info, skip_missing=skip_missing), **locals())
+    _benchmark_command("megadepth", {"scene_info": scene_info}, locals())
 
 
 @app.command()
@@ -236,9 +204,41 @@ def yfcc(
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
-    from .datasets import YFCC100M
+    _benchmark_command("yfcc", {"pairs": pairs}, locals())
 
-    _benchmark_command("yfcc", lambda: YFCC100M(root, pairs=pairs, skip_missing=skip_missing), **locals())
+
+@app.command()
+@friendly_errors
+def table(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")],
+    out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
+    reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default results/paper/tableN.csv).")] = None,
+) -> None:
+    """Collect runs into the paper's table layout, with the paper's numbers and differences."""
+    write_table(list(run_dirs), out, reference, console)
+
+
+@app.command()
+@friendly_errors
+def reproduce(
+    config: Annotated[Path, typer.Argument(help="Experiment config, e.g. configs/table1_hpatches.yaml.")],
+    root: RootOpt,
+    out: OutOpt,
+    backbone: Annotated[Optional[str], typer.Option("--backbone", help="Use this backbone for every deep method (labels say so).")] = None,
+    limit: LimitOpt = None,
+    device: DeviceOpt = "cpu",
+    max_side: MaxSideOpt = None,
+    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files instead of the config's.")] = None,
+    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list instead of the default.")] = None,
+    sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
+    skip_missing: SkipMissingOpt = False,
+) -> None:
+    """Run every method of a paper experiment (reusing cached matches) and write its table."""
+    if not config.is_file():
+        raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
+    overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
+    reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
+                         skip_missing=skip_missing, max_side=max_side, console=console)
 
 
 def main() -> None:  # pragma: no cover - console entry point alias

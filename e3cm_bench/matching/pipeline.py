@@ -11,7 +11,7 @@ The result is at level 0 (one cell per original pixel).
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -23,6 +23,17 @@ from .levels import cell_centres, valid_extent
 from .refine import refine_to_children
 
 
+# Sampson thresholds (px) for the candidates of levels 0..3, chosen on the shared data with
+# EfficientNet-Lite0 (15 HPatches pairs, 31 KITTI pairs; README "Choosing the Sampson
+# thresholds"): an 8-point F from 8 cell centres is coarse, so top-8 needs 4x the cell size of
+# the F's level to keep good matches; a RANSAC F over all matches is accurate to half a cell.
+DEFAULT_SAMPSON_PX = {
+    "top8": (8.0, 16.0, 32.0, 64.0),
+    "ransac": (1.0, 2.0, 4.0, 8.0),
+    "prosac": (1.0, 2.0, 4.0, 8.0),
+}
+
+
 @dataclass
 class E3CMSettings:
     """Every knob of the pipeline (all of it is written next to the results).
@@ -30,6 +41,7 @@ class E3CMSettings:
     ratio: ratio-test threshold per level 0..4 (the deepest level used takes its own entry).
     sampson_px: rejection threshold in pixels for the candidates of level 0..3, i.e. the
         threshold applied after refining into that level with F of the level above.
+        None takes the measured default of the estimator (DEFAULT_SAMPSON_PX; README).
     estimator: how F_l is estimated (top8 = the paper; ransac / prosac = ablations).
     ransac_px: RANSAC threshold of F_l at level l, as a multiple of the cell size 2^l.
     """
@@ -37,25 +49,25 @@ class E3CMSettings:
     cascade: bool = True
     estimator: str = "top8"
     ratio: tuple[float, ...] = (0.9, 0.9, 0.9, 0.9, 0.9)
-    sampson_px: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0)
+    sampson_px: tuple[float, ...] | None = None
     ransac_px: float = 0.5
     max_per_parent: int = 2
     confidence_eps: float = 1e-3
     drop_border: bool = True
     dense_chunk: int = 2048
-    notes: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.ratio = tuple(float(r) for r in self.ratio)
-        self.sampson_px = tuple(float(s) for s in self.sampson_px)
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+        self.ratio = tuple(float(r) for r in self.ratio)
+        if self.sampson_px is None:
+            self.sampson_px = DEFAULT_SAMPSON_PX[self.estimator]
+        self.sampson_px = tuple(float(s) for s in self.sampson_px)
         if len(self.ratio) < 5 or len(self.sampson_px) < 4:
             raise ValueError("ratio needs 5 values (levels 0..4) and sampson_px 4 (levels 0..3)")
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d.pop("notes")
         d["ratio"] = list(self.ratio)
         d["sampson_px"] = list(self.sampson_px)
         return d

@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Regenerates results/sample/: the paper's tables measured on the small real samples in
+# ../shared/data (NOT the paper's datasets) with the offline EfficientNet-Lite0 backbone.
+# Matches are cached in runs/sample/ (rerunning reuses them); tables, plots and each run's
+# summary.csv + config.yaml are copied to results/sample/.
+#   bash scripts/make_sample_results.sh [SHARED_DATA_DIR]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+data="${1:-../shared/data}"
+common=(--backbone efficientnet_lite0 --max-side 640)
+
+e3cm-bench reproduce configs/table1_hpatches.yaml --root "$data/hpatches-sequences-release" --out runs/sample/table1_hpatches "${common[@]}"
+e3cm-bench reproduce configs/table2_megadepth.yaml --root "$data/megadepth_test_1500" \
+  --scene-info "$data/megadepth_test_1500/scene_info/kitti00_seq.npz" --out runs/sample/table2_kitti "${common[@]}"
+e3cm-bench reproduce configs/table3_yfcc.yaml --root "$data/scannet_sample" \
+  --pairs "$data/scannet_sample/pairs_with_gt.txt" --out runs/sample/table3_scannet "${common[@]}"
+
+for table in table1_hpatches table2_kitti table3_scannet; do
+  dest="results/sample/$table"
+  mkdir -p "$dest"
+  cp runs/sample/$table/table.csv runs/sample/$table/table.md runs/sample/$table/table_*.png "$dest/"
+  for run in runs/sample/$table/*/; do
+    name="$(basename "$run")"
+    mkdir -p "$dest/$name"
+    cp "$run/summary.csv" "$run/config.yaml" "$run/per_pair.csv" "$dest/$name/"
+  done
+done
+echo "results/sample/ regenerated"
