@@ -16,10 +16,13 @@ import numpy as np
 
 def load_image(path: str | Path) -> np.ndarray:
     """H x W x 3 uint8 RGB; grayscale files are replicated to three channels."""
+    # Checked first: OpenCV would print its own warning for a missing file before our error.
+    if not Path(path).is_file():
+        raise ValueError(f"{path}: image file not found")
     # IMREAD_COLOR always yields 3 channels: gray is replicated, alpha dropped, 16-bit scaled.
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise ValueError(f"cannot read image {path} (missing, unreadable or not an image)")
+        raise ValueError(f"{path}: cannot read the image (unreadable or not an image)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
