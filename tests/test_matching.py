@@ -14,7 +14,7 @@ from e3cm_bench import geometry
 from e3cm_bench.matching.cascade import confidence_scores, epipolar_inliers, estimate_level_fundamental
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio
 from e3cm_bench.matching.levels import cell_centres, inside, valid_extent
-from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids
+from e3cm_bench.matching.pipeline import DEFAULT_SAMPSON_PX, E3CMSettings, match_pyramids
 from e3cm_bench.matching.refine import refine_to_children
 
 
@@ -179,13 +179,6 @@ def test_mutual_nn_ratio_ties_and_edge_sizes():
         assert len(i0) == len(i1) == len(dist) == 0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="library bug: passes_ratio(best, second) is best < ratio * second; when rounding makes "
-    "1 - cos slightly negative (e.g. -1.19e-7 in float32) for two identical candidates, "
-    "-a < -0.9 a holds and the ambiguous tie PASSES. Remove this marker once distances are "
-    "clamped at 0 (or ties are rejected otherwise).",
-)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_mutual_nn_ratio_rejects_ties_despite_rounding(dtype):
     # Find a random unit vector v whose 1 - v.v rounds below zero, then give it two identical
@@ -437,12 +430,15 @@ def test_match_pyramids_cascade_removes_off_epipolar_matches(rectified, estimato
     pa, pb, src, outlier = rectified
     cv2.setRNGSeed(0)
     direct = match_pyramids(pa, pb, (128, 128), (128, 128), E3CMSettings(cascade=False))
-    out = match_pyramids(pa, pb, (128, 128), (128, 128), E3CMSettings(estimator=estimator))
+    # Thresholds given explicitly (the cell sizes of levels 1..4), so the level where the
+    # outlier goes is known: Sampson = 16^2 / 2 = 128 px^2 -> 11.3 px, kept by the 16 px
+    # threshold of level 3 and removed by the 8 px one of level 2.
+    settings = E3CMSettings(estimator=estimator, sampson_px=(2.0, 4.0, 8.0, 16.0))
+    out = match_pyramids(pa, pb, (128, 128), (128, 128), settings)
     check_output(out, range(5))
     k0, k1 = out["keypoints0"], out["keypoints1"]
     assert true_match(k0, k1, src).all()
-    # Exactly the 16 outlier matches are gone: Sampson = 16^2 / 2 -> 11.3 px, kept by the
-    # 16 px threshold of level 3 and removed by the 8 px one of level 2.
+    # Exactly the 16 outlier matches are gone.
     assert len(k0) == len(direct["keypoints0"]) - 16
     assert np.all(k1[:, 1] == k0[:, 1])
     assert not np.any(np.all((k1 // 16).astype(int) == outlier, axis=1))
@@ -461,6 +457,13 @@ def test_match_pyramids_cascade_removes_off_epipolar_matches(rectified, estimato
         F4 = out["fundamentals"][4]
         F_true = geometry.skew([1.0, 0.0, 0.0])
         np.testing.assert_allclose(F4 / F4[1, 2] * F_true[1, 2], F_true, atol=1e-6)
+
+    # With the estimator's default thresholds the outlier goes too (at some level), and
+    # nothing true is lost.
+    cv2.setRNGSeed(0)
+    out = match_pyramids(pa, pb, (128, 128), (128, 128), E3CMSettings(estimator=estimator))
+    assert true_match(out["keypoints0"], out["keypoints1"], src).all()
+    assert len(out["keypoints0"]) == len(direct["keypoints0"]) - 16
 
 
 def test_match_pyramids_pure_translation_is_degenerate_for_top8():
@@ -521,6 +524,10 @@ def test_settings_validation():
     s = E3CMSettings()
     assert s.cascade and s.estimator == "top8" and len(s.ratio) == 5 and len(s.sampson_px) == 4
     assert E3CMSettings(estimator="ransac").estimator == "ransac"
+    # sampson_px defaults per estimator; a given value wins and is stored as floats.
+    for estimator in ("top8", "ransac", "prosac"):
+        assert E3CMSettings(estimator=estimator).sampson_px == tuple(DEFAULT_SAMPSON_PX[estimator])
+    assert E3CMSettings(estimator="ransac", sampson_px=[3, 4, 5, 6]).sampson_px == (3.0, 4.0, 5.0, 6.0)
     with pytest.raises(ValueError, match="estimator"):
         E3CMSettings(estimator="lmeds")
     with pytest.raises(ValueError, match="ratio"):

@@ -23,8 +23,12 @@ def _top2(sim: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def passes_ratio(best_dist: torch.Tensor, second_dist: torch.Tensor, ratio: float) -> torch.Tensor:
-    """best / second < ratio, written without division so that 0/0 (ambiguous) fails."""
-    return best_dist < ratio * second_dist
+    """best / second < ratio, written without division so that 0/0 (ambiguous) fails.
+
+    1 - cos of identical unit vectors can round to a tiny negative number; clamping at 0
+    keeps such a tie ambiguous instead of letting -a < -0.9a pass it.
+    """
+    return best_dist.clamp_min(0) < ratio * second_dist.clamp_min(0)
 
 
 def mutual_nn_ratio(

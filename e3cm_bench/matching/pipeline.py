@@ -133,7 +133,8 @@ def match_pyramids(
         if settings.cascade:
             t = time.perf_counter()
             if F_l is None:
-                rejection[level - 1] = "skipped: fewer than 8 matches or degenerate F at level %d" % level
+                why = "fewer than 8 matches" if counts_after[level] < 8 else "degenerate F"
+                rejection[level - 1] = f"skipped: {why} at level {level}"
             else:
                 keep = epipolar_inliers(
                     F_l, _np(cell_centres(cells0, level - 1)), _np(cell_centres(cells1, level - 1)),

@@ -50,9 +50,12 @@ def refine_to_children(
     mutual = nn_b[:, 0, :].gather(1, b_of_a) == a_idx
     ok_a = passes_ratio(best_a[..., 0], best_a[..., 1], ratio)
     ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio).gather(1, b_of_a)
-    child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b), float("inf"))
+    # Children in the padding are ruled out before the best ones per parent are chosen, so a
+    # parent at the image edge still yields its valid children.
+    valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1).reshape(n, 4)
+    child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b & valid), float("inf"))
 
-    # Keep the best `max_per_parent` children per parent; padding children are dropped.
+    # Keep the best `max_per_parent` children per parent.
     k = min(max_per_parent, 4)
     top_dist, top_a = child_dist.topk(k, dim=1, largest=False)
     parent = torch.arange(n, device=device)[:, None].expand(n, k)
@@ -61,7 +64,7 @@ def refine_to_children(
     out1 = kids1[parent, top_b].reshape(-1, 2)
     out_dist = top_dist.reshape(-1)
     parent = parent.reshape(-1)
-    keep = torch.isfinite(out_dist) & inside(out0, extent0) & inside(out1, extent1)
+    keep = torch.isfinite(out_dist)
     out0, out1, out_dist, parent = out0[keep], out1[keep], out_dist[keep], parent[keep]
     # Distinct parents have disjoint children, but guard against duplicate input matches.
     key = torch.cat([out0, out1], 1)

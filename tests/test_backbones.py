@@ -1,0 +1,199 @@
+"""Backbones as feature pyramids (e3cm_bench.backbones): shapes, truncation, weights handling."""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import math
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+from e3cm_bench import backbones
+from e3cm_bench.backbones import BACKBONES, SPECS, BackboneError, load_backbone
+
+H, W = 97, 131  # an odd size: padding to the deepest stride is exercised
+
+
+def expected_shape(level: int, num_levels: int = 5) -> tuple[int, int]:
+    s = 2 ** (num_levels - 1)
+    return math.ceil(H / s) * s // 2**level, math.ceil(W / s) * s // 2**level
+
+
+@pytest.fixture(scope="module")
+def image() -> torch.Tensor:
+    return torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize("name", BACKBONES)
+def test_every_backbone_gives_five_levels(name, image):
+    torch.manual_seed(0)
+    bb = load_backbone(name, pretrained=False)
+    assert bb.weights_id == "random" and bb.num_levels == 5 and len(bb.stages) == 5
+    feats = bb(image)
+    assert len(feats) == 5
+    # Level l: stride 2^l in original pixels, image padded to a multiple of 16:
+    # 97 x 131 -> 112 x 144 -> (112, 144), (56, 72), (28, 36), (14, 18), (7, 9).
+    for level, f in enumerate(feats):
+        assert f.dim() == 3 and f.shape[0] > 0, (name, level)
+        assert tuple(f.shape[1:]) == expected_shape(level), (name, level, tuple(f.shape))
+        assert torch.isfinite(f).all()
+    if name == "vgg19":
+        # PROTOCOLS §1: conv1_2, conv2_2, conv3_2, conv4_2, conv5_3.
+        assert [f.shape[0] for f in feats] == [64, 128, 256, 512, 512]
+        # Taps are taken before their ReLU, and the next stage's ReLU did not overwrite them.
+        assert all(bool((f < 0).any()) for f in feats)
+
+
+def test_num_levels_truncates_the_network(image):
+    full = load_backbone("efficientnet_lite0")
+    three = load_backbone("efficientnet_lite0", num_levels=3)
+    assert len(three.stages) == 3 and three.num_levels == 3 and three.deepest_stride == 4
+    n_full = sum(p.numel() for p in full.parameters())
+    n_three = sum(p.numel() for p in three.parameters())
+    assert n_three < n_full / 5  # the deep blocks hold most of the weights; they are gone
+    feats = three(image)
+    assert len(feats) == 3
+    # Padding is now to a multiple of 4 only: 97 x 131 -> 100 x 132.
+    assert [tuple(f.shape[1:]) for f in feats] == [(100, 132), (50, 66), (25, 33)]
+    # On an image that needs no padding either way, the shallow levels are identical.
+    img = torch.rand(1, 3, 64, 96, generator=torch.Generator().manual_seed(1))
+    for a, b in zip(three(img), full(img)[:3]):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(BackboneError, match="num_levels"):
+        load_backbone("efficientnet_lite0", pretrained=False, num_levels=6)
+    with pytest.raises(BackboneError, match="num_levels"):
+        load_backbone("efficientnet_lite0", pretrained=False, num_levels=0)
+
+
+def test_efficientnet_lite0_packaged_weights():
+    bb = load_backbone("efficientnet_lite0")
+    assert "sha256:" in bb.weights_id and bb.weights_id != "random"
+    assert Path(bb.weights_id.split(" sha256:")[0]).is_file()
+    # Loaded, not random: the same weights twice give identical parameters.
+    again = load_backbone("efficientnet_lite0")
+    for p, q in zip(bb.parameters(), again.parameters()):
+        assert torch.equal(p, q)
+    assert bb.weights_id == again.weights_id
+
+
+@pytest.mark.parametrize("name", ["efficientnet_lite0", "mobilenet_v3_large"])
+def test_weights_file_is_loaded(name, tmp_path):
+    torch.manual_seed(1)
+    model = SPECS[name].build()
+    state = model.state_dict()
+    path = tmp_path / f"{name}-custom.pth"
+    torch.save(state, path)
+    bb = load_backbone(name, weights=path)
+    assert str(path) in bb.weights_id and "sha256:" in bb.weights_id
+    loaded = {k: v for k, v in bb.state_dict().items()}
+    # Every parameter of the kept stages comes from the file (compare by value).
+    saved_values = [v for v in state.values() if v.dtype.is_floating_point]
+    for value in loaded.values():
+        if value.dtype.is_floating_point and value.numel() > 16:
+            assert any(value.shape == s.shape and torch.equal(value, s) for s in saved_values)
+    # A file saved as {"state_dict": ...} is accepted too.
+    wrapped = tmp_path / "wrapped.pth"
+    torch.save({"state_dict": state}, wrapped)
+    assert str(wrapped) in load_backbone(name, weights=wrapped).weights_id
+
+
+def assert_one_line(err: pytest.ExceptionInfo, *fragments: str) -> str:
+    message = str(err.value)
+    assert "\n" not in message
+    for fragment in fragments:
+        assert fragment in message, (fragment, message)
+    return message
+
+
+def test_weights_file_errors(tmp_path):
+    missing = tmp_path / "nope.pth"
+    with pytest.raises(BackboneError) as err:
+        load_backbone("efficientnet_lite0", weights=missing)
+    assert_one_line(err, str(missing), "not found")
+
+    wrong = tmp_path / "mobilenet.pth"
+    torch.save(SPECS["mobilenet_v3_large"].build().state_dict(), wrong)
+    with pytest.raises(BackboneError) as err:
+        load_backbone("efficientnet_lite0", weights=wrong)
+    assert_one_line(err, str(wrong), "efficientnet_lite0")
+
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_text("not a checkpoint\nat all\n")
+    with pytest.raises(BackboneError) as err:
+        load_backbone("efficientnet_lite0", weights=garbage)
+    assert_one_line(err, str(garbage))
+
+    a_list = tmp_path / "list.pth"
+    torch.save([1, 2, 3], a_list)
+    with pytest.raises(BackboneError) as err:
+        load_backbone("efficientnet_lite0", weights=a_list)
+    assert_one_line(err, str(a_list), "state dict")
+
+
+def test_unknown_backbone_lists_choices():
+    with pytest.raises(BackboneError) as err:
+        load_backbone("alexnet")
+    message = assert_one_line(err, "alexnet")
+    for name in BACKBONES:
+        assert name in message
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args) -> None:  # keep the test output clean
+        pass
+
+
+def test_torchvision_weights_download_then_cache(tmp_path, monkeypatch):
+    # The torchvision path (torch hub cache, then download) against a local server. The
+    # weights are a random MobileNetV3-Large state dict (21 MB; the code path is the same for
+    # every torchvision backbone, and VGG19's 548 MB would only slow the test down).
+    name = "mobilenet_v3_large"
+    filename = f"{name}-random.pth"  # no hex after '-': torch hub does no hash check
+    served = tmp_path / "served"
+    served.mkdir()
+    torch.manual_seed(2)
+    state = SPECS[name].build().state_dict()
+    torch.save(state, served / filename)
+    for var in ("http_proxy", "HTTP_PROXY", "https_proxy", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
+        monkeypatch.delenv(var, raising=False)
+    torch_home = tmp_path / "torch_home"
+    monkeypatch.setenv("TORCH_HOME", str(torch_home))
+
+    server = http.server.ThreadingHTTPServer(
+        ("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(served))
+    )
+    port = server.server_address[1]
+    url = f"http://127.0.0.1:{port}/{filename}"
+    monkeypatch.setattr(backbones, "imagenet_weights_url", lambda spec: url)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        cached = torch_home / "hub" / "checkpoints" / filename
+        assert backbones.hub_checkpoint_dir() == torch_home / "hub" / "checkpoints"
+        assert not cached.exists()
+        bb = load_backbone(name)
+        assert cached.is_file()
+        assert str(cached) in bb.weights_id and "sha256:" in bb.weights_id
+        first_conv = bb.stages[0][0][0].weight
+        torch.testing.assert_close(first_conv, state["features.0.0.weight"])
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(timeout=5)
+
+    # Server gone: the cached file is used.
+    bb2 = load_backbone(name)
+    assert bb2.weights_id == bb.weights_id
+    torch.testing.assert_close(bb2.stages[0][0][0].weight, state["features.0.0.weight"])
+
+    # Server gone and an empty cache: one actionable line.
+    empty_home = tmp_path / "empty_home"
+    monkeypatch.setenv("TORCH_HOME", str(empty_home))
+    with pytest.raises(BackboneError) as err:
+        load_backbone(name)
+    expected_path = empty_home / "hub" / "checkpoints" / filename
+    assert_one_line(err, str(expected_path), "--weights", name, url)
+    assert not expected_path.exists()
