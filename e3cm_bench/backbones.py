@@ -198,6 +198,16 @@ class Backbone(nn.Module):
         self.register_buffer("mean", torch.tensor(spec.mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(spec.std).view(1, 3, 1, 1), persistent=False)
 
+    def describe(self) -> dict:
+        """What a matcher's result depends on from its backbone (goes to config.yaml)."""
+        return {
+            "backbone": self.name,
+            "backbone_taps": self.spec.taps,
+            "num_levels": self.num_levels,
+            "upsample": self.upsample,
+            "weights": self.weights_id,
+        }
+
     @property
     def deepest_stride(self) -> int:
         return 2 ** (self.num_levels - 1)

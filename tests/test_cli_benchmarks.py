@@ -27,6 +27,7 @@ import e3cm_bench.cli as cli_module
 import e3cm_bench.runner as runner_module
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.cli import app
+from helpers import flat, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
 HPATCHES_PAIR_COLUMNS = ["pair", "sequence", "n_matches", *[f"mma@{t}" for t in range(1, 11)], "h_error"]
@@ -48,22 +49,6 @@ def ok(*args):
     result = invoke(*args)
     assert result.exit_code == 0, (result.exit_code, result.output, result.exception)
     return result
-
-
-def one_line_error(result) -> str:
-    """A clean failure: non-zero exit, exactly one line on stderr, no traceback."""
-    assert result.exit_code not in (0, None), result.output
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("error: "), lines[0]
-    assert "Traceback" not in result.output
-    return lines[0]
-
-
-def flat(text: str) -> str:
-    """Output with rich's line wrapping undone (whitespace runs -> one space)."""
-    return " ".join(text.split())
 
 
 def read_csv(path: Path) -> pd.DataFrame:

@@ -21,6 +21,7 @@ from e3cm_bench import geometry
 from e3cm_bench.cli import app
 from e3cm_bench.datasets.hpatches import read_homography
 from e3cm_bench.datasets.synthetic import demo_pair
+from helpers import flat, one_line_error
 
 
 def invoke(*args):
@@ -29,18 +30,6 @@ def invoke(*args):
     return result
 
 
-def one_line_error(result) -> str:
-    """A clean failure: exit code 2, exactly one line on stderr, no traceback."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("error: "), lines[0]
-    assert "Traceback" not in result.output
-    return lines[0]
-
-
-def flat(text: str) -> str:
-    return " ".join(text.split())
 
 
 def load_matches(path: Path) -> dict[str, np.ndarray]:

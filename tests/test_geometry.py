@@ -8,18 +8,12 @@ import numpy as np
 import pytest
 
 from e3cm_bench import geometry
+from helpers import rotation
 
 K0 = np.array([[520.0, 0.0, 310.0], [0.0, 515.0, 245.0], [0.0, 0.0, 1.0]])
 K1 = np.array([[480.0, 0.0, 330.0], [0.0, 490.0, 235.0], [0.0, 0.0, 1.0]])
 
 
-def rotation(axis: str, degrees: float) -> np.ndarray:
-    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
-    return {
-        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
-    }[axis]
 
 
 R_01 = rotation("y", 12.0) @ rotation("x", -5.0) @ rotation("z", 3.0)

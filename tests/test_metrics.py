@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from helpers import rotation
 from e3cm_bench.metrics import (
     HPATCHES_PAIR_COLUMNS,
     MMA_THRESHOLDS,
@@ -26,13 +27,6 @@ from e3cm_bench.metrics import (
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
 
-def rotation(axis: str, degrees: float) -> np.ndarray:
-    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
-    return {
-        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
-    }[axis]
 
 
 def rigid(R: np.ndarray, t) -> np.ndarray:

@@ -179,11 +179,7 @@ class DFMMatcher(Matcher):
     def config(self) -> dict:
         return {
             "matcher": self.name,
-            "backbone": self.backbone.name,
-            "backbone_taps": self.backbone.spec.taps,
-            "num_levels": self.backbone.num_levels,
-            "upsample": self.backbone.upsample,
-            "weights": self.backbone.weights_id,
+            **self.backbone.describe(),
             "ratio": list(self.settings.ratio),
             "max_per_parent": self.settings.max_per_parent,
             "drop_border": self.settings.drop_border,

@@ -44,10 +44,6 @@ class E3CMMatcher(Matcher):
     def config(self) -> dict:
         return {
             "matcher": self.name,
-            "backbone": self.backbone.name,
-            "backbone_taps": self.backbone.spec.taps,
-            "num_levels": self.backbone.num_levels,
-            "upsample": self.backbone.upsample,
-            "weights": self.backbone.weights_id,
+            **self.backbone.describe(),
             **self.settings.to_dict(),
         }
