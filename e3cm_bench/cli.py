@@ -161,6 +161,7 @@ OverwriteOpt = Annotated[bool, typer.Option("--overwrite", help="Discard matches
 EvalOnlyOpt = Annotated[bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")]
 VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")]
 SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help="Evaluate only pairs whose images exist.")]
+CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
 
 
@@ -213,9 +214,10 @@ def table(
     run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")],
     out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
     reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default results/paper/tableN.csv).")] = None,
+    compare: CompareOpt = True,
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
-    write_table(list(run_dirs), out, reference, console)
+    write_table(list(run_dirs), out, reference, compare, console)
 
 
 @app.command()
@@ -232,13 +234,14 @@ def reproduce(
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list instead of the default.")] = None,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
     skip_missing: SkipMissingOpt = False,
+    compare: CompareOpt = True,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     if not config.is_file():
         raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
-                         skip_missing=skip_missing, max_side=max_side, console=console)
+                         skip_missing=skip_missing, max_side=max_side, compare=compare, console=console)
 
 
 def main() -> None:  # pragma: no cover - console entry point alias

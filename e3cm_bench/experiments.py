@@ -130,6 +130,7 @@ def reproduce(
     dataset_overrides: dict | None = None,
     skip_missing: bool = False,
     max_side: int | None = None,
+    compare: bool = True,
     console: Console | None = None,
 ) -> tuple[Path, Path]:
     """Run every method of an experiment config, then write its table and plots.
@@ -160,11 +161,17 @@ def reproduce(
             limit=limit, seed=int(experiment.get("seed", 0)), label=label, console=console,
         )
         run_dirs.append(run_dir)
-    return write_table(run_dirs, out / "table", console=console)
+    return write_table(run_dirs, out / "table", compare=compare, console=console)
 
 
-def write_table(run_dirs: list[Path], out_path: Path, reference: Path | None = None, console: Console | None = None) -> tuple[Path, Path]:
-    """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plot beside it."""
+def write_table(
+    run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True, console: Console | None = None
+) -> tuple[Path, Path]:
+    """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plot beside it.
+
+    compare=False drops the measured - paper difference columns: on data other than the
+    paper's full benchmark (e.g. the shared samples) the differences mean nothing.
+    """
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
@@ -174,6 +181,8 @@ def write_table(run_dirs: list[Path], out_path: Path, reference: Path | None = N
         if reference is None:
             console.print(f"[yellow]note[/]: {candidate} not found; the table has no paper reference rows")
     table = report.paper_table(runs, benchmark, reference)
+    if not compare:
+        table = table.drop(columns=[c for c in table.columns if c.startswith("d_")])
     csv_path, md_path = report.write_paper_table(table, out_path)
     if benchmark == "hpatches":
         report.plot_mma_curves({r.label: r.summary for r in runs}, out_path.with_name(out_path.stem + "_mma.png"))

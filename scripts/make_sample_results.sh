@@ -2,12 +2,14 @@
 # Regenerates results/sample/: the paper's tables measured on the small real samples in
 # ../shared/data (NOT the paper's datasets) with the offline EfficientNet-Lite0 backbone.
 # Matches are cached in runs/sample/ (rerunning reuses them); tables, plots and each run's
-# summary.csv + config.yaml are copied to results/sample/.
+# summary.csv, per_pair.csv and config.yaml are copied to results/sample/.
 #   bash scripts/make_sample_results.sh [SHARED_DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 data="${1:-../shared/data}"
-common=(--backbone efficientnet_lite0 --max-side 640)
+# Resolutions as in the configs (HPatches full size, pose pairs longer side 1200); no
+# difference columns: these are not the paper's datasets, so measured - paper means nothing.
+common=(--backbone efficientnet_lite0 --no-compare)
 
 e3cm-bench reproduce configs/table1_hpatches.yaml --root "$data/hpatches-sequences-release" --out runs/sample/table1_hpatches "${common[@]}"
 e3cm-bench reproduce configs/table2_megadepth.yaml --root "$data/megadepth_test_1500" \
@@ -15,6 +17,7 @@ e3cm-bench reproduce configs/table2_megadepth.yaml --root "$data/megadepth_test_
 e3cm-bench reproduce configs/table3_yfcc.yaml --root "$data/scannet_sample" \
   --pairs "$data/scannet_sample/pairs_with_gt.txt" --out runs/sample/table3_scannet "${common[@]}"
 
+rm -rf results/sample/table*
 for table in table1_hpatches table2_kitti table3_scannet; do
   dest="results/sample/$table"
   mkdir -p "$dest"
