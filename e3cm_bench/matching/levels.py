@@ -12,9 +12,13 @@ import torch
 
 
 def cell_centres(cells: torch.Tensor, level: int) -> torch.Tensor:
-    """N x 2 integer cells (x, y) of `level` -> N x 2 float centres in original pixels."""
+    """N x 2 integer cells (x, y) of `level` -> N x 2 float64 centres in original pixels (on the CPU).
+
+    Centres feed OpenCV's estimators and the outputs; float64 on the CPU also avoids MPS,
+    which has no float64.
+    """
     stride = 2**level
-    return (cells.to(torch.float64) + 0.5) * stride - 0.5
+    return (cells.cpu().to(torch.float64) + 0.5) * stride - 0.5
 
 
 def valid_extent(image_size: tuple[int, int], level: int) -> tuple[int, int]:
