@@ -88,7 +88,8 @@ def write_csv(df: pd.DataFrame, path: str | Path) -> Path:
 def _save_figure(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     file_format = path.suffix.lstrip(".") or "png"
-    _write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150))
+    # bbox "tight" grows the canvas to whatever the legend needs, so long labels are never cut.
+    _write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150, bbox_inches="tight"))
     return path
 
 
@@ -249,7 +250,7 @@ def plot_mma_curves(runs: Mapping[str, Mapping], path: str | Path) -> Path:
     # Build the legend from the runs, not from one panel, so runs missing a split still appear.
     handles = [Line2D([], [], marker="o", markersize=3, color=colors[label]) for label in runs]
     legend_labels = [f"{label} ({_format_count(summary.get('n_matches'))} matches)" for label, summary in runs.items()]
-    fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 4), frameon=False)
+    fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 3), frameon=False)
     return _save_figure(fig, path)
 
 
@@ -330,7 +331,7 @@ def plot_pose_auc_bars(runs: Mapping[str, Mapping], path: str | Path, title: str
     auc_ax.set_xticks(groups, [f"AUC@{t}°" for t in AUC_THRESHOLDS])
     auc_ax.set_ylabel("percent")
     auc_ax.set_ylim(0, 100)
-    auc_ax.legend(fontsize=8, loc="upper left")
+    auc_ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=min(len(runs), 3), frameon=False)
     precision_ax.set_xticks(range(len(labels)), labels, rotation=30, ha="right")
     precision_ax.set_title("precision P (d < 1e-4)", fontsize=10)
     precision_ax.set_ylim(0, 105)
