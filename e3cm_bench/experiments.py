@@ -86,7 +86,7 @@ def run_method(
             ev.pose_ransac_px = ransac_px
     spec = RunSpec(
         benchmark=benchmark, out=Path(out), method=label, match_options=match_options, max_side=max_side,
-        limit=limit, overwrite=overwrite, eval_only=eval_only, viz=viz, eval=ev,
+        limit=limit, overwrite=overwrite, eval_only=eval_only, viz=viz, device=device, eval=ev,
     )
     console.print(
         f"resize: longer side {'at most ' + str(max_side) + ' px' if max_side else 'unchanged (full resolution)'}; "

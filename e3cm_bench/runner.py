@@ -65,6 +65,7 @@ class RunSpec:
     overwrite: bool = False
     eval_only: bool = False
     viz: int = 0
+    device: str = "cpu"  # recorded, not part of match_options: it does not change what is matched
     eval: EvalSettings = field(default_factory=EvalSettings)
 
 
@@ -191,6 +192,7 @@ def run_benchmark(
         "match_options": match_options,
         "matcher": matcher_config,
         "max_side": match_options.get("max_side", spec.max_side),
+        "device": spec.device if not spec.eval_only else previous.get("device", spec.device),
         "dataset": {**dataset.describe(), "limit": spec.limit, "n_pairs_evaluated": len(pairs)},
         "evaluation": asdict(spec.eval),
         "versions": package_versions(),

@@ -196,6 +196,7 @@ def test_hpatches_end_to_end_config(hpatches_run, hpatches_root):
     assert len(matcher["ratio"]) == 5 and len(matcher["sampson_px"]) == 4
     assert re.search(r"efficientnet-lite0.*\.pth sha256:[0-9a-f]{16}$", matcher["weights"]), matcher["weights"]
     assert config["max_side"] == 320
+    assert config["device"] == "cpu"
     assert config["evaluation"]["seed"] == 0
     assert config["evaluation"]["homography_ransac_px"] == 3.0
     dataset = config["dataset"]
