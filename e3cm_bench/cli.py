@@ -3,21 +3,28 @@
 from __future__ import annotations
 
 import functools
+import os
 import sys
 import time
 from pathlib import Path
 from typing import Annotated, Optional
 
+import cv2
 import numpy as np
+import torch
 import typer
 from rich.console import Console
 
+from . import geometry
 from .backbones import BACKBONES, BackboneError
 from .datasets.base import DatasetError
+from .datasets.synthetic import demo_pair
 from .experiments import make_dataset, matcher_settings, run_method, write_table
 from .experiments import reproduce as reproduce_experiment
 from .matchers import MATCHERS, NEEDS_BACKBONE, build_matcher
+from .images import load_image, resize_max_side, to_original_pixels
 from .matching.cascade import ESTIMATORS
+from .viz import draw_matches, save_image
 
 app = typer.Typer(
     add_completion=False,
@@ -52,13 +59,18 @@ def _matcher_settings(matcher: str, estimator: str, sampson_px: str | None, rati
 
 
 def friendly_errors(command):
-    """Bad input ends in one line on stderr and a non-zero exit, never a traceback."""
+    """Bad input ends in one line on stderr and a non-zero exit, never a traceback.
+
+    E3CM_BENCH_DEBUG=1 lets the exception through with its traceback (for developers).
+    """
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
         except (DatasetError, BackboneError, ValueError, FileNotFoundError, KeyError) as exc:
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
@@ -82,14 +94,10 @@ def match(
     cascade_estimator: EstimatorOpt = "top8",
     sampson_px: SampsonOpt = None,
     ratio: RatioOpt = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the robust estimators inside the matcher.")] = 0,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("e3cm-match"),
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
-    from . import geometry
-    from .datasets.synthetic import demo_pair
-    from .images import load_image, resize_max_side, to_original_pixels
-    from .viz import draw_matches, save_image
-
     if (image0 is None) != (image1 is None):
         raise ValueError("give two images, or none for the built-in demo pair")
     H = None
@@ -106,6 +114,7 @@ def match(
     t_load = time.perf_counter() - t
     small0, s0 = resize_max_side(img0, max_side)
     small1, s1 = resize_max_side(img1, max_side)
+    cv2.setRNGSeed(seed)  # cascade RANSAC and DFM's homography: the same matches on every run
     result = m.match(small0, small1)
     k0, k1 = to_original_pixels(result.keypoints0, s0), to_original_pixels(result.keypoints1, s1)
 
@@ -132,8 +141,6 @@ def match(
 
 
 def _benchmark_command(benchmark: str, dataset_options: dict, opts: dict) -> None:
-    import torch
-
     torch.manual_seed(opts["seed"])
     dataset = make_dataset(benchmark, opts["root"], skip_missing=opts["skip_missing"], **dataset_options)
     n_total = len(dataset) + dataset.n_skipped

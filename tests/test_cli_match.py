@@ -114,6 +114,13 @@ def test_missing_image_is_an_error(graffiti, tmp_path, monkeypatch):
     assert not (tmp_path / "e3cm-match").exists()
 
 
+def test_debug_variable_shows_the_exception(graffiti, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("E3CM_BENCH_DEBUG", "1")
+    result = invoke("match", graffiti / "1.ppm", tmp_path / "nope.ppm", "--backbone", "efficientnet_lite0")
+    assert isinstance(result.exception, ValueError) and "nope.ppm" in str(result.exception)
+
+
 def test_vgg19_without_weights_offline(graffiti, tmp_path, monkeypatch):
     torch_home = tmp_path / "torch_home"
     torch_home.mkdir()
