@@ -172,7 +172,8 @@ def run_benchmark(
     previous = _check_previous_run(out, spec)
     pairs = list(dataset)[: spec.limit] if spec.limit else list(dataset)
     cache = MatchCache(out / CACHE_FILE)
-    todo = [p for p in pairs if not cache.has(p.name)]
+    done = set(cache.names())  # one pass over the file, not one open per pair
+    todo = [p for p in pairs if p.name not in done]
 
     match_options = spec.match_options
     matcher_config = (previous or {}).get("matcher")
