@@ -14,9 +14,9 @@ from rich.console import Console
 
 from . import report
 from .config import load_yaml
-from .datasets import DATASETS
+from .datasets import BENCHMARKS, DATASETS
 from .matchers import MATCHERS, NEEDS_BACKBONE, build_matcher
-from .runner import BENCHMARKS, DEFAULT_MAX_SIDE, EvalSettings, RunSpec, run_benchmark
+from .runner import DEFAULT_MAX_SIDE, EvalSettings, RunSpec, run_benchmark
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
 DATASET_OPTIONS = {"hpatches": ("exclude_large", "sequences"), "megadepth": ("scene_info",), "yfcc": ("pairs",)}
@@ -32,7 +32,7 @@ def make_dataset(benchmark: str, root: Path, skip_missing: bool = False, **optio
 def matcher_settings(matcher: str, estimator: str = "top8", sampson_px=None, ratio=None) -> dict:
     """The E3CMSettings / DFM fields that apply to `matcher` (others are ignored, not guessed)."""
     settings: dict = {}
-    if matcher in ("e3cm", "direct", "dfm") and ratio is not None:
+    if matcher in NEEDS_BACKBONE and ratio is not None:
         settings["ratio"] = tuple(float(r) for r in ratio)
     if matcher == "e3cm":
         settings["estimator"] = estimator
@@ -44,6 +44,21 @@ def matcher_settings(matcher: str, estimator: str = "top8", sampson_px=None, rat
 def default_label(matcher: str, backbone: str, estimator: str = "top8") -> str:
     label = matcher if matcher not in NEEDS_BACKBONE or backbone == "vgg19" else f"{matcher}-{backbone}"
     return label if matcher != "e3cm" or estimator == "top8" else f"{label}-{estimator}"
+
+
+def method_identity(method: dict, experiment: dict, backbone_override: str | None = None) -> tuple[str, str, str]:
+    """(backbone, cascade estimator, label) of one method of an experiment config.
+
+    The default label follows the method's own backbone and estimator; a backbone forced
+    on every deep method (reproduce --backbone) is appended in brackets.
+    """
+    matcher = method["matcher"]
+    own_backbone = method.get("backbone", experiment.get("backbone", "vgg19"))
+    estimator = method.get("cascade_estimator", "top8")
+    label = method.get("label") or default_label(matcher, own_backbone, estimator)
+    if backbone_override and matcher in NEEDS_BACKBONE and backbone_override != own_backbone:
+        label = f"{label} [{backbone_override}]"
+    return backbone_override or own_backbone, estimator, label
 
 
 def run_method(
@@ -110,7 +125,7 @@ def load_experiment(path: Path) -> dict:
         unknown = set(method) - METHOD_KEYS
         if unknown:
             raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")
-        label = method.get("label") or default_label(method["matcher"], method.get("backbone", "vgg19"))
+        _, _, label = method_identity(method, config)
         if label in labels:
             raise ValueError(f"{path}: two methods are labelled {label!r}")
         labels.add(label)
@@ -147,11 +162,7 @@ def reproduce(
     run_dirs = []
     for method in experiment["methods"]:
         matcher = method["matcher"]
-        net = backbone or method.get("backbone", experiment.get("backbone", "vgg19"))
-        estimator = method.get("cascade_estimator", "top8")
-        label = method.get("label") or default_label(matcher, method.get("backbone", "vgg19"), estimator)
-        if backbone and matcher in NEEDS_BACKBONE and backbone != method.get("backbone", "vgg19"):
-            label = f"{label} [{backbone}]"
+        net, estimator, label = method_identity(method, experiment, backbone)
         run_dir = out / label.replace(" ", "_").replace("[", "").replace("]", "")
         console.rule(f"{experiment.get('name', config_path.stem)}: {label}")
         run_method(

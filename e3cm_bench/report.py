@@ -25,10 +25,11 @@ from matplotlib.lines import Line2D
 from rich.console import Console
 from rich.table import Table
 
-BENCHMARKS = ("hpatches", "megadepth", "yfcc")
-MMA_THRESHOLDS = tuple(range(1, 11))
-H_ACC_THRESHOLDS = (1, 3, 5)
-AUC_THRESHOLDS = (5, 10, 20)
+from .datasets import BENCHMARKS
+from .metrics import HOMOGRAPHY_ACCURACY_THRESHOLDS as H_ACC_THRESHOLDS
+from .metrics import MMA_THRESHOLDS
+from .metrics import POSE_AUC_THRESHOLDS as AUC_THRESHOLDS
+
 
 # Where the paper's numbers for each benchmark live, under results/paper/.
 PAPER_TABLE_FILES = {"hpatches": "table1.csv", "megadepth": "table2.csv", "yfcc": "table3.csv"}

@@ -31,8 +31,6 @@ from .images import load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher, Matches
 from .viz import draw_matches, save_image
 
-POSE_BENCHMARKS = ("megadepth", "yfcc")
-BENCHMARKS = ("hpatches",) + POSE_BENCHMARKS
 DEFAULT_MAX_SIDE = {"hpatches": None, "megadepth": 1200, "yfcc": 1200}
 CONFIG_FILE = "config.yaml"
 CACHE_FILE = "matches.h5"

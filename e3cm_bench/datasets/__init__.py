@@ -10,8 +10,10 @@ DATASETS = {
     "megadepth": MegaDepth1500,
     "yfcc": YFCC100M,
 }
+BENCHMARKS = tuple(DATASETS)  # "hpatches", "megadepth", "yfcc"
 
 __all__ = [
+    "BENCHMARKS",
     "DATASETS",
     "LARGE_SEQUENCES",
     "DatasetError",
