@@ -14,7 +14,6 @@ wheel, so it works offline.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,8 @@ from urllib.error import URLError
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .files import file_sha256
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -235,14 +236,6 @@ def _no_inplace(module: nn.Module) -> None:
             m.inplace = False
 
 
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def hub_checkpoint_dir() -> Path:
     return Path(torch.hub.get_dir()) / "checkpoints"
 
@@ -324,7 +317,7 @@ def load_backbone(
         except RuntimeError as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else "key mismatch"
             raise BackboneError(f"{path}: does not fit backbone {name} ({first})") from exc
-        weights_id = f"{path} sha256:{_file_sha256(path)[:16]}"
+        weights_id = f"{path} sha256:{file_sha256(path)[:16]}"
     _no_inplace(model)
     backbone = Backbone(spec, spec.stages(model), num_levels, weights_id)
     return backbone.eval().to(device)

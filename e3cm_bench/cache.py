@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from e3cm_bench.matchers.base import Matches
+from e3cm_bench.matches import Matches
 
 DATASETS = ("keypoints0", "keypoints1", "scores")
 COMPLETE_ATTR = "complete"

@@ -4,26 +4,26 @@ from __future__ import annotations
 
 import functools
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Annotated, Optional
 
-import cv2
 import numpy as np
-import torch
 import typer
 from rich.console import Console
 
-from . import geometry
 from .backbones import BACKBONES, BackboneError
-from .datasets.base import DatasetError
+from .benchmarks import get_benchmark
+from .benchmarks import EvalSettings
+from .datasets.base import DatasetError, Pair
 from .datasets.synthetic import demo_pair
-from .experiments import make_dataset, matcher_settings, run_method, write_table
 from .experiments import reproduce as reproduce_experiment
-from .matchers import MATCHERS, NEEDS_BACKBONE, build_matcher
-from .images import load_image, resize_max_side, to_original_pixels
-from .matching.cascade import ESTIMATORS
+from .experiments import write_table
+from .images import load_image
+from .matchers import MATCHERS, NEEDS_BACKBONE
+from .matching import ESTIMATORS
+from .method import MethodSpec, parse_numbers
+from .runner import match_pair, run_benchmark
 from .viz import draw_matches, save_image
 
 app = typer.Typer(
@@ -39,23 +39,10 @@ MatcherOpt = Annotated[str, typer.Option("--matcher", help=f"One of: {', '.join(
 BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)}.")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", help="Local state-dict file for the backbone (instead of the ImageNet download).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
-EstimatorOpt = Annotated[str, typer.Option("--cascade-estimator", help=f"F per level: {', '.join(ESTIMATORS)} (top8 = the paper).")]
+EstimatorOpt = Annotated[str, typer.Option("--estimator", "--cascade-estimator", help=f"How the cascade estimates F per level: {', '.join(ESTIMATORS)} (top8 = the paper).")]
 SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson thresholds in pixels for levels 0,1,2,3, comma-separated.")]
 RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
-
-
-def _floats(text: str | None, option: str) -> tuple[float, ...] | None:
-    if text is None:
-        return None
-    try:
-        return tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
-
-
-def _matcher_settings(matcher: str, estimator: str, sampson_px: str | None, ratio: str | None) -> dict:
-    return matcher_settings(matcher, estimator, _floats(sampson_px, "--sampson-px"), _floats(ratio, "--ratio"))
 
 
 def friendly_errors(command):
@@ -91,7 +78,7 @@ def match(
     weights: WeightsOpt = None,
     max_side: Annotated[Optional[int], typer.Option("--max-side", help="Resize so the longer side is at most N px.")] = None,
     device: DeviceOpt = "cpu",
-    cascade_estimator: EstimatorOpt = "top8",
+    estimator: EstimatorOpt = "top8",
     sampson_px: SampsonOpt = None,
     ratio: RatioOpt = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the robust estimators inside the matcher.")] = 0,
@@ -108,21 +95,21 @@ def match(
     else:
         img0, img1 = load_image(image0), load_image(image1)
         backbone = backbone or "vgg19"
+    method = MethodSpec.create(
+        matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
+        parse_numbers(ratio, "--ratio"), max_side or None, seed,
+    )
     t = time.perf_counter()
-    m = build_matcher(matcher, backbone, str(weights) if weights else None, device,
-                      settings=_matcher_settings(matcher, cascade_estimator, sampson_px, ratio))
+    m = method.build(device)
     t_load = time.perf_counter() - t
-    small0, s0 = resize_max_side(img0, max_side)
-    small1, s1 = resize_max_side(img1, max_side)
-    cv2.setRNGSeed(seed)  # cascade RANSAC and DFM's homography: the same matches on every run
-    result = m.match(small0, small1)
-    k0, k1 = to_original_pixels(result.keypoints0, s0), to_original_pixels(result.keypoints1, s1)
+    result = match_pair(m, img0, img1, method.max_side, method.seed_for_matching)
+    k0, k1 = result.keypoints0, result.keypoints1
 
     out.mkdir(parents=True, exist_ok=True)
     np.savez(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
     correct = None
     if H is not None:
-        correct = np.linalg.norm(geometry.warp_points(H, k0) - k1, axis=1) <= 3.0
+        correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), result, EvalSettings())
     save_image(out / "matches.png", draw_matches(img0, img1, k0, k1, correct=correct, max_lines=500))
 
     console.print(f"[bold]{len(k0)} matches[/] ({m.name}, {backbone if matcher in NEEDS_BACKBONE else 'no backbone'}) -> {out}/matches.npz, matches.png")
@@ -140,22 +127,20 @@ def match(
     console.print("time per stage (s): " + ", ".join(f"{k} {v:.3f}" for k, v in timings.items()))
 
 
-def _benchmark_command(benchmark: str, dataset_options: dict, opts: dict) -> None:
-    torch.manual_seed(opts["seed"])
-    dataset = make_dataset(benchmark, opts["root"], skip_missing=opts["skip_missing"], **dataset_options)
-    n_total = len(dataset) + dataset.n_skipped
-    console.print(
-        f"{benchmark}: {len(dataset)} pairs"
-        + (f" ({dataset.n_skipped} of {n_total} skipped: images missing)" if dataset.n_skipped else "")
-        + (f", limited to the first {opts['limit']}" if opts["limit"] else "")
+def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
+            sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None) -> MethodSpec:
+    """The method of a benchmark command; --max-side unset takes the benchmark's default resize."""
+    return MethodSpec.create(
+        matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
+        get_benchmark(benchmark).max_side(max_side), seed, label,
     )
-    run_method(
-        benchmark, dataset, opts["out"], matcher=opts["matcher"], backbone=opts["backbone"],
-        weights=str(opts["weights"]) if opts["weights"] else None, device=opts["device"],
-        settings=_matcher_settings(opts["matcher"], opts["cascade_estimator"], opts["sampson_px"], opts["ratio"]),
-        max_side=opts["max_side"], limit=opts["limit"], seed=opts["seed"], overwrite=opts["overwrite"],
-        eval_only=opts["eval_only"], viz=opts["viz"], label=opts["label"], ransac_px=opts["ransac_px"], console=console,
-    )
+
+
+def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_missing: bool,
+         seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str) -> None:
+    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px)
+    run_benchmark(benchmark, out, method, root=root, dataset_options=dataset_options, skip_missing=skip_missing, ev=ev,
+                  limit=limit, overwrite=overwrite, eval_only=eval_only, viz=viz, device=device, console=console)
 
 
 # Options of the three benchmark commands.
@@ -178,13 +163,14 @@ def hpatches(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    cascade_estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
-    _benchmark_command("hpatches", {"exclude_large": exclude_large, "sequences": sequences}, locals())
+    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -193,12 +179,13 @@ def megadepth(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    cascade_estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
-    _benchmark_command("megadepth", {"scene_info": scene_info}, locals())
+    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -207,12 +194,13 @@ def yfcc(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    cascade_estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
-    _benchmark_command("yfcc", {"pairs": pairs}, locals())
+    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    _run("yfcc", method, root, out, {"pairs": pairs}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -251,9 +239,5 @@ def reproduce(
                          skip_missing=skip_missing, max_side=max_side, compare=compare, console=console)
 
 
-def main() -> None:  # pragma: no cover - console entry point alias
-    app()
-
-
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(app())
+    app()

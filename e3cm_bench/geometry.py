@@ -23,34 +23,31 @@ def to_homogeneous(points: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- F
 
 
-def fundamental_8point(x0: np.ndarray, x1: np.ndarray) -> np.ndarray | None:
-    """Normalised 8-point fundamental matrix (rank 2) from >= 8 correspondences.
+# OpenCV's method flag for each way of estimating F.
+_F_METHODS = {"8point": cv2.FM_8POINT, "ransac": cv2.FM_RANSAC, "prosac": cv2.USAC_PROSAC}
 
-    Returns None for fewer than 8 points or a degenerate configuration.
+
+def estimate_fundamental(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    method: str = "8point",
+    threshold_px: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 2000,
+) -> np.ndarray | None:
+    """Fundamental matrix from >= 8 correspondences; None when too few or degenerate.
+
+    method: '8point' (normalised 8-point on all points, rank 2), 'ransac' (OpenCV RANSAC,
+    Sampson threshold in pixels) or 'prosac' (PROSAC: the points must come best first).
     """
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     x1 = np.ascontiguousarray(x1, dtype=np.float64)
     if len(x0) < 8:
         return None
-    F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_8POINT)
-    if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
-        return None
-    return F
-
-
-def fundamental_ransac(
-    x0: np.ndarray,
-    x1: np.ndarray,
-    threshold_px: float,
-    confidence: float = 0.999,
-    max_iters: int = 2000,
-) -> np.ndarray | None:
-    """Robust fundamental matrix (OpenCV RANSAC, Sampson error threshold in pixels)."""
-    x0 = np.ascontiguousarray(x0, dtype=np.float64)
-    x1 = np.ascontiguousarray(x1, dtype=np.float64)
-    if len(x0) < 8:
-        return None
-    F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_RANSAC, threshold_px, confidence, max_iters)
+    if method == "8point":
+        F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_8POINT)
+    else:
+        F, _ = cv2.findFundamentalMat(x0, x1, _F_METHODS[method], threshold_px, confidence, max_iters)
     if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
         return None
     return F

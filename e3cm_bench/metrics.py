@@ -121,6 +121,15 @@ def pose_error(
     return rotation_angle_deg(R, T_0to1[:3, :3]), translation_angle_deg(t, T_0to1[:3, 3])
 
 
+def epipolar_distances(
+    kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.ndarray, T_0to1: np.ndarray
+) -> np.ndarray:
+    """Squared symmetric epipolar distance of each match to the true E, in normalised coordinates."""
+    T_0to1 = np.asarray(T_0to1, dtype=np.float64)
+    E = essential_from_pose(T_0to1[:3, :3], T_0to1[:3, 3])
+    return symmetric_epipolar_distance(E, normalize_keypoints(kpts0, K0), normalize_keypoints(kpts1, K1))
+
+
 def epipolar_precision(
     kpts0: np.ndarray,
     kpts1: np.ndarray,
@@ -134,11 +143,7 @@ def epipolar_precision(
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     if len(kpts0) == 0:
         return {t: 0.0 for t in thresholds}
-    T_0to1 = np.asarray(T_0to1, dtype=np.float64)
-    E = essential_from_pose(T_0to1[:3, :3], T_0to1[:3, 3])
-    distances = symmetric_epipolar_distance(
-        E, normalize_keypoints(kpts0, K0), normalize_keypoints(kpts1, K1)
-    )
+    distances = epipolar_distances(kpts0, kpts1, K0, K1, T_0to1)
     return {t: float(np.mean(distances < t)) for t in thresholds}
 
 
@@ -151,8 +156,9 @@ def evaluate_pose_pair(
     seed: int,
     ransac_threshold: float = 0.5,
     confidence: float = 0.99999,
+    precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS,
 ) -> dict:
-    """One pose row: n_matches, err_R, err_t, err_pose (max of both), precision@1e-4, @5e-4."""
+    """One pose row: n_matches, err_R, err_t, err_pose (max of both), precision@t for each t."""
     kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
@@ -161,9 +167,22 @@ def evaluate_pose_pair(
     R, t = (estimate[0], estimate[1]) if estimate is not None else (None, None)
     row["err_R"], row["err_t"] = pose_error(T_0to1, R, t)
     row["err_pose"] = max(row["err_R"], row["err_t"])
-    for threshold, value in epipolar_precision(kpts0, kpts1, K0, K1, T_0to1).items():
+    for threshold, value in epipolar_precision(kpts0, kpts1, K0, K1, T_0to1, precision_thresholds).items():
         row[precision_key(threshold)] = value
     return row
+
+
+def pose_error_curve(errors: Iterable[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Points of the cumulative pose-error curve: (0, 0), then (e_k, k / N) for finite e_k.
+
+    N counts failures (inf / NaN errors) too, so they lower the curve without ever
+    appearing on it. Joined by straight lines, this is the curve whose normalised area
+    is the AUC (PROTOCOLS §3); the plots draw the same points.
+    """
+    errors = np.asarray(list(errors), dtype=np.float64)
+    finite = np.sort(errors[np.isfinite(errors)])
+    recall = np.arange(1, len(finite) + 1) / max(len(errors), 1)
+    return np.concatenate([[0.0], finite]), np.concatenate([[0.0], recall])
 
 
 def pose_auc(
@@ -171,16 +190,14 @@ def pose_auc(
 ) -> list[float]:
     """Area under the recall-vs-error curve up to each threshold, in percent (PROTOCOLS §3).
 
-    Recall after the k-th smallest error is k/N; the curve starts at (0, 0), is linear
-    between points (trapezoid rule) and flat after the last error within the threshold.
-    Failures (inf or NaN) count in N and never reach any threshold. NaN for no errors.
+    The curve (``pose_error_curve``) is linear between points (trapezoid rule) and flat
+    after the last error within the threshold. Failures count in N and never reach any
+    threshold. NaN for no errors.
     """
-    errors = np.asarray(list(errors), dtype=np.float64)
+    errors = list(errors)
     if len(errors) == 0:
         return [float("nan")] * len(thresholds)
-    errors = np.sort(np.where(np.isnan(errors), np.inf, errors))
-    curve_errors = np.concatenate([[0.0], errors])
-    curve_recall = np.arange(len(curve_errors)) / len(errors)
+    curve_errors, curve_recall = pose_error_curve(errors)
     aucs = []
     for threshold in thresholds:
         # Points with error <= threshold are on the curve; then hold that recall to the threshold.
@@ -227,14 +244,14 @@ def summarize_hpatches(rows: Iterable[Mapping]) -> dict:
     return summary
 
 
-def summarize_pose(rows: Iterable[Mapping]) -> dict:
+def summarize_pose(rows: Iterable[Mapping], precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS) -> dict:
     """n_pairs, mean #matches, AUC@5/10/20 of err_pose and mean precision, both in percent."""
     rows = list(rows)
     summary = {"n_pairs": len(rows), "n_matches": _mean(r["n_matches"] for r in rows)}
     aucs = pose_auc([r["err_pose"] for r in rows], POSE_AUC_THRESHOLDS)
     for threshold, auc in zip(POSE_AUC_THRESHOLDS, aucs):
         summary[f"auc@{threshold}"] = auc
-    for threshold in PRECISION_THRESHOLDS:
+    for threshold in precision_thresholds:
         key = precision_key(threshold)
         summary[key] = 100.0 * _mean(r[key] for r in rows)
     return summary

@@ -1,10 +1,9 @@
-"""The one loop where datasets, matchers, the match cache and the metrics meet.
+"""The one place where datasets, matchers, the match cache and the metrics meet.
 
-pairs -> (cached? skip : load, resize, match, map back to original pixels, cache) ->
-evaluate every pair from matches.h5 -> per_pair.csv, summary.csv, plots, config.yaml.
-
-Everything that reaches a CSV is recomputed from matches.h5 plus the ground truth, so
-`--eval-only` (new RANSAC or precision settings) needs no matcher, and an interrupted run
+run_benchmark = check the folder -> match stage (pairs -> matches.h5) -> evaluate stage
+(matches.h5 + ground truth -> per-pair rows -> summary) -> reports (CSVs, plots, --viz,
+config.yaml). Everything that reaches a CSV is recomputed from matches.h5 plus the ground
+truth, so `--eval-only` is the same run without the match stage, and an interrupted run
 resumes at the first pair missing from the cache.
 """
 
@@ -12,9 +11,8 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -23,48 +21,62 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.text import Text
 
-from . import geometry, metrics, report
+from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import MatchCache
-from .config import load_yaml, package_versions, save_yaml
-from .datasets.base import Pair
+from .datasets.base import Pair, PairList
+from .files import load_yaml, package_versions, save_yaml, write_csv
 from .images import load_image, resize_max_side, to_original_pixels
-from .matchers.base import Matcher, Matches
+from .matchers.base import Matcher
+from .matches import Matches
+from .method import MethodSpec
+from .report import print_summary
 from .viz import draw_matches, save_image
 
-DEFAULT_MAX_SIDE = {"hpatches": None, "megadepth": 1200, "yfcc": 1200}
 CONFIG_FILE = "config.yaml"
 CACHE_FILE = "matches.h5"
+# What match_pair adds to a result's info and the cache keeps next to each pair's matches.
+PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 
 
-@dataclass
-class EvalSettings:
-    """Estimator settings of the metrics (PROTOCOLS §2-3); changeable with --eval-only."""
-
-    seed: int = 0
-    homography_ransac_px: float = 3.0
-    homography_max_iters: int = 5000
-    homography_confidence: float = 0.9999
-    pose_ransac_px: float = 0.5
-    pose_confidence: float = 0.99999
-    precision_thresholds: tuple[float, ...] = metrics.PRECISION_THRESHOLDS
-    correct_px: float = 3.0  # --viz: a HPatches match is drawn green within this reprojection error
+# --------------------------------------------------------------------------- one pair
 
 
-@dataclass
-class RunSpec:
-    """One benchmark run. `match_options` identify the matches (what the cache depends on)."""
+def match_pair(
+    matcher: Matcher, image0: str | Path | np.ndarray, image1: str | Path | np.ndarray,
+    max_side: int | None = None, seed: int = 0,
+) -> Matches:
+    """Match two images (paths or H x W x 3 RGB uint8 arrays); keypoints in original pixels.
 
-    benchmark: str
-    out: Path
-    method: str
-    match_options: dict
-    max_side: int | None = None
-    limit: int | None = None
-    overwrite: bool = False
-    eval_only: bool = False
-    viz: int = 0
-    device: str = "cpu"  # recorded, not part of match_options: it does not change what is matched
-    eval: EvalSettings = field(default_factory=EvalSettings)
+    The images are shrunk so the longer side is at most `max_side` (None: full size),
+    matched, and the keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
+    matchers with a RANSAC inside give the same matches every time. ``info`` holds the
+    matcher's diagnostics plus size0/size1 (original w, h), match_size0/1 and match_seconds.
+    """
+    image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
+    image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
+    small0, scale0 = resize_max_side(image0, max_side)
+    small1, scale1 = resize_max_side(image1, max_side)
+    cv2.setRNGSeed(int(seed))
+    t = time.perf_counter()
+    m = matcher.match(small0, small1)
+    info = {
+        **m.info,
+        "size0": (image0.shape[1], image0.shape[0]),
+        "size1": (image1.shape[1], image1.shape[0]),
+        "match_size0": (small0.shape[1], small0.shape[0]),
+        "match_size1": (small1.shape[1], small1.shape[0]),
+        "match_seconds": time.perf_counter() - t,
+    }
+    return Matches(to_original_pixels(m.keypoints0, scale0), to_original_pixels(m.keypoints1, scale1), m.scores, info)
+
+
+def match_cached_pair(matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache) -> None:
+    """Match one pair of a benchmark and store it (the step an interrupted run repeats)."""
+    matches = match_pair(matcher, pair.image0, pair.image1, method.max_side, method.seed_for_matching)
+    cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
+
+
+# --------------------------------------------------------------------------- progress
 
 
 class RateColumn(ProgressColumn):
@@ -82,68 +94,69 @@ def progress_bar(console: Console) -> Progress:
     )
 
 
-def match_pair(matcher: Matcher, pair: Pair, max_side: int | None, seed: int) -> tuple[Matches, dict]:
-    """Load, resize, match and map back to original pixels; attrs for the cache."""
-    image0, image1 = load_image(pair.image0), load_image(pair.image1)
-    small0, scale0 = resize_max_side(image0, max_side)
-    small1, scale1 = resize_max_side(image1, max_side)
-    cv2.setRNGSeed(seed)  # robust estimators inside a matcher (cascade RANSAC, DFM) repeat per pair
-    t = time.perf_counter()
-    m = matcher.match(small0, small1)
-    elapsed = time.perf_counter() - t
-    matches = Matches(to_original_pixels(m.keypoints0, scale0), to_original_pixels(m.keypoints1, scale1), m.scores, m.info)
-    attrs = {
-        "size0": (image0.shape[1], image0.shape[0]),
-        "size1": (image1.shape[1], image1.shape[0]),
-        "match_size0": (small0.shape[1], small0.shape[0]),
-        "match_size1": (small1.shape[1], small1.shape[0]),
-        "match_seconds": elapsed,
-    }
-    return matches, attrs
+# --------------------------------------------------------------------------- stages
 
 
-def evaluate_pair(benchmark: str, pair: Pair, matches: Matches, attrs: dict, ev: EvalSettings) -> dict:
-    """One per_pair.csv row from cached matches and the ground truth."""
-    k0, k1 = matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64)
-    if benchmark == "hpatches":
-        width, height = (int(v) for v in attrs["size0"])
-        row = metrics.evaluate_homography_pair(
-            k0, k1, pair.H, width, height, seed=ev.seed, ransac_threshold=ev.homography_ransac_px,
-            max_iters=ev.homography_max_iters, confidence=ev.homography_confidence,
+def match_stage(
+    method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
+) -> dict:
+    """Build the matcher, match the pairs not yet cached, write each to the cache.
+
+    on_matcher(matcher) runs once the model is loaded (the runner records its settings).
+    Returns the time spent and the number of pairs matched.
+    """
+    matcher = method.build(device)
+    if on_matcher is not None:
+        on_matcher(matcher)
+    t0 = time.perf_counter()
+    with progress_bar(console) as progress:
+        task = progress.add_task(f"matching ({method.label})", total=len(todo))
+        for pair in todo:
+            match_cached_pair(matcher, pair, method, cache)
+            progress.advance(task)
+    return {"match_seconds": time.perf_counter() - t0, "pairs_matched": len(todo)}
+
+
+def evaluate_stage(
+    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
+) -> tuple[pd.DataFrame, dict]:
+    """Every pair's row from its cached matches and ground truth, and the summary of the rows."""
+    rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
+    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), benchmark.summarize(rows, ev)
+
+
+def write_reports(
+    benchmark: Benchmark, out: Path, label: str, per_pair: pd.DataFrame, summary: dict,
+    pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
+) -> None:
+    """per_pair.csv, summary.csv, the run's plot, and drawings of the first `viz` pairs."""
+    write_csv(per_pair, out / "per_pair.csv")
+    write_csv(pd.DataFrame([summary]), out / "summary.csv")
+    benchmark.plot_run(label, summary, per_pair, out)
+    for pair in pairs[:viz]:
+        matches = cache.read(pair.name)
+        canvas = draw_matches(
+            load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
+            correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
         )
-        return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
-    row = metrics.evaluate_pose_pair(
-        k0, k1, pair.K0, pair.K1, pair.T_0to1, seed=ev.seed,
-        ransac_threshold=ev.pose_ransac_px, confidence=ev.pose_confidence,
-    )
-    return {"pair": pair.name, **row}
+        save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
 
 
-def correct_mask(benchmark: str, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
-    """Which matches are right by the ground truth (for --viz; green/red like the paper's Fig. 6)."""
-    if benchmark == "hpatches":
-        err = np.linalg.norm(geometry.warp_points(pair.H, matches.keypoints0) - matches.keypoints1, axis=1)
-        return err <= ev.correct_px
-    R, t = pair.T_0to1[:3, :3], pair.T_0to1[:3, 3]
-    d = geometry.symmetric_epipolar_distance(
-        geometry.essential_from_pose(R, t),
-        geometry.normalize_keypoints(matches.keypoints0, pair.K0),
-        geometry.normalize_keypoints(matches.keypoints1, pair.K1),
-    )
-    return d < ev.precision_thresholds[0]
+# --------------------------------------------------------------------------- a run
 
 
-def _check_previous_run(out: Path, spec: RunSpec) -> dict | None:
+def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark, eval_only: bool) -> dict | None:
     """The config of matches already in `out`; refuse to mix matches made differently."""
     path = out / CONFIG_FILE
     if not path.exists():
         return None
     previous = load_yaml(path)
-    before = previous.get("match_options")
-    if spec.eval_only or before is None:
+    before = previous.get("identity")
+    if eval_only or before is None or method is None:
         return previous
-    changed = [k for k in sorted(set(before) | set(spec.match_options)) if before.get(k) != spec.match_options.get(k)]
-    if previous.get("benchmark") != spec.benchmark:
+    now = method.identity()
+    changed = [k for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k)]
+    if previous.get("benchmark") != benchmark.name:
         changed.insert(0, "benchmark")
     if changed:
         raise ValueError(
@@ -153,29 +166,61 @@ def _check_previous_run(out: Path, spec: RunSpec) -> dict | None:
     return previous
 
 
+def _clear(out: Path) -> None:
+    for name in (CACHE_FILE, CONFIG_FILE, "per_pair.csv", "summary.csv"):
+        (out / name).unlink(missing_ok=True)
+    shutil.rmtree(out / "viz", ignore_errors=True)
+
+
 def run_benchmark(
-    spec: RunSpec,
-    dataset,
-    make_matcher: Callable[[], Matcher],
+    benchmark: str | Benchmark,
+    out: str | Path,
+    method: MethodSpec | None = None,
+    *,
+    root: str | Path | None = None,
+    dataset: PairList | None = None,
+    dataset_options: dict | None = None,
+    skip_missing: bool = False,
+    ev: EvalSettings | None = None,
+    limit: int | None = None,
+    overwrite: bool = False,
+    eval_only: bool = False,
+    viz: int = 0,
+    device: str = "cpu",
     console: Console | None = None,
-) -> dict:
-    """Run (or resume, or only evaluate) one benchmark; returns the summary row."""
+) -> pd.DataFrame:
+    """Run (or resume, or only evaluate) one method on one benchmark; returns summary.csv's row.
+
+    The pairs come from `dataset`, or from the benchmark's dataset at `root` with
+    `dataset_options`. `method` may be None only with eval_only (the folder's own is used).
+    """
     console = console or Console()
-    out = Path(spec.out)
-    if spec.overwrite and out.exists():
-        for name in (CACHE_FILE, CONFIG_FILE, "per_pair.csv", "summary.csv"):
-            (out / name).unlink(missing_ok=True)
-        shutil.rmtree(out / "viz", ignore_errors=True)
+    benchmark = get_benchmark(benchmark)
+    ev = ev or EvalSettings()
+    out = Path(out)
+    if method is None and not eval_only:
+        raise ValueError("run_benchmark: a method is needed unless eval_only")
+    if dataset is None:
+        if root is None:
+            raise ValueError("run_benchmark: give the dataset or its root")
+        dataset = benchmark.load_dataset(root, skip_missing=skip_missing, **(dataset_options or {}))
+    n_total = len(dataset) + dataset.n_skipped
+    console.print(
+        f"{benchmark.name}: {len(dataset)} pairs"
+        + (f" ({dataset.n_skipped} of {n_total} skipped: images missing)" if dataset.n_skipped else "")
+        + (f", limited to the first {limit}" if limit else "")
+    )
+
+    if overwrite and out.exists():
+        _clear(out)
     out.mkdir(parents=True, exist_ok=True)
-    previous = _check_previous_run(out, spec)
-    pairs = list(dataset)[: spec.limit] if spec.limit else list(dataset)
+    previous = _previous_config(out, method, benchmark, eval_only)
+    pairs = list(dataset)[:limit] if limit else list(dataset)
     cache = MatchCache(out / CACHE_FILE)
     done = set(cache.names())  # one pass over the file, not one open per pair
     todo = [p for p in pairs if p.name not in done]
 
-    match_options = spec.match_options
-    matcher_config = (previous or {}).get("matcher")
-    if spec.eval_only:
+    if eval_only:
         if previous is None:
             raise ValueError(f"{out / CONFIG_FILE}: not found; --eval-only needs a finished or resumed run in --out")
         if todo:
@@ -183,65 +228,39 @@ def run_benchmark(
                 f"{out / CACHE_FILE}: {len(todo)} of {len(pairs)} pairs have no matches (first: {todo[0].name}); "
                 "run without --eval-only to match them"
             )
-        match_options = previous.get("match_options", match_options)
-
+    # What the matches are comes from the folder when only evaluating, else from the method.
+    source = previous if eval_only else None
     config = {
-        "benchmark": spec.benchmark,
-        "method": spec.method if not spec.eval_only else previous.get("method", spec.method),
-        "match_options": match_options,
-        "matcher": matcher_config,
-        "max_side": match_options.get("max_side", spec.max_side),
-        "device": spec.device if not spec.eval_only else previous.get("device", spec.device),
-        "dataset": {**dataset.describe(), "limit": spec.limit, "n_pairs_evaluated": len(pairs)},
-        "evaluation": asdict(spec.eval),
+        "benchmark": benchmark.name,
+        "method": source["method"] if source else method.label,
+        "identity": source.get("identity") if source else method.identity(),
+        "matcher": (previous or {}).get("matcher"),
+        "device": source.get("device", device) if source else device,
+        "dataset": {**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
+        "evaluation": asdict(ev),
         "versions": package_versions(),
         "timing": (previous or {}).get("timing", {}),
     }
 
     if todo:
-        console.print(f"[bold]{spec.benchmark}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {out / CACHE_FILE}")
-        matcher = make_matcher()
-        config["matcher"] = matcher.config()
-        save_yaml(config, out / CONFIG_FILE)  # before matching: an interrupted run is still described
-        t0 = time.perf_counter()
-        with progress_bar(console) as progress:
-            task = progress.add_task(f"matching ({spec.method})", total=len(todo))
-            for pair in todo:
-                matches, attrs = match_pair(matcher, pair, spec.max_side, spec.eval.seed)
-                cache.write(pair.name, matches, attrs)
-                progress.advance(task)
-        elapsed = time.perf_counter() - t0
+        console.print(method.describe())
+        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {out / CACHE_FILE}")
+        save_yaml(config, out / CONFIG_FILE)  # before the model loads: the folder is claimed and described
+
+        def record_matcher(matcher: Matcher) -> None:
+            config["matcher"] = matcher.config()
+            save_yaml(config, out / CONFIG_FILE)
+
+        spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher)
         timing = config["timing"]
-        timing["match_seconds"] = timing.get("match_seconds", 0.0) + elapsed
-        timing["pairs_matched"] = timing.get("pairs_matched", 0) + len(todo)
+        for key, value in spent.items():
+            timing[key] = timing.get(key, 0) + value
         timing["pairs_per_minute"] = 60.0 * timing["pairs_matched"] / max(timing["match_seconds"], 1e-9)
     else:
-        console.print(f"[bold]{spec.benchmark}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
+        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
 
-    rows = []
-    for pair in pairs:
-        matches = cache.read(pair.name)
-        rows.append(evaluate_pair(spec.benchmark, pair, matches, matches.info, spec.eval))
-    if spec.benchmark == "hpatches":
-        per_pair = pd.DataFrame(rows, columns=metrics.HPATCHES_PAIR_COLUMNS)
-        summary = metrics.summarize_hpatches(rows)
-    else:
-        per_pair = pd.DataFrame(rows, columns=metrics.POSE_PAIR_COLUMNS)
-        summary = metrics.summarize_pose(rows)
-    report.write_csv(per_pair, out / "per_pair.csv")
-    report.write_csv(pd.DataFrame([summary]), out / "summary.csv")
-    label = config["method"]
-    if spec.benchmark == "hpatches":
-        report.plot_mma_curves({label: summary}, out / "mma.png")
-    else:
-        report.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
-    for pair in pairs[: spec.viz]:
-        matches = cache.read(pair.name)
-        canvas = draw_matches(
-            load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
-            correct=correct_mask(spec.benchmark, pair, matches, spec.eval), max_lines=400,
-        )
-        save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
+    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+    write_reports(benchmark, out, config["method"], per_pair, summary, pairs, cache, ev, viz)
     save_yaml(config, out / CONFIG_FILE)
-    report.print_summary(summary, f"{spec.benchmark} - {label} ({len(pairs)} pairs) -> {out}", console=console)
-    return summary
+    print_summary(summary, f"{benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
+    return pd.DataFrame([summary])

@@ -7,10 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# Re-exported so that scripts drawing matches need a single import for file handling.
-from e3cm_bench.images import load_image, resize_max_side, to_original_pixels
-
-__all__ = ["draw_matches", "save_image", "load_image", "resize_max_side", "to_original_pixels"]
 
 GREEN = (0, 255, 0)  # RGB: the canvas is RGB, and cv2 drawing just writes channel values
 RED = (255, 0, 0)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.matchers.base import Matches
+from e3cm_bench.matches import Matches
 
 
 def make_matches(n: int, seed: int = 0) -> Matches:

@@ -23,10 +23,10 @@ import torch
 import yaml
 from typer.testing import CliRunner
 
-import e3cm_bench.cli as cli_module
 import e3cm_bench.runner as runner_module
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.cli import app
+from e3cm_bench.method import MethodSpec
 from helpers import flat, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
@@ -186,7 +186,7 @@ def test_hpatches_end_to_end_config(hpatches_run, hpatches_root):
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["benchmark"] == "hpatches"
     assert config["method"] == "e3cm-efficientnet_lite0"
-    options = config["match_options"]
+    options = config["identity"]
     assert options["matcher"] == "e3cm" and options["backbone"] == "efficientnet_lite0"
     assert options["max_side"] == 320 and options["weights"] is None
     assert options["settings"]["estimator"] == "top8"
@@ -195,7 +195,7 @@ def test_hpatches_end_to_end_config(hpatches_run, hpatches_root):
     assert matcher["cascade"] is True and matcher["estimator"] == "top8"
     assert len(matcher["ratio"]) == 5 and len(matcher["sampson_px"]) == 4
     assert re.search(r"efficientnet-lite0.*\.pth sha256:[0-9a-f]{16}$", matcher["weights"]), matcher["weights"]
-    assert config["max_side"] == 320
+    assert config["identity"]["max_side"] == 320
     assert config["device"] == "cpu"
     assert config["evaluation"]["seed"] == 0
     assert config["evaluation"]["homography_ransac_px"] == 3.0
@@ -243,12 +243,9 @@ def no_matching(monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("a matcher was built / a pair was matched")
 
-    monkeypatch.setattr(cli_module, "build_matcher", boom)
-    # The benchmark commands reach build_matcher through e3cm_bench.experiments.run_method.
-    import e3cm_bench.experiments as experiments_module
-
-    monkeypatch.setattr(experiments_module, "build_matcher", boom, raising=False)
-    monkeypatch.setattr(runner_module, "match_pair", boom)
+    # Every command builds its matcher through MethodSpec.build and matches through the runner.
+    monkeypatch.setattr(MethodSpec, "build", boom)
+    monkeypatch.setattr(runner_module, "match_cached_pair", boom)
 
 
 def test_eval_only_recomputes_from_the_cache(hpatches_run, hpatches_root, tmp_path, monkeypatch):
@@ -270,7 +267,7 @@ def test_eval_only_recomputes_from_the_cache(hpatches_run, hpatches_root, tmp_pa
     assert not np.array_equal(after["h_error"].to_numpy(), before["h_error"].to_numpy())
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["evaluation"]["homography_ransac_px"] == 1.0
-    assert config["match_options"]["matcher"] == "e3cm"  # the matches' settings are kept
+    assert config["identity"]["matcher"] == "e3cm"  # the matches' settings are kept
     summary = read_csv(out / "summary.csv").iloc[0]
     assert summary["h_acc@5"] == pytest.approx((after["h_error"] <= 5).mean())
 
@@ -297,14 +294,14 @@ def test_other_matcher_needs_overwrite(hpatches_run, hpatches_root, tmp_path):
     line = one_line_error(invoke(*hpatches_args(hpatches_root, out, "--matcher", "direct")))
     assert str(out / "config.yaml") in line and "matcher" in line and "--overwrite" in line
     assert len(MatchCache(out / "matches.h5").names()) == 6  # nothing was touched
-    assert yaml.safe_load((out / "config.yaml").read_text())["match_options"]["matcher"] == "e3cm"
+    assert yaml.safe_load((out / "config.yaml").read_text())["identity"]["matcher"] == "e3cm"
 
     ok("hpatches", "--root", hpatches_root, "--out", out, *LITE, "--max-side", 320, "--limit", 1,
        "--matcher", "direct", "--overwrite")
     assert MatchCache(out / "matches.h5").names() == ["i_leuven/1-2"]  # the old matches are gone
     assert not (out / "viz").exists()
     config = yaml.safe_load((out / "config.yaml").read_text())
-    assert config["match_options"]["matcher"] == "direct" and config["matcher"]["cascade"] is False
+    assert config["identity"]["matcher"] == "direct" and config["matcher"]["cascade"] is False
     assert list(read_csv(out / "per_pair.csv")["pair"]) == ["i_leuven/1-2"]
 
 
@@ -345,7 +342,7 @@ def test_megadepth_kitti_end_to_end(megadepth_root, kitti_npz, tmp_path):
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["dataset"]["scene_info"] == [str(kitti_npz)]
     assert config["dataset"]["n_pairs"] == 31 and config["dataset"]["n_pairs_evaluated"] == 6
-    assert config["max_side"] == 640 and config["evaluation"]["pose_ransac_px"] == 0.5
+    assert config["identity"]["max_side"] == 640 and config["evaluation"]["pose_ransac_px"] == 0.5
 
 
 def test_megadepth_missing_images(megadepth_root, tmp_path):
@@ -428,13 +425,13 @@ def kitti_reference(megadepth_root, kitti_npz, tmp_path_factory) -> Path:
 def count_matching(monkeypatch) -> list[str]:
     """Record the pairs that get matched (the real matching still runs)."""
     matched: list[str] = []
-    real = runner_module.match_pair
+    real = runner_module.match_cached_pair
 
     def spy(matcher, pair, *args, **kwargs):
         matched.append(pair.name)
         return real(matcher, pair, *args, **kwargs)
 
-    monkeypatch.setattr(runner_module, "match_pair", spy)
+    monkeypatch.setattr(runner_module, "match_cached_pair", spy)
     return matched
 
 
@@ -467,7 +464,7 @@ def test_resume_matches_only_new_pairs(megadepth_root, kitti_npz, kitti_referenc
 
 def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp_path, monkeypatch):
     out = tmp_path / "run"
-    real = runner_module.match_pair
+    real = runner_module.match_cached_pair
     calls: list[str] = []
 
     def interrupted_on_third(matcher, pair, *args, **kwargs):
@@ -476,7 +473,7 @@ def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp
             raise KeyboardInterrupt
         return real(matcher, pair, *args, **kwargs)
 
-    monkeypatch.setattr(runner_module, "match_pair", interrupted_on_third)
+    monkeypatch.setattr(runner_module, "match_cached_pair", interrupted_on_third)
     result = invoke(*kitti_args(megadepth_root, kitti_npz, out, 4))
     assert result.exit_code == 130, (result.output, result.exception)
     assert "interrupted" in result.stderr and "Traceback" not in result.output

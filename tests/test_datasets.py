@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.datasets import DATASETS, DatasetError, HPatches, MegaDepth1500, YFCC100M
+from e3cm_bench.benchmarks import BENCHMARKS
+from e3cm_bench.datasets import DatasetError, HPatches, MegaDepth1500, YFCC100M
 from e3cm_bench.geometry import warp_points
 from e3cm_bench.metrics import evaluate_pose_pair
 
@@ -21,7 +22,7 @@ def touch(path: Path) -> Path:
 
 
 def test_registry_names():
-    assert DATASETS == {"hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M}
+    assert {name: b.dataset for name, b in BENCHMARKS.items()} == {"hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M}
 
 
 # --------------------------------------------------------------------------- HPatches
@@ -41,8 +42,8 @@ def test_hpatches_pairs_names_and_ground_truth(hpatches_root: Path):
     boat = pairs[5]
     assert boat.image0 == hpatches_root / "v_boat" / "1.ppm"
     assert boat.image1 == hpatches_root / "v_boat" / "2.ppm"
-    assert boat.meta == {"sequence": "v_boat", "split": "v"}
-    assert pairs[0].meta == {"sequence": "i_leuven", "split": "i"}
+    assert boat.meta == {"sequence": "v_boat"}
+    assert pairs[0].meta == {"sequence": "i_leuven"}
     np.testing.assert_array_equal(boat.H, np.loadtxt(hpatches_root / "v_boat" / "H_1_2"))
     # The centre of image 1 lands inside image 2.
     height0, width0 = cv2.imread(str(boat.image0), cv2.IMREAD_GRAYSCALE).shape
@@ -55,7 +56,7 @@ def test_hpatches_pairs_names_and_ground_truth(hpatches_root: Path):
 def test_hpatches_sequence_filter(hpatches_root: Path):
     viewpoint = HPatches(hpatches_root, sequences=["v_*"])
     assert len(viewpoint) == 10
-    assert {p.meta["split"] for p in viewpoint} == {"v"}
+    assert {p.meta["sequence"][:2] for p in viewpoint} == {"v_"}
     assert len(HPatches(hpatches_root, sequences=["i_leuven", "v_boat"])) == 10
     assert len(HPatches(hpatches_root, sequences="v_boat")) == 5
     with pytest.raises(DatasetError, match="v_nothing"):

@@ -19,7 +19,8 @@ from e3cm_bench.backbones import load_backbone
 from e3cm_bench.datasets.hpatches import HPatches
 from e3cm_bench.datasets.megadepth import MegaDepth1500
 from e3cm_bench.images import load_image
-from e3cm_bench.matchers.e3cm import E3CMMatcher, image_to_tensor
+from e3cm_bench.matchers.deep import image_to_tensor
+from e3cm_bench.matchers.e3cm import E3CMMatcher
 from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids
 
 # KITTI subset: the 11 pairs among frames 100, 103, ..., 118 (3 and 6 frames apart), so only

@@ -10,7 +10,8 @@ import yaml
 from typer.testing import CliRunner
 
 from e3cm_bench.cli import app
-from e3cm_bench.experiments import load_experiment, method_identity
+from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.experiments import experiment_method, load_experiment
 from helpers import one_line_error
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -111,15 +112,17 @@ def test_reproduce_runs_every_method_and_writes_the_table(tmp_path, shared_data)
 
 def test_default_labels_follow_backbone_and_estimator(tmp_path):
     config = tmp_path / "variants.yaml"
-    methods = [{"matcher": "e3cm"}, {"matcher": "e3cm", "cascade_estimator": "ransac"},
+    methods = [{"matcher": "e3cm"}, {"matcher": "e3cm", "estimator": "ransac"},
                {"matcher": "e3cm", "backbone": "densenet161"}]
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": methods}))
     experiment = load_experiment(config)
-    labels = [method_identity(m, experiment)[2] for m in experiment["methods"]]
+    hpatches = get_benchmark("hpatches")
+    labels = [experiment_method(m, experiment, hpatches).label for m in experiment["methods"]]
     assert labels == ["e3cm", "e3cm-ransac", "e3cm-densenet161"]
     # A backbone forced on every deep method is named in brackets where it differs.
-    assert method_identity(methods[0], experiment, "efficientnet_lite0") == ("efficientnet_lite0", "top8", "e3cm [efficientnet_lite0]")
-    assert method_identity({"matcher": "sift"}, experiment, "efficientnet_lite0")[2] == "sift"
+    forced = experiment_method(methods[0], experiment, hpatches, "efficientnet_lite0")
+    assert (forced.backbone, forced.settings_dict()["estimator"], forced.label) == ("efficientnet_lite0", "top8", "e3cm [efficientnet_lite0]")
+    assert experiment_method({"matcher": "sift"}, experiment, hpatches, "efficientnet_lite0").label == "sift"
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "e3cm"}, {"matcher": "e3cm"}]}))
     with pytest.raises(ValueError, match="two methods are labelled 'e3cm'"):
         load_experiment(config)

@@ -54,7 +54,7 @@ def algebraic(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("n, tol_px2", [(8, 1e-4), (30, 1e-8)])
 def test_fundamental_8point_fits_fit_points_and_fresh_points(n, tol_px2):
     x0, x1 = scene_points(n, seed=1)
-    F = geometry.fundamental_8point(x0, x1)
+    F = geometry.estimate_fundamental(x0, x1, "8point")
     assert F is not None and F.shape == (3, 3)
     y0, y1 = scene_points(200, seed=2)  # fresh points of the same scene, never seen by the fit
     for p0, p1 in ((x0, x1), (y0, y1)):
@@ -80,9 +80,9 @@ def test_fundamental_8point_fits_fit_points_and_fresh_points(n, tol_px2):
 
 def test_fundamental_8point_needs_8_points():
     x0, x1 = scene_points(7, seed=3)
-    assert geometry.fundamental_8point(x0, x1) is None
-    assert geometry.fundamental_8point(x0[:0], x1[:0]) is None
-    assert geometry.fundamental_ransac(x0, x1, 1.0) is None
+    assert geometry.estimate_fundamental(x0, x1, "8point") is None
+    assert geometry.estimate_fundamental(x0[:0], x1[:0], "8point") is None
+    assert geometry.estimate_fundamental(x0, x1, "ransac", 1.0) is None
 
 
 def test_fundamental_ransac_ignores_outliers():
@@ -93,7 +93,7 @@ def test_fundamental_ransac_ignores_outliers():
     import cv2
 
     cv2.setRNGSeed(0)
-    F = geometry.fundamental_ransac(x0, x1, threshold_px=0.5)
+    F = geometry.estimate_fundamental(x0, x1, "ransac", threshold_px=0.5)
     assert F is not None
     d = geometry.sampson_distance(F, x0, x1)
     assert np.max(d[20:]) < 0.25  # inliers within the 0.5 px threshold

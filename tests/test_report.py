@@ -11,7 +11,9 @@ import pytest
 import yaml
 from rich.console import Console
 
-from e3cm_bench import report
+from e3cm_bench import plots, report
+from e3cm_bench.files import write_csv
+from e3cm_bench.metrics import pose_error_curve
 
 PAPER_DIR = Path(__file__).resolve().parents[1] / "results" / "paper"
 PAPER_METHODS = [
@@ -79,7 +81,7 @@ def hpatches_run(tmp_path) -> report.Run:
 
 def test_load_run_reads_config_summary_and_per_pair(pose_runs):
     e3cm = pose_runs[0]
-    assert e3cm.benchmark == "megadepth"
+    assert e3cm.benchmark.name == "megadepth"
     assert e3cm.label == "e3cm"
     assert e3cm.config["matcher"] == {"ratio": 0.9}
     assert e3cm.summary["auc@5"] == 40.0
@@ -200,13 +202,13 @@ def test_write_paper_table_writes_csv_and_md(tmp_path, pose_runs):
 
 def test_write_csv_round_trips_inf_and_creates_parents(tmp_path):
     df = pd.DataFrame({"pair": ["a", "b"], "err_pose": [0.1 + 0.2, float("inf")]})
-    path = report.write_csv(df, tmp_path / "deep" / "per_pair.csv")
+    path = write_csv(df, tmp_path / "deep" / "per_pair.csv")
     assert path.read_text().splitlines() == ["pair,err_pose", "a,0.3", "b,inf"]
     assert math.isinf(pd.read_csv(path)["err_pose"].iloc[1])
 
 
 def test_interrupted_write_leaves_the_old_csv_intact(tmp_path, monkeypatch):
-    path = report.write_csv(pd.DataFrame({"x": [1.0]}), tmp_path / "summary.csv")
+    path = write_csv(pd.DataFrame({"x": [1.0]}), tmp_path / "summary.csv")
     before = path.read_text()
 
     def write_half_then_fail(self, target, **kwargs):
@@ -215,7 +217,7 @@ def test_interrupted_write_leaves_the_old_csv_intact(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pd.DataFrame, "to_csv", write_half_then_fail)
     with pytest.raises(KeyboardInterrupt):
-        report.write_csv(pd.DataFrame({"x": [2.0, 3.0]}), path)
+        write_csv(pd.DataFrame({"x": [2.0, 3.0]}), path)
     assert path.read_text() == before
     assert [p.name for p in tmp_path.iterdir()] == ["summary.csv"]  # no temporary file left behind
 
@@ -248,28 +250,61 @@ def assert_png(path: Path) -> None:
 
 
 def test_pose_error_curve_counts_failures_in_the_denominator():
-    x, y = report.pose_error_curve([12.0, 1.0, float("inf"), 3.0])
+    x, y = pose_error_curve([12.0, 1.0, float("inf"), 3.0])
     assert x.tolist() == [0.0, 1.0, 3.0, 12.0]
     assert y.tolist() == [0.0, 0.25, 0.5, 0.75]
 
 
 def test_plot_mma_curves_several_runs_and_single_run_with_nan_split(tmp_path, hpatches_run):
     several = {"dfm": hpatches_run.summary, "e3cm": hpatches_summary((0.5, 0.8, 0.9), n_matches=2100.0)}
-    assert_png(report.plot_mma_curves(several, tmp_path / "mma.png"))
+    assert_png(plots.plot_mma_curves(several, tmp_path / "mma.png"))
+    fig = plots.mma_figure(several)
+    axes = fig.axes
+    assert [ax.get_title() for ax in axes] == ["Overall", "Illumination", "Viewpoint"]
+    # One line per run in each panel, drawn through the run's MMA values at 1..10 px.
+    for ax, suffix in zip(axes, ("", "_i", "_v")):
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert set(lines) == {"dfm", "e3cm"}
+        assert lines["e3cm"].get_xdata().tolist() == list(range(1, 11))
+        expected = [several["e3cm"][f"mma@{t}{suffix}"] for t in range(1, 11)]
+        assert lines["e3cm"].get_ydata().tolist() == pytest.approx(expected)
+    legend = [text.get_text() for text in fig.legends[0].get_texts()]
+    assert legend == [f"dfm ({hpatches_run.summary['n_matches']:.0f} matches)", "e3cm (2100 matches)"]
+
     illumination_only = {"e3cm": hpatches_summary((0.5, 0.8, 0.9), with_viewpoint=False)}
-    assert_png(report.plot_mma_curves(illumination_only, tmp_path / "plots" / "mma_single.png"))
+    assert_png(plots.plot_mma_curves(illumination_only, tmp_path / "plots" / "mma_single.png"))
+    viewpoint = plots.mma_figure(illumination_only).axes[2]
+    assert viewpoint.get_lines() == [] and [t.get_text() for t in viewpoint.texts] == ["no pairs"]
 
 
 def test_plot_pose_error_cdf(tmp_path, pose_runs):
     runs = {run.label: run.per_pair for run in pose_runs}
-    assert_png(report.plot_pose_error_cdf(runs, tmp_path / "cdf.png"))
+    assert_png(plots.plot_pose_error_cdf(runs, tmp_path / "cdf.png"))
+    ax = plots.pose_error_cdf_figure(runs).axes[0]
+    for run in pose_runs:
+        (line,) = [l for l in ax.get_lines() if l.get_label().startswith(run.label + " (")]
+        errors = run.per_pair["err_pose"].to_numpy(float)
+        n_failed = int((~np.isfinite(errors)).sum())
+        assert line.get_label() == f"{run.label} ({len(errors)} pairs, {n_failed} failed)"
+        x, y = pose_error_curve(errors)
+        # The curve's points, held flat to the right edge (30 deg).
+        assert line.get_xdata().tolist() == pytest.approx([*x.tolist(), max(30.0, x[-1])])
+        assert line.get_ydata().tolist() == pytest.approx([*y.tolist(), y[-1]])
     with pytest.raises(ValueError, match="err_pose"):
-        report.plot_pose_error_cdf({"empty": pd.DataFrame()}, tmp_path / "bad.png")
+        plots.plot_pose_error_cdf({"empty": pd.DataFrame()}, tmp_path / "bad.png")
 
 
 def test_plot_pose_auc_bars(tmp_path, pose_runs):
     runs = {run.label: run.summary for run in pose_runs}
-    assert_png(report.plot_pose_auc_bars(runs, tmp_path / "auc.png", "MegaDepth-1500"))
+    assert_png(plots.plot_pose_auc_bars(runs, tmp_path / "auc.png", "MegaDepth-1500"))
+    fig = plots.pose_auc_figure(runs, "MegaDepth-1500")
+    auc_ax, precision_ax = fig.axes
+    heights = [bar.get_height() for bar in auc_ax.patches]
+    expected = [run.summary[f"auc@{t}"] for run in pose_runs for t in (5, 10, 20)]
+    assert heights == pytest.approx(expected)  # bars are drawn run by run
+    assert [bar.get_height() for bar in precision_ax.patches] == pytest.approx([r.summary["precision@1e-4"] for r in pose_runs])
+    assert [t.get_text() for t in precision_ax.get_xticklabels()] == [run.label for run in pose_runs]
+    assert fig._suptitle.get_text() == "MegaDepth-1500"
 
 
 # --------------------------------------------------------------------------- transcribed paper tables

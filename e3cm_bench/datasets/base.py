@@ -30,7 +30,7 @@ class Pair:
     K0: np.ndarray | None = None
     K1: np.ndarray | None = None
     T_0to1: np.ndarray | None = None
-    meta: dict = field(default_factory=dict)  # e.g. {"sequence": "v_boat", "split": "v"}
+    meta: dict = field(default_factory=dict)  # e.g. {"sequence": "v_boat"}
 
 
 class PairList:

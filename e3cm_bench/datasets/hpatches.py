@@ -71,7 +71,7 @@ class HPatches(PairList):
             image0=folder / "1.ppm",
             image1=folder / f"{k}.ppm",
             H=read_homography(folder / f"H_1_{k}"),
-            meta={"sequence": sequence, "split": sequence[0]},
+            meta={"sequence": sequence},
         )
 
     def settings(self) -> dict:

@@ -1,17 +1,24 @@
-"""Matchers, one small class per file; `build_matcher` turns CLI/config options into one.
+"""Matchers, one small class per file; `build_matcher` turns a name and settings into one.
 
 Adding a matcher: write `matchers/mine.py` with a `Matcher` subclass implementing
-`match(image0, image1) -> Matches`, then add a line to `build_matcher` below.
+`match(image0, image1) -> Matches`, then add its name to MATCHERS and a branch to
+`build_matcher` below. Models are imported only when a matcher is built, so that
+listing matchers (the CLI's help, config validation) does not load torch.
 """
 
 from __future__ import annotations
 
-from ..backbones import load_backbone
-from ..matching.pipeline import E3CMSettings
-from .base import Matcher, Matches
+from ..matching import RANDOM_ESTIMATORS
+from .base import Matcher
 
 MATCHERS = ("e3cm", "direct", "dfm", "sift")
 NEEDS_BACKBONE = ("e3cm", "direct", "dfm")
+
+
+def is_random(name: str, settings: dict) -> bool:
+    """Whether the matcher draws from OpenCV's RNG (a RANSAC inside): then its seed is part of
+    the identity of its matches. dfm always (stage 0); e3cm with a robust cascade estimator."""
+    return name == "dfm" or (name == "e3cm" and settings.get("estimator", "top8") in RANDOM_ESTIMATORS)
 
 
 def build_matcher(
@@ -22,7 +29,7 @@ def build_matcher(
     pretrained: bool = True,
     settings: dict | None = None,
 ) -> Matcher:
-    """A matcher by name. `settings` holds E3CMSettings fields (e3cm, direct) or DFM ratios."""
+    """A matcher by name. `settings` holds E3CMSettings fields (e3cm, direct) or DFMSettings fields (dfm)."""
     settings = dict(settings or {})
     if name not in MATCHERS:
         raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(MATCHERS)}")
@@ -30,11 +37,14 @@ def build_matcher(
         from .sift import SiftMatcher
 
         return SiftMatcher()
+    from ..backbones import load_backbone
+
     net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device)
     if name == "dfm":
         from .dfm import DFMMatcher
 
         return DFMMatcher(net, **settings)
+    from ..matching.pipeline import E3CMSettings
     from .e3cm import E3CMMatcher
 
     if name == "direct":
@@ -42,4 +52,4 @@ def build_matcher(
     return E3CMMatcher(net, E3CMSettings(**settings), name=name)
 
 
-__all__ = ["MATCHERS", "Matcher", "Matches", "build_matcher"]
+__all__ = ["MATCHERS", "NEEDS_BACKBONE", "Matcher", "build_matcher", "is_random"]

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
 from .. import geometry
-
-ESTIMATORS = ("top8", "ransac", "prosac")
+from . import ESTIMATORS
 
 
 def confidence_scores(
@@ -63,15 +61,12 @@ def estimate_level_fundamental(
         return None
     if estimator == "top8":
         top = np.argsort(-confidence, kind="stable")[:8]
-        return geometry.fundamental_8point(x0[top], x1[top])
+        return geometry.estimate_fundamental(x0[top], x1[top], "8point")
     if estimator == "ransac":
-        return geometry.fundamental_ransac(x0, x1, ransac_threshold_px)
+        return geometry.estimate_fundamental(x0, x1, "ransac", ransac_threshold_px)
     if estimator == "prosac":
         order = np.argsort(-confidence, kind="stable")
-        F, _ = cv2.findFundamentalMat(
-            np.ascontiguousarray(x0[order]), np.ascontiguousarray(x1[order]), cv2.USAC_PROSAC, ransac_threshold_px, 0.999, 2000
-        )
-        return F if F is not None and F.shape == (3, 3) else None
+        return geometry.estimate_fundamental(x0[order], x1[order], "prosac", ransac_threshold_px)
     raise ValueError(f"unknown cascade estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
 
 

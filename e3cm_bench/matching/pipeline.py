@@ -43,14 +43,14 @@ class E3CMSettings:
         threshold applied after refining into that level with F of the level above.
         None takes the measured default of the estimator (DEFAULT_SAMPSON_PX; README).
     estimator: how F_l is estimated (top8 = the paper; ransac / prosac = ablations).
-    ransac_px: RANSAC threshold of F_l at level l, as a multiple of the cell size 2^l.
+    ransac_cells: RANSAC threshold of F_l at level l, in cells of that level (x 2^l = pixels).
     """
 
     cascade: bool = True
     estimator: str = "top8"
     ratio: tuple[float, ...] = (0.9, 0.9, 0.9, 0.9, 0.9)
     sampson_px: tuple[float, ...] | None = None
-    ransac_px: float = 0.5
+    ransac_cells: float = 0.5
     max_per_parent: int = 2
     confidence_eps: float = 1e-3
     drop_border: bool = True
@@ -117,7 +117,7 @@ def match_pyramids(
             conf = None
             if settings.estimator in ("top8", "prosac") and len(cells0) >= 8:
                 conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps))
-            F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_px * 2**level)
+            F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
             fundamentals[level] = F_l
             timings["cascade"] += time.perf_counter() - t
 

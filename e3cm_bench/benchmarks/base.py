@@ -1,0 +1,103 @@
+"""What a benchmark is: a dataset, a default resize, how one pair is scored, how runs are reported.
+
+Each benchmark is one `Benchmark` object in the registry (`benchmarks/__init__.py`). The
+runner and the reports ask it, never a benchmark name, what to do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import metrics
+from ..datasets.base import Pair, PairList
+from ..matches import Matches
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Everything that changes only the metrics, never the matches (`--eval-only` may change it).
+
+    PROTOCOLS §2-3. ``seed`` seeds every evaluation RANSAC, right before it runs.
+    """
+
+    seed: int = 0
+    homography_ransac_px: float = 3.0
+    homography_max_iters: int = 5000
+    homography_confidence: float = 0.9999
+    pose_ransac_px: float = 0.5
+    pose_confidence: float = 0.99999
+    precision_thresholds: tuple[float, ...] = metrics.PRECISION_THRESHOLDS
+    correct_px: float = 3.0  # --viz: a homography match is drawn green within this reprojection error
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    """One benchmark. Subclasses say how a pair is scored (`evaluate_pair`, `summarize`).
+
+    dataset: the PairList class, built as ``dataset(root, skip_missing=..., **options)``.
+    dataset_options: the options it takes besides the root (config files are checked against them).
+    default_max_side: longer image side for matching when the user gives none (None = full size).
+    ransac_field: the EvalSettings field that ``--ransac-px`` sets.
+    paper_table: the paper's numbers, a file under results/paper/ (None: the paper has none).
+    table_metrics: paper-table column -> summary.csv column; table_extras: measured-only columns.
+    """
+
+    name: str
+    dataset: type[PairList]
+    dataset_options: tuple[str, ...] = ()
+    default_max_side: int | None = None
+    ransac_field: str = "homography_ransac_px"
+    paper_table: str | None = None
+    table_metrics: Mapping[str, str] = field(default_factory=dict)
+    table_extras: tuple[str, ...] = ("n_pairs",)
+
+    def load_dataset(self, root: str | Path, skip_missing: bool = False, **options) -> PairList:
+        unknown = set(options) - set(self.dataset_options)
+        if unknown:
+            raise ValueError(f"dataset option(s) {', '.join(sorted(unknown))} do not apply to {self.name}")
+        return self.dataset(root, skip_missing=skip_missing, **{k: v for k, v in options.items() if v is not None})
+
+    def max_side(self, option: int | None) -> int | None:
+        """The resize of a run: the option as given (0 = full size), or this benchmark's default."""
+        if option is None:
+            return self.default_max_side
+        if option < 0:
+            raise ValueError(f"--max-side must be 0 (full resolution) or positive, got {option}")
+        return option or None
+
+    def eval_settings(self, seed: int = 0, ransac_px: float | None = None, **fields) -> EvalSettings:
+        if ransac_px is not None:
+            fields[self.ransac_field] = float(ransac_px)
+        return EvalSettings(seed=seed, **fields)
+
+    # ---- scoring: subclasses
+    def pair_columns(self, ev: EvalSettings) -> list[str]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:  # pragma: no cover
+        """One per_pair.csv row from the pair's matches (original pixels) and its ground truth."""
+        raise NotImplementedError
+
+    def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:  # pragma: no cover
+        raise NotImplementedError
+
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:  # pragma: no cover
+        """Which matches the ground truth calls right (green in --viz drawings)."""
+        raise NotImplementedError
+
+    def required_summary_columns(self) -> list[str]:
+        """Columns a run's summary.csv must have to be reported at all."""
+        return ["n_pairs", "n_matches", *self.table_metrics.values()]
+
+    # ---- reports: subclasses
+    def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:  # pragma: no cover
+        """Plots comparing runs (label -> (summary, per_pair)) next to a table at `stem`."""
+        raise NotImplementedError

@@ -1,0 +1,63 @@
+"""Homography benchmarks (HPatches): MMA at 1..10 px and homography accuracy (PROTOCOLS §2)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import metrics, plots
+from ..datasets.base import Pair
+from ..datasets.hpatches import HPatches
+from ..geometry import warp_points
+from ..matches import Matches
+from .base import Benchmark, EvalSettings
+
+
+@dataclass(frozen=True)
+class HomographyBenchmark(Benchmark):
+    """Pairs carry H (image 0 -> image 1 pixels); HPatches-style i_/v_ sequence names split the MMA."""
+
+    table_metrics: Mapping[str, str] = field(
+        default_factory=lambda: {f"h_acc@{t}": f"h_acc@{t}" for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS}
+    )
+    table_extras: tuple[str, ...] = ("n_pairs", "mma@3")
+
+    def pair_columns(self, ev: EvalSettings) -> list[str]:
+        return metrics.HPATCHES_PAIR_COLUMNS
+
+    def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+        width, height = (int(v) for v in matches.info["size0"])
+        row = metrics.evaluate_homography_pair(
+            matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.H, width, height,
+            seed=ev.seed, ransac_threshold=ev.homography_ransac_px, max_iters=ev.homography_max_iters,
+            confidence=ev.homography_confidence,
+        )
+        return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
+
+    def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
+        return metrics.summarize_hpatches(rows)
+
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
+        err = np.linalg.norm(warp_points(pair.H, matches.keypoints0) - matches.keypoints1, axis=1)
+        return err <= ev.correct_px
+
+    def required_summary_columns(self) -> list[str]:
+        # The illumination/viewpoint split columns are optional: a run may hold one kind only.
+        return ["n_pairs", "n_matches", *(f"mma@{t}" for t in metrics.MMA_THRESHOLDS), *self.table_metrics.values()]
+
+    def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        plots.plot_mma_curves({label: summary}, out / "mma.png")
+
+    def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        path = stem.with_name(stem.stem + "_mma.png")
+        return [plots.plot_mma_curves({label: summary for label, (summary, _) in runs.items()}, path)]
+
+
+HPATCHES = HomographyBenchmark(
+    name="hpatches", dataset=HPatches, dataset_options=("exclude_large", "sequences"),
+    default_max_side=None, ransac_field="homography_ransac_px", paper_table="table1.csv",
+)

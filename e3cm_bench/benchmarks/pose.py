@@ -1,0 +1,69 @@
+"""Relative-pose benchmarks (MegaDepth-1500, YFCC100M): pose AUC@5/10/20 and precision (PROTOCOLS §3)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import metrics, plots
+from ..datasets.base import Pair
+from ..datasets.megadepth import MegaDepth1500
+from ..datasets.yfcc import YFCC100M
+from ..matches import Matches
+from .base import Benchmark, EvalSettings
+
+
+@dataclass(frozen=True)
+class PoseBenchmark(Benchmark):
+    """Pairs carry K0, K1 (original images) and T_0to1; matches are scored by the essential matrix."""
+
+    ransac_field: str = "pose_ransac_px"
+    table_metrics: Mapping[str, str] = field(
+        default_factory=lambda: {
+            **{f"auc@{t}": f"auc@{t}" for t in metrics.POSE_AUC_THRESHOLDS},
+            "P": metrics.precision_key(metrics.PRECISION_THRESHOLDS[0]),
+        }
+    )
+
+    def pair_columns(self, ev: EvalSettings) -> list[str]:
+        return ["pair", "n_matches", "err_R", "err_t", "err_pose", *map(metrics.precision_key, ev.precision_thresholds)]
+
+    def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+        row = metrics.evaluate_pose_pair(
+            matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
+            pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=ev.pose_ransac_px,
+            confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds,
+        )
+        return {"pair": pair.name, **row}
+
+    def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
+        return metrics.summarize_pose(rows, ev.precision_thresholds)
+
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
+        distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)
+        return distances < ev.precision_thresholds[0]
+
+    def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
+
+    def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        bars = stem.with_name(stem.stem + "_pose_auc.png")
+        cdf = stem.with_name(stem.stem + "_pose_cdf.png")
+        return [
+            plots.plot_pose_auc_bars({label: s for label, (s, _) in runs.items()}, bars,
+                                     title=f"{self.name}: pose AUC and precision"),
+            plots.plot_pose_error_cdf({label: p for label, (_, p) in runs.items()}, cdf),
+        ]
+
+
+MEGADEPTH = PoseBenchmark(
+    name="megadepth", dataset=MegaDepth1500, dataset_options=("scene_info",), default_max_side=1200,
+    paper_table="table2.csv",
+)
+YFCC = PoseBenchmark(
+    name="yfcc", dataset=YFCC100M, dataset_options=("pairs",), default_max_side=1200, paper_table="table3.csv",
+)

@@ -1,0 +1,110 @@
+"""Reading and writing the files of a run: atomic writes, YAML, CSV, hashes, versions.
+
+Every file the toolkit writes goes through `write_atomically`, so an interrupted write
+leaves the old file or the new one, never a truncated mix. Every reader turns a broken
+file into a one-line ValueError that names the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import tempfile
+from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
+
+import pandas as pd
+import yaml
+
+PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headless", "h5py", "pandas")
+CSV_FLOAT_FORMAT = "%.8g"
+
+
+def package_versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
+    """Write through a temporary file in the same folder, then rename over ``path``.
+
+    The rename is atomic on one filesystem. The temporary file is created 0600 by
+    mkstemp; the result gets the mode a plain ``open`` would have given (umask honoured).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp_name)
+    try:
+        write(tmp_path)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp_path, 0o666 & ~umask)
+        os.replace(tmp_path, path)
+    finally:
+        tmp_path.unlink(missing_ok=True)
+    return path
+
+
+def _plain(value):
+    """YAML-safe plain Python values (paths, tuples, numpy scalars)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        return value.item()
+    return value
+
+
+def save_yaml(data: dict, path: str | Path) -> Path:
+    text = yaml.safe_dump(_plain(data), sort_keys=False)
+    return write_atomically(path, lambda tmp: tmp.write_text(text))
+
+
+def load_yaml(path: str | Path, what: str = "YAML file") -> dict:
+    """A YAML mapping; ValueError naming the file when it is missing, broken or not a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: {what} not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise ValueError(f"{path}: not valid YAML ({first_line})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def write_csv(df: pd.DataFrame, path: str | Path) -> Path:
+    """Write ``df`` without its index, floats as ``%.8g`` (inf stays ``inf``), atomically."""
+    return write_atomically(path, lambda tmp: df.to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT))
+
+
+def read_csv(path: str | Path, what: str = "CSV file") -> pd.DataFrame:
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: {what} missing")
+    try:
+        return pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable CSV ({type(exc).__name__})") from None

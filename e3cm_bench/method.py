@@ -1,0 +1,147 @@
+"""A method: everything that decides the matches, frozen in one value (`MethodSpec`).
+
+The same object is the identity of a run's cached matches (``identity()`` goes to
+config.yaml and is compared before a run resumes) and what builds the matcher
+(``build()``). What only changes the metrics lives in `benchmarks.EvalSettings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .files import file_sha256
+from .matchers import MATCHERS, NEEDS_BACKBONE, is_random
+from .matching import ESTIMATORS
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """matcher, backbone, weights (and their hash), matcher settings, resize, seed where random.
+
+    Build one with `MethodSpec.create`, which validates and normalises the options.
+    settings: the matcher's own fields (E3CMSettings / DFMSettings) as sorted (key, value)
+    pairs, lists turned into tuples, so that the spec is hashable and compares by value.
+    max_side: longer side for matching, None = full resolution (already resolved against
+    the benchmark's default). seed: the seed of the matcher's robust estimators, None for
+    matchers that draw no random numbers (their matches do not depend on it).
+    label: the name in tables and plots; not part of the identity.
+    """
+
+    matcher: str = "e3cm"
+    backbone: str | None = "vgg19"
+    weights: str | None = None
+    weights_sha256: str | None = None
+    settings: tuple[tuple[str, object], ...] = ()
+    max_side: int | None = None
+    seed: int | None = None
+    label: str = field(default="", compare=False)
+
+    @classmethod
+    def create(
+        cls,
+        matcher: str = "e3cm",
+        backbone: str = "vgg19",
+        weights: str | Path | None = None,
+        estimator: str | None = None,
+        sampson_px: tuple[float, ...] | None = None,
+        ratio: tuple[float, ...] | None = None,
+        max_side: int | None = None,
+        seed: int = 0,
+        label: str | None = None,
+    ) -> MethodSpec:
+        """Options as a user gives them -> a spec. Settings that do not apply to the matcher are
+        ignored (ratio: deep matchers; estimator, sampson_px: e3cm), never guessed."""
+        if matcher not in MATCHERS:
+            raise ValueError(f"unknown matcher {matcher!r}; choose one of: {', '.join(MATCHERS)}")
+        deep = matcher in NEEDS_BACKBONE
+        settings: dict = {}
+        if deep and ratio is not None:
+            settings["ratio"] = _numbers(ratio, "ratio")
+            if any(not 0 < r <= 1 for r in settings["ratio"]):
+                raise ValueError(f"--ratio values must be in (0, 1], got {','.join(map(str, ratio))}")
+        if matcher == "e3cm":
+            estimator = estimator or "top8"
+            if estimator not in ESTIMATORS:
+                raise ValueError(f"unknown cascade estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+            settings["estimator"] = estimator
+            if sampson_px is not None:
+                settings["sampson_px"] = _numbers(sampson_px, "sampson_px")
+        if max_side is not None and max_side <= 0:
+            raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
+        weights_sha256 = None
+        if deep and weights is not None:
+            path = Path(weights)
+            if not path.is_file():
+                raise ValueError(f"{path}: weights file not found")
+            weights_sha256 = file_sha256(path)
+        spec = cls(
+            matcher=matcher,
+            backbone=backbone if deep else None,
+            weights=str(weights) if deep and weights is not None else None,
+            weights_sha256=weights_sha256,
+            settings=tuple(sorted(settings.items())),
+            max_side=max_side,
+            seed=int(seed) if is_random(matcher, settings) else None,
+        )
+        return spec.with_label(label or spec.default_label())
+
+    def with_label(self, label: str) -> MethodSpec:
+        return MethodSpec(**{**self.identity_fields(), "label": label})
+
+    def identity_fields(self) -> dict:
+        return {
+            "matcher": self.matcher, "backbone": self.backbone, "weights": self.weights,
+            "weights_sha256": self.weights_sha256, "settings": self.settings,
+            "max_side": self.max_side, "seed": self.seed,
+        }
+
+    def identity(self) -> dict:
+        """What the matches depend on, as plain YAML-ready values (config.yaml `identity`)."""
+        fields = self.identity_fields()
+        fields["settings"] = {k: list(v) if isinstance(v, tuple) else v for k, v in self.settings}
+        return fields
+
+    def settings_dict(self) -> dict:
+        return dict(self.settings)
+
+    def default_label(self) -> str:
+        """matcher[-backbone unless vgg19][-estimator unless top8]: e.g. e3cm-ransac, dfm-densenet161."""
+        label = self.matcher if self.backbone in (None, "vgg19") else f"{self.matcher}-{self.backbone}"
+        estimator = self.settings_dict().get("estimator", "top8")
+        return label if estimator == "top8" else f"{label}-{estimator}"
+
+    @property
+    def seed_for_matching(self) -> int:
+        """The value OpenCV's RNG is seeded with before each pair (0 for matchers that draw nothing)."""
+        return self.seed or 0
+
+    def build(self, device: str = "cpu", pretrained: bool = True):
+        """The matcher this spec describes (loads the backbone and its weights)."""
+        from .matchers import build_matcher
+
+        return build_matcher(self.matcher, self.backbone or "vgg19", self.weights, device, pretrained, self.settings_dict())
+
+    def describe(self) -> str:
+        """One line for the console."""
+        resize = f"longer side at most {self.max_side} px" if self.max_side else "full resolution"
+        net = f" ({self.backbone})" if self.backbone else ""
+        seed = f"; seed {self.seed}" if self.seed is not None else ""
+        return f"matcher {self.matcher}{net}; resize: {resize}{seed}"
+
+
+def _numbers(values, name: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected numbers, got {values!r}") from None
+
+
+def parse_numbers(text: str | None, option: str) -> tuple[float, ...] | None:
+    """'0.9,0.9,0.95' -> (0.9, 0.9, 0.95), for comma-separated CLI options."""
+    if text is None:
+        return None
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None

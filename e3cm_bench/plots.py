@@ -1,0 +1,149 @@
+"""Plots of benchmark runs: MMA curves (paper Fig. 5), pose-error CDF, pose AUC bars.
+
+Drawn on ``matplotlib.figure.Figure`` objects (saved through the Agg canvas) rather than
+pyplot, so that importing this module never switches the backend of the caller's process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib import colormaps
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from .files import write_atomically
+from .metrics import MMA_THRESHOLDS, POSE_AUC_THRESHOLDS as AUC_THRESHOLDS, pose_error_curve
+from .formats import format_number
+
+
+def _save_figure(fig: Figure, path: str | Path) -> Path:
+    path = Path(path)
+    file_format = path.suffix.lstrip(".") or "png"
+    # bbox "tight" grows the canvas to whatever the legend needs, so long labels are never cut.
+    return write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150, bbox_inches="tight"))
+
+
+def _run_colors(labels: Sequence[str]) -> dict[str, tuple]:
+    """One colour per run label, stable across the plots of one report."""
+    palette = colormaps["tab10"].colors
+    return {label: palette[i % len(palette)] for i, label in enumerate(labels)}
+
+
+def mma_figure(runs: Mapping[str, Mapping]) -> Figure:
+    """HPatches MMA vs threshold (1..10 px): Overall / Illumination / Viewpoint panels.
+
+    One line per run, legend with the mean number of matches per pair (the layout of
+    the paper's Fig. 5). A split whose values are all NaN (no such pairs) is left
+    empty with a note rather than dropped, so panels keep their place.
+    """
+    if not runs:
+        raise ValueError("MMA plot: no runs to plot")
+    colors = _run_colors(list(runs))
+    thresholds = np.array(MMA_THRESHOLDS)
+    fig = Figure(figsize=(13, 4.4), layout="constrained")
+    axes = fig.subplots(1, 3, sharey=True)
+    for ax, (panel, suffix) in zip(axes, (("Overall", ""), ("Illumination", "_i"), ("Viewpoint", "_v"))):
+        plotted = False
+        for label, summary in runs.items():
+            values = np.array([float(summary.get(f"mma@{t}{suffix}", np.nan)) for t in thresholds])
+            if np.all(np.isnan(values)):
+                continue
+            ax.plot(thresholds, values, marker="o", markersize=3, color=colors[label], label=label)
+            plotted = True
+        if not plotted:
+            ax.text(0.5, 0.5, "no pairs", ha="center", va="center", transform=ax.transAxes, color="gray")
+        ax.set_title(panel)
+        ax.set_xlabel("threshold [px]")
+        ax.set_xticks(thresholds)
+        ax.set_xlim(1, 10)
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("MMA")
+    # Build the legend from the runs, not from one panel, so runs missing a split still appear.
+    handles = [Line2D([], [], marker="o", markersize=3, color=colors[label]) for label in runs]
+    legend_labels = [f"{label} ({format_number(summary.get('n_matches'), 'n_matches', decimals=0)} matches)" for label, summary in runs.items()]
+    fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 3), frameon=False)
+    return fig
+
+
+def plot_mma_curves(runs: Mapping[str, Mapping], path: str | Path) -> Path:
+    return _save_figure(mma_figure(runs), path)
+
+
+def pose_error_cdf_figure(runs: Mapping[str, pd.DataFrame], max_error: float = 30.0) -> Figure:
+    """Fraction of pairs with pose error below x, x in [0, max_error] degrees, one line per run.
+
+    The AUC thresholds (5, 10, 20 deg) are marked: AUC@t is the area under the curve
+    left of the mark, divided by t.
+    """
+    if not runs:
+        raise ValueError("pose-error plot: no runs to plot")
+    colors = _run_colors(list(runs))
+    fig = Figure(figsize=(6.4, 4.6), layout="constrained")
+    ax = fig.subplots()
+    for label, per_pair in runs.items():
+        if "err_pose" not in per_pair.columns or per_pair.empty:
+            raise ValueError(f"pose-error plot: run {label!r} has no per-pair err_pose values")
+        errors = per_pair["err_pose"].to_numpy(dtype=np.float64)
+        x, y = pose_error_curve(errors)
+        # Hold the last recall flat to the right edge, as the AUC does up to its threshold.
+        x, y = np.append(x, max(max_error, x[-1])), np.append(y, y[-1])
+        n_failed = int(np.sum(~np.isfinite(errors)))
+        ax.plot(x, y, color=colors[label], label=f"{label} ({len(errors)} pairs, {n_failed} failed)")
+    for threshold in AUC_THRESHOLDS:
+        ax.axvline(threshold, color="gray", linestyle=":", linewidth=1)
+        ax.text(threshold, 1.0, f" AUC@{threshold}", color="gray", fontsize=8, va="top", ha="left")
+    ax.set_xlim(0, max_error)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("pose error [deg]  (max of rotation and translation angle)")
+    ax.set_ylabel("fraction of pairs")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    return fig
+
+
+def plot_pose_error_cdf(runs: Mapping[str, pd.DataFrame], path: str | Path, max_error: float = 30.0) -> Path:
+    return _save_figure(pose_error_cdf_figure(runs, max_error), path)
+
+
+def pose_auc_figure(runs: Mapping[str, Mapping], title: str) -> Figure:
+    """Grouped bars of AUC@5/10/20 (left panel) and precision P@1e-4 (right panel), percent.
+
+    Bars are grouped by metric with one colour per run, so methods are compared side
+    by side within each threshold.
+    """
+    if not runs:
+        raise ValueError("pose AUC plot: no runs to plot")
+    labels = list(runs)
+    colors = _run_colors(labels)
+    fig = Figure(figsize=(11, 4.4), layout="constrained")
+    auc_ax, precision_ax = fig.subplots(1, 2, width_ratios=(3, 1.3))
+    width = 0.8 / len(labels)
+    groups = np.arange(len(AUC_THRESHOLDS))
+    for i, label in enumerate(labels):
+        values = [float(runs[label].get(f"auc@{t}", np.nan)) for t in AUC_THRESHOLDS]
+        bars = auc_ax.bar(groups + (i - (len(labels) - 1) / 2) * width, values, width, color=colors[label], label=label)
+        auc_ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=1)
+        precision = float(runs[label].get("precision@1e-4", np.nan))
+        bars = precision_ax.bar(i, precision, 0.7, color=colors[label])
+        precision_ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=1)
+    auc_ax.set_xticks(groups, [f"AUC@{t}°" for t in AUC_THRESHOLDS])
+    auc_ax.set_ylabel("percent")
+    auc_ax.set_ylim(0, 100)
+    auc_ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=min(len(runs), 3), frameon=False)
+    precision_ax.set_xticks(range(len(labels)), labels, rotation=30, ha="right")
+    precision_ax.set_title("precision P (d < 1e-4)", fontsize=10)
+    precision_ax.set_ylim(0, 105)
+    for ax in (auc_ax, precision_ax):
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_axisbelow(True)
+    fig.suptitle(title)
+    return fig
+
+
+def plot_pose_auc_bars(runs: Mapping[str, Mapping], path: str | Path, title: str) -> Path:
+    return _save_figure(pose_auc_figure(runs, title), path)
