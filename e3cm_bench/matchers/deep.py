@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
@@ -28,6 +30,12 @@ class DeepMatcher(Matcher):
     def features(self, image: np.ndarray) -> list[torch.Tensor]:
         """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l."""
         return self.backbone(image_to_tensor(image, self.device))
+
+    def pyramids(self, image0: np.ndarray, image1: np.ndarray) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:
+        """Both images' pyramids and the seconds the backbone took."""
+        t = time.perf_counter()
+        feats0, feats1 = self.features(image0), self.features(image1)
+        return feats0, feats1, time.perf_counter() - t
 
     def settings_dict(self) -> dict:  # pragma: no cover - each subclass says what it depends on
         raise NotImplementedError

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from ..backbones import Backbone
@@ -25,9 +23,7 @@ class DFMMatcher(DeepMatcher):
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
         """Timings: backbone (all passes, warped B included), stage0, warp, stage1 (seconds)."""
-        t = time.perf_counter()
-        feats0, feats1 = self.features(image0), self.features(image1)
-        t_backbone = time.perf_counter() - t
+        feats0, feats1, t_backbone = self.pyramids(image0, image1)
         out = match_two_stage(image0, image1, feats0, feats1, self.features, self.settings)
         timings = out.pop("timings")
         timings = {"backbone": t_backbone + timings.pop("backbone_warped"), **timings}

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from ..backbones import Backbone
@@ -21,9 +19,7 @@ class E3CMMatcher(DeepMatcher):
         self.settings = settings
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        t = time.perf_counter()
-        feats0, feats1 = self.features(image0), self.features(image1)
-        t_backbone = time.perf_counter() - t
+        feats0, feats1, t_backbone = self.pyramids(image0, image1)
         size0 = (image0.shape[1], image0.shape[0])
         size1 = (image1.shape[1], image1.shape[0])
         out = match_pyramids(feats0, feats1, size0, size1, self.settings)
