@@ -7,7 +7,7 @@ holding the datasets ``keypoints0``, ``keypoints1`` (N x 2 float32) and ``scores
 Crash safety comes from two rules. The file is opened for one write and closed right
 after, so a run killed between pairs leaves a closed, consistent file. And the
 attribute ``complete=1`` is set last, so a run killed in the middle of a write leaves
-an entry that ``has`` and ``names`` ignore and the next run simply rewrites.
+an entry that ``names`` and ``read`` ignore and the next run simply rewrites.
 """
 
 from __future__ import annotations
@@ -30,14 +30,6 @@ class MatchCache:
         self.path = Path(path)
 
     # ------------------------------------------------------------------ queries
-
-    def has(self, name: str) -> bool:
-        """True only when the pair's entry was written to the end."""
-        key = _group_key(name)
-        if not self.path.exists():
-            return False
-        with self._open("r") as file:
-            return _is_complete(file.get(key))
 
     def names(self) -> list[str]:
         """The names of all complete entries, sorted."""
@@ -99,21 +91,6 @@ class MatchCache:
                         f"attribute {attr!r}={value!r} cannot be stored in HDF5 ({error})"
                     ) from error
             group.attrs[COMPLETE_ATTR] = 1  # last, so an interrupted write reads as absent
-
-    def delete(self, name: str) -> None:
-        """Remove a pair's entry (complete or not); nothing happens when it is absent."""
-        key = _group_key(name)
-        if not self.path.exists():
-            return
-        with self._open("a") as file:
-            group = file.get(key)
-            if not isinstance(group, h5py.Group):
-                return
-            _clear_entry(group)
-            # Drop the groups left empty, so deleted names leave no trace in the tree.
-            while key and len(file[key]) == 0 and len(file[key].attrs) == 0:
-                del file[key]
-                key = key.rpartition("/")[0]
 
     # ------------------------------------------------------------------ helpers
 
