@@ -15,8 +15,11 @@ from rich.console import Console
 from .backbones import BACKBONES, BackboneError
 from .benchmarks import get_benchmark
 from .benchmarks import EvalSettings
+from . import check as regression
 from .datasets.base import DatasetError, Pair
-from .datasets.synthetic import demo_pair
+from .demo import METHODS as DEMO_METHODS
+from .demo import run_demo
+from .synth.textures import demo_pair
 from .experiments import reproduce as reproduce_experiment
 from .experiments import write_table
 from .images import load_image
@@ -237,6 +240,54 @@ def reproduce(
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
                          skip_missing=skip_missing, max_side=max_side, compare=compare, console=console)
+
+
+@app.command()
+@friendly_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Folder for the data, the runs, the tables and the plots.")] = Path("e3cm-demo"),
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every robust estimator (the data is always the same).")] = 0,
+    quick: Annotated[bool, typer.Option("--quick", help="Fewer pairs of the same kinds (a smoke test).")] = False,
+    methods: Annotated[Optional[str], typer.Option("--methods", help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")] = None,
+    device: DeviceOpt = "cpu",
+) -> None:
+    """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-ransac, direct, dfm and sift
+    (EfficientNet-Lite0) on HPatches-format sequences and a non-planar scene, prints both tables."""
+    run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device, console=console)
+    console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)")
+
+
+@app.command()
+@friendly_errors
+def check(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders, or folders holding run folders (e.g. e3cm-demo/hpatches).")],
+    baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics), e.g. results/baselines/demo_hpatches.csv.")],
+    tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance", help="METRIC=T: allowed fall (absolute) of a metric; repeatable.")] = None,
+    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs instead of checking.")] = False,
+    summary: Annotated[Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
+) -> None:
+    """Compare runs' summaries with a baseline: exit 1 naming each metric that fell by more than its tolerance."""
+    runs = regression.find_runs(run_dirs)
+    if update:
+        regression.write_baseline(runs, baseline)
+        console.print(f"baseline: {len(runs)} runs written to {baseline}")
+        return
+    findings, problems = regression.compare(runs, baseline, regression.parse_tolerances(tolerance))
+    text = regression.markdown_summary(findings, problems, baseline)
+    if summary is not None:
+        regression.write_summary(text, summary)
+    for f in findings:
+        if f.status != "ok":
+            style = "bold red" if f.status == "regression" else "yellow"
+            console.print(f"[{style}]{f.status}[/]: {f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> "
+                          f"{f.measured:.4g} (tolerance {f.tolerance:g})", highlight=False)
+    for problem in problems:
+        console.print(f"[bold red]problem[/]: {problem}", highlight=False)
+    bad = sum(f.status == "regression" for f in findings) + len(problems)
+    console.print(f"check: {len(findings)} metrics of {len(runs)} runs against {baseline}: "
+                  + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
+    if bad:
+        raise typer.Exit(1)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -113,17 +113,19 @@ def reproduce(
 
 
 def write_table(
-    run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True, console: Console | None = None
+    run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
+    console: Console | None = None, paper_rows: bool = True,
 ) -> tuple[Path, Path]:
     """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
 
     compare=False drops the measured - paper difference columns: on data other than the
     paper's full benchmark (e.g. the shared samples) the differences mean nothing.
+    paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
     """
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
-    if reference is None and benchmark.paper_table:
+    if reference is None and benchmark.paper_table and paper_rows:
         candidate = REPO_RESULTS / "paper" / benchmark.paper_table
         reference = candidate if candidate.is_file() else None
         if reference is None:

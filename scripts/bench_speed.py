@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from e3cm_bench.backbones import load_backbone
-from e3cm_bench.datasets.synthetic import demo_homography, procedural_scene
+from e3cm_bench.synth.textures import demo_homography, procedural_scene
 from e3cm_bench.matchers.e3cm import E3CMMatcher
 from e3cm_bench.matching.pipeline import E3CMSettings
 

@@ -16,7 +16,7 @@ import pytest
 import e3cm_bench as eb
 from e3cm_bench.benchmarks import BENCHMARKS, HomographyBenchmark
 from e3cm_bench.datasets.base import Pair, PairList
-from e3cm_bench.datasets.synthetic import demo_homography, procedural_scene
+from e3cm_bench.synth.textures import demo_homography, procedural_scene
 from e3cm_bench.experiments import write_table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

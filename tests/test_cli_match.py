@@ -20,7 +20,7 @@ import e3cm_bench.backbones as backbones_module
 from e3cm_bench import geometry
 from e3cm_bench.cli import app
 from e3cm_bench.datasets.hpatches import read_homography
-from e3cm_bench.datasets.synthetic import demo_pair
+from e3cm_bench.synth.textures import demo_pair
 from helpers import flat, one_line_error
 
 

@@ -1,9 +1,13 @@
-"""A demo pair the package makes itself: a procedural scene and a known homography of it.
+"""Images the package makes itself: procedural textures, the demo pair, and a real photograph.
 
-`e3cm-bench match` with no images uses it, so the tool runs with nothing to download.
+`e3cm-bench match` with no images uses the demo pair (a procedural scene and a known
+homography of it), so the tool runs with nothing to download. The real photograph is the
+sample image that matplotlib ships (read from the installed package, never copied here).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -57,3 +61,21 @@ def demo_pair(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     H = demo_homography()
     image1 = cv2.warpPerspective(image0, H, DEMO_SIZE, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return image0, image1, H
+
+
+PHOTO_NAME = "grace_hopper.jpg"  # in matplotlib's mpl-data/sample_data
+
+
+def photo_path() -> Path:
+    import matplotlib
+
+    return Path(matplotlib.get_data_path()) / "sample_data" / PHOTO_NAME
+
+
+def sample_photo() -> np.ndarray:
+    """The real photograph shipped with matplotlib, H x W x 3 uint8 RGB (600 x 512)."""
+    path = photo_path()
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"{path}: matplotlib's sample photograph is missing (is matplotlib installed whole?)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

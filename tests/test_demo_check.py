@@ -1,0 +1,134 @@
+"""`e3cm-bench demo` end to end at reduced size, and the `check` regression command."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from e3cm_bench.cli import app
+from helpers import flat, one_line_error
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def invoke(*args):
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    print(result.output)
+    return result
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory) -> Path:
+    """The quick demo (1 viewpoint sequence, 2 scene pairs) with one deep method and SIFT."""
+    out = tmp_path_factory.mktemp("demo") / "e3cm-demo"
+    result = invoke("demo", "--out", out, "--quick", "--methods", "e3cm-ransac,sift")
+    assert result.exit_code == 0, (result.output, result.exception)
+    return out
+
+
+def test_demo_writes_data_runs_tables_and_pictures(demo_out):
+    # The data, in the real layouts.
+    assert sorted(p.name for p in (demo_out / "data" / "hpatches").iterdir()) == ["v_hopper1"]
+    assert (demo_out / "data" / "scenes" / "pairs_with_gt.txt").read_text().count("\n") == 2
+    for set_name, n_pairs, metric in (("hpatches", 5, "h_acc@3"), ("scenes", 2, "auc@10")):
+        table = pd.read_csv(demo_out / f"{set_name}_table.csv")
+        assert list(table["method"]) == ["e3cm-ransac", "sift"] and set(table["source"]) == {"measured"}
+        assert (table["n_pairs"] == n_pairs).all() and table[metric].notna().all()
+        assert not any(c.startswith("d_") for c in table.columns)  # no paper comparison on these data
+        assert (demo_out / f"{set_name}_table.md").is_file()
+        for method in ("e3cm-ransac", "sift"):
+            run = demo_out / set_name / method
+            assert (run / "summary.csv").is_file() and len(list((run / "viz").glob("*.png"))) == 2
+    hpatches = pd.read_csv(demo_out / "hpatches_table.csv").set_index("method")
+    assert hpatches.loc["e3cm-ransac", "mma@3"] > 0.5 and hpatches.loc["sift", "mma@3"] > 0.5
+    assert (demo_out / "hpatches_table_mma.png").is_file() and (demo_out / "scenes_table_pose_auc.png").is_file()
+    # Orderings that need e3cm, direct or dfm are not claimed when those did not run.
+    assert (demo_out / "orderings.md").read_text().startswith("- none judged")
+
+
+def test_demo_rerun_reuses_data_and_matches(demo_out):
+    result = invoke("demo", "--out", demo_out, "--quick", "--methods", "sift")
+    assert result.exit_code == 0
+    assert flat(result.output).count("found in") == 2 and "matching (" not in result.output
+
+
+def test_demo_rejects_unknown_methods(tmp_path):
+    line = one_line_error(invoke("demo", "--out", tmp_path / "d", "--methods", "e3cm,superglue"))
+    assert "superglue" in line and "e3cm-ransac" in line
+
+
+@pytest.fixture
+def checked(demo_out, tmp_path) -> tuple[Path, Path]:
+    """A copy of the demo's hpatches runs and a baseline written from them."""
+    runs = tmp_path / "runs"
+    shutil.copytree(demo_out / "hpatches", runs)
+    baseline = tmp_path / "baseline.csv"
+    result = invoke("check", runs, "--baseline", baseline, "--update")
+    assert result.exit_code == 0 and "2 runs written" in flat(result.output)
+    table = pd.read_csv(baseline)
+    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3"]
+    return runs, baseline
+
+
+def degrade(run: Path, column: str, by: float) -> None:
+    summary = pd.read_csv(run / "summary.csv")
+    summary[column] = summary[column] + by
+    summary.to_csv(run / "summary.csv", index=False)
+
+
+def test_check_passes_on_equal_summaries(checked, tmp_path):
+    runs, baseline = checked
+    report = tmp_path / "summary.md"
+    result = invoke("check", runs, "--baseline", baseline, "--summary", report)
+    assert result.exit_code == 0 and "no regression" in flat(result.output)
+    text = report.read_text()
+    assert "8 metrics checked: 0 regression(s)" in text and "| hpatches | sift | mma@3 |" in text
+
+
+def test_check_fails_naming_each_metric_that_fell(checked, tmp_path):
+    runs, baseline = checked
+    degrade(runs / "sift", "mma@3", -0.05)  # tolerance 0.02
+    degrade(runs / "e3cm-ransac", "h_acc@1", -0.2)  # tolerance 0.14
+    degrade(runs / "e3cm-ransac", "h_acc@5", -0.1)  # within tolerance: not a regression
+    report = tmp_path / "summary.md"
+    result = invoke("check", runs, "--baseline", baseline, "--summary", report)
+    assert result.exit_code == 1
+    text = flat(result.output)
+    assert "regression: sift on hpatches: mma@3" in text and "regression: e3cm-ransac on hpatches: h_acc@1" in text
+    assert "h_acc@5" not in text and "2 regression(s)/problem(s)" in text
+    assert "**regression**" in report.read_text()
+    # A looser tolerance for one metric, given on the command line, lets it pass.
+    result = invoke("check", runs, "--baseline", baseline, "--tolerance", "mma@3=0.1", "--tolerance", "h_acc@1=0.25")
+    assert result.exit_code == 0
+
+
+def test_check_reports_a_rise_as_a_notice(checked):
+    runs, baseline = checked
+    degrade(runs / "sift", "mma@3", +0.05)
+    result = invoke("check", runs, "--baseline", baseline)
+    assert result.exit_code == 0 and "improvement: sift on hpatches: mma@3" in flat(result.output)
+
+
+def test_check_missing_runs_and_bad_options(checked, tmp_path):
+    runs, baseline = checked
+    shutil.rmtree(runs / "sift")
+    result = invoke("check", runs, "--baseline", baseline)
+    assert result.exit_code == 1 and "sift on hpatches has no run among those checked" in flat(result.output)
+    line = one_line_error(invoke("check", runs, "--baseline", baseline, "--tolerance", "mma@3"))
+    assert "METRIC=VALUE" in line
+    line = one_line_error(invoke("check", runs, "--baseline", tmp_path / "none.csv"))
+    assert "none.csv" in line and "--update" in line
+    line = one_line_error(invoke("check", tmp_path / "empty-dir-missing", "--baseline", baseline))
+    assert "not a folder" in line
+
+
+def test_committed_baselines_cover_the_demo():
+    """results/baselines/ holds one row per demo method and set (written by check --update)."""
+    for set_name, benchmark in (("hpatches", "hpatches"), ("scenes", "yfcc")):
+        table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
+        assert list(table["method"]) == ["e3cm", "e3cm-ransac", "direct", "dfm", "sift"]
+        assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()
