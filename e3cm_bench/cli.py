@@ -139,10 +139,10 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     )
 
 
-def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_missing: bool,
+def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str) -> None:
     ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px)
-    run_benchmark(benchmark, out, method, root=root, dataset_options=dataset_options, skip_missing=skip_missing, ev=ev,
+    run_benchmark(benchmark, out, method, root=root, dataset_options=dataset_options, skip_bad=skip_bad, ev=ev,
                   limit=limit, overwrite=overwrite, eval_only=eval_only, viz=viz, device=device, console=console)
 
 
@@ -155,7 +155,7 @@ SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every RANSAC (set 
 OverwriteOpt = Annotated[bool, typer.Option("--overwrite", help="Discard matches already in --out.")]
 EvalOnlyOpt = Annotated[bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")]
 VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")]
-SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help="Evaluate only pairs whose images exist.")]
+SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in skipped.csv and count them; --skip-missing is the old name.")]
 CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
 
@@ -169,11 +169,11 @@ def hpatches(
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
-    skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -184,11 +184,11 @@ def megadepth(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
-    skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -199,11 +199,11 @@ def yfcc(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
-    skip_missing: SkipMissingOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("yfcc", method, root, out, {"pairs": pairs}, skip_missing, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
 
 
 @app.command()
@@ -231,7 +231,7 @@ def reproduce(
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files instead of the config's.")] = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list instead of the default.")] = None,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
-    skip_missing: SkipMissingOpt = False,
+    skip_bad: SkipBadOpt = False,
     compare: CompareOpt = True,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
@@ -239,7 +239,7 @@ def reproduce(
         raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
-                         skip_missing=skip_missing, max_side=max_side, compare=compare, console=console)
+                         skip_bad=skip_bad, max_side=max_side, compare=compare, console=console)
 
 
 @app.command()

@@ -85,7 +85,7 @@ def reproduce(
     limit: int | None = None,
     device: str = "cpu",
     dataset_overrides: dict | None = None,
-    skip_missing: bool = False,
+    skip_bad: bool = False,
     max_side: int | None = None,
     compare: bool = True,
     console: Console | None = None,
@@ -99,7 +99,7 @@ def reproduce(
     experiment = load_experiment(config_path)
     benchmark = get_benchmark(experiment["benchmark"])
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
-    dataset = benchmark.load_dataset(root, skip_missing=skip_missing, **options)
+    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
     ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)))
     out = Path(out)
     run_dirs = []
@@ -135,6 +135,7 @@ def write_table(
         table = table.drop(columns=[c for c in table.columns if c.startswith("d_")])
     csv_path, md_path = report.write_paper_table(table, out_path)
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
-    console.print(md_path.read_text())
-    console.print(f"table: {csv_path}, {md_path}")
+    # markup=False: labels such as 'e3cm [efficientnet_lite0]' are text, not rich style tags.
+    console.print(md_path.read_text(), markup=False, highlight=False)
+    console.print(f"table: {csv_path}, {md_path}", markup=False)
     return csv_path, md_path

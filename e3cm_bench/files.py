@@ -7,10 +7,15 @@ file into a one-line ValueError that names the file.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import json
 import os
 import platform
+import socket
+import sys
 import tempfile
+import time
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
@@ -108,3 +113,46 @@ def read_csv(path: str | Path, what: str = "CSV file") -> pd.DataFrame:
         return pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
+
+
+class FolderLock:
+    """An exclusive lock on a run folder, held while a run reads and writes it.
+
+    flock on ``<folder>/.lock``: the OS releases it when the process ends, however it ends,
+    so a killed run never leaves a stale lock. The holder (pid, host, start, command) is
+    written into the file, so a second run can say who holds the folder.
+    """
+
+    def __init__(self, folder: str | Path) -> None:
+        self.path = Path(folder) / ".lock"
+        self._fd: int | None = None
+
+    def __enter__(self) -> FolderLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 4096).decode("utf-8", "replace")
+            os.close(fd)
+            raise ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
+                             "wait for it to finish or choose another --out") from None
+        os.ftruncate(fd, 0)
+        holder = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+                  "command": " ".join(sys.argv)}
+        os.write(fd, json.dumps(holder).encode())
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+
+
+def _describe_holder(text: str) -> str:
+    try:
+        holder = json.loads(text)
+        return f"pid {holder['pid']} on {holder['host']} since {holder['started']}: {holder['command']}"
+    except (ValueError, KeyError, TypeError):
+        return "holder unknown"

@@ -8,21 +8,65 @@ pixel edges, not pixel centres, scale linearly.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 
+# Binary PGM/PPM header: magic, width, height, maxval (comments allowed), one whitespace byte.
+_PNM_HEADER = re.compile(rb"P[56](?:\s+(?:#[^\n]*\n\s*)*(\d+)){1}(?:\s+(?:#[^\n]*\n\s*)*(\d+))(?:\s+(?:#[^\n]*\n\s*)*(\d+))\s")
+
+
+def image_file_problem(path: str | Path) -> str | None:
+    """What is wrong with an image file that reading a few bytes can tell, or None.
+
+    Missing, empty, or cut short: OpenCV decodes a truncated JPEG without an error (the
+    missing rows come out gray), so JPEG files must end with the EOI marker, PNG files with
+    the IEND chunk, and binary PNM files must hold the pixels their header announces.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return "image file not found"
+    size = path.stat().st_size
+    if size == 0:
+        return "image file is empty"
+    with open(path, "rb") as f:
+        head = f.read(64)
+        f.seek(max(0, size - 16))
+        tail = f.read()
+    if head[:3] == b"\xff\xd8\xff" and b"\xff\xd9" not in tail:
+        return "JPEG file is cut short (no end-of-image marker)"
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in tail:
+        return "PNG file is cut short (no IEND chunk)"
+    if head[:2] in (b"P5", b"P6"):
+        header = _PNM_HEADER.match(head)
+        if header is None:
+            return "PNM header is unreadable"
+        width, height, maxval = (int(v) for v in header.groups())
+        channels = 3 if head[:2] == b"P6" else 1
+        expected = header.end() + width * height * channels * (2 if maxval > 255 else 1)
+        if size < expected:
+            return f"PNM file is cut short ({size} bytes, its header announces {expected})"
+    return None
+
+
+class ImageError(ValueError):
+    """An image that cannot be used; the message names the file and the problem."""
+
+
 def load_image(path: str | Path) -> np.ndarray:
     """H x W x 3 uint8 RGB; grayscale files are replicated to three channels."""
-    # Checked first: OpenCV would print its own warning for a missing file before our error.
-    if not Path(path).is_file():
-        raise ValueError(f"{path}: image file not found")
+    # Checked first: OpenCV would print its own warning for a missing file before our error,
+    # and would decode a truncated file without any.
+    problem = image_file_problem(path)
+    if problem:
+        raise ImageError(f"{path}: {problem}")
     # IMREAD_COLOR always yields 3 channels: gray is replicated, alpha dropped, 16-bit scaled.
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise ValueError(f"{path}: cannot read the image (unreadable or not an image)")
+        raise ImageError(f"{path}: cannot read the image (unreadable or not an image)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from .benchmarks import Benchmark, get_benchmark
@@ -85,7 +86,7 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
     overall value and the illumination / viewpoint values side by side.
     """
     split_bases = {key[:-2] for key in summary if key.endswith(("_i", "_v")) and key[:-2] in summary}
-    table = Table(title=title)
+    table = Table(title=escape(title))  # a label like 'dfm [efficientnet_lite0]' is text, not markup
     table.add_column("metric")
     if split_bases:
         for header in ("overall", "illumination", "viewpoint"):

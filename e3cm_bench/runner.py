@@ -24,8 +24,8 @@ from rich.text import Text
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import MatchCache
 from .datasets.base import Pair, PairList
-from .files import load_yaml, package_versions, save_yaml, write_csv
-from .images import load_image, resize_max_side, to_original_pixels
+from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
+from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
 from .matches import Matches
 from .method import MethodSpec
@@ -99,22 +99,33 @@ def progress_bar(console: Console) -> Progress:
 
 def match_stage(
     method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
+    skipped: list[tuple[str, str]] | None = None,
 ) -> dict:
     """Build the matcher, match the pairs not yet cached, write each to the cache.
 
     on_matcher(matcher) runs once the model is loaded (the runner records its settings).
-    Returns the time spent and the number of pairs matched.
+    skipped: when a list is given, a pair whose image cannot be decoded is appended to it as
+    (name, problem) and the run goes on; otherwise the error ends the run (the pairs matched
+    before it stay in the cache). Returns the time spent and the number of pairs matched.
     """
     matcher = method.build(device)
     if on_matcher is not None:
         on_matcher(matcher)
     t0 = time.perf_counter()
+    matched = 0
     with progress_bar(console) as progress:
         task = progress.add_task(f"matching ({method.label})", total=len(todo))
         for pair in todo:
-            match_cached_pair(matcher, pair, method, cache)
+            try:
+                match_cached_pair(matcher, pair, method, cache)
+                matched += 1
+            except ImageError as error:
+                if skipped is None:
+                    raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
+                                     "--skip-bad skips such pairs)") from None
+                skipped.append((pair.name, str(error)))
             progress.advance(task)
-    return {"match_seconds": time.perf_counter() - t0, "pairs_matched": len(todo)}
+    return {"match_seconds": time.perf_counter() - t0, "pairs_matched": matched}
 
 
 def evaluate_stage(
@@ -140,6 +151,15 @@ def write_reports(
             correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
         )
         save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
+
+
+def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) -> None:
+    """skipped.csv (pair, reason) when pairs were skipped; no stale file when none were."""
+    if not skipped:
+        path.unlink(missing_ok=True)
+        return
+    write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
+    console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
 
 
 # --------------------------------------------------------------------------- a run
@@ -180,7 +200,7 @@ def run_benchmark(
     root: str | Path | None = None,
     dataset: PairList | None = None,
     dataset_options: dict | None = None,
-    skip_missing: bool = False,
+    skip_bad: bool = False,
     ev: EvalSettings | None = None,
     limit: int | None = None,
     overwrite: bool = False,
@@ -200,22 +220,35 @@ def run_benchmark(
     out = Path(out)
     if method is None and not eval_only:
         raise ValueError("run_benchmark: a method is needed unless eval_only")
+    if limit is not None and limit < 1:
+        raise ValueError(f"--limit must be at least 1, got {limit}")
     if dataset is None:
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
-        dataset = benchmark.load_dataset(root, skip_missing=skip_missing, **(dataset_options or {}))
+        dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **(dataset_options or {}))
     n_total = len(dataset) + dataset.n_skipped
     console.print(
         f"{benchmark.name}: {len(dataset)} pairs"
-        + (f" ({dataset.n_skipped} of {n_total} skipped: images missing)" if dataset.n_skipped else "")
-        + (f", limited to the first {limit}" if limit else "")
+        + (f" ({dataset.n_skipped} of {n_total} skipped: {dataset.skip_reason()})" if dataset.n_skipped else "")
+        + (f", limited to the first {limit}" if limit else ""),
+        markup=False,
     )
 
+    with FolderLock(out):  # taken before anything in the folder is read or written
+        summary = _run_locked(benchmark, out, method, dataset, ev, limit, overwrite, eval_only, viz, device, console)
+    return pd.DataFrame([summary])
+
+
+def _run_locked(
+    benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
+    limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
+) -> dict:
     if overwrite and out.exists():
         _clear(out)
     out.mkdir(parents=True, exist_ok=True)
     previous = _previous_config(out, method, benchmark, eval_only)
     pairs = list(dataset)[:limit] if limit else list(dataset)
+    skipped = list(dataset.skipped)  # (pair, problem); pairs that fail to decode are added while matching
     cache = MatchCache(out / CACHE_FILE)
     done = set(cache.names())  # one pass over the file, not one open per pair
     todo = [p for p in pairs if p.name not in done]
@@ -243,7 +276,7 @@ def run_benchmark(
     }
 
     if todo:
-        console.print(method.describe())
+        console.print(method.describe(), markup=False)
         console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {out / CACHE_FILE}")
         save_yaml(config, out / CONFIG_FILE)  # before the model loads: the folder is claimed and described
 
@@ -251,7 +284,8 @@ def run_benchmark(
             config["matcher"] = matcher.config()
             save_yaml(config, out / CONFIG_FILE)
 
-        spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher)
+        spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher,
+                            skipped=skipped if dataset.skip_bad else None)
         timing = config["timing"]
         for key, value in spent.items():
             timing[key] = timing.get(key, 0) + value
@@ -259,8 +293,16 @@ def run_benchmark(
     else:
         console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
 
+    failed = {name for name, _ in skipped}
+    pairs = [p for p in pairs if p.name not in failed]
+    if not pairs:
+        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
     per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
+        summary["n_skipped"] = len(skipped)
+    config["dataset"]["n_skipped"] = len(skipped)
+    write_skipped(skipped, out / "skipped.csv", console)
     write_reports(benchmark, out, config["method"], per_pair, summary, pairs, cache, ev, viz)
     save_yaml(config, out / CONFIG_FILE)
     print_summary(summary, f"{benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
-    return pd.DataFrame([summary])
+    return summary

@@ -65,7 +65,7 @@ def test_match_pair_maps_to_original_pixels(shared_data):
 class ToyHomographies(PairList):
     """Pairs written by the test: a procedural scene and its warps by known homographies."""
 
-    def __init__(self, root, skip_missing: bool = False, n_pairs: int = 2):
+    def __init__(self, root, skip_bad: bool = False, n_pairs: int = 2):
         root = Path(root)
         pairs = []
         for k in range(n_pairs):
@@ -76,7 +76,7 @@ class ToyHomographies(PairList):
             cv2.imwrite(str(b), cv2.warpPerspective(image, H, (320, 240), borderMode=cv2.BORDER_REFLECT)[..., ::-1])
             pairs.append(Pair(f"v_toy{k}/1-2", a, b, H=H, meta={"sequence": f"v_toy{k}"}))
         self.n_pairs = n_pairs
-        super().__init__(pairs, source=root, skip_missing=skip_missing)
+        super().__init__(pairs, source=root, skip_bad=skip_bad)
 
     def settings(self) -> dict:
         return {"n_pairs_made": self.n_pairs}

@@ -352,7 +352,7 @@ def test_megadepth_missing_images(megadepth_root, tmp_path):
     # 0015 / 0022 lists: 806 images, 2 present, none of their 1500 pairs complete; KITTI: 31 complete.
     assert str(scene_info) in line
     assert "804 image(s) missing" in line and "1500 of 1531 pairs" in line
-    assert "--skip-missing" in line
+    assert "--skip-bad" in line
     assert not (out / "matches.h5").exists()
 
     result = ok("megadepth", "--root", megadepth_root, "--out", out, *LITE, "--max-side", 320,
@@ -362,7 +362,7 @@ def test_megadepth_missing_images(megadepth_root, tmp_path):
     assert list(per_pair["pair"]) == ["kitti00_seq/000100--000103", "kitti00_seq/000101--000104"]
     assert read_csv(out / "summary.csv").iloc[0]["n_pairs"] == 2
     dataset = yaml.safe_load((out / "config.yaml").read_text())["dataset"]
-    assert dataset["skip_missing"] is True
+    assert dataset["skip_bad"] is True
     assert dataset["n_skipped"] == 1500 and dataset["n_pairs"] == 31 and dataset["n_pairs_evaluated"] == 2
     assert len(dataset["scene_info"]) == 6
 

@@ -17,7 +17,7 @@ from e3cm_bench.metrics import evaluate_pose_pair
 
 def touch(path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(b"")
+    path.write_bytes(b"P6 1 1 255\n\x00\x00\x00")  # a 1 x 1 image: present and whole
     return path
 
 
@@ -99,9 +99,9 @@ def test_hpatches_missing_images_and_skip(tmp_path: Path):
     make_hpatches_sequence(tmp_path, "v_fake")
     folder = make_hpatches_sequence(tmp_path, "i_fake")
     (folder / "5.ppm").unlink()
-    with pytest.raises(DatasetError, match=r"1 image\(s\) missing.*5\.ppm.*--skip-missing"):
+    with pytest.raises(DatasetError, match=r"1 image\(s\) missing.*5\.ppm.*--skip-bad"):
         HPatches(tmp_path)
-    dataset = HPatches(tmp_path, skip_missing=True)
+    dataset = HPatches(tmp_path, skip_bad=True)
     assert len(dataset) == 9 and dataset.n_skipped == 1
     assert "i_fake/1-5" not in [p.name for p in dataset]
     assert dataset.describe()["n_skipped"] == 1
@@ -152,11 +152,11 @@ def test_megadepth_default_lists_need_their_images(megadepth_root: Path):
     message = str(error.value)
     count = re.search(r"(\d+) image\(s\) missing", message)
     assert count and int(count.group(1)) > 0
-    assert "Undistorted_SfM/00" in message and "--skip-missing" in message
+    assert "Undistorted_SfM/00" in message and "--skip-bad" in message
 
 
-def test_megadepth_skip_missing_keeps_complete_pairs(megadepth_root: Path):
-    dataset = MegaDepth1500(megadepth_root, skip_missing=True)
+def test_megadepth_skip_bad_keeps_complete_pairs(megadepth_root: Path):
+    dataset = MegaDepth1500(megadepth_root, skip_bad=True)
     # No pair of the 5 real lists (1500 pairs) has both images present; the KITTI ones do.
     assert len(dataset) == 31
     assert all(p.name.startswith("kitti00_seq/") for p in dataset)
@@ -244,7 +244,7 @@ def test_yfcc_real_list_without_images(shared_data: Path):
         YFCC100M(shared_data)
     message = str(error.value)
     assert "yfcc_test_pairs_with_gt.txt" in message
-    assert "buckingham_palace/test/images/" in message and "--skip-missing" in message
+    assert "buckingham_palace/test/images/" in message and "--skip-bad" in message
 
 
 def write_pair_list(path: Path, lines: list[str]) -> Path:

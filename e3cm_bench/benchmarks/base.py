@@ -39,7 +39,7 @@ class EvalSettings:
 class Benchmark:
     """One benchmark. Subclasses say how a pair is scored (`evaluate_pair`, `summarize`).
 
-    dataset: the PairList class, built as ``dataset(root, skip_missing=..., **options)``.
+    dataset: the PairList class, built as ``dataset(root, skip_bad=..., **options)``.
     dataset_options: the options it takes besides the root (config files are checked against them).
     default_max_side: longer image side for matching when the user gives none (None = full size).
     ransac_field: the EvalSettings field that ``--ransac-px`` sets.
@@ -56,11 +56,11 @@ class Benchmark:
     table_metrics: Mapping[str, str] = field(default_factory=dict)
     table_extras: tuple[str, ...] = ("n_pairs",)
 
-    def load_dataset(self, root: str | Path, skip_missing: bool = False, **options) -> PairList:
+    def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
         unknown = set(options) - set(self.dataset_options)
         if unknown:
             raise ValueError(f"dataset option(s) {', '.join(sorted(unknown))} do not apply to {self.name}")
-        return self.dataset(root, skip_missing=skip_missing, **{k: v for k, v in options.items() if v is not None})
+        return self.dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if v is not None})
 
     def max_side(self, option: int | None) -> int | None:
         """The resize of a run: the option as given (0 = full size), or this benchmark's default."""

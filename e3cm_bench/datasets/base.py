@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from e3cm_bench.images import image_file_problem
+
 
 class DatasetError(ValueError):
     """Bad or missing benchmark input; the message is one line naming the file and the problem."""
@@ -34,33 +36,57 @@ class Pair:
 
 
 class PairList:
-    """A dataset's pairs, checked for images on disk; iterable, sized, indexable.
+    """A dataset's pairs, checked before any matching; iterable, sized, indexable.
 
     Subclasses build their pairs and pass them here with ``source``, the file or folder
-    that the pairs came from (named in error messages). With ``skip_missing`` the pairs
-    with a missing image are dropped and counted in ``n_skipped``; without it, any missing
-    image is an error, so that a partial dataset never passes for the whole benchmark.
+    that the pairs came from (named in error messages), and ``bad``: (pair name, problem)
+    for the pairs whose ground truth could not be used. Every image is checked cheaply
+    (exists, not empty, not cut short). With ``skip_bad`` the bad pairs are dropped and
+    listed in ``skipped``; without it, any bad pair is an error, so that a partial dataset
+    never passes for the whole benchmark.
     """
 
-    def __init__(self, pairs: Sequence[Pair], source: Path, skip_missing: bool) -> None:
-        if not pairs:
+    def __init__(self, pairs: Sequence[Pair], source: Path, skip_bad: bool,
+                 bad: Sequence[tuple[str, str]] = ()) -> None:
+        if not pairs and not bad:
             raise DatasetError(f"{source}: the pair list is empty")
         _reject_duplicate_names(pairs, source)
-        missing = _missing_images(pairs)
-        absent = set(missing)
-        complete = [p for p in pairs if p.image0 not in absent and p.image1 not in absent]
-        if missing and not skip_missing:
-            examples = ", ".join(str(path) for path in missing[:3])
+        n_total = len(pairs) + len(bad)  # pairs with bad ground truth were never built
+        image_problems = _image_problems(pairs)
+        image_bad = []
+        for pair in pairs:
+            path = next((p for p in (pair.image0, pair.image1) if p in image_problems), None)
+            if path is not None:
+                image_bad.append((pair.name, f"{path}: {image_problems[path]}"))
+        all_bad = list(bad) + image_bad
+        if all_bad and not skip_bad:
+            missing = [path for path, problem in image_problems.items() if problem == MISSING]
+            if not bad and len(missing) == len(image_problems):
+                examples = ", ".join(str(path) for path in missing[:3])
+                raise DatasetError(
+                    f"{source}: {len(missing)} image(s) missing ({len(image_bad)} of {n_total} pairs affected), "
+                    f"e.g. {examples}; pass --skip-bad to evaluate only the pairs whose input is sound"
+                )
             raise DatasetError(
-                f"{source}: {len(missing)} image(s) missing ({len(pairs) - len(complete)} of "
-                f"{len(pairs)} pairs affected), e.g. {examples}; "
-                "pass --skip-missing to evaluate only the pairs whose images exist"
+                f"{all_bad[0][1]} ({len(all_bad)} of {n_total} pairs have bad input); "
+                "pass --skip-bad to skip them (they are listed in skipped.csv)"
             )
-        self.pairs = complete
-        self.n_skipped = len(pairs) - len(complete)
-        self.skip_missing = skip_missing
+        bad_names = {name for name, _ in image_bad}
+        self.pairs = [p for p in pairs if p.name not in bad_names]
+        self.skipped = all_bad
+        self.skip_bad = skip_bad
         if not self.pairs:
-            raise DatasetError(f"{source}: none of the {len(pairs)} pairs has both images on disk")
+            raise DatasetError(f"{source}: none of the {n_total} pairs is usable (first: {all_bad[0][1]})")
+
+    @property
+    def n_skipped(self) -> int:
+        return len(self.skipped)
+
+    def skip_reason(self) -> str:
+        """Why pairs were skipped, in a few words for the console."""
+        if all(reason.endswith(MISSING) for _, reason in self.skipped):
+            return "images missing"
+        return "bad input, listed in skipped.csv"
 
     def __iter__(self) -> Iterator[Pair]:
         return iter(self.pairs)
@@ -78,10 +104,13 @@ class PairList:
     def describe(self) -> dict:
         return {
             **self.settings(),
-            "skip_missing": self.skip_missing,
+            "skip_bad": self.skip_bad,
             "n_pairs": len(self.pairs),
             "n_skipped": self.n_skipped,
         }
+
+
+MISSING = "image file not found"  # what images.image_file_problem says of a missing file
 
 
 def _reject_duplicate_names(pairs: Iterable[Pair], source: Path) -> None:
@@ -93,14 +122,28 @@ def _reject_duplicate_names(pairs: Iterable[Pair], source: Path) -> None:
         seen.add(pair.name)
 
 
-def _missing_images(pairs: Iterable[Pair]) -> list[Path]:
-    """Missing image paths, each once, in the order the pairs name them."""
-    checked: dict[Path, bool] = {}
+def _image_problems(pairs: Iterable[Pair]) -> dict[Path, str]:
+    """Image path -> what is wrong with it (missing, empty, cut short), each path checked once."""
+    checked: dict[Path, str | None] = {}
     for pair in pairs:
         for path in (pair.image0, pair.image1):
             if path not in checked:
-                checked[path] = path.is_file()
-    return [path for path, exists in checked.items() if not exists]
+                checked[path] = image_file_problem(path)
+    return {path: problem for path, problem in checked.items() if problem}
+
+
+def check_intrinsics(K: np.ndarray, where: str) -> None:
+    """K must be a camera matrix: positive focal lengths, last row (0, 0, 1)."""
+    if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.allclose(K[2], [0, 0, 1]):
+        raise DatasetError(f"{where}: intrinsics are not a camera matrix (focal lengths {K[0, 0]:g}, {K[1, 1]:g}; "
+                           f"last row {K[2].tolist()})")
+
+
+def check_pose(T: np.ndarray, where: str) -> None:
+    """T (4x4) must hold a rotation (orthonormal, det +1) and a finite translation."""
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-3):
+        raise DatasetError(f"{where}: the relative pose's rotation is not a rotation (det {np.linalg.det(R):.3g})")
 
 
 def require_directory(root: Path, what: str) -> Path:

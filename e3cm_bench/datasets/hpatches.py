@@ -38,7 +38,7 @@ class HPatches(PairList):
         root: str | Path,
         exclude_large: bool = False,
         sequences: Sequence[str] | None = None,
-        skip_missing: bool = False,
+        skip_bad: bool = False,
     ) -> None:
         self.root = require_directory(root, "HPatches")
         self.exclude_large = exclude_large
@@ -46,8 +46,14 @@ class HPatches(PairList):
             sequences = [sequences]
         self.sequence_patterns = list(sequences) if sequences is not None else None
         self.sequences = self._select_sequences()
-        pairs = [self._pair(sequence, k) for sequence in self.sequences for k in TARGET_IMAGES]
-        super().__init__(pairs, self.root, skip_missing)
+        pairs, bad = [], []
+        for sequence in self.sequences:
+            for k in TARGET_IMAGES:
+                try:
+                    pairs.append(self._pair(sequence, k))
+                except DatasetError as error:  # its H is missing or unusable
+                    bad.append((f"{sequence}/1-{k}", str(error)))
+        super().__init__(pairs, self.root, skip_bad, bad)
 
     def _select_sequences(self) -> list[str]:
         available = sorted(
@@ -90,7 +96,7 @@ class HPatches(PairList):
 
 
 def read_homography(path: Path) -> np.ndarray:
-    """A 3 x 3 whitespace-separated text matrix."""
+    """A 3 x 3 whitespace-separated text matrix: finite and invertible (it maps image 1 to k)."""
     if not path.is_file():
         raise DatasetError(f"{path}: homography file not found")
     try:
@@ -98,6 +104,11 @@ def read_homography(path: Path) -> np.ndarray:
     except ValueError as error:
         reason = " ".join(str(error).split())  # keep the message on one line
         raise DatasetError(f"{path}: not a numeric matrix ({reason})") from None
-    if H.shape != (3, 3) or not np.all(np.isfinite(H)):
-        raise DatasetError(f"{path}: expected a finite 3x3 matrix, got shape {H.shape}")
+    if H.shape != (3, 3):
+        raise DatasetError(f"{path}: expected a 3x3 matrix, got shape {H.shape}")
+    if not np.all(np.isfinite(H)):
+        raise DatasetError(f"{path}: the homography has non-finite entries (NaN or inf)")
+    # Relative to the entries' scale: an H of tiny entries is fine, a rank-deficient one is not.
+    if np.linalg.cond(H) > 1e12:
+        raise DatasetError(f"{path}: the homography is singular (it maps the image onto a line or a point)")
     return H

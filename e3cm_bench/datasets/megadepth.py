@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, check_intrinsics, check_pose, require_directory
 
 SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
 
@@ -28,7 +28,7 @@ class MegaDepth1500(PairList):
         self,
         root: str | Path,
         scene_info: Sequence[str | Path] | None = None,
-        skip_missing: bool = False,
+        skip_bad: bool = False,
     ) -> None:
         self.root = require_directory(root, "MegaDepth")
         if scene_info is None:
@@ -37,15 +37,20 @@ class MegaDepth1500(PairList):
                 raise DatasetError(f"{self.root / 'scene_info'}: no *.npz scene_info files")
         else:
             self.scene_info = [Path(p) for p in scene_info]
-        pairs = [pair for path in self.scene_info for pair in self._read_scene_info(path)]
+        pairs, bad = [], []
+        for path in self.scene_info:
+            good, wrong = self._read_scene_info(path)
+            pairs += good
+            bad += wrong
         # Name the one file when there is one; otherwise the folder the lists usually live in.
         source = self.scene_info[0] if len(self.scene_info) == 1 else self.root / "scene_info"
-        super().__init__(pairs, source, skip_missing)
+        super().__init__(pairs, source, skip_bad, bad)
 
-    def _read_scene_info(self, path: Path) -> list[Pair]:
+    def _read_scene_info(self, path: Path) -> tuple[list[Pair], list[tuple[str, str]]]:
+        """The file's pairs, and (name, problem) of those whose ground truth is unusable."""
         scene = load_scene_info(path)
         image_paths = scene["image_paths"]
-        pairs = []
+        pairs, bad = [], []
         for index, info in enumerate(scene["pair_infos"]):
             i, j = _image_indices(info, len(image_paths), path, index)
             for image_index in (i, j):
@@ -53,24 +58,24 @@ class MegaDepth1500(PairList):
                     raise DatasetError(
                         f"{path}: pair_infos[{index}] uses image {image_index}, which has no path"
                     )
-            K0 = _matrix(scene["intrinsics"][i], (3, 3), path, f"intrinsics[{i}]")
-            K1 = _matrix(scene["intrinsics"][j], (3, 3), path, f"intrinsics[{j}]")
-            pose0 = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
-            pose1 = _matrix(scene["poses"][j], (4, 4), path, f"poses[{j}]")
             image0 = self.root / str(image_paths[i])
             image1 = self.root / str(image_paths[j])
-            pairs.append(
-                Pair(
-                    name=f"{path.stem}/{image0.stem}--{image1.stem}",
-                    image0=image0,
-                    image1=image1,
-                    K0=K0,
-                    K1=K1,
-                    T_0to1=_relative_pose(pose0, pose1, path, i),
-                    meta={"scene": path.stem},
-                )
-            )
-        return pairs
+            name = f"{path.stem}/{image0.stem}--{image1.stem}"
+            try:
+                K0 = _matrix(scene["intrinsics"][i], (3, 3), path, f"intrinsics[{i}]")
+                K1 = _matrix(scene["intrinsics"][j], (3, 3), path, f"intrinsics[{j}]")
+                check_intrinsics(K0, f"{path}: intrinsics[{i}]")
+                check_intrinsics(K1, f"{path}: intrinsics[{j}]")
+                pose0 = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
+                pose1 = _matrix(scene["poses"][j], (4, 4), path, f"poses[{j}]")
+                T_0to1 = _relative_pose(pose0, pose1, path, i)
+                check_pose(T_0to1, f"{path}: pair_infos[{index}] (poses[{i}], poses[{j}])")
+            except DatasetError as error:
+                bad.append((name, str(error)))
+                continue
+            pairs.append(Pair(name=name, image0=image0, image1=image1, K0=K0, K1=K1, T_0to1=T_0to1,
+                              meta={"scene": path.stem}))
+        return pairs, bad
 
     def settings(self) -> dict:
         return {

@@ -13,7 +13,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, check_intrinsics, check_pose, require_directory
 
 DEFAULT_PAIRS_FILE = "yfcc_test_pairs_with_gt.txt"
 N_FIELDS = 2 + 2 + 9 + 9 + 16
@@ -32,19 +32,26 @@ class YFCC100M(PairList):
         self,
         root: str | Path,
         pairs: str | Path | None = None,
-        skip_missing: bool = False,
+        skip_bad: bool = False,
     ) -> None:
         self.root = require_directory(root, "YFCC100M")
         self.pairs_file = Path(pairs) if pairs is not None else self.root / DEFAULT_PAIRS_FILE
         if not self.pairs_file.is_file():
             raise DatasetError(f"{self.pairs_file}: pair list not found")
         lines = self.pairs_file.read_text().splitlines()
-        parsed = [
-            self._parse_line(line, number)
-            for number, line in enumerate(lines, start=1)
-            if line.strip()
-        ]
-        super().__init__(parsed, self.pairs_file, skip_missing)
+        parsed, bad = [], []
+        for number, line in enumerate(lines, start=1):
+            if line.strip():
+                pair = self._parse_line(line, number)
+                try:
+                    check_intrinsics(pair.K0, f"{self.pairs_file}:{number}: K0")
+                    check_intrinsics(pair.K1, f"{self.pairs_file}:{number}: K1")
+                    check_pose(pair.T_0to1, f"{self.pairs_file}:{number}: T_0to1")
+                except DatasetError as error:
+                    bad.append((pair.name, str(error)))
+                    continue
+                parsed.append(pair)
+        super().__init__(parsed, self.pairs_file, skip_bad, bad)
 
     def _parse_line(self, line: str, number: int) -> Pair:
         where = f"{self.pairs_file}:{number}"
