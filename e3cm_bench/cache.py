@@ -1,17 +1,21 @@
-"""An HDF5 store of matches, one group per image pair, that survives interrupted runs.
+"""An HDF5 store of matches, one group per image pair, that survives interrupted runs and damage.
 
 A pair name such as ``"v_graffiti/1-2"`` becomes the nested group ``v_graffiti/1-2``
 holding the datasets ``keypoints0``, ``keypoints1`` (N x 2 float32) and ``scores``
 (N float32), plus the caller's attributes (image sizes, timings).
 
-Crash safety comes from two rules. The file is opened for one write and closed right
-after, so a run killed between pairs leaves a closed, consistent file. And the
-attribute ``complete=1`` is set last, so a run killed in the middle of a write leaves
-an entry that ``names`` and ``read`` ignore and the next run simply rewrites.
+Crash safety comes from three rules. A file is opened for one write and closed right
+after, so a run killed between pairs leaves closed, consistent files. The attribute
+``complete=1`` is set last, so a run killed in the middle of a write leaves an entry that
+``names`` and ``read`` ignore and the next run simply rewrites. And the pairs are spread
+over block files of at most BLOCK_PAIRS pairs (``matches.h5``, ``matches.001.h5``, ...):
+a file damaged by a crash, a full disk or a copy cut short costs only its own pairs, which
+``names`` leaves out (listing the file in ``damaged``) so that the run matches them again.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import h5py
@@ -21,39 +25,69 @@ from e3cm_bench.matches import Matches
 
 DATASETS = ("keypoints0", "keypoints1", "scores")
 COMPLETE_ATTR = "complete"
+BLOCK_PAIRS = 50  # pairs per file: the most a damaged file can cost
 
 
 class MatchCache:
-    """Matches of many image pairs in one HDF5 file, keyed by pair name."""
+    """Matches of many image pairs in block files of at most BLOCK_PAIRS pairs, keyed by pair name.
+
+    ``path`` is the first block (``matches.h5``); later blocks sit beside it.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.damaged: list[Path] = []  # blocks found unreadable by the last names()
+        self._where: dict[str, Path] | None = None  # pair -> block, from the last names()
+        self._counts: dict[Path, int] = {}
+
+    def blocks(self) -> list[Path]:
+        """The block files that exist, in order."""
+        return [path for _, path in self._indexed_blocks()]
+
+    def _indexed_blocks(self) -> list[tuple[int, Path]]:
+        pattern = re.compile(re.escape(self.path.stem) + r"\.(\d{3,})" + re.escape(self.path.suffix) + "$")
+        later = sorted((int(m.group(1)), p) for p in self.path.parent.glob(f"{self.path.stem}.*{self.path.suffix}")
+                       if (m := pattern.match(p.name)))
+        return ([(0, self.path)] if self.path.exists() else []) + later
+
+    def _block(self, index: int) -> Path:
+        return self.path if index == 0 else self.path.with_name(f"{self.path.stem}.{index:03d}{self.path.suffix}")
 
     # ------------------------------------------------------------------ queries
 
     def names(self) -> list[str]:
-        """The names of all complete entries, sorted."""
-        if not self.path.exists():
-            return []
-        found: list[str] = []
-        with self._open("r") as file:
+        """The names of all complete entries in readable blocks, sorted; unreadable blocks go to ``damaged``."""
+        self._where, self._counts, self.damaged = {}, {}, []
+        for block in self.blocks():
+            found: list[str] = []
+            try:
+                with _open(block, "r") as file:
 
-            def collect(key: str, item: h5py.HLObject) -> None:
-                if _is_complete(item):
-                    found.append(key)
+                    def collect(key: str, item: h5py.HLObject) -> None:
+                        if _is_complete(item):
+                            found.append(key)
 
-            file.visititems(collect)
-        return sorted(found)
+                    file.visititems(collect)
+            except (OSError, ValueError, RuntimeError, KeyError):
+                self.damaged.append(block)
+                continue
+            self._counts[block] = len(found)
+            for name in found:
+                self._where.setdefault(name, block)
+        return sorted(self._where)
 
     def read(self, name: str) -> Matches:
         """The stored matches; ``info`` holds the attributes given to ``write``."""
         key = _group_key(name)
-        if not self.path.exists():
-            raise KeyError(f"no match cache at {self.path}")
-        with self._open("r") as file:
+        if self._where is None or name not in self._where:
+            self.names()
+        block = self._where.get(name)
+        if block is None:
+            raise KeyError(f"pair {name!r} has no complete entry in {self.path}")
+        with _open(block, "r") as file:
             group = file.get(key)
             if not _is_complete(group):
-                raise KeyError(f"pair {name!r} has no complete entry in {self.path}")
+                raise KeyError(f"pair {name!r} has no complete entry in {block}")
             info = {k: _plain(v) for k, v in group.attrs.items() if k != COMPLETE_ATTR}
             return Matches(
                 keypoints0=group["keypoints0"][()],
@@ -76,7 +110,8 @@ class MatchCache:
         if COMPLETE_ATTR in attrs:
             raise ValueError(f"attribute name {COMPLETE_ATTR!r} is reserved by the match cache")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._open("a") as file:
+        block = self._block_for(name)
+        with _open(block, "a") as file:
             group = file.require_group(key)
             # Clear only this entry's own content: a group may also be the parent of
             # other pairs' groups (a name that prefixes another), which must survive.
@@ -91,19 +126,35 @@ class MatchCache:
                         f"attribute {attr!r}={value!r} cannot be stored in HDF5 ({error})"
                     ) from error
             group.attrs[COMPLETE_ATTR] = 1  # last, so an interrupted write reads as absent
+        if name not in self._where:
+            self._counts[block] = self._counts.get(block, 0) + 1
+        self._where[name] = block
 
-    # ------------------------------------------------------------------ helpers
+    def _block_for(self, name: str) -> Path:
+        """The block a pair is written to: its own when rewritten, else the last block with room
+        (never a damaged one: a new block follows it)."""
+        if self._where is None:
+            self.names()
+        if name in self._where:
+            return self._where[name]
+        existing = self._indexed_blocks()
+        if existing:
+            index, last = existing[-1]
+            if last not in self.damaged and self._counts.get(last, 0) < BLOCK_PAIRS:
+                return last
+            return self._block(index + 1)
+        return self.path
 
-    def _open(self, mode: str) -> h5py.File:
-        # h5py reports a foreign file as a bare OSError; say which file and what to do.
-        if self.path.exists() and not h5py.is_hdf5(self.path):
-            raise ValueError(_not_hdf5_message(self.path))
-        try:
-            return h5py.File(self.path, mode)
-        except OSError as error:
-            if "signature" in str(error).lower() or "truncated" in str(error).lower():
-                raise ValueError(_not_hdf5_message(self.path)) from error
-            raise
+def _open(path: Path, mode: str) -> h5py.File:
+    # h5py reports a foreign file as a bare OSError; say which file and what to do.
+    if path.exists() and not h5py.is_hdf5(path):
+        raise ValueError(_not_hdf5_message(path))
+    try:
+        return h5py.File(path, mode)
+    except OSError as error:
+        if "signature" in str(error).lower() or "truncated" in str(error).lower():
+            raise ValueError(_not_hdf5_message(path)) from error
+        raise
 
 
 def _not_hdf5_message(path: Path) -> str:

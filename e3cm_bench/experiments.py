@@ -20,6 +20,7 @@ from .runner import run_benchmark
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
 METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side"}
+EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods"}
 
 
 def experiment_method(
@@ -51,6 +52,14 @@ def experiment_method(
 def load_experiment(path: Path) -> dict:
     """Read and check an experiment config (configs/*.yaml)."""
     config = load_yaml(path, what="experiment config")
+    unknown = set(config) - EXPERIMENT_KEYS
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has {', '.join(sorted(EXPERIMENT_KEYS))}")
+    for key in ("seed", "max_side"):
+        if key in config and (not isinstance(config[key], int) or isinstance(config[key], bool) or config[key] < 0):
+            raise ValueError(f"{path}: '{key}' must be a whole number >= 0, got {config[key]!r}")
+    if not isinstance(config.get("dataset") or {}, dict):
+        raise ValueError(f"{path}: 'dataset' must be a mapping of dataset options")
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])

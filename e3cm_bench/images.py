@@ -64,7 +64,13 @@ def load_image(path: str | Path) -> np.ndarray:
     if problem:
         raise ImageError(f"{path}: {problem}")
     # IMREAD_COLOR always yields 3 channels: gray is replicated, alpha dropped, 16-bit scaled.
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    # OpenCV's own log lines about a broken file would precede our one-line error: silenced.
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise ImageError(f"{path}: cannot read the image (unreadable or not an image)")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

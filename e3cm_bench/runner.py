@@ -22,10 +22,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColum
 from rich.text import Text
 
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
-from .cache import MatchCache
+from .cache import BLOCK_PAIRS, MatchCache
 from .datasets.base import Pair, PairList
 from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
+from .matchers import check_device, is_out_of_memory
 from .matchers.base import Matcher
 from .matches import Matches
 from .method import MethodSpec
@@ -119,6 +120,12 @@ def match_stage(
             try:
                 match_cached_pair(matcher, pair, method, cache)
                 matched += 1
+            except (RuntimeError, MemoryError) as error:
+                if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
+                    raise
+                resize = f"longer side {method.max_side} px" if method.max_side else "full resolution"
+                raise ValueError(f"pair {pair.name}: its images at {resize} do not fit in memory for {method.label} "
+                                 "(the pairs matched before it are kept); pass a smaller --max-side, e.g. 1600") from None
             except ImageError as error:
                 if skipped is None:
                     raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
@@ -187,7 +194,9 @@ def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark,
 
 
 def _clear(out: Path) -> None:
-    for name in (CACHE_FILE, CONFIG_FILE, "per_pair.csv", "summary.csv"):
+    for block in MatchCache(out / CACHE_FILE).blocks():
+        block.unlink()
+    for name in (CONFIG_FILE, "per_pair.csv", "summary.csv", "skipped.csv"):
         (out / name).unlink(missing_ok=True)
     shutil.rmtree(out / "viz", ignore_errors=True)
 
@@ -222,6 +231,8 @@ def run_benchmark(
         raise ValueError("run_benchmark: a method is needed unless eval_only")
     if limit is not None and limit < 1:
         raise ValueError(f"--limit must be at least 1, got {limit}")
+    if method is not None and method.backbone is not None:
+        check_device(device)
     if dataset is None:
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
@@ -250,7 +261,10 @@ def _run_locked(
     pairs = list(dataset)[:limit] if limit else list(dataset)
     skipped = list(dataset.skipped)  # (pair, problem); pairs that fail to decode are added while matching
     cache = MatchCache(out / CACHE_FILE)
-    done = set(cache.names())  # one pass over the file, not one open per pair
+    done = set(cache.names())  # one pass over the files, not one open per pair
+    for block in cache.damaged:
+        console.print(f"warning: {block} is damaged (unreadable); its pairs (at most {BLOCK_PAIRS}) will be "
+                      "matched again into a new file; the damaged file is left as it is", markup=False)
     todo = [p for p in pairs if p.name not in done]
 
     if eval_only:

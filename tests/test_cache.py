@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.cache import BLOCK_PAIRS, MatchCache
 from e3cm_bench.matches import Matches
 
 
@@ -97,24 +97,39 @@ def test_invalid_names_rejected(tmp_path):
             cache.write(bad, make_matches(1))
 
 
-def test_not_hdf5_file_raises_value_error(tmp_path):
+def test_a_foreign_file_is_a_damaged_block_left_untouched(tmp_path):
     path = tmp_path / "matches.h5"
     path.write_text("not an hdf5 file\n")
     cache = MatchCache(path)
-    for action in (cache.names, lambda: "a/b" in cache.names(), lambda: cache.write("a/b", make_matches(2))):
-        with pytest.raises(ValueError, match="not a readable HDF5 match cache") as error:
-            action()
-        assert str(path) in str(error.value) and "--overwrite" in str(error.value)
+    assert cache.names() == [] and cache.damaged == [path]
+    with pytest.raises(KeyError):
+        cache.read("a/b")
+    cache.write("a/b", make_matches(2))  # goes to a new block
+    assert cache.names() == ["a/b"] and cache.blocks() == [path, tmp_path / "matches.001.h5"]
     assert path.read_text() == "not an hdf5 file\n"  # left untouched
 
 
-def test_truncated_hdf5_file_raises_value_error(tmp_path):
+def test_a_damaged_block_costs_only_its_own_pairs(tmp_path):
     path = tmp_path / "matches.h5"
-    MatchCache(path).write("a/b", make_matches(20000))
-    content = path.read_bytes()
-    path.write_bytes(content[: len(content) // 2])  # a copy cut short keeps the HDF5 signature
-    with pytest.raises(ValueError, match="not a readable HDF5 match cache"):
-        MatchCache(path).names()
+    cache = MatchCache(path)
+    names = [f"scene/p{i:03d}" for i in range(2 * BLOCK_PAIRS + 20)]
+    for name in names:
+        cache.write(name, make_matches(500))
+    blocks = cache.blocks()
+    assert [p.name for p in blocks] == ["matches.h5", "matches.001.h5", "matches.002.h5"]
+    # A copy cut short: 2 KiB off the end of the middle block.
+    content = blocks[1].read_bytes()
+    blocks[1].write_bytes(content[:-2048])
+    fresh = MatchCache(path)
+    readable = fresh.names()
+    assert fresh.damaged == [blocks[1]]
+    assert readable == names[:BLOCK_PAIRS] + names[2 * BLOCK_PAIRS:]  # at most BLOCK_PAIRS lost
+    np.testing.assert_array_equal(fresh.read(names[-1]).keypoints0, cache.read(names[-1]).keypoints0)
+    # Matching the lost pairs again writes them to a new block after the damaged one.
+    for name in names[BLOCK_PAIRS:2 * BLOCK_PAIRS]:
+        fresh.write(name, make_matches(500))
+    assert MatchCache(path).names() == sorted(names)
+    assert fresh.blocks()[-1].name == "matches.003.h5"
 
 
 def test_unstorable_attribute_names_the_key(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import pickle
 import zipfile
 from collections.abc import Sequence
@@ -85,19 +86,53 @@ class MegaDepth1500(PairList):
         }
 
 
+# What a scene_info pickle may build: numpy arrays, dtypes and scalars (module paths of numpy
+# 1 and 2). Anything else (a function to call, an object with a custom __reduce__) is refused
+# before it is built, so a crafted file cannot run code.
+SAFE_PICKLE_GLOBALS = {
+    ("numpy", "ndarray"), ("numpy", "dtype"),
+    ("numpy.core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "scalar"),
+}
+
+
+class _ArraysOnlyUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str):
+        if (module, name) in SAFE_PICKLE_GLOBALS or (module.startswith("numpy.dtypes") and name.endswith("DType")):
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"it would build {module}.{name}; only numpy arrays and plain containers are read")
+
+
+def _read_npy(data: bytes) -> np.ndarray:
+    """One .npy member of an archive; object arrays (pickled inside) go through the safe unpickler."""
+    f = io.BytesIO(data)
+    version = np.lib.format.read_magic(f)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    _, _, dtype = read_header(f)
+    if not dtype.hasobject:
+        return np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+    array = _ArraysOnlyUnpickler(f).load()
+    if not isinstance(array, np.ndarray):
+        raise pickle.UnpicklingError("an object array member holds something else")
+    return array
+
+
 def load_scene_info(path: Path) -> dict:
     """The four arrays of a scene_info file; an unreadable or incomplete one is a DatasetError.
 
     The LoFTR MegaDepth-1500 lists are pickled dicts despite their .npz suffix; lists written
-    with np.savez are real npz archives. Both load through np.load with pickles allowed.
+    with np.savez are real npz archives. Archives load with pickles refused; pickles load
+    through an unpickler that builds numpy arrays and plain containers only.
     """
     if not path.is_file():
         raise DatasetError(f"{path}: scene_info file not found")
     try:
-        loaded = np.load(path, allow_pickle=True)
-        if isinstance(loaded, np.lib.npyio.NpzFile):
-            with loaded:
-                loaded = {key: loaded[key] for key in loaded.files}
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as archive:
+                loaded = {name.removesuffix(".npy"): _read_npy(archive.read(name)) for name in archive.namelist()}
+        else:
+            with open(path, "rb") as f:
+                loaded = _ArraysOnlyUnpickler(f).load()
     except (OSError, ValueError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
         reason = " ".join(str(error).split())
         raise DatasetError(f"{path}: not a readable scene_info file ({reason})") from None
