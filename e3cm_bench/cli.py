@@ -19,6 +19,8 @@ from . import check as regression
 from .datasets.base import DatasetError, Pair
 from .demo import METHODS as DEMO_METHODS
 from .demo import run_demo
+from .calibrate import CalibrationSettings, run_calibration
+from .synth.stereo import write_stereo_sequence
 from .synth.textures import demo_pair
 from .experiments import reproduce as reproduce_experiment
 from .experiments import write_table
@@ -288,6 +290,48 @@ def check(
                   + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
     if bad:
         raise typer.Exit(1)
+
+
+@app.command()
+@friendly_errors
+def calibrate(
+    root: Annotated[Path, typer.Option("--root", help="Stereo sequence: KITTI odometry (image_0/, image_1/, calib.txt) or raw (image_00/data, image_01/data, calib_cam_to_cam.txt) layout.")],
+    out: OutOpt,
+    matcher: Annotated[list[str], typer.Option("--matcher", help=f"Matcher(s) to compare (repeatable): {', '.join(MATCHERS)}; e3cm-ransac = e3cm with --estimator ransac.")] = ["e3cm"],  # noqa: B006
+    backbone: BackboneOpt = "vgg19",
+    weights: WeightsOpt = None,
+    frames: Annotated[list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")] = [1, 3, 5, 10],  # noqa: B006
+    max_side: Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (default: full resolution).")] = None,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = "cpu",
+    unrectified: Annotated[bool, typer.Option("--unrectified", help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).")] = False,
+    overwrite: OverwriteOpt = False,
+) -> None:
+    """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
+    methods = []
+    for name in matcher:
+        options = {"matcher": "e3cm", "estimator": "ransac"} if name == "e3cm-ransac" else {"matcher": name}
+        label = name if backbone == "vgg19" or name == "sift" else f"{name} [{backbone}]"
+        methods.append(MethodSpec.create(backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
+                                         label=label, **options))
+    run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
+                    unrectified=unrectified, overwrite=overwrite, console=console)
+
+
+synth_app = typer.Typer(no_args_is_help=True, help="Write synthetic data with exact ground truth.")
+app.add_typer(synth_app, name="synth")
+
+
+@synth_app.command("stereo")
+@friendly_errors
+def synth_stereo(
+    out: Annotated[Path, typer.Option("--out", help="Sequence folder (KITTI odometry layout).")],
+    frames: Annotated[int, typer.Option("--frames", help="Number of stereo frames.")] = 20,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the scene, the rig's drift and its path.")] = 0,
+) -> None:
+    """A stereo rig with a drifted extrinsic (about 1 degree each angle) moving through the demo's room scene."""
+    root = write_stereo_sequence(out, frames=frames, seed=seed)
+    console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)")
 
 
 if __name__ == "__main__":  # pragma: no cover

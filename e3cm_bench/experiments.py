@@ -114,7 +114,7 @@ def reproduce(
     run_dirs = []
     for entry in experiment["methods"]:
         method = experiment_method(entry, experiment, benchmark, backbone, max_side)
-        run_dir = out / method.label.replace(" ", "_").replace("[", "").replace("]", "")
+        run_dir = out / method.folder
         console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
         run_benchmark(benchmark, run_dir, method, dataset=dataset, ev=ev, limit=limit, device=device, console=console)
         run_dirs.append(run_dir)

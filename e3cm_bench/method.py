@@ -122,6 +122,11 @@ class MethodSpec:
 
         return build_matcher(self.matcher, self.backbone or "vgg19", self.weights, device, pretrained, self.settings_dict())
 
+    @property
+    def folder(self) -> str:
+        """The label as a folder name: 'e3cm [efficientnet_lite0]' -> 'e3cm_efficientnet_lite0'."""
+        return self.label.replace(" ", "_").replace("[", "").replace("]", "")
+
     def describe(self) -> str:
         """One line for the console."""
         resize = f"longer side at most {self.max_side} px" if self.max_side else "full resolution"

@@ -147,3 +147,58 @@ def pose_auc_figure(runs: Mapping[str, Mapping], title: str) -> Figure:
 
 def plot_pose_auc_bars(runs: Mapping[str, Mapping], path: str | Path, title: str) -> Path:
     return _save_figure(pose_auc_figure(runs, title), path)
+
+
+# --------------------------------------------------------------------------- stereo self-calibration
+
+CALIBRATION_PANELS = (("yaw", "deg"), ("pitch", "deg"), ("roll", "deg"), ("tx", "unit t"), ("ty", "unit t"), ("tz", "unit t"))
+
+
+def calibration_boxplot_figure(windows: pd.DataFrame, frames: int) -> Figure:
+    """The paper's Fig. 7: one panel per error component, one box per matcher (windows of `frames`)."""
+    chosen = windows[windows["frames"] == frames]
+    if chosen.empty:
+        raise ValueError(f"calibration plot: no windows of {frames} frames")
+    methods = list(dict.fromkeys(chosen["method"]))
+    colors = _run_colors(methods)
+    fig = Figure(figsize=(13, 6.5), layout="constrained")
+    for ax, (column, unit) in zip(fig.subplots(2, 3).ravel(), CALIBRATION_PANELS):
+        data = [chosen.loc[chosen["method"] == m, column].replace([np.inf, -np.inf], np.nan).dropna().to_numpy()
+                for m in methods]
+        boxes = ax.boxplot(data, patch_artist=True, widths=0.6)
+        for patch, method in zip(boxes["boxes"], methods):
+            patch.set_facecolor(colors[method])
+            patch.set_alpha(0.6)
+        ax.set_xticks(range(1, len(methods) + 1), methods, rotation=20, ha="right")
+        ax.axhline(0, color="gray", linewidth=0.8)
+        ax.set_title(f"{column} error [{unit}]")
+        ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(f"stereo rig self-calibration error, windows of {frames} frames")
+    return fig
+
+
+def plot_calibration_boxplots(windows: pd.DataFrame, frames: int, path: str | Path) -> Path:
+    return _save_figure(calibration_boxplot_figure(windows, frames), path)
+
+
+def calibration_vs_frames_figure(summary: pd.DataFrame) -> Figure:
+    """Fig. 8 style: mean absolute rotation and translation error against the frames pooled."""
+    methods = list(dict.fromkeys(summary["method"]))
+    colors = _run_colors(methods)
+    fig = Figure(figsize=(11, 4.2), layout="constrained")
+    for ax, (column, label) in zip(fig.subplots(1, 2), (("rotation", "largest angle error [deg]"),
+                                                        ("translation", "largest unit-t component error"))):
+        for method in methods:
+            rows = summary[summary["method"] == method].sort_values("frames")
+            ax.plot(rows["frames"], rows[column], marker="o", color=colors[method], label=method)
+        ax.set_xlabel("frames pooled")
+        ax.set_ylabel(f"mean {label}")
+        ax.set_xticks(sorted(summary["frames"].unique()))
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    fig.axes[0].legend(fontsize=8)
+    return fig
+
+
+def plot_calibration_vs_frames(summary: pd.DataFrame, path: str | Path) -> Path:
+    return _save_figure(calibration_vs_frames_figure(summary), path)

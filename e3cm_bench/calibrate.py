@@ -1,0 +1,142 @@
+"""`e3cm-bench calibrate`: matches from a stereo rig drive its self-calibration (paper Sec. 4.4).
+
+For each matcher: match the left-right pair of every frame once (cached and resumable like
+a benchmark run), then for each window of N consecutive frames (sliding by one), pool the
+matches, estimate the extrinsics (calibration.estimate_extrinsics) and compare them with
+the truth. The calibration error judges the matcher.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+from rich.console import Console
+
+from . import plots
+from .cache import MatchCache
+from .calibration import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
+from .datasets.base import Pair
+from .datasets.stereo import StereoSequence, load_stereo_sequence
+from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
+from .images import load_image
+from .method import MethodSpec
+from .report import print_summary
+from .runner import CACHE_FILE, CONFIG_FILE, match_stage
+
+FRAMES = (1, 3, 5, 10)
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """What changes the calibration but not the matches."""
+
+    frames: tuple[int, ...] = FRAMES
+    ransac_px: float = 1.0
+    loss: str = "cauchy"
+    loss_scale_px: float = 1.0
+    seed: int = 0
+
+
+def windows(n_frames: int, size: int) -> list[range]:
+    """Every run of `size` consecutive frames (windows slide by one frame, as an online
+    calibration that re-estimates at each new frame from the last `size` frames)."""
+    return [range(start, start + size) for start in range(0, n_frames - size + 1)]
+
+
+def calibrate_windows(sequence: StereoSequence, matches: list, settings: CalibrationSettings, image_size) -> pd.DataFrame:
+    """One row per window: errors (ERROR_COLUMNS), match counts, vertical disparity before/after."""
+    rows = []
+    for size in settings.frames:
+        for frames in windows(len(sequence), size):
+            x0 = np.concatenate([matches[i].keypoints0 for i in frames])
+            x1 = np.concatenate([matches[i].keypoints1 for i in frames])
+            cv2.setRNGSeed(settings.seed)  # the RANSAC start repeats
+            estimate = estimate_extrinsics(x0, x1, sequence.K0, sequence.K1, settings.ransac_px, settings.loss,
+                                           settings.loss_scale_px)
+            row = {"frames": size, "first_frame": frames[0], "n_matches": len(x0)}
+            if estimate is None:
+                row.update({c: np.inf for c in ERROR_COLUMNS})
+                rows.append(row)
+                continue
+            row.update(extrinsic_errors(estimate["R"], estimate["t"], sequence.R, sequence.t))
+            row["inliers_1px"] = estimate["inliers_1px"]
+            before, after = vertical_disparity(x0, x1, sequence.K0, sequence.K1, estimate["R"], estimate["t"], image_size)
+            _, with_truth = vertical_disparity(x0, x1, sequence.K0, sequence.K1, sequence.R, sequence.t, image_size)
+            row.update({"vdisp_before": before, "vdisp_after": after, "vdisp_after_truth": with_truth})
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def summarize(windows_df: pd.DataFrame) -> pd.DataFrame:
+    """Per number of frames: the mean absolute error of each component, and of rotation / translation."""
+    table = windows_df.assign(**{c: windows_df[c].abs() for c in ERROR_COLUMNS})
+    table["rotation"] = table[["yaw", "pitch", "roll"]].max(axis=1)
+    table["translation"] = table[["tx", "ty", "tz"]].max(axis=1)
+    columns = [*ERROR_COLUMNS, "rotation", "translation", "vdisp_before", "vdisp_after", "vdisp_after_truth"]
+    summary = table.groupby("frames")[columns].mean().reset_index()
+    summary.insert(1, "n_windows", table.groupby("frames").size().to_numpy())
+    return summary
+
+
+def run_calibration(
+    root: str | Path, out: str | Path, methods: list[MethodSpec], settings: CalibrationSettings | None = None,
+    device: str = "cpu", unrectified: bool = False, overwrite: bool = False, console: Console | None = None,
+) -> pd.DataFrame:
+    """Calibrate with each method into OUT/<label>/; comparison CSVs and plots into OUT/."""
+    console = console or Console()
+    settings = settings or CalibrationSettings()
+    if any(n < 1 for n in settings.frames):
+        raise ValueError(f"--frames must be at least 1, got {list(settings.frames)}")
+    sequence = load_stereo_sequence(root, unrectified)
+    if max(settings.frames) > len(sequence):
+        raise ValueError(f"{sequence.root}: {len(sequence)} frames, fewer than a window of {max(settings.frames)}")
+    height, width = load_image(sequence.left[0]).shape[:2]
+    pairs = [Pair(f"{i:06d}", left, right) for i, (left, right) in enumerate(zip(sequence.left, sequence.right))]
+    out = Path(out)
+    console.print(f"calibrate: {sequence.layout} sequence {sequence.root}, {len(sequence)} frames, windows of "
+                  f"{', '.join(map(str, settings.frames))} frames", markup=False)
+    all_windows = []
+    for method in methods:
+        run_dir = out / method.folder
+        with FolderLock(run_dir):
+            config = {"command": "calibrate", "method": method.label, "identity": method.identity(),
+                      "sequence": sequence.describe(), "calibration": asdict(settings), "device": device,
+                      "versions": package_versions()}
+            path = run_dir / CONFIG_FILE
+            if path.is_file() and not overwrite:
+                before = load_yaml(path)
+                if before.get("identity") != config["identity"] or before.get("sequence", {}).get("root") != str(sequence.root):
+                    raise ValueError(f"{path}: the matches in this folder were made with other settings or frames; "
+                                     "pass --overwrite or choose another --out")
+            cache = MatchCache(run_dir / CACHE_FILE)
+            if overwrite:
+                for block in cache.blocks():
+                    block.unlink()
+            done = set(cache.names())
+            todo = [p for p in pairs if p.name not in done]
+            save_yaml(config, path)
+            if todo:
+                console.rule(f"calibrate: {method.label}")
+                match_stage(method, todo, cache, device, console)
+            matches = [cache.read(p.name) for p in pairs]
+            table = calibrate_windows(sequence, matches, settings, (width, height))
+            write_csv(table, run_dir / "windows.csv")
+            write_csv(summarize(table), run_dir / "summary.csv")
+            all_windows.append(table.assign(method=method.label))
+    windows_df = pd.concat(all_windows, ignore_index=True)
+    write_csv(windows_df, out / "windows.csv")
+    summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows])
+    summary = summary[["method", *[c for c in summary.columns if c != "method"]]]
+    write_csv(summary, out / "summary.csv")
+    plots.plot_calibration_boxplots(windows_df, max(settings.frames), out / "calibration_boxplot.png")
+    plots.plot_calibration_vs_frames(summary, out / "calibration_vs_frames.png")
+    for _, row in summary[summary["frames"] == max(settings.frames)].iterrows():
+        print_summary({k: row[k] for k in ("n_windows", *ERROR_COLUMNS, "vdisp_before", "vdisp_after", "vdisp_after_truth")},
+                      f"{row['method']}: mean |error| over windows of {row['frames']} frames (degrees; unit t)", console)
+    console.print(f"calibrate: windows.csv, summary.csv, calibration_boxplot.png, calibration_vs_frames.png in {out}",
+                  markup=False)
+    return summary
