@@ -91,9 +91,9 @@ def test_check_passes_on_equal_summaries(checked, tmp_path):
 
 def test_check_fails_naming_each_metric_that_fell(checked, tmp_path):
     runs, baseline = checked
-    degrade(runs / "sift", "mma@3", -0.05)  # tolerance 0.02
-    degrade(runs / "e3cm-ransac", "h_acc@1", -0.2)  # tolerance 0.14
-    degrade(runs / "e3cm-ransac", "h_acc@5", -0.1)  # within tolerance: not a regression
+    degrade(runs / "sift", "mma@3", -0.05)  # tolerance 0.01
+    degrade(runs / "e3cm-ransac", "h_acc@1", -0.2)  # tolerance 0.07
+    degrade(runs / "e3cm-ransac", "h_acc@5", -0.05)  # within tolerance: not a regression
     report = tmp_path / "summary.md"
     result = invoke("check", runs, "--baseline", baseline, "--summary", report)
     assert result.exit_code == 1
@@ -130,5 +130,5 @@ def test_committed_baselines_cover_the_demo():
     """results/baselines/ holds one row per demo method and set (written by check --update)."""
     for set_name, benchmark in (("hpatches", "hpatches"), ("scenes", "yfcc")):
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
-        assert list(table["method"]) == ["e3cm", "e3cm-ransac", "direct", "dfm", "sift"]
+        assert sorted(table["method"]) == sorted(["e3cm", "e3cm-ransac", "direct", "dfm", "sift"])
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()
