@@ -23,12 +23,13 @@ from .calibrate import CalibrationSettings, run_calibration
 from .synth.stereo import write_stereo_sequence
 from .synth.textures import demo_pair
 from .experiments import reproduce as reproduce_experiment
-from .experiments import write_table
+from .experiments import EXPERIMENT_COPY, merge_experiment, write_table
 from .images import load_image
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .matching import ESTIMATORS
 from .method import MethodSpec, parse_numbers
 from .runner import match_pair, run_benchmark
+from .shards import merge_run, parse_shard, run_shards
 from .viz import draw_matches, save_image
 
 app = typer.Typer(
@@ -142,13 +143,34 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
 
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
-         seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str) -> None:
+         seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
+         scale: tuple) -> None:
+    shard, workers, devices, launcher, shards = scale
     ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px)
-    run_benchmark(benchmark, out, method, root=root, dataset_options=dataset_options, skip_bad=skip_bad, ev=ev,
-                  limit=limit, overwrite=overwrite, eval_only=eval_only, viz=viz, device=device, console=console)
+    run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
+               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)
+    several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
+                                            ("--launcher slurm", launcher == "slurm")) if given]
+    if len(several) > 1:
+        raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
+    if workers or devices:
+        device_list = devices.split(",") if devices else ["cpu"] * workers
+        run_shards(run, len(device_list), devices=device_list, console=console)
+    elif launcher == "slurm":
+        if not shards:
+            raise ValueError("--launcher slurm needs --shards N")
+        run_shards(run, shards, launcher="slurm", console=console)
+    else:
+        run_benchmark(**run, eval_only=eval_only, device=device, shard=parse_shard(shard) if shard else None,
+                      console=console)
 
 
 # Options of the three benchmark commands.
+ShardOpt = Annotated[Optional[str], typer.Option("--shard", help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).")]
+WorkersOpt = Annotated[int, typer.Option("--workers", help="Run N shards at once in N local processes, CPU threads divided among them, then merge.")]
+DevicesOpt = Annotated[Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")]
+LauncherOpt = Annotated[str, typer.Option("--launcher", help="slurm: submit --shards N as a SLURM array (submitit; runs locally where SLURM is absent).")]
+ShardsOpt = Annotated[int, typer.Option("--shards", help="Number of shards for --launcher slurm.")]
 RootOpt = Annotated[Path, typer.Option("--root", help="Dataset root folder.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Run folder (config.yaml, matches.h5, CSVs, plots).")]
 MaxSideOpt = Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (0 = full resolution).")]
@@ -172,10 +194,13 @@ def hpatches(
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    shards: ShardsOpt = 0,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+         (shard, workers, devices, launcher, shards))
 
 
 @app.command()
@@ -187,10 +212,13 @@ def megadepth(
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    shards: ShardsOpt = 0,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+         (shard, workers, devices, launcher, shards))
 
 
 @app.command()
@@ -202,10 +230,13 @@ def yfcc(
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    shards: ShardsOpt = 0,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
-    _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device)
+    _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+         (shard, workers, devices, launcher, shards))
 
 
 @app.command()
@@ -235,13 +266,29 @@ def reproduce(
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
     skip_bad: SkipBadOpt = False,
     compare: CompareOpt = True,
+    shard: ShardOpt = None,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     if not config.is_file():
         raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
-                         skip_bad=skip_bad, max_side=max_side, compare=compare, console=console)
+                         skip_bad=skip_bad, max_side=max_side, compare=compare, console=console,
+                         shard=parse_shard(shard) if shard else None)
+
+
+@app.command()
+@friendly_errors
+def merge(
+    run_dir: Annotated[Path, typer.Argument(help="A sharded run's --out (with shards/), or a sharded reproduce's --out.")],
+    viz: VizOpt = 0,
+    compare: CompareOpt = True,
+) -> None:
+    """Merge the shards of a run (or of every method of a reproduce) into the usual CSVs, plots and config.yaml."""
+    if (run_dir / EXPERIMENT_COPY).is_file():
+        merge_experiment(run_dir, compare=compare, console=console)
+    else:
+        merge_run(run_dir, viz=viz, console=console)
 
 
 @app.command()

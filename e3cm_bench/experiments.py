@@ -13,12 +13,13 @@ from rich.console import Console
 
 from . import report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
-from .files import load_yaml
+from .files import load_yaml, save_yaml
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .method import MethodSpec
 from .runner import run_benchmark
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
+EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
 METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side"}
 EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods"}
 
@@ -98,11 +99,14 @@ def reproduce(
     max_side: int | None = None,
     compare: bool = True,
     console: Console | None = None,
-) -> tuple[Path, Path]:
+    shard: tuple[int, int] | None = None,
+) -> tuple[Path, Path] | None:
     """Run every method of an experiment config, then write its table and plots.
 
     backbone: replaces the backbone of every deep method (e.g. efficientnet_lite0 offline);
-    the labels then say so. Returns the table's CSV and Markdown paths.
+    the labels then say so. shard=(K, N): every method runs its K-th shard; the table is
+    written once every method's shards are merged. Returns the table's CSV and Markdown
+    paths (None while shards are missing).
     """
     console = console or Console()
     experiment = load_experiment(config_path)
@@ -111,14 +115,30 @@ def reproduce(
     dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
     ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)))
     out = Path(out)
-    run_dirs = []
-    for entry in experiment["methods"]:
-        method = experiment_method(entry, experiment, benchmark, backbone, max_side)
-        run_dir = out / method.folder
+    methods = [experiment_method(entry, experiment, benchmark, backbone, max_side) for entry in experiment["methods"]]
+    save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
+    load = {"root": str(root), "options": options, "skip_bad": skip_bad}
+    for method in methods:
         console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
-        run_benchmark(benchmark, run_dir, method, dataset=dataset, ev=ev, limit=limit, device=device, console=console)
-        run_dirs.append(run_dir)
+        run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev, limit=limit,
+                      device=device, shard=shard, console=console)
+    run_dirs = [out / m.folder for m in methods]
+    if shard is not None and not all((d / "summary.csv").is_file() and "shards" in load_yaml(d / "config.yaml") for d in run_dirs):
+        console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
+                      f"(or: e3cm-bench merge {out})", markup=False)
+        return None
     return write_table(run_dirs, out / "table", compare=compare, console=console)
+
+
+def merge_experiment(out: Path, compare: bool = True, console: Console | None = None) -> tuple[Path, Path]:
+    """Merge every method of a sharded reproduce in OUT, then write its table."""
+    from .shards import merge_run
+
+    experiment = load_yaml(Path(out) / EXPERIMENT_COPY)
+    run_dirs = [Path(out) / folder for folder in experiment["runs"]]
+    for run_dir in run_dirs:
+        merge_run(run_dir, console=console)
+    return write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
 
 
 def write_table(

@@ -31,6 +31,7 @@ from .matchers.base import Matcher
 from .matches import Matches
 from .method import MethodSpec
 from .report import print_summary
+from .shards import merge_when_complete, shard_dir, shard_slice
 from .viz import draw_matches, save_image
 
 CONFIG_FILE = "config.yaml"
@@ -216,12 +217,16 @@ def run_benchmark(
     eval_only: bool = False,
     viz: int = 0,
     device: str = "cpu",
+    shard: tuple[int, int] | None = None,
+    dataset_load: dict | None = None,
     console: Console | None = None,
 ) -> pd.DataFrame:
     """Run (or resume, or only evaluate) one method on one benchmark; returns summary.csv's row.
 
     The pairs come from `dataset`, or from the benchmark's dataset at `root` with
     `dataset_options`. `method` may be None only with eval_only (the folder's own is used).
+    shard=(K, N): only the K-th of N slices of the pairs, as a run in OUT/shards/K-of-N/;
+    the last shard to finish merges all of them into OUT (shards.merge_run).
     """
     console = console or Console()
     benchmark = get_benchmark(benchmark)
@@ -237,6 +242,11 @@ def run_benchmark(
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
         dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **(dataset_options or {}))
+        # How to load the same pairs again (merging shards needs the ground truth).
+        load = {"root": str(root), "options": {k: v for k, v in (dataset_options or {}).items() if v is not None},
+                "skip_bad": skip_bad}
+    else:
+        load = dataset_load  # given with a dataset object, so that its shards can be merged
     n_total = len(dataset) + dataset.n_skipped
     console.print(
         f"{benchmark.name}: {len(dataset)} pairs"
@@ -245,21 +255,35 @@ def run_benchmark(
         markup=False,
     )
 
-    with FolderLock(out):  # taken before anything in the folder is read or written
-        summary = _run_locked(benchmark, out, method, dataset, ev, limit, overwrite, eval_only, viz, device, console)
+    if shard is not None:
+        if eval_only:
+            raise ValueError("--eval-only applies to a whole run: use e3cm-bench merge on a sharded one")
+        run_dir = shard_dir(out, shard)
+    else:
+        run_dir = out
+    with FolderLock(run_dir):  # taken before anything in the folder is read or written
+        summary = _run_locked(benchmark, run_dir, method, dataset, ev, limit, overwrite, eval_only, viz, device,
+                              console, shard, load)
+    if shard is not None and merge_when_complete(out, console):
+        return pd.read_csv(out / "summary.csv")
     return pd.DataFrame([summary])
 
 
 def _run_locked(
     benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
     limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
+    shard: tuple[int, int] | None = None, load: dict | None = None,
 ) -> dict:
     if overwrite and out.exists():
         _clear(out)
     out.mkdir(parents=True, exist_ok=True)
     previous = _previous_config(out, method, benchmark, eval_only)
     pairs = list(dataset)[:limit] if limit else list(dataset)
-    skipped = list(dataset.skipped)  # (pair, problem); pairs that fail to decode are added while matching
+    if shard is not None:
+        pairs = pairs[shard_slice(len(pairs), shard)]
+    # (pair, problem): the dataset's bad pairs (listed by the first shard only, so that a merge
+    # counts them once), then those that fail to decode while matching.
+    skipped = list(dataset.skipped) if shard is None or shard[0] == 1 else []
     cache = MatchCache(out / CACHE_FILE)
     done = set(cache.names())  # one pass over the files, not one open per pair
     for block in cache.damaged:
@@ -288,6 +312,10 @@ def _run_locked(
         "versions": package_versions(),
         "timing": (previous or {}).get("timing", {}),
     }
+    if load is not None or (previous or {}).get("dataset_load"):
+        config["dataset_load"] = load or previous["dataset_load"]
+    if shard is not None:
+        config["shard"] = {"index": shard[0], "count": shard[1], "n_pairs": len(pairs), "complete": False}
 
     if todo:
         console.print(method.describe(), markup=False)
@@ -317,6 +345,8 @@ def _run_locked(
     config["dataset"]["n_skipped"] = len(skipped)
     write_skipped(skipped, out / "skipped.csv", console)
     write_reports(benchmark, out, config["method"], per_pair, summary, pairs, cache, ev, viz)
+    if shard is not None:
+        config["shard"]["complete"] = True  # written before the merge check (shards.merge_when_complete)
     save_yaml(config, out / CONFIG_FILE)
     print_summary(summary, f"{benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
     return summary

@@ -1,0 +1,241 @@
+"""Runs that outgrow one process: shards of a run, merging them, and launching them.
+
+A run with ``--shard K/N`` takes the K-th of N contiguous, near-equal slices of the pair
+list (contiguous: pairs of one scene or sequence stay together) and is an ordinary run in
+``OUT/shards/K-of-N/`` with its own cache, identity check and lock. HDF5 files are never
+shared between processes. `merge_run` checks that all N shards exist, are complete and
+share one identity, evaluates every pair from the shards' caches, and writes the usual
+CSVs, plots and config.yaml into OUT. The last shard to finish merges automatically.
+Launching is left to the cluster's scheduler (SLURM arrays, scripts/slurm/) or to
+`run_shards` (one local process per worker or device; submitit for SLURM).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pandas as pd
+from rich.console import Console
+
+from .benchmarks import EvalSettings, get_benchmark
+from .cache import MatchCache
+from .files import FolderLock, load_yaml, package_versions, save_yaml
+
+SHARDS_DIR = "shards"
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""
+    try:
+        k, n = (int(v) for v in str(text).split("/"))
+    except ValueError:
+        raise ValueError(f"--shard: expected K/N (e.g. 2/8), got {text!r}") from None
+    if not 1 <= k <= n:
+        raise ValueError(f"--shard {text}: K must be between 1 and N")
+    return k, n
+
+
+def shard_slice(n_pairs: int, shard: tuple[int, int]) -> slice:
+    """The K-th of N contiguous slices of n_pairs items; sizes differ by at most one."""
+    k, n = shard
+    return slice(n_pairs * (k - 1) // n, n_pairs * k // n)
+
+
+def shard_dir(out: Path, shard: tuple[int, int]) -> Path:
+    return Path(out) / SHARDS_DIR / f"{shard[0]}-of-{shard[1]}"
+
+
+class ShardedCache:
+    """Reads a pair's matches from whichever shard's cache holds it."""
+
+    def __init__(self, folders: list[Path], cache_file: str) -> None:
+        self.where = {}
+        for folder in folders:
+            cache = MatchCache(folder / cache_file)
+            for name in cache.names():
+                self.where[name] = cache
+
+    def names(self) -> list[str]:
+        return sorted(self.where)
+
+    def read(self, name: str):
+        if name not in self.where:
+            raise KeyError(f"pair {name!r} is in no shard's cache")
+        return self.where[name].read(name)
+
+
+def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
+    configs = {}
+    for folder in sorted((Path(out) / SHARDS_DIR).glob("*-of-*")):
+        config_path = folder / "config.yaml"
+        if config_path.is_file():
+            config = load_yaml(config_path)
+            if "shard" in config:
+                configs[(config["shard"]["index"], config["shard"]["count"])] = config
+    return configs
+
+
+def all_shards_complete(out: Path) -> bool:
+    configs = shard_configs(out)
+    if not configs:
+        return False
+    n = next(iter(configs))[1]
+    return set(configs) == {(k, n) for k in range(1, n + 1)} and all(c["shard"].get("complete") for c in configs.values())
+
+
+def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
+    """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
+    from .runner import CACHE_FILE, CONFIG_FILE, evaluate_stage, write_reports, write_skipped
+    from .report import print_summary
+
+    console = console or Console()
+    out = Path(out)
+    configs = shard_configs(out)
+    if not configs:
+        raise ValueError(f"{out / SHARDS_DIR}: no shards to merge (run with --shard K/N first)")
+    counts = {n for _, n in configs}
+    if len(counts) > 1:
+        raise ValueError(f"{out / SHARDS_DIR}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
+                         "keep one and delete the others")
+    n = counts.pop()
+    missing = [f"{k}-of-{n}" for k in range(1, n + 1) if (k, n) not in configs]
+    if missing:
+        raise ValueError(f"{out / SHARDS_DIR}: shard(s) {', '.join(missing)} missing; run them with --shard K/{n}")
+    unfinished = [f"{k}-of-{n}" for (k, _), c in sorted(configs.items()) if not c["shard"].get("complete")]
+    if unfinished:
+        raise ValueError(f"{out / SHARDS_DIR}: shard(s) {', '.join(unfinished)} not finished; rerun them to resume")
+    first = configs[(1, n)]
+    for (k, _), config in sorted(configs.items()):
+        for key in ("benchmark", "identity", "dataset_load", "evaluation"):
+            if config.get(key) != first.get(key):
+                raise ValueError(f"{shard_dir(out, (k, n)) / CONFIG_FILE}: its {key} differs from shard 1-of-{n}'s; "
+                                 "shards of one run must be made with one command")
+    load = first.get("dataset_load")
+    if not load:
+        raise ValueError(f"{shard_dir(out, (1, n)) / CONFIG_FILE}: no dataset_load (shards made from a dataset object "
+                         "cannot be merged from the command line)")
+    benchmark = get_benchmark(first["benchmark"])
+    dataset = benchmark.load_dataset(load["root"], skip_bad=load["skip_bad"], **load["options"])
+    limit = first["dataset"].get("limit")
+    pairs = list(dataset)[:limit] if limit else list(dataset)
+    ev = EvalSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in first["evaluation"].items()})
+    folders = [shard_dir(out, (k, n)) for k in range(1, n + 1)]
+    cache = ShardedCache(folders, CACHE_FILE)
+    skipped = []
+    for folder in folders:
+        if (folder / "skipped.csv").is_file():
+            skipped += [tuple(r) for r in pd.read_csv(folder / "skipped.csv").itertuples(index=False)]
+    skipped = list(dict.fromkeys(skipped))
+    failed = {name for name, _ in skipped}
+    pairs = [p for p in pairs if p.name not in failed]
+    absent = [p.name for p in pairs if p.name not in cache.where]
+    if absent:
+        raise ValueError(f"{out / SHARDS_DIR}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
+                         "the shards were made from another pair list")
+    with FolderLock(out):
+        per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+        if skipped:
+            summary["n_skipped"] = len(skipped)
+        write_skipped(skipped, out / "skipped.csv", console)
+        write_reports(benchmark, out, first["method"], per_pair, summary, pairs, cache, ev, viz)
+        timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
+        config = {
+            "benchmark": first["benchmark"], "method": first["method"], "identity": first["identity"],
+            "matcher": first.get("matcher"), "device": first.get("device"),
+            "dataset": {**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
+            "dataset_load": load, "evaluation": first["evaluation"], "versions": package_versions(),
+            "shards": {"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
+            "timing": {"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
+                       "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
+        }
+        save_yaml(config, out / CONFIG_FILE)
+    print_summary(summary, f"{benchmark.name} - {first['method']} ({len(pairs)} pairs, {n} shards merged) -> {out}",
+                  console=console)
+    return pd.DataFrame([summary])
+
+
+def merge_when_complete(out: Path, console: Console) -> bool:
+    """Merge if every shard is finished; False when some are not, or another process is merging.
+
+    Each shard marks itself complete before calling this, so of shards finishing together at
+    least the last one sees all of them complete; the folder lock keeps two from merging at once.
+    """
+    if not all_shards_complete(out):
+        return False
+    try:
+        merge_run(out, console=console)
+    except ValueError as error:
+        if "another run is using this folder" in str(error):
+            return False
+        raise
+    return True
+
+
+# --------------------------------------------------------------------------- launching
+
+
+def threads_per_worker(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
+def run_shard_job(kwargs: dict) -> dict:
+    """One shard in this process (what a local worker or a SLURM array task runs)."""
+    import torch
+
+    from .runner import run_benchmark
+
+    threads = kwargs.pop("threads", None)
+    if threads:
+        torch.set_num_threads(threads)
+    summary = run_benchmark(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
+    return summary.iloc[0].to_dict()
+
+
+def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher: str = "local",
+               console: Console | None = None, slurm: dict | None = None) -> list:
+    """Run the N shards of one run: `launcher` local (one process each, at most len(devices)
+    at once, torch threads divided among them on a CPU) or slurm (a submitit array; runs
+    locally, one process per shard, where no SLURM is found). Returns each shard's summary
+    (local) or the submitted jobs (slurm)."""
+    console = console or Console()
+    devices = devices or ["cpu"]
+    jobs = []
+    for k in range(1, n + 1):
+        device = devices[(k - 1) % len(devices)]
+        threads = threads_per_worker(len(devices)) if device == "cpu" else None
+        jobs.append({**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True})
+    if launcher == "slurm":
+        try:
+            import submitit
+        except ImportError:
+            raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
+        executor = submitit.AutoExecutor(folder=Path(kwargs["out"]) / SHARDS_DIR / "slurm")
+        params = {"timeout_min": 24 * 60, "slurm_array_parallelism": n, **(slurm or {})}
+        if executor.cluster != "slurm":
+            params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
+        executor.update_parameters(**params)
+        submitted = executor.map_array(run_shard_job, jobs)
+        console.print(f"submitted {n} shard(s) to {executor.cluster}: job {submitted[0].job_id.split('_')[0]}; "
+                      f"they merge when the last one finishes (or: e3cm-bench merge {kwargs['out']})", markup=False)
+        if executor.cluster == "slurm":
+            return submitted
+        return [job.result() for job in submitted]
+    import concurrent.futures
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state shared across fork
+    with concurrent.futures.ProcessPoolExecutor(max_workers=len(devices), mp_context=context) as pool:
+        futures = [pool.submit(run_shard_job, job) for job in jobs]
+        results = []
+        for k, future in enumerate(futures, start=1):
+            results.append(future.result())
+            console.print(f"shard {k}-of-{n} done", markup=False)
+    merged = Path(kwargs["out"]) / "summary.csv"
+    if merged.is_file():  # the last worker merged; show what a single run would have shown
+        from .report import print_summary
+
+        summary = pd.read_csv(merged).iloc[0].to_dict()
+        print_summary(summary, f"{n} shards merged -> {kwargs['out']}", console=console)
+    return results
+
