@@ -123,12 +123,16 @@ def scene_cameras(rng: np.random.Generator, strength: float) -> tuple[tuple, tup
     return look_at(centre0, target0), look_at(centre0 + baseline, target1)
 
 
+def seeded_room(seed: int) -> tuple[np.random.Generator, list, np.ndarray]:
+    """The random generator after building the room, the room's planes, and the camera's K."""
+    rng = np.random.default_rng(seed)
+    return rng, room_scene(texture_maker(rng), rng), intrinsics(*SCENE_SIZE, SCENE_FOCAL)
+
+
 def write_scene_pairs(root: str | Path, seed: int = 0, n_pairs: int = 6) -> Path:
     """YFCC pair-list layout under `root`: images/room/p{k}_{a,b}.png and pairs_with_gt.txt."""
     root = Path(root)
-    rng = np.random.default_rng(seed)
-    planes = room_scene(texture_maker(rng), rng)
-    K = intrinsics(*SCENE_SIZE, SCENE_FOCAL)
+    rng, planes, K = seeded_room(seed)
     lines = []
     for k in range(n_pairs):
         (R0, t0), (R1, t1) = scene_cameras(rng, strength=k / max(n_pairs - 1, 1))

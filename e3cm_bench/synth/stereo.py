@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from ..files import write_atomically
-from .layouts import SCENE_FOCAL, SCENE_SIZE, _write_rgb, texture_maker
-from .scene import intrinsics, look_at, render, room_scene
+from .layouts import SCENE_SIZE, _write_rgb, seeded_room
+from .scene import look_at, render
 
 BASELINE_M = 0.54  # KITTI's
 
@@ -34,9 +34,7 @@ def write_stereo_sequence(root: str | Path, frames: int = 20, seed: int = 0, dri
     if frames < 1:
         raise ValueError(f"--frames must be at least 1, got {frames}")
     root = Path(root)
-    rng = np.random.default_rng(seed)
-    planes = room_scene(texture_maker(rng), rng)
-    K = intrinsics(*SCENE_SIZE, SCENE_FOCAL)
+    rng, planes, K = seeded_room(seed)
     R_rig, t_rig = rig_extrinsics(rng, drift_deg)
     poses = []
     for i in range(frames):
