@@ -13,7 +13,7 @@ from rich.console import Console
 
 from . import report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
-from .files import load_yaml, save_yaml
+from .files import absolute_paths, load_yaml, save_yaml
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .method import MethodSpec
 from .runner import run_benchmark
@@ -117,7 +117,8 @@ def reproduce(
     out = Path(out)
     methods = [experiment_method(entry, experiment, benchmark, backbone, max_side) for entry in experiment["methods"]]
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
-    load = {"root": str(root), "options": options, "skip_bad": skip_bad}
+    load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
+            "skip_bad": skip_bad}
     for method in methods:
         console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
         run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev, limit=limit,

@@ -80,6 +80,15 @@ def _plain(value):
     return value
 
 
+def absolute_paths(value):
+    """Paths (alone or in a list) as absolute strings; other values as they are."""
+    if isinstance(value, Path):
+        return str(value.resolve())
+    if isinstance(value, (list, tuple)):
+        return [absolute_paths(v) for v in value]
+    return value
+
+
 def save_yaml(data: dict, path: str | Path) -> Path:
     text = yaml.safe_dump(_plain(data), sort_keys=False)
     return write_atomically(path, lambda tmp: tmp.write_text(text))

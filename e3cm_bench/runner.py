@@ -24,7 +24,7 @@ from rich.text import Text
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import BLOCK_PAIRS, MatchCache
 from .datasets.base import Pair, PairList
-from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
+from .files import FolderLock, absolute_paths, load_yaml, package_versions, save_yaml, write_csv
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers import check_device, is_out_of_memory
 from .matchers.base import Matcher
@@ -242,9 +242,10 @@ def run_benchmark(
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
         dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **(dataset_options or {}))
-        # How to load the same pairs again (merging shards needs the ground truth).
-        load = {"root": str(root), "options": {k: v for k, v in (dataset_options or {}).items() if v is not None},
-                "skip_bad": skip_bad}
+        # How to load the same pairs again (merging shards needs the ground truth), with absolute
+        # paths: a merge may run in another working directory (a SLURM task's).
+        load = {"root": str(Path(root).resolve()), "skip_bad": skip_bad,
+                "options": {k: absolute_paths(v) for k, v in (dataset_options or {}).items() if v is not None}}
     else:
         load = dataset_load  # given with a dataset object, so that its shards can be merged
     n_total = len(dataset) + dataset.n_skipped
