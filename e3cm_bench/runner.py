@@ -180,6 +180,11 @@ def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark,
         return None
     previous = load_yaml(path)
     before = previous.get("identity")
+    if before is None and "match_options" in previous and not eval_only:
+        # Made by e3cm-bench before MethodSpec: its record lacks what the identity now holds
+        # (the weights' hash, the seed), so its matches cannot be trusted to resume.
+        raise ValueError(f"{path}: made by an older e3cm-bench (no 'identity'); --eval-only re-evaluates it, "
+                         "--overwrite replaces its matches")
     if eval_only or before is None or method is None:
         return previous
     now = method.identity()

@@ -487,3 +487,15 @@ def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp
     assert matched == ["kitti00_seq/000102--000105", "kitti00_seq/000103--000106"]
     assert "2 already in" in flat(result.output)
     assert_same_results(out, kitti_reference)
+
+
+def test_a_folder_from_an_older_version_is_not_resumed(hpatches_run, hpatches_root, tmp_path):
+    _, source = hpatches_run
+    out = tmp_path / "run"
+    shutil.copytree(source, out)
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    config["match_options"] = config.pop("identity")  # what the previous release wrote
+    (out / "config.yaml").write_text(yaml.safe_dump(config))
+    line = one_line_error(invoke(*hpatches_args(hpatches_root, out)))
+    assert "older e3cm-bench" in line and "--overwrite" in line
+    assert invoke(*hpatches_args(hpatches_root, out, "--eval-only")).exit_code == 0
