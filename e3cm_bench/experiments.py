@@ -7,6 +7,7 @@ writes the table and the comparison plots into OUT/.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from rich.console import Console
@@ -44,10 +45,12 @@ def experiment_method(
         sampson_px=entry.get("sampson_px"), ratio=entry.get("ratio"), max_side=max_side,
         seed=int(experiment.get("seed", 0)),
     )
-    label = entry.get("label") or MethodSpec.create(backbone=own_backbone, **options).label
+    spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
+    # The default label names the method's own backbone; a forced one is added in brackets.
+    label = entry.get("label") or replace(spec, backbone=own_backbone if spec.backbone else None).default_label()
     if backbone_override and matcher in NEEDS_BACKBONE and backbone_override != own_backbone:
         label = f"{label} [{backbone_override}]"
-    return MethodSpec.create(backbone=backbone_override or own_backbone, label=label, **options)
+    return spec.with_label(label)
 
 
 def load_experiment(path: Path) -> dict:
