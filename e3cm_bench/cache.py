@@ -44,6 +44,12 @@ class MatchCache:
         """The block files that exist, in order."""
         return [path for _, path in self._indexed_blocks()]
 
+    def clear(self) -> None:
+        """Delete every block file (a run started over with --overwrite)."""
+        for block in self.blocks():
+            block.unlink()
+        self._where, self._counts, self.damaged = None, {}, []
+
     def _indexed_blocks(self) -> list[tuple[int, Path]]:
         pattern = re.compile(re.escape(self.path.stem) + r"\.(\d{3,})" + re.escape(self.path.suffix) + "$")
         later = sorted((int(m.group(1)), p) for p in self.path.parent.glob(f"{self.path.stem}.*{self.path.suffix}")

@@ -114,8 +114,7 @@ def run_calibration(
                                      "pass --overwrite or choose another --out")
             cache = MatchCache(run_dir / CACHE_FILE)
             if overwrite:
-                for block in cache.blocks():
-                    block.unlink()
+                cache.clear()
             done = set(cache.names())
             todo = [p for p in pairs if p.name not in done]
             save_yaml(config, path)

@@ -161,6 +161,24 @@ def write_reports(
         save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
 
 
+def evaluate_and_report(
+    benchmark: Benchmark, out: Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
+    ev: EvalSettings, viz: int, console: Console,
+) -> tuple[list[Pair], dict]:
+    """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
+    skipped ones; returns the pairs evaluated and the summary."""
+    failed = {name for name, _ in skipped}
+    pairs = [p for p in pairs if p.name not in failed]
+    if not pairs:
+        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
+    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
+        summary["n_skipped"] = len(skipped)
+    write_skipped(skipped, out / "skipped.csv", console)
+    write_reports(benchmark, out, label, per_pair, summary, pairs, cache, ev, viz)
+    return pairs, summary
+
+
 def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) -> None:
     """skipped.csv (pair, reason) when pairs were skipped; no stale file when none were."""
     if not skipped:
@@ -200,8 +218,7 @@ def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark,
 
 
 def _clear(out: Path) -> None:
-    for block in MatchCache(out / CACHE_FILE).blocks():
-        block.unlink()
+    MatchCache(out / CACHE_FILE).clear()
     for name in (CONFIG_FILE, "per_pair.csv", "summary.csv", "skipped.csv"):
         (out / name).unlink(missing_ok=True)
     shutil.rmtree(out / "viz", ignore_errors=True)
@@ -341,16 +358,8 @@ def _run_locked(
     else:
         console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
 
-    failed = {name for name, _ in skipped}
-    pairs = [p for p in pairs if p.name not in failed]
-    if not pairs:
-        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
-    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
-        summary["n_skipped"] = len(skipped)
+    pairs, summary = evaluate_and_report(benchmark, out, config["method"], pairs, skipped, cache, ev, viz, console)
     config["dataset"]["n_skipped"] = len(skipped)
-    write_skipped(skipped, out / "skipped.csv", console)
-    write_reports(benchmark, out, config["method"], per_pair, summary, pairs, cache, ev, viz)
     if shard is not None:
         config["shard"]["complete"] = True  # written before the merge check (shards.merge_when_complete)
     save_yaml(config, out / CONFIG_FILE)

@@ -86,7 +86,7 @@ def all_shards_complete(out: Path) -> bool:
 
 def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
     """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
-    from .runner import CACHE_FILE, CONFIG_FILE, evaluate_stage, write_reports, write_skipped
+    from .runner import CACHE_FILE, CONFIG_FILE, evaluate_and_report
     from .report import print_summary
 
     console = console or Console()
@@ -128,17 +128,12 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
             skipped += [tuple(r) for r in pd.read_csv(folder / "skipped.csv").itertuples(index=False)]
     skipped = list(dict.fromkeys(skipped))
     failed = {name for name, _ in skipped}
-    pairs = [p for p in pairs if p.name not in failed]
-    absent = [p.name for p in pairs if p.name not in cache.where]
+    absent = [p.name for p in pairs if p.name not in cache.where and p.name not in failed]
     if absent:
         raise ValueError(f"{out / SHARDS_DIR}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
                          "the shards were made from another pair list")
     with FolderLock(out):
-        per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
-        if skipped:
-            summary["n_skipped"] = len(skipped)
-        write_skipped(skipped, out / "skipped.csv", console)
-        write_reports(benchmark, out, first["method"], per_pair, summary, pairs, cache, ev, viz)
+        pairs, summary = evaluate_and_report(benchmark, out, first["method"], pairs, skipped, cache, ev, viz, console)
         timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
         config = {
             "benchmark": first["benchmark"], "method": first["method"], "identity": first["identity"],
