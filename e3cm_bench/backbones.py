@@ -47,6 +47,9 @@ class BackboneSpec:
     std: tuple[float, float, float] = IMAGENET_STD
     weights_enum: str | None = None  # torchvision weights, e.g. "VGG19_Weights.IMAGENET1K_V1"
     taps: str = ""  # human-readable description of the taps, written to config.yaml
+    # DFM's stage 1 starts one conv before the deepest tap (VGG19: conv5_2, features[30]): the
+    # position of that module inside the last stage, for backbones the DFM release supports.
+    stage1_tap: int | None = None
 
 
 def _tv(name: str, **kwargs) -> Callable[[], nn.Module]:
@@ -146,6 +149,7 @@ SPECS: dict[str, BackboneSpec] = {
             "vgg19", _tv("vgg19"), _vgg19_stages, upsample=1,
             weights_enum="VGG19_Weights.IMAGENET1K_V1",
             taps="conv1_2, conv2_2, conv3_2, conv4_2, conv5_3 (pre-ReLU)",
+            stage1_tap=8,  # features[22:33][8] = features[30] = conv5_2
         ),
         BackboneSpec(
             "densenet161", _tv("densenet161"), _densenet_stages, upsample=2,
@@ -215,6 +219,12 @@ class Backbone(nn.Module):
 
     @torch.inference_mode()
     def forward(self, image: torch.Tensor) -> list[torch.Tensor]:
+        return self.pyramid(image)[0]
+
+    @torch.inference_mode()
+    def pyramid(self, image: torch.Tensor, stage1_tap: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The L maps, and with stage1_tap the map DFM's stage 1 starts from (None where the
+        backbone has no such tap or fewer than 5 levels are used)."""
         h, w = image.shape[-2:]
         s = self.deepest_stride
         x = (image - self.mean) / self.std
@@ -222,11 +232,18 @@ class Backbone(nn.Module):
         x = F.pad(x, (0, (-w) % s, 0, (-h) % s))
         if self.upsample > 1:
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
-        features = []
-        for stage in self.stages:
-            x = stage(x)
+        tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
+        features, extra = [], None
+        for i, stage in enumerate(self.stages):
+            if tap is not None and i == len(self.stages) - 1:
+                for j, module in enumerate(stage):
+                    x = module(x)
+                    if j == tap:
+                        extra = x[0]
+            else:
+                x = stage(x)
             features.append(x[0])
-        return features
+        return features, extra
 
 
 def _no_inplace(module: nn.Module) -> None:

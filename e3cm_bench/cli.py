@@ -14,6 +14,8 @@ from rich.console import Console
 
 from .backbones import BACKBONES, BackboneError
 from .benchmarks import get_benchmark
+from .benchmarks.protocols import PROTOCOLS, get_protocol
+from .files import load_yaml_text
 from .benchmarks import EvalSettings
 from . import check as regression
 from .datasets.base import DatasetError, Pair
@@ -49,6 +51,19 @@ EstimatorOpt = Annotated[str, typer.Option("--estimator", "--cascade-estimator",
 SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson thresholds in pixels for levels 0,1,2,3, comma-separated.")]
 RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
+ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (README: Protocols).")]
+
+
+def parse_settings(pairs: list[str] | None) -> dict:
+    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values)."""
+    settings = {}
+    for item in pairs or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
+        settings[key.strip()] = load_yaml_text(value)
+    return settings
 
 
 def friendly_errors(command):
@@ -89,6 +104,7 @@ def match(
     ratio: RatioOpt = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the robust estimators inside the matcher.")] = 0,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("e3cm-match"),
+    settings: SetOpt = None,
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     if (image0 is None) != (image1 is None):
@@ -103,7 +119,7 @@ def match(
         backbone = backbone or "vgg19"
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
-        parse_numbers(ratio, "--ratio"), max_side or None, seed,
+        parse_numbers(ratio, "--ratio"), max_side or None, seed, options=parse_settings(settings),
     )
     t = time.perf_counter()
     m = method.build(device)
@@ -134,19 +150,29 @@ def match(
 
 
 def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
-            sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None) -> MethodSpec:
-    """The method of a benchmark command; --max-side unset takes the benchmark's default resize."""
+            sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
+            settings: list[str] | None, protocol: str) -> MethodSpec:
+    """The method of a benchmark command. --max-side unset takes the protocol's resize, else the
+    benchmark's default; the protocol's matcher settings apply where --set gives none."""
+    preset = get_protocol(protocol, benchmark)
+    if max_side is None and benchmark in preset.max_side:
+        max_side = preset.max_side[benchmark] or 0
+    options = parse_settings(settings)
+    if matcher in NEEDS_BACKBONE:
+        options = {**preset.method_options.get(benchmark, {}), **options}
     return MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
-        get_benchmark(benchmark).max_side(max_side), seed, label,
+        get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
     )
 
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
-         scale: tuple) -> None:
+         scale: tuple, protocol: str = "default") -> None:
     shard, workers, devices, launcher, shards = scale
-    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px)
+    preset = get_protocol(protocol, benchmark)
+    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, protocol=preset.name,
+                                                drop_failures=preset.drop_failures)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)
     several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
@@ -191,6 +217,7 @@ def hpatches(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    settings: SetOpt = None, protocol: ProtocolOpt = "default",
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
@@ -198,9 +225,9 @@ def hpatches(
     shards: ShardsOpt = 0,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
-    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
     _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards))
+         (shard, workers, devices, launcher, shards), protocol)
 
 
 @app.command()
@@ -210,15 +237,16 @@ def megadepth(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    settings: SetOpt = None, protocol: ProtocolOpt = "default",
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
-    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
     _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards))
+         (shard, workers, devices, launcher, shards), protocol)
 
 
 @app.command()
@@ -228,15 +256,16 @@ def yfcc(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    settings: SetOpt = None, protocol: ProtocolOpt = "default",
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
-    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label)
+    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
     _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards))
+         (shard, workers, devices, launcher, shards), protocol)
 
 
 @app.command()

@@ -14,6 +14,7 @@ from rich.console import Console
 
 from . import report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
+from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .method import MethodSpec
@@ -21,8 +22,8 @@ from .runner import run_benchmark
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
-METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side"}
-EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods"}
+METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side", "settings"}
+EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods", "protocol"}
 
 
 def experiment_method(
@@ -36,14 +37,19 @@ def experiment_method(
     """
     matcher = entry["matcher"]
     own_backbone = entry.get("backbone", experiment.get("backbone", "vgg19"))
+    protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
     if max_side_override is not None:
         max_side = benchmark.max_side(max_side_override)
     else:
-        max_side = benchmark.max_side(entry.get("max_side", experiment.get("max_side")))
+        protocol_side = protocol.max_side[benchmark.name] or 0 if benchmark.name in protocol.max_side else None
+        max_side = benchmark.max_side(entry.get("max_side", experiment.get("max_side", protocol_side)))
+    settings = dict(entry.get("settings") or {})
+    if matcher in NEEDS_BACKBONE:
+        settings = {**protocol.method_options.get(benchmark.name, {}), **settings}
     options = dict(
         matcher=matcher, weights=entry.get("weights"), estimator=entry.get("estimator"),
         sampson_px=entry.get("sampson_px"), ratio=entry.get("ratio"), max_side=max_side,
-        seed=int(experiment.get("seed", 0)),
+        seed=int(experiment.get("seed", 0)), options=settings, upright=protocol.upright,
     )
     spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
     # The default label names the method's own backbone; a forced one is added in brackets.
@@ -116,7 +122,9 @@ def reproduce(
     benchmark = get_benchmark(experiment["benchmark"])
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
     dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
-    ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)))
+    protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
+    ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)), protocol=protocol.name,
+                                 drop_failures=protocol.drop_failures)
     out = Path(out)
     methods = [experiment_method(entry, experiment, benchmark, backbone, max_side) for entry in experiment["methods"]]
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)

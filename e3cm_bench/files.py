@@ -94,6 +94,14 @@ def save_yaml(data: dict, path: str | Path) -> Path:
     return write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
+def load_yaml_text(text: str):
+    """One YAML value from a command-line string ('4' -> 4, 'false' -> False, 'own' -> 'own')."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
 def load_yaml(path: str | Path, what: str = "YAML file") -> dict:
     """A YAML mapping; ValueError naming the file when it is missing, broken or not a mapping."""
     path = Path(path)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .files import file_sha256
-from .matchers import MATCHERS, NEEDS_BACKBONE, is_random
+from .matchers import MATCHERS, NEEDS_BACKBONE, check_settings, is_random
 from .matching import ESTIMATORS
 
 
@@ -24,7 +24,8 @@ class MethodSpec:
     pairs, lists turned into tuples, so that the spec is hashable and compares by value.
     max_side: longer side for matching, None = full resolution (already resolved against
     the benchmark's default). seed: the seed of the matcher's robust estimators, None for
-    matchers that draw no random numbers (their matches do not depend on it).
+    matchers that draw no random numbers (their matches do not depend on it). upright: match
+    images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
     label: the name in tables and plots; not part of the identity.
     """
 
@@ -35,6 +36,7 @@ class MethodSpec:
     settings: tuple[tuple[str, object], ...] = ()
     max_side: int | None = None
     seed: int | None = None
+    upright: bool = True
     label: str = field(default="", compare=False)
 
     @classmethod
@@ -49,9 +51,14 @@ class MethodSpec:
         max_side: int | None = None,
         seed: int = 0,
         label: str | None = None,
+        options: dict | None = None,
+        upright: bool = True,
     ) -> MethodSpec:
         """Options as a user gives them -> a spec. Settings that do not apply to the matcher are
-        ignored (ratio: deep matchers; estimator, sampson_px: e3cm), never guessed."""
+        ignored (ratio: deep matchers; estimator, sampson_px: e3cm), never guessed.
+        options: further settings of the matcher by name (`--set KEY=VALUE`: e.g. dfm's
+        variant, e3cm's ratio_at, num_levels, channel_order); these are checked, and a
+        name the matcher does not have is an error."""
         if matcher not in MATCHERS:
             raise ValueError(f"unknown matcher {matcher!r}; choose one of: {', '.join(MATCHERS)}")
         deep = matcher in NEEDS_BACKBONE
@@ -67,6 +74,9 @@ class MethodSpec:
             settings["estimator"] = estimator
             if sampson_px is not None:
                 settings["sampson_px"] = _numbers(sampson_px, "sampson_px")
+        for key, value in (options or {}).items():
+            settings[key] = _numbers(value, key) if isinstance(value, (list, tuple)) else value
+        check_settings(matcher, settings)
         if max_side is not None and max_side <= 0:
             raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
         weights_sha256 = None
@@ -83,6 +93,7 @@ class MethodSpec:
             settings=tuple(sorted(settings.items())),
             max_side=max_side,
             seed=int(seed) if is_random(matcher, settings) else None,
+            upright=bool(upright),
         )
         return spec.with_label(label or spec.default_label())
 
@@ -93,7 +104,7 @@ class MethodSpec:
         return {
             "matcher": self.matcher, "backbone": self.backbone, "weights": self.weights,
             "weights_sha256": self.weights_sha256, "settings": self.settings,
-            "max_side": self.max_side, "seed": self.seed,
+            "max_side": self.max_side, "seed": self.seed, "upright": self.upright,
         }
 
     def identity(self) -> dict:
@@ -106,10 +117,14 @@ class MethodSpec:
         return dict(self.settings)
 
     def default_label(self) -> str:
-        """matcher[-backbone unless vgg19][-estimator unless top8]: e.g. e3cm-ransac, dfm-densenet161."""
+        """matcher[-backbone unless vgg19][-estimator unless top8][-dfm variant unless release]:
+        e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
         label = self.matcher if self.backbone in (None, "vgg19") else f"{self.matcher}-{self.backbone}"
-        estimator = self.settings_dict().get("estimator", "top8")
-        return label if estimator == "top8" else f"{label}-{estimator}"
+        settings = self.settings_dict()
+        estimator = settings.get("estimator", "top8")
+        label = label if estimator == "top8" else f"{label}-{estimator}"
+        variant = settings.get("variant", "release")
+        return label if variant == "release" else f"{label}-{variant}"
 
     @property
     def seed_for_matching(self) -> int:

@@ -200,8 +200,9 @@ def pose_auc(
     curve_errors, curve_recall = pose_error_curve(errors)
     aucs = []
     for threshold in thresholds:
-        # Points with error <= threshold are on the curve; then hold that recall to the threshold.
-        n_within = np.searchsorted(curve_errors, threshold, side="right")
+        # Points with error < threshold are on the curve; then hold that recall to the threshold.
+        # An error equal to the threshold does not count (SuperGlue's and LoFTR's pose_auc).
+        n_within = np.searchsorted(curve_errors, threshold, side="left")
         x = np.concatenate([curve_errors[:n_within], [threshold]])
         y = np.concatenate([curve_recall[:n_within], [curve_recall[n_within - 1]]])
         area = np.sum((x[1:] - x[:-1]) * (y[1:] + y[:-1]) / 2.0)
@@ -244,11 +245,22 @@ def summarize_hpatches(rows: Iterable[Mapping]) -> dict:
     return summary
 
 
-def summarize_pose(rows: Iterable[Mapping], precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS) -> dict:
-    """n_pairs, mean #matches, AUC@5/10/20 of err_pose and mean precision, both in percent."""
+def summarize_pose(
+    rows: Iterable[Mapping], precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS, drop_failures: bool = False
+) -> dict:
+    """n_pairs, mean #matches, AUC@5/10/20 of err_pose and mean precision, both in percent.
+
+    drop_failures: pairs without a pose (error inf) leave the AUC, as the E3CM release's
+    eval scripts do (non-standard: it rewards matchers that fail on hard pairs);
+    n_failures says how many there were either way.
+    """
     rows = list(rows)
-    summary = {"n_pairs": len(rows), "n_matches": _mean(r["n_matches"] for r in rows)}
-    aucs = pose_auc([r["err_pose"] for r in rows], POSE_AUC_THRESHOLDS)
+    errors = [r["err_pose"] for r in rows]
+    failures = [e for e in errors if not np.isfinite(e)]
+    summary = {"n_pairs": len(rows), "n_matches": _mean(r["n_matches"] for r in rows), "n_failures": len(failures)}
+    if drop_failures:
+        errors = [e for e in errors if np.isfinite(e)]
+    aucs = pose_auc(errors, POSE_AUC_THRESHOLDS)
     for threshold, auc in zip(POSE_AUC_THRESHOLDS, aucs):
         summary[f"auc@{threshold}"] = auc
     for threshold in precision_thresholds:

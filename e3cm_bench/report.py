@@ -76,6 +76,34 @@ def load_run(run_dir: str | Path) -> Run:
     return Run(dir=run_dir, config=config, summary=summary, per_pair=per_pair, benchmark=benchmark, label=label)
 
 
+# Which paper row a run is to be compared with, by what produced it: the paper's E3CM numbers
+# came from the authors' released code (e3cm-release), its DFM numbers from the DFM release.
+# The paper-as-written `e3cm`, our variants and ablations have no paper row.
+PAPER_ROW_OF_MATCHER = {"sift": "SIFT+NN", "e3cm-release": "E3CM", "dfm": "DFM"}
+
+
+def paper_row_of(run: Run) -> str | None:
+    """The paper row by matcher (PAPER_ROW_OF_MATCHER); a dfm variant other than the release,
+    or an e3cm-release with changed settings, gets none."""
+    identity = run.config.get("identity") or {}
+    matcher = identity.get("matcher")
+    settings = identity.get("settings") or {}
+    if matcher == "dfm" and settings.get("variant", "release") != "release":
+        return None
+    if matcher == "e3cm-release" and set(settings) - {"channel_order", "num_levels"}:
+        return None
+    return PAPER_ROW_OF_MATCHER.get(matcher)
+
+
+def protocol_of(run: Run) -> tuple[str, bool]:
+    """The run's evaluation protocol and whether it is a standard one."""
+    from .benchmarks.protocols import PROTOCOLS
+
+    name = (run.config.get("evaluation") or {}).get("protocol", "default")
+    protocol = PROTOCOLS.get(name)
+    return name, bool(protocol and protocol.standard)
+
+
 # --------------------------------------------------------------------------- console
 
 
@@ -133,8 +161,9 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
 
     Columns: ``method, source``, the paper's metrics (HPatches: h_acc@1/3/5 as
     fractions; pose: auc@5/10/20 and P = precision@1e-4, percent), the measured-only
-    extras (``n_pairs``; HPatches also ``mma@3``), then ``d_<metric>`` = measured -
-    paper on measured rows whose method matches a paper row (see ``method_key``).
+    extras (``n_pairs``; HPatches also ``mma@3``), ``vs_paper`` (the paper row a measured
+    row is to be compared with, `paper_row_of`), ``protocol``, then ``d_<metric>`` =
+    measured - that paper row. A run under a non-standard protocol is marked "(non-standard)".
     """
     benchmark = get_benchmark(benchmark)
     for run in runs:
@@ -152,15 +181,20 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
 
     measured_rows = []
     for run in runs:
-        row = {"method": run.label, "source": "measured"}
+        protocol, standard = protocol_of(run)
+        label = run.label if standard else f"{run.label} (non-standard)"
+        row = {"method": label, "source": "measured"}
         row.update({metric: float(run.summary[column]) for metric, column in table_metrics.items()})
         row.update({extra: run.summary.get(extra, np.nan) for extra in extras})
-        reference_row = paper_by_key.get(method_key(run.label))
+        paper_row = paper_row_of(run)
+        reference_row = paper_by_key.get(method_key(paper_row)) if paper_row else None
+        row["vs_paper"] = reference_row["method"] if reference_row is not None else ""
+        row["protocol"] = protocol
         for metric in table_metrics:
             row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
         measured_rows.append(row)
 
-    columns = ["method", "source", *table_metrics, *extras, *(f"d_{m}" for m in table_metrics)]
+    columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics)]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
 
 

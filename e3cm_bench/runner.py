@@ -45,10 +45,13 @@ PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 
 def match_pair(
     matcher: Matcher, image0: str | Path | np.ndarray, image1: str | Path | np.ndarray,
-    max_side: int | None = None, seed: int = 0,
+    max_side: int | None = None, seed: int = 0, rotations: tuple[int, int] = (0, 0),
 ) -> Matches:
     """Match two images (paths or H x W x 3 RGB uint8 arrays); keypoints in original pixels.
 
+    rotations: quarter turns (np.rot90, counter-clockwise) that make each image upright, as
+    a YFCC/ScanNet pair list's rot0/rot1 give them; the images are matched upright (CNN
+    features are not rotation invariant) and the keypoints mapped back to the stored images.
     The images are shrunk so the longer side is at most `max_side` (None: full size),
     matched, and the keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
     matchers with a RANSAC inside give the same matches every time. ``info`` holds the
@@ -56,8 +59,9 @@ def match_pair(
     """
     image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
     image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
-    small0, scale0 = resize_max_side(image0, max_side)
-    small1, scale1 = resize_max_side(image1, max_side)
+    upright0, upright1 = np.rot90(image0, rotations[0]), np.rot90(image1, rotations[1])
+    small0, scale0 = resize_max_side(np.ascontiguousarray(upright0), max_side)
+    small1, scale1 = resize_max_side(np.ascontiguousarray(upright1), max_side)
     cv2.setRNGSeed(int(seed))
     t = time.perf_counter()
     m = matcher.match(small0, small1)
@@ -69,12 +73,41 @@ def match_pair(
         "match_size1": (small1.shape[1], small1.shape[0]),
         "match_seconds": time.perf_counter() - t,
     }
-    return Matches(to_original_pixels(m.keypoints0, scale0), to_original_pixels(m.keypoints1, scale1), m.scores, info)
+    if any(rotations):
+        info["rotations"] = tuple(int(r) for r in rotations)
+    keypoints0 = unrotate_points(to_original_pixels(m.keypoints0, scale0), rotations[0], info["size0"])
+    keypoints1 = unrotate_points(to_original_pixels(m.keypoints1, scale1), rotations[1], info["size1"])
+    return Matches(keypoints0, keypoints1, m.scores, info)
+
+
+def unrotate_points(points: np.ndarray, quarter_turns: int, stored_size: tuple[int, int]) -> np.ndarray:
+    """Points of np.rot90(image, k) -> points of the stored image (w, h), pixel-centre convention.
+
+    One counter-clockwise turn sends stored pixel (x, y) to (y, w - 1 - x); undone one turn
+    at a time.
+    """
+    points = np.asarray(points, dtype=np.float64).copy()
+    w, h = stored_size
+    for turn in range(quarter_turns % 4, 0, -1):
+        # The image rotated (turn - 1) times has width w or h; its turn-th rotation is undone.
+        width = w if (turn - 1) % 2 == 0 else h
+        x, y = points[:, 0].copy(), points[:, 1].copy()
+        points[:, 0], points[:, 1] = width - 1 - y, x
+    return points.astype(np.float32)
+
+
+def pair_rotations(pair: Pair, method: MethodSpec) -> tuple[int, int]:
+    """The quarter turns that make the pair upright (rot0/rot1 of its list), unless the method
+    matches images as stored."""
+    if not method.upright:
+        return (0, 0)
+    return int(pair.meta.get("rot0", 0)), int(pair.meta.get("rot1", 0))
 
 
 def match_cached_pair(matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache) -> None:
     """Match one pair of a benchmark and store it (the step an interrupted run repeats)."""
-    matches = match_pair(matcher, pair.image0, pair.image1, method.max_side, method.seed_for_matching)
+    matches = match_pair(matcher, pair.image0, pair.image1, method.max_side, method.seed_for_matching,
+                         pair_rotations(pair, method))
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
 
 

@@ -14,7 +14,7 @@ from e3cm_bench.matchers.dfm import DFMMatcher
 
 @pytest.fixture(scope="module")
 def matcher() -> DFMMatcher:
-    return DFMMatcher(load_backbone("efficientnet_lite0"))
+    return DFMMatcher(load_backbone("efficientnet_lite0"), variant="bench")
 
 
 def corner_error(H_est: np.ndarray, H_true: np.ndarray, size: tuple[int, int]) -> float:
@@ -128,7 +128,7 @@ def test_config_lists_every_setting(matcher):
     # 1.5 cells of the deepest level (stride 16).
     assert config["homography_ransac"]["threshold_px"] == 24.0
     assert config["homography_ransac"]["min_inliers"] == 15 and "seed" not in config["homography_ransac"]
-    custom = DFMMatcher(matcher.backbone, ratio=(0.8,) * 5, homography_threshold_px=5.0, name="dfm-tight")
+    custom = DFMMatcher(matcher.backbone, variant="bench", ratio=(0.8,) * 5, homography_threshold_px=5.0, name="dfm-tight")
     assert custom.config()["homography_ransac"]["threshold_px"] == 5.0
     assert custom.config()["ratio"] == [0.8] * 5 and custom.config()["matcher"] == "dfm-tight"
     with pytest.raises(ValueError):

@@ -59,7 +59,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     assert result.exit_code == 0
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
-        "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5",
+        "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5",
     ]
     assert (table["source"] == "paper").sum() == PAPER_ROWS
     measured = table[table["source"] == "measured"].set_index("method")

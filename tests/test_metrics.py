@@ -192,8 +192,12 @@ def test_pose_auc_by_hand():
 
 
 def test_pose_auc_edge_cases():
-    # An error exactly at the threshold is on the curve: (0,0) -> (5,1), area 2.5 -> 50 %.
-    assert pose_auc([5.0], thresholds=(5,)) == pytest.approx([50.0])
+    # An error exactly at the threshold does not count (SuperGlue's and LoFTR's pose_auc);
+    # just below it, the curve (0,0) -> (5,1) has area 2.5 -> 50 %.
+    assert pose_auc([5.0], thresholds=(5,)) == pytest.approx([0.0])
+    assert pose_auc([5.0 - 1e-9], thresholds=(5,)) == pytest.approx([50.0])
+    # Ties at a threshold: of [5, 5, 10] only errors below 5 count for AUC@5, the two 5s count for AUC@10.
+    assert pose_auc([5.0, 5.0, 10.0], thresholds=(5, 10)) == pytest.approx([0.0, 100 * (5 * (1 / 3) / 2 + 5 * (2 / 3)) / 10])
     assert pose_auc([math.inf, float("nan")]) == [0.0, 0.0, 0.0]
     assert pose_auc([0.0, 0.0]) == pytest.approx([100.0, 100.0, 100.0])
     assert all(math.isnan(v) for v in pose_auc([]))
@@ -253,7 +257,7 @@ def test_summarize_pose_counts_failed_pairs():
     ]
     summary = summarize_pose(rows)
     assert list(summary) == [
-        "n_pairs", "n_matches", "auc@5", "auc@10", "auc@20", "precision@1e-4", "precision@5e-4",
+        "n_pairs", "n_matches", "n_failures", "auc@5", "auc@10", "auc@20", "precision@1e-4", "precision@5e-4",
     ]
     assert summary["n_pairs"] == 4
     assert summary["n_matches"] == pytest.approx(150.0)

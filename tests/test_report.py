@@ -58,11 +58,11 @@ def hpatches_summary(h_acc, n_matches=1500.0, with_viewpoint=True) -> dict:
 
 @pytest.fixture
 def pose_runs(tmp_path) -> list[report.Run]:
-    e3cm = make_run(tmp_path, "run_e3cm", {"benchmark": "megadepth", "method": "e3cm", "matcher": {"ratio": 0.9},
-                                           "backbone": "vgg19"},
+    e3cm = make_run(tmp_path, "run_e3cm", {"benchmark": "megadepth", "method": "e3cm-release", "matcher": {"ratio": 0.9},
+                                           "backbone": "vgg19", "identity": {"matcher": "e3cm-release", "settings": {}}},
                     pose_summary(40.0, 55.0, 66.0, 90.0), pose_per_pair([1.0, 3.0, 12.0, float("inf")]))
     sift = make_run(tmp_path, "run_sift", {"benchmark": "megadepth", "method": "sift", "matcher": {},
-                                           "backbone": None},
+                                           "backbone": None, "identity": {"matcher": "sift"}},
                     pose_summary(5.0, 10.0, 20.0, 20.0), pose_per_pair([4.0, 25.0, float("inf"), float("inf")]))
     return [report.load_run(e3cm), report.load_run(sift)]
 
@@ -71,7 +71,8 @@ def pose_runs(tmp_path) -> list[report.Run]:
 def hpatches_run(tmp_path) -> report.Run:
     per_pair = pd.DataFrame({"pair": ["i_a/1-2", "v_b/1-2"], "sequence": ["i_a", "v_b"], "n_matches": [1400, 1600],
                              **{f"mma@{t}": [0.5, 0.6] for t in range(1, 11)}, "h_error": [0.8, float("inf")]})
-    run_dir = make_run(tmp_path, "run_dfm", {"benchmark": "hpatches", "method": "dfm", "matcher": {}},
+    run_dir = make_run(tmp_path, "run_dfm", {"benchmark": "hpatches", "method": "dfm", "matcher": {},
+                                             "identity": {"matcher": "dfm", "settings": {}}},
                        hpatches_summary((0.45, 0.70, 0.90)), per_pair)
     return report.load_run(run_dir)
 
@@ -82,7 +83,7 @@ def hpatches_run(tmp_path) -> report.Run:
 def test_load_run_reads_config_summary_and_per_pair(pose_runs):
     e3cm = pose_runs[0]
     assert e3cm.benchmark.name == "megadepth"
-    assert e3cm.label == "e3cm"
+    assert e3cm.label == "e3cm-release"
     assert e3cm.config["matcher"] == {"ratio": 0.9}
     assert e3cm.summary["auc@5"] == 40.0
     assert e3cm.summary["n_pairs"] == 4
@@ -127,10 +128,12 @@ def test_load_run_rejects_broken_folders_naming_the_file(tmp_path, breakage, fil
 
 def test_pose_paper_table_rows_columns_and_differences(pose_runs):
     table = report.paper_table(pose_runs, "megadepth", PAPER_DIR / "table2.csv")
-    assert list(table.columns) == ["method", "source", "auc@5", "auc@10", "auc@20", "P", "n_pairs",
-                                   "d_auc@5", "d_auc@10", "d_auc@20", "d_P"]
+    assert list(table.columns) == ["method", "source", "auc@5", "auc@10", "auc@20", "P", "n_pairs", "vs_paper",
+                                   "protocol", "d_auc@5", "d_auc@10", "d_auc@20", "d_P"]
     assert list(table["source"]) == ["paper"] * 12 + ["measured"] * 2
-    assert list(table["method"]) == PAPER_METHODS + ["e3cm", "sift"]
+    assert list(table["method"]) == PAPER_METHODS + ["e3cm-release", "sift"]
+    # The paper's E3CM numbers came from the released code: e3cm-release is compared with them.
+    assert list(table["vs_paper"].iloc[12:]) == ["E3CM", "SIFT+NN"]
 
     e3cm = table.iloc[12]
     # measured - paper: (40, 55, 66, 90) - (39.85, 54.11, 65.86, 91.14)
@@ -145,7 +148,7 @@ def test_pose_paper_table_rows_columns_and_differences(pose_runs):
 def test_hpatches_paper_table(hpatches_run):
     table = report.paper_table([hpatches_run], "hpatches", PAPER_DIR / "table1.csv")
     assert list(table.columns) == ["method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3",
-                                   "d_h_acc@1", "d_h_acc@3", "d_h_acc@5"]
+                                   "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5"]
     measured = table[table["source"] == "measured"].iloc[0]
     # (0.45, 0.70, 0.90) - DFM (0.41, 0.74, 0.86), fractions
     assert measured[["d_h_acc@1", "d_h_acc@3", "d_h_acc@5"]].tolist() == pytest.approx([0.04, -0.04, 0.04])
@@ -160,6 +163,30 @@ def test_paper_table_without_reference_or_matching_method(tmp_path):
     assert np.isnan(table.iloc[-1]["d_auc@5"])
     only_measured = report.paper_table([report.load_run(run_dir)], "yfcc", None)
     assert list(only_measured["source"]) == ["measured"]
+
+
+def test_paper_text_e3cm_and_dfm_variants_have_no_paper_row(tmp_path):
+    runs = []
+    for name, identity in [("e3cm", {"matcher": "e3cm", "settings": {"estimator": "top8"}}),
+                           ("dfm-corrected", {"matcher": "dfm", "settings": {"variant": "corrected"}}),
+                           ("e3cm-release-uncascaded", {"matcher": "e3cm-release", "settings": {"cascade": False}})]:
+        run_dir = make_run(tmp_path, name, {"benchmark": "megadepth", "method": name, "identity": identity},
+                           pose_summary(40.0, 55.0, 66.0, 90.0), None)
+        runs.append(report.load_run(run_dir))
+    table = report.paper_table(runs, "megadepth", PAPER_DIR / "table2.csv")
+    measured = table[table["source"] == "measured"]
+    assert list(measured["vs_paper"]) == ["", "", ""]
+    assert measured["d_auc@5"].isna().all()
+
+
+def test_non_standard_protocol_is_flagged(tmp_path):
+    run_dir = make_run(tmp_path, "rel", {"benchmark": "megadepth", "method": "e3cm-release",
+                                         "identity": {"matcher": "e3cm-release", "settings": {"num_levels": 4}},
+                                         "evaluation": {"protocol": "e3cm-release"}},
+                       pose_summary(40.0, 55.0, 66.0, 90.0), None)
+    table = report.paper_table([report.load_run(run_dir)], "megadepth", None)
+    assert table.iloc[0]["method"] == "e3cm-release (non-standard)"
+    assert table.iloc[0]["protocol"] == "e3cm-release"
 
 
 def test_paper_table_rejects_mixed_benchmarks(pose_runs, hpatches_run):
@@ -183,7 +210,7 @@ def test_markdown_has_header_rule_and_formatted_rows(pose_runs):
     assert set(lines[1]) <= {"|", "-", ":", " "}
     e3cm_paper = next(line for line in lines if line.startswith("| E3CM ") and "paper" in line)
     assert "39.85" in e3cm_paper and "91.14" in e3cm_paper
-    e3cm_measured = next(line for line in lines if line.startswith("| e3cm ") and "measured" in line)
+    e3cm_measured = next(line for line in lines if line.startswith("| e3cm-release ") and "measured" in line)
     assert "40.00" in e3cm_measured and "+0.15" in e3cm_measured and "-1.14" in e3cm_measured
     assert "| 4 " in e3cm_measured or " 4 |" in e3cm_measured  # n_pairs printed as an integer
 

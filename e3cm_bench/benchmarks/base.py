@@ -33,6 +33,8 @@ class EvalSettings:
     pose_confidence: float = 0.99999
     precision_thresholds: tuple[float, ...] = metrics.PRECISION_THRESHOLDS
     correct_px: float = 3.0  # --viz: a homography match is drawn green within this reprojection error
+    protocol: str = "default"  # benchmarks/protocols.py; a non-default one also sets the method's resize etc.
+    drop_failures: bool = False  # pose pairs without an estimate leave the AUC (protocol e3cm-release)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ class PoseBenchmark(Benchmark):
         return {"pair": pair.name, **row}
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
-        return metrics.summarize_pose(rows, ev.precision_thresholds)
+        return metrics.summarize_pose(rows, ev.precision_thresholds, ev.drop_failures)
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)

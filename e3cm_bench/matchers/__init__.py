@@ -11,14 +11,20 @@ from __future__ import annotations
 from ..matching import RANDOM_ESTIMATORS
 from .base import Matcher
 
-MATCHERS = ("e3cm", "direct", "dfm", "sift")
-NEEDS_BACKBONE = ("e3cm", "direct", "dfm")
+MATCHERS = ("e3cm", "e3cm-release", "direct", "dfm", "sift")
+NEEDS_BACKBONE = ("e3cm", "e3cm-release", "direct", "dfm")
+# Settings every deep matcher takes, besides its own (E3CMSettings, E3CMReleaseSettings, dfm's):
+# how many levels of the backbone it uses (the E3CM release's match_small_img uses 4) and the
+# channel order fed to the network.
+BACKBONE_SETTINGS = ("num_levels", "channel_order")
 
 
 def is_random(name: str, settings: dict) -> bool:
     """Whether the matcher draws from OpenCV's RNG (a RANSAC inside): then its seed is part of
-    the identity of its matches. dfm always (stage 0); e3cm with a robust cascade estimator."""
-    return name == "dfm" or (name == "e3cm" and settings.get("estimator", "top8") in RANDOM_ESTIMATORS)
+    the identity of its matches. dfm always (stage 0); e3cm with a robust cascade estimator;
+    e3cm-release with its cascade."""
+    return (name == "dfm" or (name == "e3cm" and settings.get("estimator", "top8") in RANDOM_ESTIMATORS)
+            or (name == "e3cm-release" and settings.get("cascade", True)))
 
 
 def check_device(device: str) -> str:
@@ -57,7 +63,9 @@ def build_matcher(
     pretrained: bool = True,
     settings: dict | None = None,
 ) -> Matcher:
-    """A matcher by name. `settings` holds E3CMSettings fields (e3cm, direct) or DFMSettings fields (dfm)."""
+    """A matcher by name. `settings` holds the matcher's own fields (E3CMSettings for e3cm and
+    direct, E3CMReleaseSettings for e3cm-release, variant/ratio/DFMSettings for dfm) and the
+    BACKBONE_SETTINGS."""
     settings = dict(settings or {})
     if name not in MATCHERS:
         raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(MATCHERS)}")
@@ -65,20 +73,61 @@ def build_matcher(
         from .sift import SiftMatcher
 
         return SiftMatcher()
-    from ..backbones import load_backbone
+    from ..backbones import MAX_LEVELS, load_backbone
 
     check_device(device)
-    net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device)
+    num_levels = int(settings.pop("num_levels", MAX_LEVELS))
+    channel_order = settings.pop("channel_order", "rgb")
+    net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device, num_levels=num_levels)
+    return _deep_matcher(name, net, settings, channel_order)
+
+
+def _deep_matcher(name: str, net, settings: dict, channel_order: str) -> Matcher:
     if name == "dfm":
         from .dfm import DFMMatcher
 
-        return DFMMatcher(net, **settings)
+        return DFMMatcher(net, channel_order=channel_order, **settings)
+    if name == "e3cm-release":
+        from .e3cm_release import E3CMReleaseMatcher, E3CMReleaseSettings
+
+        return E3CMReleaseMatcher(net, E3CMReleaseSettings(**settings), channel_order=channel_order)
     from ..matching.pipeline import E3CMSettings
     from .e3cm import E3CMMatcher
 
     if name == "direct":
         settings["cascade"] = False
-    return E3CMMatcher(net, E3CMSettings(**settings), name=name)
+    return E3CMMatcher(net, E3CMSettings(**settings), name=name, channel_order=channel_order)
 
 
-__all__ = ["MATCHERS", "NEEDS_BACKBONE", "Matcher", "build_matcher", "check_device", "is_out_of_memory", "is_random"]
+def check_settings(name: str, settings: dict) -> None:
+    """A one-line ValueError where `settings` do not fit matcher `name` (builds no backbone)."""
+    settings = dict(settings)
+    if name == "sift" and settings:
+        raise ValueError(f"sift takes no settings, got {', '.join(sorted(settings))}")
+    if name not in NEEDS_BACKBONE:
+        return
+    levels = settings.pop("num_levels", 5)
+    if not isinstance(levels, int) or isinstance(levels, bool) or not 2 <= levels <= 5:
+        raise ValueError(f"num_levels must be a whole number 2..5, got {levels!r}")
+    order = settings.pop("channel_order", "rgb")
+    if order not in ("rgb", "bgr"):
+        raise ValueError(f"channel_order must be rgb or bgr, got {order!r}")
+    try:
+        if name == "dfm":
+            from .dfm import check_dfm_settings
+
+            check_dfm_settings(settings)
+        elif name == "e3cm-release":
+            from .e3cm_release import E3CMReleaseSettings
+
+            E3CMReleaseSettings(**settings)
+        else:
+            from ..matching.pipeline import E3CMSettings
+
+            E3CMSettings(**settings)
+    except TypeError as exc:  # an unknown field name
+        raise ValueError(f"{name}: {str(exc).split('() ')[-1]}") from None
+
+
+__all__ = ["BACKBONE_SETTINGS", "MATCHERS", "NEEDS_BACKBONE", "Matcher", "build_matcher", "check_device", "check_settings",
+           "is_out_of_memory", "is_random"]

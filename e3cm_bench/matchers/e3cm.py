@@ -13,9 +13,10 @@ from .deep import DeepMatcher
 class E3CMMatcher(DeepMatcher):
     """Backbone pyramids -> mutual NN + ratio -> DFM refinement, with or without the cascade."""
 
-    def __init__(self, backbone: Backbone, settings: E3CMSettings | None = None, name: str | None = None):
+    def __init__(self, backbone: Backbone, settings: E3CMSettings | None = None, name: str | None = None,
+                 channel_order: str = "rgb"):
         settings = settings or E3CMSettings()
-        super().__init__(backbone, name or ("e3cm" if settings.cascade else "direct"))
+        super().__init__(backbone, name or ("e3cm" if settings.cascade else "direct"), channel_order)
         self.settings = settings
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:

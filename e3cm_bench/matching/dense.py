@@ -1,7 +1,7 @@
 """Initial matching at the deepest level: dense mutual nearest neighbours + ratio test (Eq. 1-2).
 
-The full similarity matrix of a 1600x1200 pair at stride 16 is ~7500 x 7500; it is built
-in row chunks, keeping a running top-2 per column, so memory stays at chunk x N1.
+The full similarity matrix of a 1600x1200 pair at stride 16 is ~7500 x 7500 (and 30000 x
+30000 at stride 8); `top2_both_ways` builds it in row chunks.
 """
 
 from __future__ import annotations
@@ -31,6 +31,34 @@ def passes_ratio(best_dist: torch.Tensor, second_dist: torch.Tensor, ratio: floa
     return best_dist.clamp_min(0) < ratio * second_dist.clamp_min(0)
 
 
+def top2_both_ways(
+    desc0: torch.Tensor, desc1: torch.Tensor, chunk: int = 2048
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Top-2 cosine similarities of unit descriptors (N0 x C, N1 x C) in both directions.
+
+    Returns vals0, idx0 (N0 x 2: for each row of desc0, over desc1) and vals1, idx1 (N1 x 2).
+    The similarity matrix is built in row chunks with a running top-2 per column, so memory
+    stays at chunk x N1.
+    """
+    n0, n1 = len(desc0), len(desc1)
+    idx0 = torch.empty(n0, 2, dtype=torch.long, device=desc0.device)
+    vals0 = torch.empty(n0, 2, dtype=desc0.dtype, device=desc0.device)
+    col_vals = torch.full((2, n1), -float("inf"), dtype=desc0.dtype, device=desc0.device)
+    col_idx = torch.zeros((2, n1), dtype=torch.long, device=desc0.device)
+    for start in range(0, n0, chunk):
+        sim = desc0[start : start + chunk] @ desc1.T
+        vals0[start : start + chunk], idx0[start : start + chunk] = _top2(sim, dim=1)
+        if n0 <= chunk:
+            col_vals, col_idx = _top2(sim, dim=0)
+            break
+        cvals, cidx = _top2(sim, dim=0)
+        merged_vals = torch.cat([col_vals, cvals], 0)
+        merged_idx = torch.cat([col_idx, cidx + start], 0)
+        col_vals, order = merged_vals.topk(2, dim=0)
+        col_idx = merged_idx.gather(0, order)
+    return vals0, idx0, col_vals.T, col_idx.T
+
+
 def mutual_nn_ratio(
     desc0: torch.Tensor, desc1: torch.Tensor, ratio: float, chunk: int = 2048
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -39,31 +67,16 @@ def mutual_nn_ratio(
     Distance is 1 - cos. A pair is kept when it is mutual and passes the ratio test in
     both directions. Returns (idx0, idx1, distance).
     """
-    n0, n1 = len(desc0), len(desc1)
-    empty = torch.zeros(0, dtype=torch.long, device=desc0.device)
-    if n0 == 0 or n1 == 0:
+    if len(desc0) == 0 or len(desc1) == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=desc0.device)
         return empty, empty, torch.zeros(0, device=desc0.device)
-    best01 = torch.empty(n0, dtype=torch.long, device=desc0.device)
-    top2_0 = torch.empty(n0, 2, dtype=desc0.dtype, device=desc0.device)
-    col_vals = torch.full((2, n1), -float("inf"), dtype=desc0.dtype, device=desc0.device)
-    col_idx = torch.zeros((2, n1), dtype=torch.long, device=desc0.device)
-    for start in range(0, n0, chunk):
-        sim = desc0[start : start + chunk] @ desc1.T
-        vals, idx = _top2(sim, dim=1)
-        top2_0[start : start + chunk] = vals
-        best01[start : start + chunk] = idx[:, 0]
-        cvals, cidx = _top2(sim, dim=0)
-        merged_vals = torch.cat([col_vals, cvals], 0)
-        merged_idx = torch.cat([col_idx, cidx + start], 0)
-        col_vals, order = merged_vals.topk(2, dim=0)
-        col_idx = merged_idx.gather(0, order)
-    dist0 = 1 - top2_0
-    dist1 = 1 - col_vals
-    best10 = col_idx[0]
-    idx0 = torch.arange(n0, device=desc0.device)
-    keep = best10[best01] == idx0
+    vals0, nn0, vals1, nn1 = top2_both_ways(desc0, desc1, chunk)
+    dist0, dist1 = 1 - vals0, 1 - vals1
+    best01 = nn0[:, 0]
+    idx0 = torch.arange(len(desc0), device=desc0.device)
+    keep = nn1[best01, 0] == idx0
     keep &= passes_ratio(dist0[:, 0], dist0[:, 1], ratio)
-    keep &= passes_ratio(dist1[0, best01], dist1[1, best01], ratio)
+    keep &= passes_ratio(dist1[best01, 0], dist1[best01, 1], ratio)
     return idx0[keep], best01[keep], dist0[keep, 0]
 
 

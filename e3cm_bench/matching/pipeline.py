@@ -44,6 +44,11 @@ class E3CMSettings:
         None takes the measured default of the estimator (DEFAULT_SAMPSON_PX; README).
     estimator: how F_l is estimated (top8 = the paper; ransac / prosac = ablations).
     ransac_cells: RANSAC threshold of F_l at level l, in cells of that level (x 2^l = pixels).
+    ratio_at: refinement's B->A ratio read at the matched B child ("matched", as Eq. 2 states
+        it) or at the A child's index ("own", as both releases do).
+    valid_cells_only: only cells whose centres lie in the image take part and the dropped
+        border ring is that of the valid cells (True); False = the releases' handling: the
+        padding cells take part and the ring is that of the padded map.
     """
 
     cascade: bool = True
@@ -55,8 +60,12 @@ class E3CMSettings:
     confidence_eps: float = 1e-3
     drop_border: bool = True
     dense_chunk: int = 2048
+    ratio_at: str = "matched"
+    valid_cells_only: bool = True
 
     def __post_init__(self) -> None:
+        if self.ratio_at not in ("matched", "own"):
+            raise ValueError(f"ratio_at must be 'matched' or 'own', got {self.ratio_at!r}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
         self.ratio = tuple(float(r) for r in self.ratio)
@@ -93,13 +102,18 @@ def match_pyramids(
     """
     top = len(feats0) - 1
     timings: dict[str, float] = {}
+
+    def extents(level: int) -> tuple[tuple[int, int], tuple[int, int]]:
+        if settings.valid_cells_only:
+            return valid_extent(size0, level), valid_extent(size1, level)
+        return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
+
     feats0 = [F.normalize(f, dim=0) for f in feats0]
     feats1 = [F.normalize(f, dim=0) for f in feats1]
 
     t = time.perf_counter()
     cells0, cells1, dist = match_dense_level(
-        feats0[top], feats1[top], valid_extent(size0, top), valid_extent(size1, top),
-        settings.ratio[top], settings.drop_border, settings.dense_chunk,
+        feats0[top], feats1[top], *extents(top), settings.ratio[top], settings.drop_border, settings.dense_chunk,
     )
     timings["initial"] = time.perf_counter() - t
 
@@ -124,8 +138,7 @@ def match_pyramids(
         t = time.perf_counter()
         cells0, cells1, dist, _ = refine_to_children(
             feats0[level - 1], feats1[level - 1], cells0, cells1,
-            valid_extent(size0, level - 1), valid_extent(size1, level - 1),
-            settings.ratio[level - 1], settings.max_per_parent,
+            *extents(level - 1), settings.ratio[level - 1], settings.max_per_parent, settings.ratio_at,
         )
         timings[f"refine_l{level - 1}"] = time.perf_counter() - t
         counts_before[level - 1] = len(cells0)

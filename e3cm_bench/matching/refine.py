@@ -24,8 +24,13 @@ def refine_to_children(
     extent1: tuple[int, int],
     ratio: float,
     max_per_parent: int = 2,
+    ratio_at: str = "matched",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine N parent matches to level l-1.
+
+    ratio_at: where the B->A ratio test is read: "matched" at the B child the A child matched
+    (the test as Eq. 2 states it), "own" at the B child with the A child's index (both
+    releases' indexing; matching/release.py).
 
     feat0/feat1: L2-normalised maps of level l-1 (C x H x W). cells0/cells1: N x 2 parent
     cells (x, y) at level l. extent0/extent1: valid (w, h) of level l-1 in cells.
@@ -49,7 +54,9 @@ def refine_to_children(
     b_of_a = nn_a[..., 0]  # N x 4
     mutual = nn_b[:, 0, :].gather(1, b_of_a) == a_idx
     ok_a = passes_ratio(best_a[..., 0], best_a[..., 1], ratio)
-    ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio).gather(1, b_of_a)
+    ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio)
+    if ratio_at == "matched":
+        ok_b = ok_b.gather(1, b_of_a)
     # Children in the padding are ruled out before the best ones per parent are chosen, so a
     # parent at the image edge still yields its valid children.
     valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1).reshape(n, 4)

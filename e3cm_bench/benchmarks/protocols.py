@@ -1,0 +1,76 @@
+"""Evaluation protocols: the small sets of settings under which each reference code reports.
+
+Numbers that do not reproduce usually differ in resize, RANSAC threshold, image rotation
+or failure handling, not in the matcher. `--protocol NAME` picks one of these presets; its
+name and every setting it changes are written to config.yaml (and a non-standard protocol
+is flagged in every table).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """max_side: {benchmark: longer side for matching, None = full resolution}; a benchmark
+    not listed keeps its own default. method_options: deep-matcher settings the reference
+    code used (num_levels, channel_order), per benchmark. drop_failures: pairs whose pose
+    could not be estimated leave the AUC (instead of counting with error inf). upright:
+    turn images upright by the pair list's rot0/rot1 before matching (keypoints are mapped
+    back to the stored images). standard: False flags every table row it produced."""
+
+    name: str
+    description: str
+    benchmarks: tuple[str, ...]
+    max_side: dict = field(default_factory=dict)
+    method_options: dict = field(default_factory=dict)
+    drop_failures: bool = False
+    upright: bool = True
+    standard: bool = True
+
+    def to_dict(self, benchmark: str) -> dict:
+        return {
+            "name": self.name, "description": self.description, "standard": self.standard,
+            "drop_failures": self.drop_failures, "upright": self.upright,
+            "method_options": dict(self.method_options.get(benchmark, {})),
+        }
+
+
+PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
+    Protocol(
+        "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side 1200, HPatches full size; "
+        "failures count with error inf; YFCC images turned upright)",
+        ("hpatches", "megadepth", "yfcc"),
+    ),
+    Protocol(
+        "loftr", "LoFTR's MegaDepth-1500 test config: longer side 840 px",
+        ("megadepth",), max_side={"megadepth": 840},
+    ),
+    Protocol(
+        "superglue", "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
+        "longer side 1600 px",
+        ("yfcc",), max_side={"yfcc": 1600},
+    ),
+    Protocol(
+        "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
+        "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
+        ("hpatches", "megadepth", "yfcc"),
+        max_side={"hpatches": None, "megadepth": None, "yfcc": None},
+        method_options={
+            "hpatches": {"channel_order": "bgr"},
+            "megadepth": {"channel_order": "bgr", "num_levels": 4},
+            "yfcc": {"channel_order": "bgr", "num_levels": 4},
+        },
+        drop_failures=True, standard=False,
+    ),
+]}
+
+
+def get_protocol(name: str, benchmark: str) -> Protocol:
+    if name not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {name!r}; choose one of {', '.join(PROTOCOLS)}")
+    protocol = PROTOCOLS[name]
+    if benchmark not in protocol.benchmarks:
+        raise ValueError(f"protocol {name!r} is defined for {', '.join(protocol.benchmarks)}, not {benchmark}")
+    return protocol
