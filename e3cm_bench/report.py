@@ -83,11 +83,14 @@ PAPER_ROW_OF_MATCHER = {"sift": "SIFT+NN", "e3cm-release": "E3CM", "dfm": "DFM"}
 
 
 def paper_row_of(run: Run) -> str | None:
-    """The paper row by matcher (PAPER_ROW_OF_MATCHER); a dfm variant other than the release,
-    or an e3cm-release with changed settings, gets none."""
+    """The paper row by matcher (PAPER_ROW_OF_MATCHER); a deep method on a backbone other
+    than the paper's VGG19, a dfm variant other than the release, or an e3cm-release with
+    changed settings gets none."""
     identity = run.config.get("identity") or {}
     matcher = identity.get("matcher")
     settings = identity.get("settings") or {}
+    if identity.get("backbone") not in (None, "vgg19"):
+        return None
     if matcher == "dfm" and settings.get("variant", "release") != "release":
         return None
     if matcher == "e3cm-release" and set(settings) - {"channel_order", "num_levels"}:

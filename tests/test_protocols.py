@@ -1,0 +1,186 @@
+"""Evaluation protocols (--protocol), upright matching of rotated pairs, EXIF orientation,
+and the matcher settings the fidelity work added (--set)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from e3cm_bench.cli import app
+from e3cm_bench.metrics import summarize_pose
+from e3cm_bench.runner import match_pair, unrotate_points
+from helpers import one_line_error
+
+LITE = ["--backbone", "efficientnet_lite0"]
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+@pytest.mark.parametrize("turns", [0, 1, 2, 3])
+def test_unrotate_points_inverts_np_rot90(turns):
+    rng = np.random.default_rng(turns)
+    stored = rng.integers(0, 255, size=(7, 11), dtype=np.int64)  # h=7, w=11: not square
+    rotated = np.rot90(stored, turns)
+    ys, xs = np.mgrid[0 : rotated.shape[0], 0 : rotated.shape[1]]
+    points = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32)
+    back = unrotate_points(points, turns, (11, 7)).astype(int)
+    np.testing.assert_array_equal(stored[back[:, 1], back[:, 0]], rotated[ys.ravel(), xs.ravel()])
+
+
+@pytest.fixture(scope="module")
+def lite_matcher():
+    from e3cm_bench.matchers import build_matcher
+
+    return build_matcher("direct", "efficientnet_lite0")
+
+
+def test_a_pair_stored_rotated_is_matched_upright_and_mapped_back(shared_data, lite_matcher):
+    """Image B stored a quarter turn clockwise, with rot1 = 1 as a YFCC list would say: the
+    matches equal those of the upright pair (B's keypoints mapped into the stored frame), and
+    matching the stored images as they are finds far fewer correct ones (CNN features are not
+    rotation invariant)."""
+    from e3cm_bench.images import load_image
+
+    seq = shared_data / "hpatches-sequences-release" / "v_boat"
+    image0 = cv2.resize(load_image(seq / "1.ppm"), None, fx=0.4, fy=0.4, interpolation=cv2.INTER_AREA)
+    image1 = cv2.resize(load_image(seq / "2.ppm"), None, fx=0.4, fy=0.4, interpolation=cv2.INTER_AREA)
+    stored1 = np.ascontiguousarray(np.rot90(image1, -1))
+    upright = match_pair(lite_matcher, image0, image1)
+    rotated = match_pair(lite_matcher, image0, stored1, rotations=(0, 1))
+    assert len(rotated) == len(upright) > 50
+    np.testing.assert_array_equal(rotated.keypoints0, upright.keypoints0)
+    # Stored-frame keypoints of B, turned upright again: (x, y) -> (y, w_stored - 1 - x).
+    w_stored = stored1.shape[1]
+    again = np.stack([rotated.keypoints1[:, 1], w_stored - 1 - rotated.keypoints1[:, 0]], 1)
+    np.testing.assert_allclose(again, upright.keypoints1, atol=1e-4)
+    assert rotated.info["rotations"] == (0, 1)
+
+    H = np.loadtxt(seq / "H_1_2")
+    S = np.diag([0.4, 0.4, 1.0])
+    H_small = S @ H @ np.linalg.inv(S)
+
+    def correct(m, to_upright):
+        k1 = to_upright(m.keypoints1)
+        x = np.c_[m.keypoints0 + 0.5, np.ones(len(m))] @ H_small.T
+        return np.sum(np.linalg.norm(x[:, :2] / x[:, 2:] - 0.5 - k1, axis=1) < 3)
+
+    as_stored = match_pair(lite_matcher, image0, stored1)
+    n_upright = correct(upright, lambda k: k)
+    n_as_stored = correct(as_stored, lambda k: np.stack([k[:, 1], w_stored - 1 - k[:, 0]], 1))
+    print(f"correct within 3 px: upright {n_upright}, as stored {n_as_stored}")
+    assert n_as_stored < 0.5 * n_upright
+
+
+def test_yfcc_pairs_carry_their_rotations_to_the_runner(tmp_path):
+    from e3cm_bench.datasets.yfcc import YFCC100M
+    from e3cm_bench.method import MethodSpec
+    from e3cm_bench.runner import pair_rotations
+
+    for name in ("a.jpg", "b.jpg"):
+        cv2.imwrite(str(tmp_path / name), np.full((32, 48, 3), 128, np.uint8))
+    K = "100 0 24 0 100 16 0 0 1"
+    T = " ".join(map(str, np.eye(4).ravel()))
+    (tmp_path / "pairs.txt").write_text(f"a.jpg b.jpg 0 3 {K} {K} {T}\n")
+    pair = next(iter(YFCC100M(tmp_path, pairs=tmp_path / "pairs.txt")))
+    assert pair_rotations(pair, MethodSpec.create("sift")) == (0, 3)
+    assert pair_rotations(pair, MethodSpec.create("sift", upright=False)) == (0, 0)
+    assert MethodSpec.create("sift").identity()["upright"] is True
+
+
+# --------------------------------------------------------------------------- EXIF
+
+
+def test_jpeg_with_an_orientation_tag_is_read_turned_as_opencv_and_the_references_do(tmp_path):
+    """The reference loaders (SuperGlue, LoFTR, the E3CM release) read with cv2.imread, which
+    applies the EXIF orientation; so does load_image."""
+    from PIL import Image
+
+    from e3cm_bench.images import load_image
+
+    pixels = np.zeros((40, 60, 3), np.uint8)
+    pixels[:10, :20] = (255, 0, 0)  # a red block top-left of the stored pixels
+    exif = Image.Exif()
+    exif[0x0112] = 6  # orientation 6: display turned 90 degrees clockwise
+    path = tmp_path / "tagged.jpg"
+    Image.fromarray(pixels).save(path, exif=exif.tobytes(), quality=95)
+
+    image = load_image(path)
+    assert image.shape == (60, 40, 3)  # turned: width and height swap
+    expected = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(image, expected)
+    # Clockwise: the stored top-left block ends up top-right, and it is red.
+    assert image[:20, -10:, 0].mean() > 200 and image[:20, -10:, 2].mean() < 60
+    assert image[:20, :10, 0].mean() < 60
+
+
+# --------------------------------------------------------------------------- failures in the AUC
+
+
+def test_drop_failures_leaves_failed_pairs_out_of_the_auc():
+    rows = [{"n_matches": 100, "err_pose": 1.0, "precision@1e-4": 1.0, "precision@5e-4": 1.0},
+            {"n_matches": 3, "err_pose": math.inf, "precision@1e-4": 0.0, "precision@5e-4": 0.0}]
+    counted = summarize_pose(rows)
+    dropped = summarize_pose(rows, drop_failures=True)
+    assert counted["n_failures"] == dropped["n_failures"] == 1
+    assert counted["auc@5"] == pytest.approx(dropped["auc@5"] / 2)
+    assert dropped["auc@5"] == pytest.approx(90.0)
+
+
+# --------------------------------------------------------------------------- --protocol
+
+
+def test_e3cm_release_protocol_is_written_and_flagged(shared_data, tmp_path):
+    root = shared_data / "megadepth_test_1500"
+    out = tmp_path / "rel"
+    result = invoke("megadepth", "--root", root, "--scene-info", root / "scene_info" / "kitti00_seq.npz", "--out", out,
+                    *LITE, "--matcher", "e3cm-release", "--protocol", "e3cm-release", "--limit", 1)
+    assert result.exit_code == 0, result.output
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["evaluation"]["protocol"] == "e3cm-release" and config["evaluation"]["drop_failures"] is True
+    identity = config["identity"]
+    assert identity["max_side"] is None  # full resolution
+    assert identity["settings"]["num_levels"] == 4 and identity["settings"]["channel_order"] == "bgr"
+    assert config["matcher"]["num_levels"] == 4 and config["matcher"]["channel_order"] == "bgr"
+    assert invoke("table", out, "--out", tmp_path / "t", "--no-compare").exit_code == 0
+    table = (tmp_path / "t.md").read_text()
+    assert "e3cm-release-efficientnet_lite0 (non-standard)" in table
+    # Not VGG19: not comparable with the paper's E3CM row.
+    assert "| E3CM " not in table.split("(non-standard)")[1]
+
+
+def test_loftr_protocol_resizes_megadepth_to_840(shared_data, tmp_path):
+    root = shared_data / "megadepth_test_1500"
+    out = tmp_path / "loftr"
+    result = invoke("megadepth", "--root", root, "--scene-info", root / "scene_info" / "kitti00_seq.npz", "--out", out,
+                    "--matcher", "sift", "--protocol", "loftr", "--limit", 1)
+    assert result.exit_code == 0, result.output
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["identity"]["max_side"] == 840 and config["evaluation"]["protocol"] == "loftr"
+
+
+def test_a_protocol_of_another_benchmark_is_a_one_line_error(tmp_path):
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--protocol", "superglue"))
+    assert "superglue" in line and "yfcc" in line
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--protocol", "nope"))
+    assert "unknown protocol" in line
+
+
+def test_set_rejects_a_setting_the_matcher_does_not_have(tmp_path):
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--matcher", "e3cm",
+                                 "--set", "variant=corrected"))
+    assert "variant" in line
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--matcher", "dfm",
+                                 "--set", "variant=newest"))
+    assert "release, corrected, bench" in line
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--set", "nokey"))
+    assert "KEY=VALUE" in line
