@@ -29,6 +29,8 @@ from .files import file_sha256
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 MAX_LEVELS = 5
+# fp32: exact; bf16 (CPUs with AVX-512 BF16 / AMX, recent GPUs) and fp16 (GPUs): autocast.
+PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 class BackboneError(RuntimeError):
@@ -192,8 +194,12 @@ class Backbone(nn.Module):
     has exactly (H_pad / 2^l) x (W_pad / 2^l) cells.
     """
 
-    def __init__(self, spec: BackboneSpec, stages: list[nn.Module], num_levels: int, weights_id: str):
+    def __init__(self, spec: BackboneSpec, stages: list[nn.Module], num_levels: int, weights_id: str,
+                 precision: str = "fp32"):
         super().__init__()
+        if precision not in PRECISIONS:
+            raise BackboneError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        self.precision = precision
         self.name = spec.name
         self.spec = spec
         self.num_levels = num_levels
@@ -211,6 +217,7 @@ class Backbone(nn.Module):
             "num_levels": self.num_levels,
             "upsample": self.upsample,
             "weights": self.weights_id,
+            "precision": self.precision,
         }
 
     @property
@@ -233,17 +240,31 @@ class Backbone(nn.Module):
         if self.upsample > 1:
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
         tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
+        # Reduced precision runs the convolutions under autocast in channels_last, their fast
+        # layout on CPU and tensor cores; the maps come out float32. fp32 stays in NCHW:
+        # channels_last changes the rounding (VGG19: up to 3e-6), and fp32 reproduces the
+        # reference releases bit for bit (tests/test_parity.py).
+        reduced = self.precision != "fp32"
+        if reduced:
+            x = x.contiguous(memory_format=torch.channels_last)
+        dtype = torch.bfloat16 if self.precision == "bf16" else torch.float16
         features, extra = [], None
-        for i, stage in enumerate(self.stages):
-            if tap is not None and i == len(self.stages) - 1:
-                for j, module in enumerate(stage):
-                    x = module(x)
-                    if j == tap:
-                        extra = x[0]
-            else:
-                x = stage(x)
-            features.append(x[0])
+        with torch.autocast(x.device.type, dtype=dtype, enabled=reduced):
+            for i, stage in enumerate(self.stages):
+                if tap is not None and i == len(self.stages) - 1:
+                    for j, module in enumerate(stage):
+                        x = module(x)
+                        if j == tap:
+                            extra = _map(x)
+                else:
+                    x = stage(x)
+                features.append(_map(x))
         return features, extra
+
+
+def _map(x: torch.Tensor) -> torch.Tensor:
+    """A stage output as the C x H x W float32 map the matching steps index (C-contiguous)."""
+    return x[0].float().contiguous()
 
 
 def _no_inplace(module: nn.Module) -> None:
@@ -310,6 +331,7 @@ def load_backbone(
     pretrained: bool = True,
     num_levels: int = MAX_LEVELS,
     device: str | torch.device = "cpu",
+    precision: str = "fp32",
 ) -> Backbone:
     """Build a backbone by name.
 
@@ -336,5 +358,5 @@ def load_backbone(
             raise BackboneError(f"{path}: does not fit backbone {name} ({first})") from exc
         weights_id = f"{path} sha256:{file_sha256(path)[:16]}"
     _no_inplace(model)
-    backbone = Backbone(spec, spec.stages(model), num_levels, weights_id)
+    backbone = Backbone(spec, spec.stages(model), num_levels, weights_id, precision)
     return backbone.eval().to(device)

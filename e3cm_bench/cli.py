@@ -52,12 +52,14 @@ SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson
 RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
+PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs) or fp16 (GPUs).")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (README: Protocols).")]
 
 
-def parse_settings(pairs: list[str] | None) -> dict:
-    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values)."""
-    settings = {}
+def parse_settings(pairs: list[str] | None, precision: str = "fp32") -> dict:
+    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
+    a precision other than fp32 joins them (fp32 is left out, so that exact runs keep their identity)."""
+    settings = {} if precision == "fp32" else {"precision": precision}
     for item in pairs or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
@@ -105,6 +107,7 @@ def match(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the robust estimators inside the matcher.")] = 0,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("e3cm-match"),
     settings: SetOpt = None,
+    precision: PrecisionOpt = "fp32",
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     if (image0 is None) != (image1 is None):
@@ -119,7 +122,8 @@ def match(
         backbone = backbone or "vgg19"
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
-        parse_numbers(ratio, "--ratio"), max_side or None, seed, options=parse_settings(settings),
+        parse_numbers(ratio, "--ratio"), max_side or None, seed,
+        options=parse_settings(settings, precision) if matcher in NEEDS_BACKBONE else parse_settings(settings),
     )
     t = time.perf_counter()
     m = method.build(device)
@@ -151,7 +155,7 @@ def match(
 
 def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
             sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
-            settings: list[str] | None, protocol: str) -> MethodSpec:
+            settings: list[str] | None, protocol: str, precision: str = "fp32") -> MethodSpec:
     """The method of a benchmark command. --max-side unset takes the protocol's resize, else the
     benchmark's default; the protocol's matcher settings apply where --set gives none."""
     preset = get_protocol(protocol, benchmark)
@@ -159,7 +163,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
         max_side = preset.max_side[benchmark] or 0
     options = parse_settings(settings)
     if matcher in NEEDS_BACKBONE:
-        options = {**preset.method_options.get(benchmark, {}), **options}
+        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision)}
     return MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
         get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
@@ -217,7 +221,7 @@ def hpatches(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default",
+    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
@@ -225,7 +229,8 @@ def hpatches(
     shards: ShardsOpt = 0,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
-    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
+    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
+                     precision)
     _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 
@@ -237,14 +242,15 @@ def megadepth(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default",
+    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
-    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
+    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
+                     precision)
     _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 
@@ -256,14 +262,15 @@ def yfcc(
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default",
+    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
-    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol)
+    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
+                     precision)
     _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 

@@ -24,6 +24,7 @@ BACKBONE = "efficientnet_lite0"  # the ImageNet backbone that needs no download
 # label -> MethodSpec.create options; every deep method uses BACKBONE.
 METHODS = {
     "e3cm": {"matcher": "e3cm"},
+    "e3cm-release": {"matcher": "e3cm-release"},
     "e3cm-ransac": {"matcher": "e3cm", "estimator": "ransac"},
     "direct": {"matcher": "direct"},
     "dfm": {"matcher": "dfm"},

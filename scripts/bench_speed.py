@@ -1,56 +1,161 @@
-"""Time per stage of a matcher on synthetic pairs of given sizes (prints measured figures).
+"""Time per stage of a matcher on synthetic pairs (prints measured figures; never asserted).
 
-    python scripts/bench_speed.py --backbone vgg19 --sizes 640x480 1200x900 [--random-weights]
+    python scripts/bench_speed.py --backbone vgg19 --size 1200x900 --repeat 2 --precision fp32 \
+        [--matcher e3cm] [--random-weights | --weights FILE] [--device cpu] [--json] \
+        [--compare-release PATH]
 
-Random weights are fine for timing (the work does not depend on the weight values,
-only the match counts do). Each size is matched `--repeats` times after one warm-up.
+Each size is matched once to warm up, then `--repeat` times; medians are reported. Random
+weights cost the same as ImageNet ones (only the match counts differ). With
+`--compare-release PATH` (a local checkout of the E3CM authors' release, never a dependency)
+the release's `match_large_img` + `refinement_pose_ransac` runs on the same images with the
+same weights, alternating with ours in this process. `--json` ends the output with one JSON
+object: backbone_s, total_s, overhead_ratio (total_s / backbone_s), release_s, peak_rss_mb,
+device, precision, and the stage medians.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
+import statistics
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from e3cm_bench.backbones import load_backbone
+from e3cm_bench.method import MethodSpec
 from e3cm_bench.synth.textures import demo_homography, procedural_scene
-from e3cm_bench.matchers.e3cm import E3CMMatcher
-from e3cm_bench.matching.pipeline import E3CMSettings
+
+
+def synthetic_pair(w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    image0 = procedural_scene((w, h))
+    image1 = cv2.warpPerspective(image0, demo_homography((w, h)), (w, h), borderMode=cv2.BORDER_REFLECT)
+    return image0, image1
+
+
+def peak_memory_mb(device: str) -> float:
+    if device.startswith("cuda"):
+        return torch.cuda.max_memory_allocated() / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+class ReleaseRunner:
+    """The E3CM release's matcher loaded from a local checkout, with the given VGG19 weights."""
+
+    def __init__(self, path: Path, state_dict: dict, device: str):
+        import torchvision
+
+        folder = path / "E3CM_deep_networks" if (path / "E3CM_deep_networks").is_dir() else path
+        sys.path.insert(0, str(folder))
+        original = torchvision.models.vgg19
+
+        def vgg19_with_our_weights(*args, **kwargs):  # the release asks for pretrained=True (a download)
+            model = original(weights=None)
+            model.load_state_dict(state_dict)
+            return model
+
+        torchvision.models.vgg19 = vgg19_with_our_weights
+        import DFM_matcher  # noqa: E402 - from the checkout
+        import utils  # noqa: E402
+
+        DFM_matcher.models.vgg19 = vgg19_with_our_weights
+        self.utils = utils
+        self.matcher = DFM_matcher.DeepFeatureMatcher(model="VGG19", device=torch.device(device), enable_two_stage=False,
+                                                      ratio_th=[0.9, 0.9, 0.9, 0.9, 0.95])
+
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> int:
+        with torch.no_grad():
+            _, _, a, b = self.matcher.match_large_img(image0, image1)
+            a, _ = self.utils.refinement_pose_ransac(a, b, 0.01)
+        return a.shape[1]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backbone", default="vgg19")
-    parser.add_argument("--sizes", nargs="+", default=["640x480", "1200x900"])
-    parser.add_argument("--estimator", default="top8")
-    parser.add_argument("--random-weights", action="store_true")
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--matcher", default="e3cm", help="e3cm, e3cm-ransac, e3cm-release, direct, dfm")
+    parser.add_argument("--size", action="append", default=None, help="WxH (repeatable; default 640x480, 1200x900)")
+    parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16", "fp16"))
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--random-weights", action="store_true")
+    parser.add_argument("--weights", default=None)
+    parser.add_argument("--compare-release", type=Path, default=None)
+    parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    sizes = args.size or ["640x480", "1200x900"]
 
-    backbone = load_backbone(args.backbone, pretrained=not args.random_weights, device=args.device)
-    print(f"backbone {args.backbone} ({backbone.weights_id}), device {args.device}, torch threads {torch.get_num_threads()}")
-    for variant, settings in (("e3cm", E3CMSettings(estimator=args.estimator)), ("direct", E3CMSettings(cascade=False))):
-        matcher = E3CMMatcher(backbone, settings)
-        for size in args.sizes:
-            w, h = (int(v) for v in size.split("x"))
-            image0 = procedural_scene((w, h))
-            image1 = cv2.warpPerspective(image0, demo_homography((w, h)), (w, h), borderMode=cv2.BORDER_REFLECT)
-            matcher.match(image0, image1)  # warm-up
-            runs = []
-            for _ in range(args.repeats):
+    matcher_name, estimator = (("e3cm", "ransac") if args.matcher == "e3cm-ransac" else (args.matcher, None))
+    options = {} if args.precision == "fp32" else {"precision": args.precision}
+    spec = MethodSpec.create(matcher_name, args.backbone, args.weights, estimator=estimator, options=options)
+    matcher = spec.build(args.device, pretrained=not args.random_weights)
+    release = None
+    if args.compare_release is not None:
+        if args.backbone != "vgg19":
+            raise SystemExit("--compare-release needs --backbone vgg19 (the release's default network)")
+        # The same weights on both sides: rebuild the full torchvision model from our stages' weights.
+        import torchvision
+
+        full = torchvision.models.vgg19(weights=None)
+        ours = {f"features.{k}": v for stage in matcher.backbone.stages for k, v in stage.state_dict().items()}
+        full.load_state_dict({**full.state_dict(), **ours})
+        release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
+    print(f"{spec.describe()}; backbone weights {matcher.backbone.weights_id}; precision {args.precision}; "
+          f"device {args.device}; torch threads {torch.get_num_threads()}")
+
+    result = {}
+    for size in sizes:
+        w, h = (int(v) for v in size.split("x"))
+        image0, image1 = synthetic_pair(w, h)
+        matcher.match(image0, image1)  # warm-up
+        if release is not None:
+            release.match(image0, image1)
+        totals, backbones, releases, stages = [], [], [], {}
+        for _ in range(args.repeat):
+            sync(args.device)
+            t = time.perf_counter()
+            m = matcher.match(image0, image1)
+            sync(args.device)
+            totals.append(time.perf_counter() - t)
+            for key, value in m.info["timings"].items():
+                stages.setdefault(key, []).append(value)
+            t = time.perf_counter()
+            matcher.pyramids(image0, image1)  # the backbone alone (2 images)
+            sync(args.device)
+            backbones.append(time.perf_counter() - t)
+            if release is not None:
                 t = time.perf_counter()
-                result = matcher.match(image0, image1)
-                runs.append((time.perf_counter() - t, result))
-            total, result = min(runs, key=lambda r: r[0])
-            stages = ", ".join(f"{k} {v:.3f}" for k, v in result.info["timings"].items())
-            print(f"{variant:6s} {w}x{h}: {len(result)} matches, total {total:.2f} s (best of {args.repeats}); {stages}")
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"peak resident memory {peak:.0f} MiB")
+                n_release = release.match(image0, image1)
+                releases.append(time.perf_counter() - t)
+        result = {
+            "size": size, "matcher": args.matcher, "backbone": args.backbone, "matches": len(m),
+            "backbone_s": statistics.median(backbones), "total_s": statistics.median(totals),
+            "stages_s": {k: statistics.median(v) for k, v in stages.items()},
+            "device": args.device, "precision": args.precision,
+        }
+        result["overhead_ratio"] = result["total_s"] / result["backbone_s"]
+        line = (f"{args.matcher} {size}: {len(m)} matches; total {result['total_s']:.2f} s, backbone alone "
+                f"{result['backbone_s']:.2f} s (x{result['overhead_ratio']:.2f}); stages "
+                + ", ".join(f"{k} {v:.3f}" for k, v in result["stages_s"].items()))
+        if releases:
+            result["release_s"] = statistics.median(releases)
+            result["release_matches"] = n_release
+            line += f"; release {result['release_s']:.2f} s ({n_release} matches), ours / release " \
+                    f"{result['total_s'] / result['release_s']:.2f}"
+        print(line + f" (median of {args.repeat})")
+    result["peak_rss_mb"] = peak_memory_mb(args.device)
+    print(f"peak memory {result['peak_rss_mb']:.0f} MiB")
+    if args.json:
+        print(json.dumps(result))
 
 
 if __name__ == "__main__":

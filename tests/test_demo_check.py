@@ -130,5 +130,5 @@ def test_committed_baselines_cover_the_demo():
     """results/baselines/ holds one row per demo method and set (written by check --update)."""
     for set_name, benchmark in (("hpatches", "hpatches"), ("scenes", "yfcc")):
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
-        assert sorted(table["method"]) == sorted(["e3cm", "e3cm-ransac", "direct", "dfm", "sift"])
+        assert sorted(table["method"]) == sorted(["e3cm", "e3cm-release", "e3cm-ransac", "direct", "dfm", "sift"])
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()

@@ -184,3 +184,35 @@ def test_set_rejects_a_setting_the_matcher_does_not_have(tmp_path):
     assert "release, corrected, bench" in line
     line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--set", "nokey"))
     assert "KEY=VALUE" in line
+
+
+# --------------------------------------------------------------------------- precision
+
+
+def test_bf16_backbone_is_recorded_and_stays_close_to_fp32(shared_data):
+    """--precision bf16 runs the backbone under autocast (channels_last); it is part of the
+    match identity. On v_boat 1-2 at 480 px its matches stay about as correct as fp32's."""
+    import torch
+
+    from e3cm_bench.images import load_image
+    from e3cm_bench.method import MethodSpec
+
+    if not hasattr(torch.backends, "mkldnn") or not torch.backends.mkldnn.is_available():
+        pytest.skip("no oneDNN CPU backend for bf16 here")
+    spec = MethodSpec.create("direct", "efficientnet_lite0", options={"precision": "bf16"})
+    assert spec.identity()["settings"]["precision"] == "bf16"
+    assert spec != MethodSpec.create("direct", "efficientnet_lite0")
+    seq = shared_data / "hpatches-sequences-release" / "v_boat"
+    image0, image1 = load_image(seq / "1.ppm"), load_image(seq / "2.ppm")
+    H = np.loadtxt(seq / "H_1_2")
+    fractions = {}
+    for precision in ("fp32", "bf16"):
+        matcher = MethodSpec.create("direct", "efficientnet_lite0", options={"precision": precision}).build()
+        assert matcher.config()["precision"] == precision
+        m = match_pair(matcher, image0, image1, max_side=480)
+        x = np.c_[m.keypoints0 + 0.5, np.ones(len(m))] @ H.T
+        err = np.linalg.norm(x[:, :2] / x[:, 2:] - 0.5 - m.keypoints1, axis=1)
+        fractions[precision] = (len(m), float(np.mean(err < 3 * image0.shape[1] / 480)))
+    print("matches, fraction within 3 px (at 480 px):", fractions)
+    (n32, f32), (n16, f16) = fractions["fp32"], fractions["bf16"]
+    assert abs(n16 - n32) <= 0.15 * n32 and f16 >= f32 - 0.05

@@ -14,9 +14,9 @@ from .base import Matcher
 MATCHERS = ("e3cm", "e3cm-release", "direct", "dfm", "sift")
 NEEDS_BACKBONE = ("e3cm", "e3cm-release", "direct", "dfm")
 # Settings every deep matcher takes, besides its own (E3CMSettings, E3CMReleaseSettings, dfm's):
-# how many levels of the backbone it uses (the E3CM release's match_small_img uses 4) and the
-# channel order fed to the network.
-BACKBONE_SETTINGS = ("num_levels", "channel_order")
+# how many levels of the backbone it uses (the E3CM release's match_small_img uses 4), the
+# channel order fed to the network, and the backbone's precision (fp32 exact; bf16, fp16).
+BACKBONE_SETTINGS = ("num_levels", "channel_order", "precision")
 
 
 def is_random(name: str, settings: dict) -> bool:
@@ -78,7 +78,9 @@ def build_matcher(
     check_device(device)
     num_levels = int(settings.pop("num_levels", MAX_LEVELS))
     channel_order = settings.pop("channel_order", "rgb")
-    net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device, num_levels=num_levels)
+    precision = settings.pop("precision", "fp32")
+    net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device, num_levels=num_levels,
+                        precision=precision)
     return _deep_matcher(name, net, settings, channel_order)
 
 
@@ -112,6 +114,9 @@ def check_settings(name: str, settings: dict) -> None:
     order = settings.pop("channel_order", "rgb")
     if order not in ("rgb", "bgr"):
         raise ValueError(f"channel_order must be rgb or bgr, got {order!r}")
+    precision = settings.pop("precision", "fp32")
+    if precision not in ("fp32", "bf16", "fp16"):
+        raise ValueError(f"precision must be fp32, bf16 or fp16, got {precision!r}")
     try:
         if name == "dfm":
             from .dfm import check_dfm_settings
