@@ -53,13 +53,17 @@ RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thr
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs) or fp16 (GPUs).")]
+ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (README: Protocols).")]
 
 
-def parse_settings(pairs: list[str] | None, precision: str = "fp32") -> dict:
+def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb") -> dict:
     """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
-    a precision other than fp32 joins them (fp32 is left out, so that exact runs keep their identity)."""
+    a precision other than fp32 and a channel order other than rgb join them (the defaults are
+    left out, so that runs with them keep their identity)."""
     settings = {} if precision == "fp32" else {"precision": precision}
+    if channel_order != "rgb":
+        settings["channel_order"] = channel_order
     for item in pairs or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
@@ -108,6 +112,7 @@ def match(
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("e3cm-match"),
     settings: SetOpt = None,
     precision: PrecisionOpt = "fp32",
+    channel_order: ChannelOrderOpt = "rgb",
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     if (image0 is None) != (image1 is None):
@@ -123,7 +128,7 @@ def match(
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
         parse_numbers(ratio, "--ratio"), max_side or None, seed,
-        options=parse_settings(settings, precision) if matcher in NEEDS_BACKBONE else parse_settings(settings),
+        options=parse_settings(settings, precision, channel_order) if matcher in NEEDS_BACKBONE else parse_settings(settings),
     )
     t = time.perf_counter()
     m = method.build(device)
@@ -155,7 +160,8 @@ def match(
 
 def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
             sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
-            settings: list[str] | None, protocol: str, precision: str = "fp32") -> MethodSpec:
+            settings: list[str] | None, protocol: str, precision: str = "fp32",
+            channel_order: str = "rgb") -> MethodSpec:
     """The method of a benchmark command. --max-side unset takes the protocol's resize, else the
     benchmark's default; the protocol's matcher settings apply where --set gives none."""
     preset = get_protocol(protocol, benchmark)
@@ -163,7 +169,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
         max_side = preset.max_side[benchmark] or 0
     options = parse_settings(settings)
     if matcher in NEEDS_BACKBONE:
-        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision)}
+        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order)}
     return MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
         get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
@@ -222,6 +228,7 @@ def hpatches(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
+    channel_order: ChannelOrderOpt = "rgb",
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
@@ -230,7 +237,7 @@ def hpatches(
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision)
+                     precision, channel_order)
     _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 
@@ -243,6 +250,7 @@ def megadepth(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
+    channel_order: ChannelOrderOpt = "rgb",
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -250,7 +258,7 @@ def megadepth(
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision)
+                     precision, channel_order)
     _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 
@@ -263,6 +271,7 @@ def yfcc(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
+    channel_order: ChannelOrderOpt = "rgb",
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -270,7 +279,7 @@ def yfcc(
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision)
+                     precision, channel_order)
     _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol)
 

@@ -132,25 +132,45 @@ def progress_bar(console: Console) -> Progress:
 # --------------------------------------------------------------------------- stages
 
 
+# Memory for the feature pyramids of recent images (matchers/deep.py FeatureCache): pairs that
+# share an image reuse its maps. VGG19 at 1200 x 900 needs about 0.5 GiB per image, Lite0 0.12.
+FEATURE_CACHE_MB = 2048
+
+
+def reuse_order(pairs: list[Pair]) -> list[Pair]:
+    """Pairs ordered so that those sharing an image come close together (by their lower, then
+    higher image path): on the real YFCC100M pair graph (4000 pairs, 1455 images) a cache of
+    4 images then needs 4998 backbone passes instead of 7846 in list order (16: 4672 vs 7352).
+    The order changes no result: matches are stored by pair name."""
+    def key(pair: Pair) -> tuple[str, str]:
+        a, b = str(pair.image0), str(pair.image1)
+        return (min(a, b), max(a, b))
+
+    return sorted(pairs, key=key)
+
+
 def match_stage(
     method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
-    skipped: list[tuple[str, str]] | None = None,
+    skipped: list[tuple[str, str]] | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
 ) -> dict:
     """Build the matcher, match the pairs not yet cached, write each to the cache.
 
     on_matcher(matcher) runs once the model is loaded (the runner records its settings).
     skipped: when a list is given, a pair whose image cannot be decoded is appended to it as
     (name, problem) and the run goes on; otherwise the error ends the run (the pairs matched
-    before it stay in the cache). Returns the time spent and the number of pairs matched.
+    before it stay in the cache). feature_cache_mb: memory for reusing feature maps across
+    pairs (0: off). Returns the time spent, the number of pairs matched and the reuse counts.
     """
     matcher = method.build(device)
+    if feature_cache_mb and hasattr(matcher, "reuse_features"):
+        matcher.reuse_features(feature_cache_mb)
     if on_matcher is not None:
         on_matcher(matcher)
     t0 = time.perf_counter()
     matched = 0
     with progress_bar(console) as progress:
         task = progress.add_task(f"matching ({method.label})", total=len(todo))
-        for pair in todo:
+        for pair in reuse_order(todo):
             try:
                 match_cached_pair(matcher, pair, method, cache)
                 matched += 1
@@ -166,7 +186,11 @@ def match_stage(
                                      "--skip-bad skips such pairs)") from None
                 skipped.append((pair.name, str(error)))
             progress.advance(task)
-    return {"match_seconds": time.perf_counter() - t0, "pairs_matched": matched}
+    stats = {"match_seconds": time.perf_counter() - t0, "pairs_matched": matched}
+    reuse = getattr(matcher, "feature_cache", None)
+    if reuse is not None:
+        stats["feature_reuse"] = {"cache_mb": feature_cache_mb, "backbone_passes": reuse.misses, "reused": reuse.hits}
+    return stats
 
 
 def evaluate_stage(
@@ -384,6 +408,11 @@ def _run_locked(
 
         spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher,
                             skipped=skipped if dataset.skip_bad else None)
+        reuse = spent.pop("feature_reuse", None)
+        if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
+            before = config.get("feature_reuse") or {}
+            config["feature_reuse"] = {"cache_mb": reuse["cache_mb"],
+                                       **{k: before.get(k, 0) + reuse[k] for k in ("backbone_passes", "reused")}}
         timing = config["timing"]
         for key, value in spent.items():
             timing[key] = timing.get(key, 0) + value

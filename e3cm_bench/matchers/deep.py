@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -18,6 +20,44 @@ def image_to_tensor(image: np.ndarray, device: torch.device | str) -> torch.Tens
     return torch.from_numpy(np.ascontiguousarray(image)).to(device).permute(2, 0, 1)[None].float() / 255.0
 
 
+class FeatureCache:
+    """The feature pyramids of recently seen images, up to a memory budget (least recently used
+    out first). Keyed by the image's content, so the same image in several pairs of a run is
+    passed through the backbone once; the stored maps are the computed ones, so reuse
+    changes no result."""
+
+    def __init__(self, max_mb: float):
+        self.max_bytes = int(max_mb * 2**20)
+        self.entries: OrderedDict[str, list[torch.Tensor]] = OrderedDict()
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+
+    @staticmethod
+    def key(image: np.ndarray, channel_order: str) -> str:
+        digest = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16)
+        return f"{image.shape}:{image.dtype}:{channel_order}:{digest.hexdigest()}"
+
+    def get(self, key: str) -> list[torch.Tensor] | None:
+        maps = self.entries.get(key)
+        if maps is None:
+            self.misses += 1
+            return None
+        self.entries.move_to_end(key)
+        self.hits += 1
+        return maps
+
+    def put(self, key: str, maps: list[torch.Tensor]) -> None:
+        size = sum(m.numel() * m.element_size() for m in maps)
+        if size > self.max_bytes:
+            return
+        self.entries[key] = maps
+        self.bytes += size
+        while self.bytes > self.max_bytes:
+            _, old = self.entries.popitem(last=False)
+            self.bytes -= sum(m.numel() * m.element_size() for m in old)
+
+
 class DeepMatcher(Matcher):
     """A matcher built on the feature pyramid of an ImageNet CNN (`backbones.Backbone`).
 
@@ -31,6 +71,11 @@ class DeepMatcher(Matcher):
         self.backbone = backbone
         self.name = name
         self.channel_order = channel_order
+        self.feature_cache: FeatureCache | None = None
+
+    def reuse_features(self, max_mb: float) -> None:
+        """Keep the pyramids of recent images (up to max_mb MiB) for pairs that share an image."""
+        self.feature_cache = FeatureCache(max_mb) if max_mb > 0 else None
 
     @property
     def device(self) -> torch.device:
@@ -43,7 +88,14 @@ class DeepMatcher(Matcher):
 
     def features(self, image: np.ndarray) -> list[torch.Tensor]:
         """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l."""
-        return self.backbone(self.network_input(image))
+        if self.feature_cache is None:
+            return self.backbone(self.network_input(image))
+        key = FeatureCache.key(image, self.channel_order)
+        maps = self.feature_cache.get(key)
+        if maps is None:
+            maps = self.backbone(self.network_input(image))
+            self.feature_cache.put(key, maps)
+        return maps
 
     def pyramids(self, image0: np.ndarray, image1: np.ndarray) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:
         """Both images' pyramids and the seconds the backbone took."""
