@@ -30,7 +30,7 @@ from .images import load_image
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .matching import ESTIMATORS
 from .method import MethodSpec, parse_numbers
-from .runner import match_pair, run_benchmark
+from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
 from .shards import merge_run, parse_shard, run_shards
 from .viz import draw_matches, save_image
 
@@ -54,6 +54,7 @@ LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs) or fp16 (GPUs).")]
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
+FeatureCacheOpt = Annotated[float, typer.Option("--feature-cache-mb", help="Memory (MiB) for reusing an image's feature maps across the pairs that share it; 0 = off. Never changes a result.")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (README: Protocols).")]
 
 
@@ -178,7 +179,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
-         scale: tuple, protocol: str = "default") -> None:
+         scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, protocol=preset.name,
@@ -198,7 +199,7 @@ def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_opti
         run_shards(run, shards, launcher="slurm", console=console)
     else:
         run_benchmark(**run, eval_only=eval_only, device=device, shard=parse_shard(shard) if shard else None,
-                      console=console)
+                      console=console, feature_cache_mb=feature_cache_mb)
 
 
 # Options of the three benchmark commands.
@@ -228,7 +229,7 @@ def hpatches(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb",
+    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
@@ -239,7 +240,7 @@ def hpatches(
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
 
 
 @app.command()
@@ -250,7 +251,7 @@ def megadepth(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb",
+    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -260,7 +261,7 @@ def megadepth(
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
 
 
 @app.command()
@@ -271,7 +272,7 @@ def yfcc(
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb",
+    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -281,7 +282,7 @@ def yfcc(
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
 
 
 @app.command()

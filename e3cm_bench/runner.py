@@ -299,9 +299,12 @@ def run_benchmark(
     shard: tuple[int, int] | None = None,
     dataset_load: dict | None = None,
     console: Console | None = None,
+    feature_cache_mb: float = FEATURE_CACHE_MB,
 ) -> pd.DataFrame:
     """Run (or resume, or only evaluate) one method on one benchmark; returns summary.csv's row.
 
+    feature_cache_mb: memory for reusing an image's feature maps across the pairs that share
+    it (0: off; it never changes a result).
     The pairs come from `dataset`, or from the benchmark's dataset at `root` with
     `dataset_options`. `method` may be None only with eval_only (the folder's own is used).
     shard=(K, N): only the K-th of N slices of the pairs, as a run in OUT/shards/K-of-N/;
@@ -343,7 +346,7 @@ def run_benchmark(
         run_dir = out
     with FolderLock(run_dir):  # taken before anything in the folder is read or written
         summary = _run_locked(benchmark, run_dir, method, dataset, ev, limit, overwrite, eval_only, viz, device,
-                              console, shard, load)
+                              console, shard, load, feature_cache_mb)
     if shard is not None and merge_when_complete(out, console):
         return pd.read_csv(out / "summary.csv")
     return pd.DataFrame([summary])
@@ -352,7 +355,7 @@ def run_benchmark(
 def _run_locked(
     benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
     limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
-    shard: tuple[int, int] | None = None, load: dict | None = None,
+    shard: tuple[int, int] | None = None, load: dict | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
 ) -> dict:
     if overwrite and out.exists():
         _clear(out)
@@ -407,7 +410,7 @@ def _run_locked(
             save_yaml(config, out / CONFIG_FILE)
 
         spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher,
-                            skipped=skipped if dataset.skip_bad else None)
+                            skipped=skipped if dataset.skip_bad else None, feature_cache_mb=feature_cache_mb)
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before = config.get("feature_reuse") or {}

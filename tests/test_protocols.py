@@ -228,7 +228,7 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
 
     from e3cm_bench.benchmarks import get_benchmark
     from e3cm_bench.method import MethodSpec
-    from e3cm_bench.runner import match_stage, run_benchmark
+    from e3cm_bench.runner import run_benchmark
 
     method = MethodSpec.create("direct", "efficientnet_lite0", max_side=320)
     hp = get_benchmark("hpatches")
@@ -237,14 +237,8 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
     assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
 
-    import e3cm_bench.runner as runner_module
-
-    original = runner_module.match_stage
-    runner_module.match_stage = lambda *a, **k: original(*a, **{**k, "feature_cache_mb": 0})
-    try:
-        run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3)
-    finally:
-        runner_module.match_stage = original
+    run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
+                  feature_cache_mb=0)
     assert "feature_reuse" not in yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())
 
     def arrays(folder):
@@ -257,7 +251,6 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     assert reused.keys() == plain.keys() and len(reused) > 0
     for name in plain:
         assert np.array_equal(reused[name], plain[name]), name
-    assert match_stage is original
 
 
 def test_channel_order_option_reaches_the_identity(shared_data, tmp_path):

@@ -331,7 +331,9 @@ def test_console_table_keeps_bracketed_labels(hpatches_copy, tmp_path):
 def interrupt_args(shared_data, tmp_path_factory):
     root = tmp_path_factory.mktemp("intr") / "hpatches"
     shutil.copytree(shared_data / "hpatches-sequences-release", root)
-    args = ["hpatches", "--root", root, "--matcher", "direct", *LITE, "--max-side", 320]
+    # Feature reuse off: with it the 14 pairs after the first one take well under a second,
+    # and the signal could arrive after the run has ended.
+    args = ["hpatches", "--root", root, "--matcher", "direct", *LITE, "--max-side", 320, "--feature-cache-mb", 0]
     reference = root.parent / "reference"
     done = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", *map(str, args), "--out", str(reference)],
                           capture_output=True, text=True, timeout=600)
