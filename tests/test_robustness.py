@@ -38,10 +38,16 @@ def invoke(*args):
     return result
 
 
+def _default_sigint() -> None:
+    # A shell starts background jobs with SIGINT ignored, and Python then installs no
+    # KeyboardInterrupt handler; the command must see Ctrl-C as a user's terminal sends it.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def cli(*args, **kwargs) -> subprocess.Popen:
-    """The real command in its own process."""
+    """The real command in its own process (SIGINT as in a terminal, whatever runs the tests)."""
     return subprocess.Popen([sys.executable, "-m", "e3cm_bench.cli", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kwargs)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint, **kwargs)
 
 
 @pytest.fixture
