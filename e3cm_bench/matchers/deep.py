@@ -109,3 +109,15 @@ class DeepMatcher(Matcher):
     def config(self) -> dict:
         return {"matcher": self.name, **self.backbone.describe(), "channel_order": self.channel_order,
                 **self.settings_dict()}
+
+
+def level0_cosine(map0: torch.Tensor, map1: torch.Tensor, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """Cosine of the level-0 features at each match of integer level-0 pixels (the releases
+    give no score; this one orders their matches for display and PROSAC-style use)."""
+    if len(x0) == 0:
+        return np.zeros(0, np.float32)
+    p0 = torch.from_numpy(np.rint(x0).astype(np.int64)).to(map0.device)
+    p1 = torch.from_numpy(np.rint(x1).astype(np.int64)).to(map1.device)
+    a = torch.nn.functional.normalize(map0[:, p0[:, 1], p0[:, 0]], dim=0)
+    b = torch.nn.functional.normalize(map1[:, p1[:, 1], p1[:, 0]], dim=0)
+    return (a * b).sum(0).float().cpu().numpy()

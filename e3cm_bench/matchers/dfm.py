@@ -20,8 +20,7 @@ from ..matching.release import (
     DFM_FIXES, DFMRelease, dfm_release_final, dfm_release_stage0, dfm_release_stage1,
 )
 from .base import Matches
-from .deep import DeepMatcher
-from .e3cm_release import _level0_cosine
+from .deep import DeepMatcher, level0_cosine
 
 DFM_VARIANTS = ("release", "corrected", "bench")
 
@@ -92,7 +91,7 @@ class DFMMatcher(DeepMatcher):
         top_w = feats_w[-1] if top_w is None else top_w
         cells0, cells_w = dfm_release_stage1(feats0, feats_w, top0, top_w, s)
         size0, size1 = (image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0])
-        scores = _level0_cosine(feats0[0], feats_w[0], cells0.cpu().numpy(), cells_w.cpu().numpy())
+        scores = level0_cosine(feats0[0], feats_w[0], cells0.cpu().numpy(), cells_w.cpu().numpy())
         x0, x1, keep = dfm_release_final(cells0, cells_w, H_init, size0, size1, s)
         timings["stage1"] = time.perf_counter() - t
         info = {"stage0_matches": n_stage0, "H_BA": H_init, "stage1_matches": len(cells0), "timings": timings}

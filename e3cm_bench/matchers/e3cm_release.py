@@ -9,12 +9,11 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 
 from ..backbones import Backbone
 from ..matching.release import RATIO_AT, ReleaseCascade, level_points, release_cascade, release_levels
 from .base import Matches
-from .deep import DeepMatcher
+from .deep import DeepMatcher, level0_cosine
 
 
 @dataclass(frozen=True)
@@ -64,21 +63,9 @@ class E3CMReleaseMatcher(DeepMatcher):
             info["cascade_fallback"] = out["fallback"]
             timings["cascade"] = time.perf_counter() - t
         info["timings"] = timings
-        return Matches(x0, x1, _level0_cosine(feats0[0], feats1[0], x0, x1), info)
+        return Matches(x0, x1, level0_cosine(feats0[0], feats1[0], x0, x1), info)
 
     def settings_dict(self) -> dict:
         d = asdict(self.settings)
         d["ratio"] = list(self.settings.ratio)
         return d
-
-
-def _level0_cosine(map0: torch.Tensor, map1: torch.Tensor, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-    """Cosine of the level-0 features at each match (the release gives no score; this one
-    orders matches for display and PROSAC-style use)."""
-    if len(x0) == 0:
-        return np.zeros(0, np.float32)
-    p0 = torch.from_numpy(np.rint(x0).astype(np.int64)).to(map0.device)
-    p1 = torch.from_numpy(np.rint(x1).astype(np.int64)).to(map1.device)
-    a = torch.nn.functional.normalize(map0[:, p0[:, 1], p0[:, 0]], dim=0)
-    b = torch.nn.functional.normalize(map1[:, p1[:, 1], p1[:, 0]], dim=0)
-    return (a * b).sum(0).float().cpu().numpy()
