@@ -25,12 +25,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from .files import file_sha256
+from .matchers import PRECISIONS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 MAX_LEVELS = 5
-# fp32: exact; bf16 (CPUs with AVX-512 BF16 / AMX, recent GPUs) and fp16 (GPUs): autocast.
-PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 class BackboneError(RuntimeError):

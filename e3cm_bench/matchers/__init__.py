@@ -17,6 +17,9 @@ NEEDS_BACKBONE = ("e3cm", "e3cm-release", "direct", "dfm")
 # how many levels of the backbone it uses (the E3CM release's match_small_img uses 4), the
 # channel order fed to the network, and the backbone's precision (fp32 exact; bf16, fp16).
 BACKBONE_SETTINGS = ("num_levels", "channel_order", "precision")
+CHANNEL_ORDERS = ("rgb", "bgr")
+# fp32: exact; bf16 (CPUs with AVX-512 BF16 / AMX, recent GPUs) and fp16 (GPUs): autocast.
+PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 def is_random(name: str, settings: dict) -> bool:
@@ -112,10 +115,10 @@ def check_settings(name: str, settings: dict) -> None:
     if not isinstance(levels, int) or isinstance(levels, bool) or not 2 <= levels <= 5:
         raise ValueError(f"num_levels must be a whole number 2..5, got {levels!r}")
     order = settings.pop("channel_order", "rgb")
-    if order not in ("rgb", "bgr"):
+    if order not in CHANNEL_ORDERS:
         raise ValueError(f"channel_order must be rgb or bgr, got {order!r}")
     precision = settings.pop("precision", "fp32")
-    if precision not in ("fp32", "bf16", "fp16"):
+    if precision not in PRECISIONS:
         raise ValueError(f"precision must be fp32, bf16 or fp16, got {precision!r}")
     try:
         if name == "dfm":
@@ -134,5 +137,5 @@ def check_settings(name: str, settings: dict) -> None:
         raise ValueError(f"{name}: {str(exc).split('() ')[-1]}") from None
 
 
-__all__ = ["BACKBONE_SETTINGS", "MATCHERS", "NEEDS_BACKBONE", "Matcher", "build_matcher", "check_device", "check_settings",
+__all__ = ["BACKBONE_SETTINGS", "CHANNEL_ORDERS", "PRECISIONS", "MATCHERS", "NEEDS_BACKBONE", "Matcher", "build_matcher", "check_device", "check_settings",
            "is_out_of_memory", "is_random"]

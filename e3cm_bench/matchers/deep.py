@@ -10,9 +10,8 @@ import numpy as np
 import torch
 
 from ..backbones import Backbone
+from . import CHANNEL_ORDERS
 from .base import Matcher
-
-CHANNEL_ORDERS = ("rgb", "bgr")
 
 
 def image_to_tensor(image: np.ndarray, device: torch.device | str) -> torch.Tensor:

@@ -81,10 +81,14 @@ def refine_to_children(
 
 def _unique_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unique rows and the index of the first occurrence of each (order kept)."""
+    first = first_of_each(rows).sort().values
+    return rows[first], first
+
+
+def first_of_each(rows: torch.Tensor) -> torch.Tensor:
+    """Index of the first occurrence of each distinct row, in sorted row order (torch.unique's)."""
     if len(rows) == 0:
-        return rows, torch.zeros(0, dtype=torch.long, device=rows.device)
+        return torch.zeros(0, dtype=torch.long, device=rows.device)
     uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)
     first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
-    first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
-    first = first.sort().values
-    return rows[first], first
+    return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")

@@ -35,6 +35,7 @@ import torch
 
 from ..geometry import warp_points
 from .dense import top2_both_ways
+from .refine import first_of_each
 
 # The release's children: offsets (dx, dy) in this order.
 RELEASE_CHILD_OFFSETS = torch.tensor([[0, 0], [0, 1], [1, 0], [1, 1]])
@@ -135,22 +136,12 @@ def release_refine(
     out1 = (parents1[:, None, :] + offsets[best_b])[keep]
     if len(out0) < 4 and n > len(out0):
         out0, out1 = parents0, parents1
-    if dedup:
-        first = _first_of_each(out0)
+    if dedup:  # the release's torch.unique + np.unique(return_index): first occurrence, rows sorted
+        first = first_of_each(out0)
         out0, out1 = out0[first], out1[first]
-        first = _first_of_each(out1)
+        first = first_of_each(out1)
         out0, out1 = out0[first], out1[first]
     return out0, out1
-
-
-def _first_of_each(rows: torch.Tensor) -> torch.Tensor:
-    """Index of the first occurrence of each distinct row, in sorted row order (the release's
-    torch.unique + np.unique(return_index) idiom)."""
-    if len(rows) == 0:
-        return torch.zeros(0, dtype=torch.long, device=rows.device)
-    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)
-    first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
-    return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
 
 
 def level_points(cells: torch.Tensor, level: int) -> np.ndarray:
