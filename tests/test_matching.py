@@ -117,6 +117,38 @@ def test_confidence_level2_by_hand():
     np.testing.assert_allclose(c.numpy(), [70.0], rtol=1e-9)
 
 
+@pytest.mark.parametrize("level", [1, 2, 3, 4])
+def test_confidence_top_k_is_exact_and_skips_most_matches(level):
+    # Smooth random maps; B is A shifted by whole cells plus noise, so the true matches are
+    # confident and the random ones are not. Asking for the top 8 must give the same 8
+    # matches (ties broken by index, as the cascade's stable argsort does) and the same
+    # scores as scoring every match, while leaving some matches unscored (-inf).
+    gen = torch.Generator().manual_seed(level)
+    side = 2**level
+    cells_w, cells_h = 12, 10
+    smooth = F.avg_pool2d(torch.randn(1, 32, cells_h * side + 4, cells_w * side + 4, generator=gen), 5, 1)[0]
+    fa = F.normalize(smooth, dim=0)
+    shift = 2  # cells
+    fb = torch.roll(fa, shifts=shift * side, dims=2) + 0.3 * torch.randn(fa.shape, generator=gen)
+    fb = F.normalize(fb, dim=0)
+    xs, ys = torch.meshgrid(torch.arange(cells_w - shift), torch.arange(cells_h), indexing="xy")
+    true0 = torch.stack([xs.reshape(-1), ys.reshape(-1)], 1)
+    true1 = true0 + torch.tensor([shift, 0])
+    wrong0 = torch.stack([torch.randint(0, cells_w, (150,), generator=gen), torch.randint(0, cells_h, (150,), generator=gen)], 1)
+    wrong1 = torch.stack([torch.randint(0, cells_w, (150,), generator=gen), torch.randint(0, cells_h, (150,), generator=gen)], 1)
+    perm = torch.randperm(len(true0) + 150, generator=gen)
+    cells0, cells1 = torch.cat([true0, wrong0])[perm], torch.cat([true1, wrong1])[perm]
+    full = confidence_scores(fa, fb, cells0, cells1, level)
+    top = confidence_scores(fa, fb, cells0, cells1, level, top=8)
+    want = np.argsort(-full.numpy(), kind="stable")[:8]
+    got = np.argsort(-top.numpy(), kind="stable")[:8]
+    np.testing.assert_array_equal(got, want)
+    assert torch.equal(top[want], full[want])
+    scored = torch.isfinite(top)
+    assert torch.equal(top[scored], full[scored])
+    assert scored.sum() < len(cells0), "no match was ruled out by its bound"
+
+
 # --------------------------------------------------------------------------- mutual NN + ratio
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental
+from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
 from .refine import refine_to_children
@@ -110,6 +110,8 @@ def match_pyramids(
 
     feats0 = [F.normalize(f, dim=0) for f in feats0]
     feats1 = [F.normalize(f, dim=0) for f in feats1]
+    if settings.cascade:  # the confidence score reads whole pixel vectors: store level 0 channels-last
+        feats0[0], feats1[0] = pixel_major(feats0[0]), pixel_major(feats1[0])
 
     t = time.perf_counter()
     cells0, cells1, dist = match_dense_level(
@@ -130,7 +132,10 @@ def match_pyramids(
             x1 = _np(cell_centres(cells1, level))
             conf = None
             if settings.estimator in ("top8", "prosac") and len(cells0) >= 8:
-                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps))
+                # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
+                top = 8 if settings.estimator == "top8" else None
+                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps,
+                                             top=top))
             F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
             fundamentals[level] = F_l
             timings["cascade"] += time.perf_counter() - t
