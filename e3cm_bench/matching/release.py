@@ -103,12 +103,14 @@ def release_refine(
     norm1 = map1 / map1.square().sum(0, keepdim=True).sqrt()
     # N x 4 (A children) x 4 (B children) similarities, each summed over channels of C x N
     # slices as the releases do: exact ties (saturated regions) then break the same way.
-    sim = torch.zeros(n, 4, 4, dtype=torch.float32)
+    # (Each child's C x N slice is gathered once, not once per pair of children.)
+    sim = torch.zeros(n, 4, 4, dtype=torch.float32, device=cells0.device)
+    a = [norm0[:, kids0[:, i, 1], kids0[:, i, 0]] for i in range(4)]
+    b = [norm1[:, kids1[:, j, 1], kids1[:, j, 0]] for j in range(4)]
     for i in range(4):
-        a = norm0[:, kids0[:, i, 1], kids0[:, i, 0]]
         for j in range(4):
-            b = norm1[:, kids1[:, j, 1], kids1[:, j, 0]]
-            sim[:, i, j] = (a * b).sum(0).float().cpu()
+            sim[:, i, j] = (a[i] * b[j]).sum(0).float()
+    sim = sim.cpu()
 
     sim_ab, nn_ab = sim.topk(2, dim=2)
     dist_ab = 2 - 2 * sim_ab
