@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -104,11 +105,31 @@ def pair_rotations(pair: Pair, method: MethodSpec) -> tuple[int, int]:
     return int(pair.meta.get("rot0", 0)), int(pair.meta.get("rot1", 0))
 
 
-def match_cached_pair(matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache) -> None:
-    """Match one pair of a benchmark and store it (the step an interrupted run repeats)."""
-    matches = match_pair(matcher, pair.image0, pair.image1, method.max_side, method.seed_for_matching,
+def match_cached_pair(
+    matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache,
+    images: tuple[np.ndarray, np.ndarray] | None = None,
+) -> None:
+    """Match one pair of a benchmark and store it (the step an interrupted run repeats).
+
+    images: the pair's images already decoded (the match stage decodes ahead), else read here."""
+    image0, image1 = images if images is not None else (pair.image0, pair.image1)
+    matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
                          pair_rotations(pair, method))
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
+
+
+def decoded_ahead(pairs: list[Pair], executor: ThreadPoolExecutor):
+    """(pair, future of its two decoded images), the next pair's decoding running in a thread
+    while the current pair is matched (OpenCV decodes with the GIL released). A decoding
+    error is raised by the future's result(), at its own pair."""
+    def read(pair: Pair) -> tuple[np.ndarray, np.ndarray]:
+        return load_image(pair.image0), load_image(pair.image1)
+
+    upcoming = executor.submit(read, pairs[0]) if pairs else None
+    for i, pair in enumerate(pairs):
+        current = upcoming
+        upcoming = executor.submit(read, pairs[i + 1]) if i + 1 < len(pairs) else None
+        yield pair, current
 
 
 # --------------------------------------------------------------------------- progress
@@ -168,11 +189,11 @@ def match_stage(
         on_matcher(matcher)
     t0 = time.perf_counter()
     matched = 0
-    with progress_bar(console) as progress:
+    with progress_bar(console) as progress, ThreadPoolExecutor(max_workers=1) as executor:
         task = progress.add_task(f"matching ({method.label})", total=len(todo))
-        for pair in reuse_order(todo):
+        for pair, images in decoded_ahead(reuse_order(todo), executor):
             try:
-                match_cached_pair(matcher, pair, method, cache)
+                match_cached_pair(matcher, pair, method, cache, images.result())
                 matched += 1
             except (RuntimeError, MemoryError) as error:
                 if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
