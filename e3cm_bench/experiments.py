@@ -1,8 +1,10 @@
 """Paper experiments: configs/*.yaml -> one run per method -> the paper-layout table and plots.
 
 An experiment config (YAML) names a benchmark, dataset options and a list of methods;
-`reproduce` runs every method into OUT/<label>/ (each run reuses its cached matches) and
-writes the table and the comparison plots into OUT/.
+`reproduce` runs every method into OUT/<label>/ (each run reuses its cached matches; the
+methods are matched together, pair by pair, so that each image's feature maps are computed
+once for all methods sharing a backbone) and writes the table and the comparison plots into
+OUT/.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
 from .matchers import MATCHERS, NEEDS_BACKBONE
 from .method import MethodSpec
-from .runner import run_benchmark
+from .runner import run_benchmark, run_methods
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
@@ -130,10 +132,15 @@ def reproduce(
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": skip_bad}
-    for method in methods:
-        console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
-        run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev, limit=limit,
-                      device=device, shard=shard, console=console)
+    if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
+        console.rule(f"{experiment.get('name', config_path.stem)}: {', '.join(m.label for m in methods)}")
+        run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev, limit=limit,
+                    device=device, console=console)
+    else:
+        for method in methods:
+            console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
+            run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev,
+                          limit=limit, device=device, shard=shard, console=console)
     run_dirs = [out / m.folder for m in methods]
     if shard is not None and not all((d / "summary.csv").is_file() and "shards" in load_yaml(d / "config.yaml") for d in run_dirs):
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import shutil
 import time
+from contextlib import ExitStack
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
+from typing import Callable
 from pathlib import Path
 
 import cv2
@@ -170,48 +172,94 @@ def reuse_order(pairs: list[Pair]) -> list[Pair]:
     return sorted(pairs, key=key)
 
 
+@dataclass
+class MatchJob:
+    """One method's part of a match stage: the pairs it still has to match and where they go.
+
+    skipped: when a list is given, a pair whose image cannot be decoded is appended to it as
+    (name, problem) and the stage goes on; otherwise the error ends the stage (the pairs
+    matched before it stay in the cache). on_matcher(matcher) runs once the model is loaded
+    (the runner records its settings). stats is filled by the stage: seconds spent in this
+    method's matcher, pairs matched and, for deep matchers, the feature reuse counts.
+    """
+
+    method: MethodSpec
+    todo: list[Pair]
+    cache: MatchCache
+    skipped: list[tuple[str, str]] | None = None
+    on_matcher: Callable[[Matcher], None] | None = None
+    stats: dict = field(default_factory=dict)
+
+
 def match_stage(
     method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
     skipped: list[tuple[str, str]] | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
 ) -> dict:
-    """Build the matcher, match the pairs not yet cached, write each to the cache.
+    """Build the matcher, match the pairs not yet cached, write each to the cache; returns the
+    job's stats (see MatchJob). feature_cache_mb: memory for reusing feature maps across
+    pairs (0: off)."""
+    job = MatchJob(method, todo, cache, skipped, on_matcher)
+    match_jobs([job], device, console, feature_cache_mb)
+    return job.stats
 
-    on_matcher(matcher) runs once the model is loaded (the runner records its settings).
-    skipped: when a list is given, a pair whose image cannot be decoded is appended to it as
-    (name, problem) and the run goes on; otherwise the error ends the run (the pairs matched
-    before it stay in the cache). feature_cache_mb: memory for reusing feature maps across
-    pairs (0: off). Returns the time spent, the number of pairs matched and the reuse counts.
+
+def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cache_mb: float = FEATURE_CACHE_MB) -> None:
+    """Match the pairs of several methods in one pass over the pairs.
+
+    Each pair's images are decoded once for all methods, and deep matchers with the same
+    backbone settings share one backbone and one feature cache, so an image goes through
+    the network once for all of them (reproduce's methods e3cm, e3cm-release, e3cm-ransac,
+    direct). Nothing about a result changes: each method's matches go to its own cache.
     """
-    matcher = method.build(device)
-    if feature_cache_mb and hasattr(matcher, "reuse_features"):
-        matcher.reuse_features(feature_cache_mb)
-    if on_matcher is not None:
-        on_matcher(matcher)
-    t0 = time.perf_counter()
-    matched = 0
+    matchers, groups = [], {}
+    for job in jobs:
+        matcher = job.method.build(device)
+        if feature_cache_mb and getattr(matcher, "uses_feature_cache", False):
+            group = groups.setdefault(matcher.feature_identity(), {"matcher": matcher, "labels": []})
+            matcher.share_features_of(group["matcher"], feature_cache_mb)
+            group["labels"].append(job.method.label)
+        if job.on_matcher is not None:
+            job.on_matcher(matcher)
+        matchers.append(matcher)
+        job.stats.update(match_seconds=0.0, pairs_matched=0)
+    wanted: dict[str, list[int]] = {}
+    pairs: dict[str, Pair] = {}
+    for i, job in enumerate(jobs):
+        for pair in job.todo:
+            pairs.setdefault(pair.name, pair)
+            wanted.setdefault(pair.name, []).append(i)
+    labels = ", ".join(job.method.label for job in jobs)
     with progress_bar(console) as progress, ThreadPoolExecutor(max_workers=1) as executor:
-        task = progress.add_task(f"matching ({method.label})", total=len(todo))
-        for pair, images in decoded_ahead(reuse_order(todo), executor):
-            try:
-                match_cached_pair(matcher, pair, method, cache, images.result())
-                matched += 1
-            except (RuntimeError, MemoryError) as error:
-                if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
-                    raise
-                resize = f"longer side {method.max_side} px" if method.max_side else "full resolution"
-                raise ValueError(f"pair {pair.name}: its images at {resize} do not fit in memory for {method.label} "
-                                 "(the pairs matched before it are kept); pass a smaller --max-side, e.g. 1600") from None
-            except ImageError as error:
-                if skipped is None:
-                    raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
-                                     "--skip-bad skips such pairs)") from None
-                skipped.append((pair.name, str(error)))
-            progress.advance(task)
-    stats = {"match_seconds": time.perf_counter() - t0, "pairs_matched": matched}
-    reuse = getattr(matcher, "feature_cache", None)
-    if reuse is not None:
-        stats["feature_reuse"] = {"cache_mb": feature_cache_mb, "backbone_passes": reuse.misses, "reused": reuse.hits}
-    return stats
+        task = progress.add_task(f"matching ({labels})", total=sum(len(job.todo) for job in jobs))
+        for pair, images in decoded_ahead(reuse_order(list(pairs.values())), executor):
+            for i in wanted[pair.name]:
+                job, t = jobs[i], time.perf_counter()
+                try:
+                    match_cached_pair(matchers[i], pair, job.method, job.cache, images.result())
+                    job.stats["pairs_matched"] += 1
+                except (RuntimeError, MemoryError) as error:
+                    if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
+                        raise
+                    raise ValueError(f"pair {pair.name}: {too_big_message(job.method)}") from None
+                except ImageError as error:
+                    if job.skipped is None:
+                        raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
+                                         "--skip-bad skips such pairs)") from None
+                    job.skipped.append((pair.name, str(error)))
+                job.stats["match_seconds"] += time.perf_counter() - t
+                progress.advance(task)
+    for job, matcher in zip(jobs, matchers):
+        reuse = getattr(matcher, "feature_cache", None)
+        if reuse is not None:
+            shared = groups[matcher.feature_identity()]["labels"]
+            job.stats["feature_reuse"] = {"cache_mb": feature_cache_mb, "backbone_passes": reuse.misses,
+                                          "reused": reuse.hits, "shared_by": shared}
+
+
+def too_big_message(method: MethodSpec) -> str:
+    resize = f"longer side {method.max_side} px" if method.max_side else "full resolution"
+    return (f"its images at {resize} do not fit in memory for {method.label} (the pairs matched before it are "
+            "kept); pass a smaller --max-side, e.g. 1600")
 
 
 def evaluate_stage(
@@ -365,19 +413,106 @@ def run_benchmark(
         run_dir = shard_dir(out, shard)
     else:
         run_dir = out
-    with FolderLock(run_dir):  # taken before anything in the folder is read or written
-        summary = _run_locked(benchmark, run_dir, method, dataset, ev, limit, overwrite, eval_only, viz, device,
-                              console, shard, load, feature_cache_mb)
+    summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
+                            console, shard, load, feature_cache_mb)
     if shard is not None and merge_when_complete(out, console):
         return pd.read_csv(out / "summary.csv")
     return pd.DataFrame([summary])
 
 
-def _run_locked(
-    benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
+def run_methods(
+    benchmark: str | Benchmark,
+    runs: list[tuple[Path, MethodSpec]],
+    dataset: PairList,
+    *,
+    dataset_load: dict | None = None,
+    ev: EvalSettings | None = None,
+    limit: int | None = None,
+    device: str = "cpu",
+    console: Console | None = None,
+    feature_cache_mb: float = FEATURE_CACHE_MB,
+) -> list[dict]:
+    """Run (or resume) several methods on the same pairs, each into its own folder (OUT, METHOD).
+
+    The same as one run_benchmark per method, result for result, but the pairs are matched
+    in one pass (match_jobs): each image is decoded once, and passes through a backbone once
+    for all the methods that share its settings. Returns each run's summary row.
+    """
+    console = console or Console()
+    benchmark = get_benchmark(benchmark)
+    if any(method.backbone is not None for _, method in runs):
+        check_device(device)
+    if limit is not None and limit < 1:
+        raise ValueError(f"--limit must be at least 1, got {limit}")
+    console.print(f"{benchmark.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")
+                  + f"; {len(runs)} methods matched together", markup=False)
+    return _run_folders(benchmark, runs, dataset, ev or EvalSettings(), limit, False, False, 0, device, console,
+                        None, dataset_load, feature_cache_mb)
+
+
+def _run_folders(
+    benchmark: Benchmark, runs: list[tuple[Path, MethodSpec | None]], dataset: PairList, ev: EvalSettings,
     limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
     shard: tuple[int, int] | None = None, load: dict | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
-) -> dict:
+) -> list[dict]:
+    """Lock every folder, open each run, match what they still need in one stage, then
+    evaluate and report each."""
+    with ExitStack() as locks:
+        opened = []
+        for out, method in runs:
+            locks.enter_context(FolderLock(out))  # taken before anything in the folder is read or written
+            opened.append(_open_run(benchmark, out, method, dataset, ev, limit, overwrite, eval_only, device,
+                                    console, shard, load))
+        matching = [run for run in opened if run.todo]
+        if matching:
+            jobs = [run.job() for run in matching]
+            match_jobs(jobs, device, console, feature_cache_mb)
+            for run, job in zip(matching, jobs):
+                run.add_stats(job.stats)
+        return [_finish_run(run, viz, console) for run in opened]
+
+
+@dataclass
+class _OpenRun:
+    """A run whose folder is locked and described, between its match and evaluate stages."""
+
+    benchmark: Benchmark
+    out: Path
+    method: MethodSpec | None
+    pairs: list[Pair]
+    todo: list[Pair]
+    skipped: list[tuple[str, str]]
+    skip_bad: bool
+    cache: MatchCache
+    config: dict
+    ev: EvalSettings
+
+    def job(self) -> MatchJob:
+        def record_matcher(matcher: Matcher) -> None:
+            self.config["matcher"] = matcher.config()
+            save_yaml(self.config, self.out / CONFIG_FILE)
+
+        return MatchJob(self.method, self.todo, self.cache, self.skipped if self.skip_bad else None, record_matcher)
+
+    def add_stats(self, spent: dict) -> None:
+        """A match stage's time and feature reuse, added to those of earlier (resumed) stages."""
+        config, spent = self.config, dict(spent)
+        reuse = spent.pop("feature_reuse", None)
+        if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
+            before = config.get("feature_reuse") or {}
+            config["feature_reuse"] = {"cache_mb": reuse["cache_mb"], "shared_by": reuse["shared_by"],
+                                       **{k: before.get(k, 0) + reuse[k] for k in ("backbone_passes", "reused")}}
+        timing = config["timing"]
+        for key, value in spent.items():
+            timing[key] = timing.get(key, 0) + value
+        timing["pairs_per_minute"] = 60.0 * timing["pairs_matched"] / max(timing["match_seconds"], 1e-9)
+
+
+def _open_run(
+    benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
+    limit: int | None, overwrite: bool, eval_only: bool, device: str, console: Console,
+    shard: tuple[int, int] | None = None, load: dict | None = None,
+) -> _OpenRun:
     if overwrite and out.exists():
         _clear(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -425,29 +560,18 @@ def _run_locked(
         console.print(method.describe(), markup=False)
         console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {out / CACHE_FILE}")
         save_yaml(config, out / CONFIG_FILE)  # before the model loads: the folder is claimed and described
-
-        def record_matcher(matcher: Matcher) -> None:
-            config["matcher"] = matcher.config()
-            save_yaml(config, out / CONFIG_FILE)
-
-        spent = match_stage(method, todo, cache, device, console, on_matcher=record_matcher,
-                            skipped=skipped if dataset.skip_bad else None, feature_cache_mb=feature_cache_mb)
-        reuse = spent.pop("feature_reuse", None)
-        if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
-            before = config.get("feature_reuse") or {}
-            config["feature_reuse"] = {"cache_mb": reuse["cache_mb"],
-                                       **{k: before.get(k, 0) + reuse[k] for k in ("backbone_passes", "reused")}}
-        timing = config["timing"]
-        for key, value in spent.items():
-            timing[key] = timing.get(key, 0) + value
-        timing["pairs_per_minute"] = 60.0 * timing["pairs_matched"] / max(timing["match_seconds"], 1e-9)
     else:
         console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
+    return _OpenRun(benchmark, out, method, pairs, todo, skipped, dataset.skip_bad, cache, config, ev)
 
-    pairs, summary = evaluate_and_report(benchmark, out, config["method"], pairs, skipped, cache, ev, viz, console)
-    config["dataset"]["n_skipped"] = len(skipped)
-    if shard is not None:
+
+def _finish_run(run: _OpenRun, viz: int, console: Console) -> dict:
+    config, out = run.config, run.out
+    pairs, summary = evaluate_and_report(run.benchmark, out, config["method"], run.pairs, run.skipped, run.cache,
+                                         run.ev, viz, console)
+    config["dataset"]["n_skipped"] = len(run.skipped)
+    if "shard" in config:
         config["shard"]["complete"] = True  # written before the merge check (shards.merge_when_complete)
     save_yaml(config, out / CONFIG_FILE)
-    print_summary(summary, f"{benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
+    print_summary(summary, f"{run.benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
     return summary

@@ -11,7 +11,6 @@ numbers agree (they may not: the thread count changes the rounding of the CNN fe
 from __future__ import annotations
 
 import argparse
-import shutil
 import subprocess
 import sys
 import tempfile

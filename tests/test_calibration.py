@@ -14,8 +14,8 @@ from e3cm_bench.calibration import estimate_extrinsics, extrinsic_errors, vertic
 from e3cm_bench.cli import app
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.datasets.stereo import load_stereo_sequence
-from e3cm_bench.synth.stereo import rig_extrinsics, write_stereo_sequence
-from helpers import flat, one_line_error
+from e3cm_bench.synth.stereo import rig_extrinsics
+from helpers import one_line_error
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 

@@ -221,38 +221,6 @@ def test_bf16_backbone_is_recorded_and_stays_close_to_fp32(shared_data):
 # --------------------------------------------------------------------------- feature reuse
 
 
-def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
-    """Pairs sharing image 1 of a sequence: with the feature cache each image passes through the
-    backbone once, and the cached matches are byte-identical to those of a run without it."""
-    import h5py
-
-    from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.method import MethodSpec
-    from e3cm_bench.runner import run_benchmark
-
-    method = MethodSpec.create("direct", "efficientnet_lite0", max_side=320)
-    hp = get_benchmark("hpatches")
-    root = shared_data / "hpatches-sequences-release"
-    run_benchmark(hp, tmp_path / "reuse", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3)
-    config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
-    assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
-
-    run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
-                  feature_cache_mb=0)
-    assert "feature_reuse" not in yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())
-
-    def arrays(folder):
-        out = {}
-        with h5py.File(folder / "matches.h5") as f:
-            f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-        return out
-
-    reused, plain = arrays(tmp_path / "reuse"), arrays(tmp_path / "plain")
-    assert reused.keys() == plain.keys() and len(reused) > 0
-    for name in plain:
-        assert np.array_equal(reused[name], plain[name]), name
-
-
 def test_channel_order_option_reaches_the_identity(shared_data, tmp_path):
     root = shared_data / "hpatches-sequences-release"
     out = tmp_path / "bgr"

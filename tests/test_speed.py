@@ -6,12 +6,30 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import pytest
+import yaml
 
+from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import ImageError
-from e3cm_bench.runner import decoded_ahead
+from e3cm_bench.method import MethodSpec
+from e3cm_bench.runner import decoded_ahead, run_benchmark, run_methods
+
+
+def cached_arrays(folder: Path) -> dict:
+    out = {}
+    with h5py.File(folder / "matches.h5") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def assert_same_arrays(folder: Path, reference: Path) -> None:
+    got, want = cached_arrays(folder), cached_arrays(reference)
+    assert got.keys() == want.keys() and len(want) > 0
+    for name in want:
+        assert np.array_equal(got[name], want[name]), name
 
 
 def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path):
@@ -34,3 +52,38 @@ def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path
             image0, image1 = images.result()
             seen.append((pair.name, image0.shape[0], image1.shape[0]))
     assert seen == [("a", 8, 9), ("c", 10, 8)]
+
+
+def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
+    """Pairs sharing image 1 of a sequence: with the feature cache each image passes through the
+    backbone once, and the cached matches are byte-identical to those of a run without it."""
+    method = MethodSpec.create("direct", "efficientnet_lite0", max_side=320)
+    hp = get_benchmark("hpatches")
+    root = shared_data / "hpatches-sequences-release"
+    run_benchmark(hp, tmp_path / "reuse", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3)
+    config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
+    assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
+
+    run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
+                  feature_cache_mb=0)
+    assert "feature_reuse" not in yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())
+
+    assert_same_arrays(tmp_path / "reuse", tmp_path / "plain")
+
+
+def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_data, tmp_path):
+    """reproduce's joint stage: e3cm, direct and e3cm-release (one backbone setting) on three
+    pairs with four distinct images pass each image through the network once between them
+    (4 passes, not 3 x 6), and each method's matches equal those of its own run."""
+    hp = get_benchmark("hpatches")
+    dataset = hp.load_dataset(shared_data / "hpatches-sequences-release", sequences=["v_boat"])
+    methods = [MethodSpec.create(m, "efficientnet_lite0", max_side=320) for m in ("e3cm", "direct", "e3cm-release")]
+    sift = MethodSpec.create("sift", max_side=320)
+    run_methods(hp, [(tmp_path / "joint" / m.folder, m) for m in [*methods, sift]], dataset, limit=3)
+    for method in methods:
+        config = yaml.safe_load((tmp_path / "joint" / method.folder / "config.yaml").read_text())
+        assert config["feature_reuse"]["shared_by"] == [m.label for m in methods]
+        assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 14
+    for method in [*methods, sift]:
+        run_benchmark(hp, tmp_path / "alone" / method.folder, method, dataset=dataset, limit=3, feature_cache_mb=0)
+        assert_same_arrays(tmp_path / "joint" / method.folder, tmp_path / "alone" / method.folder)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 from collections import OrderedDict
 
@@ -72,9 +73,26 @@ class DeepMatcher(Matcher):
         self.channel_order = channel_order
         self.feature_cache: FeatureCache | None = None
 
+    # Whether match() takes its pyramids from features() (and so from the cache).
+    uses_feature_cache = True
+
     def reuse_features(self, max_mb: float) -> None:
         """Keep the pyramids of recent images (up to max_mb MiB) for pairs that share an image."""
         self.feature_cache = FeatureCache(max_mb) if max_mb > 0 else None
+
+    def feature_identity(self) -> str:
+        """Everything an image's pyramid depends on besides the image itself."""
+        return json.dumps({**self.backbone.describe(), "channel_order": self.channel_order,
+                           "device": str(self.device)}, sort_keys=True)
+
+    def share_features_of(self, other: DeepMatcher, max_mb: float) -> None:
+        """Take other's backbone and feature cache (made if it has none), so that the two
+        matchers pass each image through the network once between them."""
+        if other.feature_identity() != self.feature_identity():
+            raise ValueError("matchers with different backbone settings cannot share feature maps")
+        if other.feature_cache is None:
+            other.reuse_features(max_mb)
+        self.backbone, self.feature_cache = other.backbone, other.feature_cache
 
     @property
     def device(self) -> torch.device:

@@ -58,6 +58,10 @@ class DFMMatcher(DeepMatcher):
             ratio = tuple(float(r) for r in settings.get("ratio", DFMRelease.ratio))
             self.settings = DFMRelease(ratio=ratio, fixes=DFM_FIXES if variant == "corrected" else ())
 
+    @property
+    def uses_feature_cache(self) -> bool:  # the release path runs the network with DFM's extra tap itself
+        return self.variant == "bench"
+
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
         """Timings: backbone (all passes, warped B included), stage0, warp, stage1 (seconds)."""
         if self.variant == "bench":
