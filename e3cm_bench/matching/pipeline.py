@@ -108,14 +108,20 @@ def match_pyramids(
             return valid_extent(size0, level), valid_extent(size1, level)
         return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
 
-    feats0 = [F.normalize(f, dim=0) for f in feats0]
-    feats1 = [F.normalize(f, dim=0) for f in feats1]
-    if settings.cascade:  # the confidence score reads whole pixel vectors: store level 0 channels-last
-        feats0[0], feats1[0] = pixel_major(feats0[0]), pixel_major(feats1[0])
+    # The deepest level is matched densely and level 0 scored patch by patch (cascade), so both
+    # are normalised whole, level 0 stored channels-last for the confidence score's gathers.
+    # The levels between are read only at children of matches: refine_to_children normalises
+    # those as it reads them.
+    t = time.perf_counter()
+    unit0 = unit1 = None
+    if settings.cascade:
+        unit0, unit1 = pixel_major(F.normalize(feats0[0], dim=0)), pixel_major(F.normalize(feats1[0], dim=0))
+    timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()
     cells0, cells1, dist = match_dense_level(
-        feats0[top], feats1[top], *extents(top), settings.ratio[top], settings.drop_border, settings.dense_chunk,
+        F.normalize(feats0[top], dim=0), F.normalize(feats1[top], dim=0), *extents(top), settings.ratio[top],
+        settings.drop_border, settings.dense_chunk,
     )
     timings["initial"] = time.perf_counter() - t
 
@@ -134,8 +140,7 @@ def match_pyramids(
             if settings.estimator in ("top8", "prosac") and len(cells0) >= 8:
                 # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
                 top = 8 if settings.estimator == "top8" else None
-                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps,
-                                             top=top))
+                conf = _np(confidence_scores(unit0, unit1, cells0, cells1, level, settings.confidence_eps, top=top))
             F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
             fundamentals[level] = F_l
             timings["cascade"] += time.perf_counter() - t

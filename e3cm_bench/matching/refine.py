@@ -8,6 +8,7 @@ that are mutual and pass the ratio test survive, at most `max_per_parent` per pa
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from .dense import passes_ratio
 from .levels import inside
@@ -32,7 +33,7 @@ def refine_to_children(
     (the test as Eq. 2 states it), "own" at the B child with the A child's index (both
     releases' indexing; matching/release.py).
 
-    feat0/feat1: L2-normalised maps of level l-1 (C x H x W). cells0/cells1: N x 2 parent
+    feat0/feat1: maps of level l-1 (C x H x W; normalised here, as they are read). cells0/cells1: N x 2 parent
     cells (x, y) at level l. extent0/extent1: valid (w, h) of level l-1 in cells.
     Returns child cells0, cells1 (M x 2), distance (M) and the parent index of each child.
     """
@@ -44,8 +45,10 @@ def refine_to_children(
     offsets = CHILD_OFFSETS.to(device)
     kids0 = (2 * cells0)[:, None, :] + offsets[None]  # N x 4 x 2
     kids1 = (2 * cells1)[:, None, :] + offsets[None]
-    d0 = feat0[:, kids0[..., 1], kids0[..., 0]].permute(1, 2, 0)  # N x 4 x C
-    d1 = feat1[:, kids1[..., 1], kids1[..., 0]].permute(1, 2, 0)
+    # Only the children are read, so only they are L2-normalised (bit for bit what normalising
+    # the whole map would give them).
+    d0 = F.normalize(feat0[:, kids0[..., 1], kids0[..., 0]], dim=0).permute(1, 2, 0)  # N x 4 x C
+    d1 = F.normalize(feat1[:, kids1[..., 1], kids1[..., 0]], dim=0).permute(1, 2, 0)
     dist = 1 - d0 @ d1.transpose(1, 2)  # N x 4 (children of A) x 4 (children of B)
 
     best_a, nn_a = dist.topk(2, dim=2, largest=False)  # for each A child, over B children
