@@ -240,7 +240,7 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
                 except (RuntimeError, MemoryError) as error:
                     if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
                         raise
-                    raise ValueError(f"pair {pair.name}: {too_big_message(job.method)}") from None
+                    raise ValueError(f"pair {pair.name}: {too_big_message(job.method, error)}") from None
                 except ImageError as error:
                     if job.skipped is None:
                         raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
@@ -256,10 +256,13 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
                                           "reused": reuse.hits, "shared_by": shared}
 
 
-def too_big_message(method: MethodSpec) -> str:
+def too_big_message(method: MethodSpec, error: BaseException) -> str:
     resize = f"longer side {method.max_side} px" if method.max_side else "full resolution"
+    # A MemoryError of DeepMatcher.check_memory says how much is needed and which side fits.
+    hint = str(error) if isinstance(error, MemoryError) and "--max-side" in str(error) else \
+        "pass a smaller --max-side, e.g. 1600"
     return (f"its images at {resize} do not fit in memory for {method.label} (the pairs matched before it are "
-            "kept); pass a smaller --max-side, e.g. 1600")
+            f"kept): {hint}")
 
 
 def evaluate_stage(

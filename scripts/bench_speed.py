@@ -10,7 +10,8 @@ weights cost the same as ImageNet ones (only the match counts differ). With
 the release's `match_large_img` + `refinement_pose_ransac` runs on the same images with the
 same weights, alternating with ours in this process. `--json` ends the output with one JSON
 object: backbone_s, total_s, overhead_ratio (total_s / backbone_s), release_s, peak_rss_mb,
-device, precision, and the stage medians.
+device, precision and the stage medians of the last size, and the same for every size under
+"sizes" (peak_rss_mb is the process's peak over all sizes).
 """
 
 from __future__ import annotations
@@ -112,7 +113,7 @@ def main() -> None:
     print(f"{spec.describe()}; backbone weights {matcher.backbone.weights_id}; precision {args.precision}; "
           f"device {args.device}; torch threads {torch.get_num_threads()}")
 
-    result = {}
+    result, per_size = {}, []
     for size in sizes:
         w, h = (int(v) for v in size.split("x"))
         image0, image1 = synthetic_pair(w, h)
@@ -152,10 +153,11 @@ def main() -> None:
             line += f"; release {result['release_s']:.2f} s ({n_release} matches), ours / release " \
                     f"{result['total_s'] / result['release_s']:.2f}"
         print(line + f" (median of {args.repeat})")
+        per_size.append(result)
     result["peak_rss_mb"] = peak_memory_mb(args.device)
     print(f"peak memory {result['peak_rss_mb']:.0f} MiB")
-    if args.json:
-        print(json.dumps(result))
+    if args.json:  # the last size's figures at the top level, every size's under "sizes"
+        print(json.dumps({**result, "sizes": per_size}))
 
 
 if __name__ == "__main__":

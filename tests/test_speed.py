@@ -87,3 +87,46 @@ def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_da
     for method in [*methods, sift]:
         run_benchmark(hp, tmp_path / "alone" / method.folder, method, dataset=dataset, limit=3, feature_cache_mb=0)
         assert_same_arrays(tmp_path / "joint" / method.folder, tmp_path / "alone" / method.folder)
+
+
+def test_a_pair_too_big_for_free_memory_is_refused_before_allocating(tmp_path, monkeypatch):
+    """With 1 GiB free (patched), a 1600 x 1200 pair at full resolution is refused up front, in
+    one line that names the --max-side that fits; with that side the same run succeeds."""
+    import e3cm_bench.matchers.deep as deep
+    from typer.testing import CliRunner
+
+    from e3cm_bench.cli import app
+    from helpers import one_line_error
+
+    root = tmp_path / "hp"
+    (root / "v_big").mkdir(parents=True)
+    noise = np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    image = cv2.resize(noise, (1600, 1200), interpolation=cv2.INTER_LINEAR)
+    for k in range(1, 7):
+        cv2.imwrite(str(root / "v_big" / f"{k}.ppm"), image)
+        if k > 1:
+            np.savetxt(root / "v_big" / f"H_1_{k}", np.eye(3))
+    monkeypatch.setattr(deep, "available_memory", lambda device: 1 << 30)
+    args = ["hpatches", "--root", str(root), "--backbone", "efficientnet_lite0", "--limit", "1"]
+    line = one_line_error(CliRunner().invoke(app, [*args, "--out", str(tmp_path / "full"), "--max-side", "0"]))
+    assert "do not fit in memory" in line and "GiB free" in line
+    fits = int(line.split("--max-side ")[1].split()[0])
+    assert 0 < fits < 1600
+    done = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "fits"), "--max-side", str(fits)])
+    assert done.exit_code == 0, done.output
+
+
+def test_a_6000_by_4000_pair_fits_or_names_max_side():
+    """The real machine: VGG19 (random weights) on a 6000 x 4000 pair either fits in the free
+    memory or stops before allocating, naming --max-side."""
+    from e3cm_bench.matchers.deep import available_memory
+    from e3cm_bench.runner import match_pair
+
+    matcher = MethodSpec.create("e3cm", "vgg19").build("cpu", pretrained=False)
+    need = 6 * matcher.backbone.pyramid_bytes(4000, 6000)
+    free = available_memory(matcher.device)
+    if free is None or need <= free:
+        pytest.skip(f"this machine has {free} bytes free: a 6000 x 4000 pair fits (or memory is unknown)")
+    image = np.zeros((4000, 6000, 3), np.uint8)
+    with pytest.raises(MemoryError, match=r"--max-side \d+ would fit"):
+        match_pair(matcher, image, image)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from collections import OrderedDict
 
@@ -114,8 +115,22 @@ class DeepMatcher(Matcher):
             self.feature_cache.put(key, maps)
         return maps
 
+    def check_memory(self, *images: np.ndarray) -> None:
+        """MemoryError, before anything is allocated, when matching these images would need
+        more memory than the device has free (an out-of-memory kill loses the message)."""
+        free = available_memory(self.device)
+        if free is None:
+            return
+        need = self.backbone.PEAK_PER_PYRAMID * sum(self.backbone.pyramid_bytes(*im.shape[:2]) for im in images)
+        if need > free:
+            longest = max(max(im.shape[:2]) for im in images)
+            fits = int(longest * math.sqrt(free / need)) // 16 * 16
+            raise MemoryError(f"about {need / 2**30:.1f} GiB needed at {longest} px, {free / 2**30:.1f} GiB free; "
+                              f"--max-side {fits} would fit")
+
     def pyramids(self, image0: np.ndarray, image1: np.ndarray) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:
         """Both images' pyramids and the seconds the backbone took."""
+        self.check_memory(image0, image1)
         t = time.perf_counter()
         feats0, feats1 = self.features(image0), self.features(image1)
         return feats0, feats1, time.perf_counter() - t
@@ -126,6 +141,21 @@ class DeepMatcher(Matcher):
     def config(self) -> dict:
         return {"matcher": self.name, **self.backbone.describe(), "channel_order": self.channel_order,
                 **self.settings_dict()}
+
+
+def available_memory(device: torch.device) -> int | None:
+    """Bytes free for new tensors: the GPU's free memory, or the host's MemAvailable (Linux);
+    None where it cannot be read."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0]
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
 
 
 def level0_cosine(map0: torch.Tensor, map1: torch.Tensor, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
