@@ -24,7 +24,7 @@ def to_homogeneous(points: np.ndarray) -> np.ndarray:
 
 
 # OpenCV's method flag for each way of estimating F.
-_F_METHODS = {"8point": cv2.FM_8POINT, "ransac": cv2.FM_RANSAC, "prosac": cv2.USAC_PROSAC}
+_F_METHODS = {"8point": cv2.FM_8POINT, "ransac": cv2.FM_RANSAC, "prosac": cv2.USAC_PROSAC, "magsac": cv2.USAC_MAGSAC}
 
 
 def estimate_fundamental(
@@ -38,7 +38,8 @@ def estimate_fundamental(
     """Fundamental matrix from >= 8 correspondences; None when too few or degenerate.
 
     method: '8point' (normalised 8-point on all points, rank 2), 'ransac' (OpenCV RANSAC,
-    Sampson threshold in pixels) or 'prosac' (PROSAC: the points must come best first).
+    Sampson threshold in pixels), 'prosac' (PROSAC: the points must come best first) or
+    'magsac' (OpenCV's USAC MAGSAC++, locally optimised; the threshold bounds its noise scale).
     """
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     x1 = np.ascontiguousarray(x1, dtype=np.float64)

@@ -11,8 +11,8 @@ from __future__ import annotations
 from ..matching import RANDOM_ESTIMATORS
 from .base import Matcher
 
-MATCHERS = ("e3cm", "e3cm-release", "direct", "dfm", "sift")
-NEEDS_BACKBONE = ("e3cm", "e3cm-release", "direct", "dfm")
+MATCHERS = ("e3cm", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift")
+NEEDS_BACKBONE = ("e3cm", "e3cm-release", "e3cm-plus", "direct", "dfm")
 # Settings every deep matcher takes, besides its own (E3CMSettings, E3CMReleaseSettings, dfm's):
 # how many levels of the backbone it uses (the E3CM release's match_small_img uses 4), the
 # channel order fed to the network, and the backbone's precision (fp32 exact; bf16, fp16).
@@ -24,9 +24,10 @@ PRECISIONS = ("fp32", "bf16", "fp16")
 
 def is_random(name: str, settings: dict) -> bool:
     """Whether the matcher draws from OpenCV's RNG (a RANSAC inside): then its seed is part of
-    the identity of its matches. dfm always (stage 0); e3cm with a robust cascade estimator;
+    the identity of its matches. dfm and e3cm-plus always (stage 0, MAGSAC++); e3cm with a robust cascade estimator;
     e3cm-release with its cascade."""
-    return (name == "dfm" or (name == "e3cm" and settings.get("estimator", "top8") in RANDOM_ESTIMATORS)
+    return (name in ("dfm", "e3cm-plus")
+            or (name == "e3cm" and settings.get("estimator", "top8") in RANDOM_ESTIMATORS)
             or (name == "e3cm-release" and settings.get("cascade", True)))
 
 
@@ -67,7 +68,8 @@ def build_matcher(
     settings: dict | None = None,
 ) -> Matcher:
     """A matcher by name. `settings` holds the matcher's own fields (E3CMSettings for e3cm and
-    direct, E3CMReleaseSettings for e3cm-release, variant/ratio/DFMSettings for dfm) and the
+    direct, E3CMReleaseSettings for e3cm-release, E3CMPlusSettings for e3cm-plus,
+    variant/ratio/DFMSettings for dfm) and the
     BACKBONE_SETTINGS."""
     settings = dict(settings or {})
     if name not in MATCHERS:
@@ -96,6 +98,10 @@ def _deep_matcher(name: str, net, settings: dict, channel_order: str) -> Matcher
         from .e3cm_release import E3CMReleaseMatcher, E3CMReleaseSettings
 
         return E3CMReleaseMatcher(net, E3CMReleaseSettings(**settings), channel_order=channel_order)
+    if name == "e3cm-plus":
+        from .e3cm_plus import E3CMPlusMatcher, E3CMPlusSettings
+
+        return E3CMPlusMatcher(net, E3CMPlusSettings(**settings), channel_order=channel_order)
     from ..matching.pipeline import E3CMSettings
     from .e3cm import E3CMMatcher
 
@@ -129,6 +135,10 @@ def check_settings(name: str, settings: dict) -> None:
             from .e3cm_release import E3CMReleaseSettings
 
             E3CMReleaseSettings(**settings)
+        elif name == "e3cm-plus":
+            from .e3cm_plus import E3CMPlusSettings
+
+            E3CMPlusSettings(**settings)
         else:
             from ..matching.pipeline import E3CMSettings
 

@@ -3,6 +3,6 @@ pipeline (E3CM), dfm (two-stage DFM). This file imports nothing heavy, so that t
 below can be read without loading torch."""
 
 # How F_l is estimated at each level of the cascade (cascade.py implements them).
-ESTIMATORS = ("top8", "ransac", "prosac")
+ESTIMATORS = ("top8", "ransac", "prosac", "magsac")
 # The estimators that draw from OpenCV's RNG: a matcher using one depends on its seed.
-RANDOM_ESTIMATORS = ("ransac", "prosac")
+RANDOM_ESTIMATORS = ("ransac", "prosac", "magsac")

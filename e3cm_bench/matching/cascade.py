@@ -139,14 +139,15 @@ def estimate_level_fundamental(
 
     top8: the paper's choice, normalised 8-point on the 8 most confident matches.
     ransac: OpenCV RANSAC over all matches. prosac: OpenCV PROSAC, matches ordered by confidence.
+    magsac: OpenCV's MAGSAC++ over all matches (e3cm-plus).
     """
     if len(x0) < 8:
         return None
     if estimator == "top8":
         top = np.argsort(-confidence, kind="stable")[:8]
         return geometry.estimate_fundamental(x0[top], x1[top], "8point")
-    if estimator == "ransac":
-        return geometry.estimate_fundamental(x0, x1, "ransac", ransac_threshold_px)
+    if estimator in ("ransac", "magsac"):
+        return geometry.estimate_fundamental(x0, x1, estimator, ransac_threshold_px)
     if estimator == "prosac":
         order = np.argsort(-confidence, kind="stable")
         return geometry.estimate_fundamental(x0[order], x1[order], "prosac", ransac_threshold_px)

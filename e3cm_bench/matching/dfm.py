@@ -92,8 +92,12 @@ def match_two_stage(
     feats1: list[torch.Tensor],
     extract: FeatureExtractor,
     settings: DFMSettings,
+    stage1: E3CMSettings | None = None,
 ) -> dict:
     """DFM on two RGB images whose feature pyramids are given; `extract` computes the warped B's.
+
+    stage1: the pipeline between A and the warped B (default DFM's, settings.stage1: no
+    cascade); e3cm-plus runs the cascade there.
 
     The stage-0 RANSAC draws from OpenCV's global RNG: the caller seeds it per pair
     (cv2.setRNGSeed), as for the cascade's RANSAC. Returns keypoints0/1 (pixels of the
@@ -131,7 +135,7 @@ def match_two_stage(
 
     t = time.perf_counter()
     size_w = (warped.shape[1], warped.shape[0])
-    out = match_pyramids(feats0, feats_w, size0, size_w, settings.stage1)
+    out = match_pyramids(feats0, feats_w, size0, size_w, stage1 or settings.stage1)
     kpts0, kpts_w, scores = out["keypoints0"], out["keypoints1"], out["scores"]
     kpts1 = warp_points(np.linalg.inv(H_BA), kpts_w)
     # Level-0 keypoints are integer pixel centres inside the warped image: they index the mask.

@@ -31,6 +31,7 @@ DEFAULT_SAMPSON_PX = {
     "top8": (8.0, 16.0, 32.0, 64.0),
     "ransac": (1.0, 2.0, 4.0, 8.0),
     "prosac": (1.0, 2.0, 4.0, 8.0),
+    "magsac": (1.0, 2.0, 4.0, 8.0),
 }
 
 
@@ -49,6 +50,9 @@ class E3CMSettings:
     valid_cells_only: only cells whose centres lie in the image take part and the dropped
         border ring is that of the valid cells (True); False = the releases' handling: the
         padding cells take part and the ring is that of the padded map.
+    subpixel: move each level-0 keypoint of B to the peak of a parabola fitted to its
+        similarity with A's pixel at B's pixel and its 4 neighbours (e3cm-plus; off in the
+        paper).
     """
 
     cascade: bool = True
@@ -62,6 +66,7 @@ class E3CMSettings:
     dense_chunk: int = 2048
     ratio_at: str = "matched"
     valid_cells_only: bool = True
+    subpixel: bool = False
 
     def __post_init__(self) -> None:
         if self.ratio_at not in ("matched", "own"):
@@ -80,6 +85,36 @@ class E3CMSettings:
         d["ratio"] = list(self.ratio)
         d["sampson_px"] = list(self.sampson_px)
         return d
+
+
+def subpixel_offsets(map0: torch.Tensor, map1: torch.Tensor, cells0: torch.Tensor, cells1: torch.Tensor) -> torch.Tensor:
+    """N x 2 offsets (dx, dy) in [-0.5, 0.5] of each level-0 match's B pixel towards the peak
+    of the similarity to A's pixel: along each axis a parabola through the cosines at B's
+    pixel and its two neighbours (an axis whose neighbour lies outside the map, or whose
+    three values do not peak in the middle, is left at 0).
+
+    map0/map1: level-0 maps (C x H x W, not necessarily normalised); cells: N x 2 (x, y).
+    """
+    if len(cells0) == 0:
+        return torch.zeros(0, 2, dtype=torch.float64)
+    a = F.normalize(map0[:, cells0[:, 1], cells0[:, 0]], dim=0)  # C x N
+    h, w = map1.shape[1:]
+    offsets = torch.zeros(len(cells0), 2, dtype=torch.float64)
+    centre = (a * F.normalize(map1[:, cells1[:, 1], cells1[:, 0]], dim=0)).sum(0).double().cpu()
+    for axis, limit in ((0, w), (1, h)):
+        step = torch.zeros(2, dtype=cells1.dtype, device=cells1.device)
+        step[axis] = 1
+        before, after = cells1 - step, cells1 + step
+        inside = (before[:, axis] >= 0) & (after[:, axis] < limit)
+        before, after = before.clamp_min(0), after.clone()
+        after[:, axis] = after[:, axis].clamp_max(limit - 1)
+        s_before = (a * F.normalize(map1[:, before[:, 1], before[:, 0]], dim=0)).sum(0).double().cpu()
+        s_after = (a * F.normalize(map1[:, after[:, 1], after[:, 0]], dim=0)).sum(0).double().cpu()
+        curvature = s_before - 2 * centre + s_after
+        peaked = inside.cpu() & (curvature < 0) & (centre >= s_before) & (centre >= s_after)
+        shift = 0.5 * (s_before - s_after) / torch.where(peaked, curvature, torch.ones_like(curvature))
+        offsets[:, axis] = torch.where(peaked, shift.clamp(-0.5, 0.5), torch.zeros_like(shift))
+    return offsets
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -169,9 +204,14 @@ def match_pyramids(
             timings["cascade"] += time.perf_counter() - t
         counts_after[level - 1] = len(cells0)
 
+    keypoints1 = _np(cell_centres(cells1, 0))
+    if settings.subpixel:
+        t = time.perf_counter()
+        keypoints1 = keypoints1 + _np(subpixel_offsets(feats0[0], feats1[0], cells0, cells1))
+        timings["subpixel"] = time.perf_counter() - t
     return {
         "keypoints0": _np(cell_centres(cells0, 0)).astype(np.float32),
-        "keypoints1": _np(cell_centres(cells1, 0)).astype(np.float32),
+        "keypoints1": keypoints1.astype(np.float32),
         "scores": (1 - _np(dist)).astype(np.float32),
         "counts_before": counts_before,
         "counts_after": counts_after,
