@@ -17,7 +17,7 @@ from .benchmarks import EvalSettings, get_benchmark
 from .experiments import write_table
 from .files import write_atomically
 from .method import MethodSpec
-from .runner import run_benchmark
+from .runner import run_methods
 from .synth.layouts import write_demo_data
 
 BACKBONE = "efficientnet_lite0"  # the ImageNet backbone that needs no download
@@ -26,6 +26,7 @@ METHODS = {
     "e3cm": {"matcher": "e3cm"},
     "e3cm-release": {"matcher": "e3cm-release"},
     "e3cm-ransac": {"matcher": "e3cm", "estimator": "ransac"},
+    "e3cm-plus": {"matcher": "e3cm-plus"},
     "direct": {"matcher": "direct"},
     "dfm": {"matcher": "dfm"},
     "sift": {"matcher": "sift"},
@@ -57,21 +58,18 @@ def run_demo(
     data = write_demo_data(out / "data", seed=0, quick=quick)
     roots = {"hpatches": (data["hpatches"], {}), "scenes": (data["scenes"], {"pairs": data["scenes"] / "pairs_with_gt.txt"})}
     tables = {}
-    step, n_steps = 0, len(SETS) * len(methods)
-    for set_name, (benchmark_name, description) in SETS.items():
+    for step, (set_name, (benchmark_name, description)) in enumerate(SETS.items(), 1):
         benchmark = get_benchmark(benchmark_name)
         root, options = roots[set_name]
         dataset = benchmark.load_dataset(root, **options)
-        run_dirs = []
-        for label in methods:
-            step += 1
-            console.rule(f"demo {step}/{n_steps}: {set_name} - {label}")
-            method = MethodSpec.create(backbone=BACKBONE, max_side=benchmark.max_side(None), seed=seed, label=label,
-                                       **METHODS[label])
-            run_dir = out / set_name / label
-            run_benchmark(benchmark, run_dir, method, dataset=dataset, ev=EvalSettings(seed=seed), viz=viz,
-                          device=device, console=console)
-            run_dirs.append(run_dir)
+        # All methods matched together: each image goes through the backbone once for all.
+        console.rule(f"demo {step}/{len(SETS)}: {set_name} - {', '.join(methods)}")
+        runs = [(out / set_name / label,
+                 MethodSpec.create(backbone=BACKBONE, max_side=benchmark.max_side(None), seed=seed, label=label,
+                                   **METHODS[label]))
+                for label in methods]
+        run_methods(benchmark, runs, dataset, ev=EvalSettings(seed=seed), viz=viz, device=device, console=console)
+        run_dirs = [run_dir for run_dir, _ in runs]
         console.rule(f"{set_name}: {description}; deep methods use {BACKBONE}")
         csv_path, _ = write_table(run_dirs, out / f"{set_name}_table", paper_rows=False, compare=False, console=console)
         tables[set_name] = pd.read_csv(csv_path)

@@ -45,13 +45,28 @@ def estimate_fundamental(
     x1 = np.ascontiguousarray(x1, dtype=np.float64)
     if len(x0) < 8:
         return None
-    if method == "8point":
-        F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_8POINT)
-    else:
-        F, _ = cv2.findFundamentalMat(x0, x1, _F_METHODS[method], threshold_px, confidence, max_iters)
+    try:
+        if method == "8point":
+            F, _ = cv2.findFundamentalMat(x0, x1, cv2.FM_8POINT)
+        else:
+            F, _ = cv2.findFundamentalMat(x0, x1, _F_METHODS[method], threshold_px, confidence, max_iters)
+    except cv2.error:  # USAC asserts on some degenerate samples (an empty model) instead of finding none
+        return None
     if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
         return None
     return F
+
+
+def local_distortion(H: np.ndarray, point: tuple[float, float]) -> tuple[float, float, float]:
+    """How H distorts a neighbourhood of `point`: the rotation (degrees) and the two scales
+    (largest first) of its local affine map (the Jacobian, split by SVD)."""
+    x, y = point
+    p = np.float64([[x, y], [x + 1.0, y], [x, y + 1.0]])
+    q = warp_points(H, p)
+    jacobian = np.stack([q[1] - q[0], q[2] - q[0]], 1)
+    u, scales, vt = np.linalg.svd(jacobian)
+    rotation = u @ vt
+    return float(np.degrees(np.arctan2(rotation[1, 0], rotation[0, 0]))), float(scales[0]), float(scales[1])
 
 
 def sampson_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:

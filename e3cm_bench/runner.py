@@ -431,6 +431,7 @@ def run_methods(
     dataset_load: dict | None = None,
     ev: EvalSettings | None = None,
     limit: int | None = None,
+    viz: int = 0,
     device: str = "cpu",
     console: Console | None = None,
     feature_cache_mb: float = FEATURE_CACHE_MB,
@@ -449,7 +450,7 @@ def run_methods(
         raise ValueError(f"--limit must be at least 1, got {limit}")
     console.print(f"{benchmark.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")
                   + f"; {len(runs)} methods matched together", markup=False)
-    return _run_folders(benchmark, runs, dataset, ev or EvalSettings(), limit, False, False, 0, device, console,
+    return _run_folders(benchmark, runs, dataset, ev or EvalSettings(), limit, False, False, viz, device, console,
                         None, dataset_load, feature_cache_mb)
 
 
@@ -554,6 +555,8 @@ def _open_run(
         "versions": package_versions(),
         "timing": (previous or {}).get("timing", {}),
     }
+    if (previous or {}).get("feature_reuse"):  # counts of earlier stages; add_stats adds this one's
+        config["feature_reuse"] = previous["feature_reuse"]
     if load is not None or (previous or {}).get("dataset_load"):
         config["dataset_load"] = load or previous["dataset_load"]
     if shard is not None:

@@ -96,7 +96,7 @@ def test_reproduce_runs_every_method_and_writes_the_table(tmp_path, shared_data)
     measured = table[table["source"] == "measured"]
     assert list(measured["method"]) == [
         "sift", "dfm [efficientnet_lite0]", "e3cm-release [efficientnet_lite0]", "e3cm [efficientnet_lite0]",
-        "e3cm-ransac [efficientnet_lite0]", "direct [efficientnet_lite0]",
+        "e3cm-ransac [efficientnet_lite0]", "e3cm-plus [efficientnet_lite0]", "direct [efficientnet_lite0]",
     ]
     assert (measured["n_pairs"] == 1).all()
     # Each method got its own run folder, and the config records what it ran.
@@ -106,7 +106,7 @@ def test_reproduce_runs_every_method_and_writes_the_table(tmp_path, shared_data)
     # A second reproduce reuses every cached match: nothing is matched again.
     again = invoke(*args)
     assert again.exit_code == 0
-    assert again.output.count("found in") == 6 and "matching (" not in again.output
+    assert again.output.count("found in") == 7 and "matching (" not in again.output
     assert pd.read_csv(out / "table.csv").equals(table)
 
 

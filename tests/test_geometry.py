@@ -203,3 +203,18 @@ def test_essential_and_pose_recovered_from_synthetic_scene():
     assert geometry.translation_angle_deg(t, T_01) < 0.01
     assert mask.sum() >= 190
     assert geometry.estimate_relative_pose(x0[:4], x1[:4], K0, K1) is None
+
+
+def test_an_opencv_assertion_in_the_f_estimator_reads_as_no_f(monkeypatch):
+    """USAC (MAGSAC++) asserts on some degenerate samples ('!model.empty()', seen on a demo
+    pair) instead of returning no model: that must read as 'no F', as RANSAC's None does."""
+    import cv2
+
+    from e3cm_bench import geometry
+
+    def asserts(*args, **kwargs):
+        raise cv2.error("OpenCV(5.0.0) estimator.cpp:418: error: (-215:Assertion failed) !model.empty()")
+
+    monkeypatch.setattr(geometry.cv2, "findFundamentalMat", asserts)
+    x = np.random.default_rng(0).uniform(0, 100, (20, 2))
+    assert geometry.estimate_fundamental(x, x + 1, "magsac", 1.0) is None

@@ -1,85 +1,146 @@
 """e3cm-plus: this project's best training-free variant of E3CM (README "e3cm-plus").
 
-The paper's idea kept: deep matches refined level by level, each level's epipolar geometry
-rejecting the next level's outliers. Changed where measurements on HPatches + KITTI (the
-shared samples) pointed:
-- prewarp: DFM's stage 0 first (a homography from the deepest level's matches, B warped
-  onto A), so that rotation, zoom and strong perspective no longer defeat features that are
-  not invariant to them; the cascade then runs between A and the warped B, where the
-  epipolar geometry is B's composed with the homography, and the points are mapped back.
-- estimator: F of each level from all its matches with OpenCV's MAGSAC++, instead of an
-  exact 8-point fit to the 8 most confident cell centres.
-- subpixel: each B keypoint moved to the peak of a parabola fitted to the level-0 similarity.
-Each is a setting (`--set prewarp=false`, ...), so that the ablation runs from the CLI.
+The paper's idea is kept: deep matches refined level by level, each level's epipolar geometry
+rejecting the next level's outliers. What changed, where measurements on the choosing split
+(the HPatches and KITTI samples; ScanNet never) pointed:
+- prewarp: DFM's stage 0 first (a homography from the deepest level's matches), and B warped
+  onto A where that homography turns or stretches the image centre's neighbourhood beyond
+  what the features tolerate ("auto", PREWARP_*): rotation, zoom and strong perspective no
+  longer defeat features that are not invariant to them. The cascade then runs between A
+  and the warped B (their epipolar geometry is B's composed with the homography) and the
+  points are mapped back. On KITTI's forward motion the homography is a poor stand-in for a
+  non-planar scene and warping cost pose accuracy; the auto test leaves those pairs as they are.
+- realign: where B was warped, the homography is fitted again to the final matches and B
+  matched once more through it; nearly aligned, the fine levels' features agree and
+  localise better (one more backbone pass on those pairs).
+- estimator: F of each level from all its matches, by OpenCV's MAGSAC++ where B was warped
+  (such pairs are near-planar, where plain RANSAC's F degenerates and USAC's checks it) and
+  by RANSAC elsewhere ("auto"), instead of an exact 8-point fit to 8 cell centres.
+- subpixel (off by default; it cost KITTI 8 points of AUC@5): each B keypoint moved to the
+  peak of a parabola fitted to the level-0 similarity.
+Each is a setting (`--set prewarp=false`, ...), so the ablation runs from the CLI.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ..backbones import Backbone
+from ..geometry import estimate_homography, local_distortion
 from ..matching import ESTIMATORS
-from ..matching.dfm import MIN_INLIERS, DFMSettings, match_two_stage
-from ..matching.pipeline import E3CMSettings, match_pyramids
+from ..matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography
+from ..matching.pipeline import E3CMSettings
 from .base import Matches
 from .deep import DeepMatcher
+
+# "auto" prewarp: warp when the stage-0 homography's local map at B's centre turns by more
+# than this, or scales (either axis, or one against the other) by more than this factor.
+# Measured with Lite0 on the choosing split: KITTI pairs turn 0-3 degrees and scale
+# 0.85-1.00; HPatches i_leuven is the identity; v_boat turns 7-51 degrees and zooms 1.13-2.4;
+# v_graffiti turns 0-35 degrees and stretches 1.2-3.8 (README "e3cm-plus").
+PREWARP_MIN_ROTATION_DEG = 5.0
+PREWARP_MAX_SCALE = 1.25
+# realign: the RANSAC threshold of the homography refitted to the final (level-0) matches.
+REALIGN_PX = 3.0
+# estimator "auto": the cascade's estimator for pairs matched through a warp, and for the rest.
+AUTO_ESTIMATORS = {"warped": "magsac", "direct": "ransac"}
+
+
+def prewarp_refusal(H_BA: np.ndarray, size_b: tuple[int, int]) -> str | None:
+    """None when H_BA distorts B's centre enough to be worth warping, else why not."""
+    rotation, big, small = local_distortion(H_BA, (size_b[0] / 2, size_b[1] / 2))
+    if abs(rotation) > PREWARP_MIN_ROTATION_DEG or big > PREWARP_MAX_SCALE or small < 1 / PREWARP_MAX_SCALE \
+            or big / small > PREWARP_MAX_SCALE:
+        return None
+    return f"close to the identity (rotation {rotation:.1f} deg, scales {big:.2f} / {small:.2f})"
 
 
 @dataclass
 class E3CMPlusSettings:
-    """prewarp, estimator, subpixel: the three changes (module docstring). ratio: per level
-    0..4. sampson_px: rejection thresholds of levels 0..3 (None: the estimator's default).
-    min_inliers: fewest stage-0 RANSAC inliers for the prewarp's homography to be used."""
+    """prewarp (true, false, auto), realign, estimator (one of the cascade's, or auto),
+    subpixel: the changes (module docstring). ratio: per level 0..4. sampson_px: rejection
+    thresholds of levels 0..3 (None: the estimator's default). max_per_parent: children kept
+    per refined match. min_inliers: fewest stage-0 RANSAC inliers for its homography."""
 
-    prewarp: bool = True
-    estimator: str = "magsac"
-    subpixel: bool = True
+    prewarp: bool | str = "auto"
+    realign: bool = True
+    estimator: str = "auto"
+    subpixel: bool = False
     ratio: tuple[float, ...] = (0.9, 0.9, 0.9, 0.9, 0.9)
     sampson_px: tuple[float, ...] | None = None
+    max_per_parent: int = 2
     min_inliers: int = MIN_INLIERS
 
     def __post_init__(self) -> None:
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
-        for name in ("prewarp", "subpixel"):
+        if self.prewarp not in (True, False, "auto"):
+            raise ValueError(f"prewarp must be true, false or auto, got {self.prewarp!r}")
+        for name in ("subpixel", "realign"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
-        self.pipeline = E3CMSettings(estimator=self.estimator, ratio=self.ratio, sampson_px=self.sampson_px,
-                                     subpixel=self.subpixel)
-        self.ratio, self.sampson_px = self.pipeline.ratio, self.pipeline.sampson_px
+        if self.estimator != "auto" and self.estimator not in ESTIMATORS:
+            raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose auto or one of {', '.join(ESTIMATORS)}")
+        self.pipelines = {
+            kind: E3CMSettings(estimator=AUTO_ESTIMATORS[kind] if self.estimator == "auto" else self.estimator,
+                               ratio=self.ratio, sampson_px=self.sampson_px, subpixel=self.subpixel,
+                               max_per_parent=self.max_per_parent)
+            for kind in ("warped", "direct")
+        }
+        self.ratio = self.pipelines["direct"].ratio
         self.stage0 = DFMSettings(ratio=self.ratio, min_inliers=self.min_inliers)
 
     def to_dict(self, deepest_stride: int) -> dict:
-        fields = {k: v for k, v in asdict(self).items() if k not in ("pipeline", "stage0")}
-        fields.update(ratio=list(self.ratio), sampson_px=list(self.sampson_px))
-        fields["pipeline"] = self.pipeline.to_dict()
+        fields = {k: v for k, v in asdict(self).items() if k not in ("pipelines", "stage0")}
+        fields["ratio"] = list(self.ratio)
+        fields["pipeline"] = {kind: p.to_dict() for kind, p in self.pipelines.items()}
         if self.prewarp:
             fields["stage0"] = self.stage0.to_dict(deepest_stride)["homography_ransac"]
+            fields["prewarp_auto"] = {"min_rotation_deg": PREWARP_MIN_ROTATION_DEG, "max_scale": PREWARP_MAX_SCALE}
+            fields["realign_px"] = REALIGN_PX
         return fields
 
 
 class E3CMPlusMatcher(DeepMatcher):
-    """[prewarp] -> E3CM with the MAGSAC++ cascade -> [sub-pixel level 0]."""
+    """[stage 0 -> warp B [-> realign]] -> E3CM with a robust cascade -> [sub-pixel level 0]."""
 
     def __init__(self, backbone: Backbone, settings: E3CMPlusSettings | None = None, channel_order: str = "rgb"):
         super().__init__(backbone, "e3cm-plus", channel_order)
         self.settings = settings or E3CMPlusSettings()
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        feats0, feats1, t_backbone = self.pyramids(image0, image1)
         s = self.settings
+        feats0, feats1, t_backbone = self.pyramids(image0, image1)
+        timings = {"backbone": t_backbone}
+        size0, size1 = (image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0])
+        H_BA, info = None, {"prewarp": "off"}
         if s.prewarp:
-            out = match_two_stage(image0, image1, feats0, feats1, self.features, s.stage0, stage1=s.pipeline)
-            timings = out.pop("timings")
-            timings = {"backbone": t_backbone + timings.pop("backbone_warped"), **timings}
-        else:
-            size0, size1 = (image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0])
-            out = match_pyramids(feats0, feats1, size0, size1, s.pipeline)
-            timings = {"backbone": t_backbone, **out.pop("timings")}
-        info = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}
-        info["timings"] = timings
+            t = time.perf_counter()
+            top = len(feats0) - 1
+            stage0 = stage0_homography(feats0[-1], feats1[-1], top, size0, size1, s.stage0,
+                                       s.stage0.threshold_px(2**top))
+            timings["stage0"] = time.perf_counter() - t
+            H_BA, why = stage0["H_BA"], stage0["failure"]
+            if H_BA is not None and s.prewarp == "auto":
+                why = prewarp_refusal(H_BA, size1)
+                H_BA = None if why else H_BA
+            info = {"prewarp": "warped" if H_BA is not None else f"not warped: {why}",
+                    "stage0_matches": stage0["matches"], "stage0_inliers": stage0["inliers"]}
+        pipeline = s.pipelines["warped" if H_BA is not None else "direct"]
+        out = match_through_warp(image0, image1, feats0, feats1, H_BA, self.features, pipeline)
+        if H_BA is not None and s.realign:
+            H = estimate_homography(out["keypoints1"], out["keypoints0"], REALIGN_PX)
+            if H is not None and abs(np.linalg.det(H)) > 1e-12:
+                first = out["timings"]
+                out = match_through_warp(image0, image1, feats0, feats1, H, self.features, pipeline)
+                out["timings"] = {k: first.get(k, 0.0) + v for k, v in out["timings"].items()}
+                info["realigned"] = True
+        steps = out.pop("timings")
+        timings["backbone"] += steps.pop("backbone_warped")
+        timings.update(steps)
+        info.update({k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")},
+                    estimator=pipeline.estimator, timings=timings)
         return Matches(out["keypoints0"], out["keypoints1"], out["scores"], info)
 
     def settings_dict(self) -> dict:

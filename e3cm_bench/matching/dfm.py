@@ -97,7 +97,7 @@ def match_two_stage(
     """DFM on two RGB images whose feature pyramids are given; `extract` computes the warped B's.
 
     stage1: the pipeline between A and the warped B (default DFM's, settings.stage1: no
-    cascade); e3cm-plus runs the cascade there.
+    cascade).
 
     The stage-0 RANSAC draws from OpenCV's global RNG: the caller seeds it per pair
     (cv2.setRNGSeed), as for the cascade's RANSAC. Returns keypoints0/1 (pixels of the
@@ -110,11 +110,41 @@ def match_two_stage(
     threshold = settings.threshold_px(deepest_stride)
 
     t = time.perf_counter()
-    stage0 = _stage0(feats0[-1], feats1[-1], len(feats0) - 1, size0, size1, settings, threshold)
+    stage0 = stage0_homography(feats0[-1], feats1[-1], len(feats0) - 1, size0, size1, settings, threshold)
     timings["stage0"] = time.perf_counter() - t
     H_BA = stage0["H_BA"]
     found = H_BA is not None
 
+    out = match_through_warp(image0, image1, feats0, feats1 if not found else None, H_BA, extract,
+                             stage1 or settings.stage1)
+    timings.update(out.pop("timings"))
+    return {
+        **out,
+        "stage0_matches": stage0["matches"],
+        "stage0_inliers": stage0["inliers"],
+        "homography_found": found,
+        "homography_fallback": None if found else f"identity ({stage0['failure']})",
+        "timings": timings,
+    }
+
+
+def match_through_warp(
+    image0: np.ndarray,
+    image1: np.ndarray,
+    feats0: list[torch.Tensor],
+    feats1: list[torch.Tensor] | None,
+    H_BA: np.ndarray | None,
+    extract: FeatureExtractor,
+    stage1: E3CMSettings,
+) -> dict:
+    """Stage 1: B warped onto A by H_BA (None: B as is, with its pyramid feats1), matched to A
+    with the `stage1` pipeline, and the keypoints mapped back to B. Matches outside B or on
+    the warp's black border are dropped. Returns keypoints0/1, scores, H_BA, stage1 (the
+    pipeline's diagnostics) and timings: warp, backbone_warped, stage1 (s)."""
+    timings: dict[str, float] = {}
+    size0 = (image0.shape[1], image0.shape[0])
+    size1 = (image1.shape[1], image1.shape[0])
+    found = H_BA is not None
     t = time.perf_counter()
     if found:
         warped = cv2.warpPerspective(image1, H_BA, size0, flags=cv2.INTER_LINEAR, borderValue=0)
@@ -135,34 +165,33 @@ def match_two_stage(
 
     t = time.perf_counter()
     size_w = (warped.shape[1], warped.shape[0])
-    out = match_pyramids(feats0, feats_w, size0, size_w, stage1 or settings.stage1)
+    out = match_pyramids(feats0, feats_w, size0, size_w, stage1)
     kpts0, kpts_w, scores = out["keypoints0"], out["keypoints1"], out["scores"]
     kpts1 = warp_points(np.linalg.inv(H_BA), kpts_w)
-    # Level-0 keypoints are integer pixel centres inside the warped image: they index the mask.
-    on_image = valid[np.rint(kpts_w[:, 1]).astype(int), np.rint(kpts_w[:, 0]).astype(int)]
+    # Level-0 keypoints lie inside the warped image (sub-pixel ones within half a pixel of
+    # a pixel centre): rounded, they index the mask.
+    rows = np.clip(np.rint(kpts_w[:, 1]).astype(int), 0, valid.shape[0] - 1)
+    cols = np.clip(np.rint(kpts_w[:, 0]).astype(int), 0, valid.shape[1] - 1)
+    on_image = valid[rows, cols]
     in_b = _inside(kpts1, size1)
     keep = on_image & in_b
     timings["stage1"] = time.perf_counter() - t
 
-    stage1 = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}
-    stage1["matches_before_mapping"] = len(kpts0)
-    stage1["dropped_on_warp_border"] = int((~on_image).sum())
-    stage1["dropped_outside_b"] = int((on_image & ~in_b).sum())
+    diagnostics = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}
+    diagnostics["matches_before_mapping"] = len(kpts0)
+    diagnostics["dropped_on_warp_border"] = int((~on_image).sum())
+    diagnostics["dropped_outside_b"] = int((on_image & ~in_b).sum())
     return {
         "keypoints0": kpts0[keep],
         "keypoints1": kpts1[keep],
         "scores": scores[keep],
-        "stage0_matches": stage0["matches"],
-        "stage0_inliers": stage0["inliers"],
-        "homography_found": found,
-        "homography_fallback": None if found else f"identity ({stage0['failure']})",
         "H_BA": H_BA,
-        "stage1": stage1,
+        "stage1": diagnostics,
         "timings": timings,
     }
 
 
-def _stage0(
+def stage0_homography(
     top0: torch.Tensor, top1: torch.Tensor, level: int, size0: tuple[int, int], size1: tuple[int, int],
     settings: DFMSettings, threshold: float,
 ) -> dict:
