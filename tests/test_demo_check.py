@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from e3cm_bench.cli import app
+from e3cm_bench.demo import METHODS as DEMO_METHODS
 from helpers import flat, one_line_error
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -130,5 +131,5 @@ def test_committed_baselines_cover_the_demo():
     """results/baselines/ holds one row per demo method and set (written by check --update)."""
     for set_name, benchmark in (("hpatches", "hpatches"), ("scenes", "yfcc")):
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
-        assert sorted(table["method"]) == sorted(["e3cm", "e3cm-release", "e3cm-ransac", "direct", "dfm", "sift"])
+        assert sorted(table["method"]) == sorted(DEMO_METHODS)
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()

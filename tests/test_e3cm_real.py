@@ -47,6 +47,9 @@ class RecordingBackbone:
         self.features.append(feats)
         return feats
 
+    def __getattr__(self, name: str):  # everything else (memory estimate, settings) from the backbone
+        return getattr(self.backbone, name)
+
 
 @pytest.fixture(scope="module")
 def hpatches_results(shared_data, backbone):
