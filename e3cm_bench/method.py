@@ -131,11 +131,13 @@ class MethodSpec:
         """The value OpenCV's RNG is seeded with before each pair (0 for matchers that draw nothing)."""
         return self.seed or 0
 
-    def build(self, device: str = "cpu", pretrained: bool = True):
-        """The matcher this spec describes (loads the backbone and its weights)."""
+    def build(self, device: str = "cpu", pretrained: bool = True, loaded: dict | None = None):
+        """The matcher this spec describes (loads the backbone and its weights; `loaded`: see
+        build_matcher)."""
         from .matchers import build_matcher
 
-        return build_matcher(self.matcher, self.backbone or "vgg19", self.weights, device, pretrained, self.settings_dict())
+        return build_matcher(self.matcher, self.backbone or "vgg19", self.weights, device, pretrained, self.settings_dict(),
+                             loaded=loaded)
 
     @property
     def folder(self) -> str:

@@ -208,12 +208,12 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
 
     Each pair's images are decoded once for all methods, and deep matchers with the same
     backbone settings share one backbone and one feature cache, so an image goes through
-    the network once for all of them (reproduce's methods e3cm, e3cm-release, e3cm-ransac,
-    direct). Nothing about a result changes: each method's matches go to its own cache.
+    the network once for all of them (reproduce's deep methods but dfm). Nothing about a
+    result changes: each method's matches go to its own cache.
     """
-    matchers, groups = [], {}
+    matchers, groups, loaded = [], {}, {}
     for job in jobs:
-        matcher = job.method.build(device)
+        matcher = job.method.build(device, loaded=loaded)  # one backbone (one weights load) per setting
         if feature_cache_mb and getattr(matcher, "uses_feature_cache", False):
             group = groups.setdefault(matcher.feature_identity(), {"matcher": matcher, "labels": []})
             matcher.share_features_of(group["matcher"], feature_cache_mb)

@@ -71,15 +71,27 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     assert_same_arrays(tmp_path / "reuse", tmp_path / "plain")
 
 
-def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_data, tmp_path):
+def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_data, tmp_path, monkeypatch):
     """reproduce's joint stage: e3cm, direct and e3cm-release (one backbone setting) on three
-    pairs with four distinct images pass each image through the network once between them
-    (4 passes, not 3 x 6), and each method's matches equal those of its own run."""
+    pairs with four distinct images load the weights once and pass each image through the
+    network once between them (4 passes, not 3 x 6), and each method's matches equal those
+    of its own run."""
+    import e3cm_bench.backbones as backbones
+
+    loads = []
+    real_load = backbones.load_backbone
+
+    def counted_load(*args, **kwargs):
+        loads.append(args[0] if args else kwargs.get("name"))
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(backbones, "load_backbone", counted_load)
     hp = get_benchmark("hpatches")
     dataset = hp.load_dataset(shared_data / "hpatches-sequences-release", sequences=["v_boat"])
     methods = [MethodSpec.create(m, "efficientnet_lite0", max_side=320) for m in ("e3cm", "direct", "e3cm-release")]
     sift = MethodSpec.create("sift", max_side=320)
     run_methods(hp, [(tmp_path / "joint" / m.folder, m) for m in [*methods, sift]], dataset, limit=3)
+    assert loads == ["efficientnet_lite0"]
     for method in methods:
         config = yaml.safe_load((tmp_path / "joint" / method.folder / "config.yaml").read_text())
         assert config["feature_reuse"]["shared_by"] == [m.label for m in methods]

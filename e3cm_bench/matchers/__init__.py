@@ -66,11 +66,13 @@ def build_matcher(
     device: str = "cpu",
     pretrained: bool = True,
     settings: dict | None = None,
+    loaded: dict | None = None,
 ) -> Matcher:
     """A matcher by name. `settings` holds the matcher's own fields (E3CMSettings for e3cm and
     direct, E3CMReleaseSettings for e3cm-release, E3CMPlusSettings for e3cm-plus,
     variant/ratio/DFMSettings for dfm) and the
-    BACKBONE_SETTINGS."""
+    BACKBONE_SETTINGS. loaded: backbones built before, by what they were built from; a
+    matcher asking for the same one reuses it instead of loading the weights again."""
     settings = dict(settings or {})
     if name not in MATCHERS:
         raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(MATCHERS)}")
@@ -84,8 +86,13 @@ def build_matcher(
     num_levels = int(settings.pop("num_levels", MAX_LEVELS))
     channel_order = settings.pop("channel_order", "rgb")
     precision = settings.pop("precision", "fp32")
-    net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device, num_levels=num_levels,
-                        precision=precision)
+    key = (backbone, str(weights), pretrained, device, num_levels, precision)
+    net = None if loaded is None else loaded.get(key)
+    if net is None:
+        net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device, num_levels=num_levels,
+                            precision=precision)
+        if loaded is not None:
+            loaded[key] = net
     return _deep_matcher(name, net, settings, channel_order)
 
 

@@ -87,8 +87,8 @@ class DeepMatcher(Matcher):
                            "device": str(self.device)}, sort_keys=True)
 
     def share_features_of(self, other: DeepMatcher, max_mb: float) -> None:
-        """Take other's backbone and feature cache (made if it has none), so that the two
-        matchers pass each image through the network once between them."""
+        """Take other's backbone (when built apart) and feature cache (made if it has none), so
+        that the two matchers pass each image through the network once between them."""
         if other.feature_identity() != self.feature_identity():
             raise ValueError("matchers with different backbone settings cannot share feature maps")
         if other.feature_cache is None:
