@@ -98,9 +98,13 @@ def subpixel_offsets(map0: torch.Tensor, map1: torch.Tensor, cells0: torch.Tenso
     if len(cells0) == 0:
         return torch.zeros(0, 2, dtype=torch.float64)
     a = F.normalize(map0[:, cells0[:, 1], cells0[:, 0]], dim=0)  # C x N
+
+    def cosine_to_a(cells: torch.Tensor) -> torch.Tensor:  # N cosines of A's pixels with B's at `cells`
+        return (a * F.normalize(map1[:, cells[:, 1], cells[:, 0]], dim=0)).sum(0).double().cpu()
+
     h, w = map1.shape[1:]
     offsets = torch.zeros(len(cells0), 2, dtype=torch.float64)
-    centre = (a * F.normalize(map1[:, cells1[:, 1], cells1[:, 0]], dim=0)).sum(0).double().cpu()
+    centre = cosine_to_a(cells1)
     for axis, limit in ((0, w), (1, h)):
         step = torch.zeros(2, dtype=cells1.dtype, device=cells1.device)
         step[axis] = 1
@@ -108,8 +112,7 @@ def subpixel_offsets(map0: torch.Tensor, map1: torch.Tensor, cells0: torch.Tenso
         inside = (before[:, axis] >= 0) & (after[:, axis] < limit)
         before, after = before.clamp_min(0), after.clone()
         after[:, axis] = after[:, axis].clamp_max(limit - 1)
-        s_before = (a * F.normalize(map1[:, before[:, 1], before[:, 0]], dim=0)).sum(0).double().cpu()
-        s_after = (a * F.normalize(map1[:, after[:, 1], after[:, 0]], dim=0)).sum(0).double().cpu()
+        s_before, s_after = cosine_to_a(before), cosine_to_a(after)
         curvature = s_before - 2 * centre + s_after
         peaked = inside.cpu() & (curvature < 0) & (centre >= s_before) & (centre >= s_after)
         shift = 0.5 * (s_before - s_after) / torch.where(peaked, curvature, torch.ones_like(curvature))
