@@ -23,7 +23,7 @@ from .datasets.base import Pair
 from .datasets.stereo import StereoSequence, load_stereo_sequence
 from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
 from .images import load_image
-from .method import MethodSpec
+from .method import MethodSpec, identity_changes
 from .report import print_summary
 from .runner import CACHE_FILE, CONFIG_FILE, match_stage
 
@@ -109,7 +109,7 @@ def run_calibration(
             path = run_dir / CONFIG_FILE
             if path.is_file() and not overwrite:
                 before = load_yaml(path)
-                if before.get("identity") != config["identity"] or before.get("sequence", {}).get("root") != str(sequence.root):
+                if identity_changes(before.get("identity") or {}, config["identity"]) or before.get("sequence", {}).get("root") != str(sequence.root):
                     raise ValueError(f"{path}: the matches in this folder were made with other settings or frames; "
                                      "pass --overwrite or choose another --out")
             cache = MatchCache(run_dir / CACHE_FILE)

@@ -163,8 +163,8 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
             sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
             settings: list[str] | None, protocol: str, precision: str = "fp32",
             channel_order: str = "rgb") -> MethodSpec:
-    """The method of a benchmark command. --max-side unset takes the protocol's resize, else the
-    benchmark's default; the protocol's matcher settings apply where --set gives none."""
+    """The method of a benchmark command. --max-side unset takes the protocol's side, else the
+    benchmark's default (resized the protocol's way); the protocol's matcher settings apply where --set gives none."""
     preset = get_protocol(protocol, benchmark)
     if max_side is None and benchmark in preset.max_side:
         max_side = preset.max_side[benchmark] or 0
@@ -174,6 +174,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     return MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
         get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
+        resize=preset.resize_mode(benchmark),
     )
 
 

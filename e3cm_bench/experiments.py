@@ -52,6 +52,7 @@ def experiment_method(
         matcher=matcher, weights=entry.get("weights"), estimator=entry.get("estimator"),
         sampson_px=entry.get("sampson_px"), ratio=entry.get("ratio"), max_side=max_side,
         seed=int(experiment.get("seed", 0)), options=settings, upright=protocol.upright,
+        resize=protocol.resize_mode(benchmark.name),
     )
     spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
     # The default label names the method's own backbone; a forced one is added in brackets.

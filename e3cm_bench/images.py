@@ -76,8 +76,19 @@ def load_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def resize_max_side(image: np.ndarray, max_side: int | None) -> tuple[np.ndarray, tuple[float, float]]:
-    """Shrink so the longer side is at most ``max_side``; never enlarge.
+# How images are brought to `max_side` (MethodSpec.resize; the pose protocols set it):
+#   shrink: ours: longer side at most max_side, area averaging, never enlarged;
+#   exact: longer side exactly max_side, enlarged too, bilinear (SuperGlue's process_resize,
+#     `match_pairs.py --resize N`);
+#   exact-div8: as exact, then each side floored to a multiple of 8 (LoFTR's get_resized_wh
+#     and get_divisible_wh with df = 8, its MegaDepth-1500 test loader).
+RESIZE_MODES = ("shrink", "exact", "exact-div8")
+
+
+def resize_max_side(
+    image: np.ndarray, max_side: int | None, how: str = "shrink"
+) -> tuple[np.ndarray, tuple[float, float]]:
+    """Resize by the longer side (`how`: one of RESIZE_MODES, above).
 
     Returns the image and ``scale_xy = (w / w', h / h')`` (original over resized size,
     per axis, since rounding makes the two differ slightly). ``max_side`` None or 0
@@ -85,14 +96,24 @@ def resize_max_side(image: np.ndarray, max_side: int | None) -> tuple[np.ndarray
     """
     if max_side is not None and max_side < 0:
         raise ValueError(f"max_side must be positive, 0 or None, got {max_side}")
+    if how not in RESIZE_MODES:
+        raise ValueError(f"unknown resize {how!r}; choose one of {', '.join(RESIZE_MODES)}")
     height, width = image.shape[:2]
-    if not max_side or max(height, width) <= max_side:
+    if not max_side or (how == "shrink" and max(height, width) <= max_side):
         return image, (1.0, 1.0)
     factor = max_side / max(height, width)
     new_width = max(1, round(width * factor))
     new_height = max(1, round(height * factor))
-    # Area averaging avoids the aliasing that bilinear sampling shows when shrinking.
-    resized = cv2.resize(image, (new_width, new_height), interpolation=cv2.INTER_AREA)
+    if how == "shrink":
+        # Area averaging avoids the aliasing that bilinear sampling shows when shrinking.
+        resized = cv2.resize(image, (new_width, new_height), interpolation=cv2.INTER_AREA)
+        return resized, (width / new_width, height / new_height)
+    if how == "exact-div8":
+        new_width, new_height = max(8, new_width // 8 * 8), max(8, new_height // 8 * 8)
+    if (new_width, new_height) == (width, height):
+        return image, (1.0, 1.0)
+    # The references call cv2.resize with its default, bilinear interpolation.
+    resized = cv2.resize(image, (new_width, new_height), interpolation=cv2.INTER_LINEAR)
     return resized, (width / new_width, height / new_height)
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .files import file_sha256
+from .images import RESIZE_MODES
 from .matchers import MATCHERS, NEEDS_BACKBONE, check_settings, is_random
 from .matching import ESTIMATORS
 
@@ -23,7 +24,8 @@ class MethodSpec:
     settings: the matcher's own fields (E3CMSettings / DFMSettings) as sorted (key, value)
     pairs, lists turned into tuples, so that the spec is hashable and compares by value.
     max_side: longer side for matching, None = full resolution (already resolved against
-    the benchmark's default). seed: the seed of the matcher's robust estimators, None for
+    the benchmark's default). resize: how images are brought to max_side (images.RESIZE_MODES:
+    shrink, ours; exact, SuperGlue's; exact-div8, LoFTR's). seed: the seed of the matcher's robust estimators, None for
     matchers that draw no random numbers (their matches do not depend on it). upright: match
     images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
     label: the name in tables and plots; not part of the identity.
@@ -35,6 +37,7 @@ class MethodSpec:
     weights_sha256: str | None = None
     settings: tuple[tuple[str, object], ...] = ()
     max_side: int | None = None
+    resize: str = "shrink"
     seed: int | None = None
     upright: bool = True
     label: str = field(default="", compare=False)
@@ -53,6 +56,7 @@ class MethodSpec:
         label: str | None = None,
         options: dict | None = None,
         upright: bool = True,
+        resize: str = "shrink",
     ) -> MethodSpec:
         """Options as a user gives them -> a spec. Settings that do not apply to the matcher are
         ignored (ratio: deep matchers; estimator, sampson_px: e3cm), never guessed.
@@ -79,6 +83,8 @@ class MethodSpec:
         check_settings(matcher, settings)
         if max_side is not None and max_side <= 0:
             raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
+        if resize not in RESIZE_MODES:
+            raise ValueError(f"unknown resize {resize!r}; choose one of {', '.join(RESIZE_MODES)}")
         weights_sha256 = None
         if deep and weights is not None:
             path = Path(weights)
@@ -92,6 +98,7 @@ class MethodSpec:
             weights_sha256=weights_sha256,
             settings=tuple(sorted(settings.items())),
             max_side=max_side,
+            resize=resize,
             seed=int(seed) if is_random(matcher, settings) else None,
             upright=bool(upright),
         )
@@ -104,7 +111,7 @@ class MethodSpec:
         return {
             "matcher": self.matcher, "backbone": self.backbone, "weights": self.weights,
             "weights_sha256": self.weights_sha256, "settings": self.settings,
-            "max_side": self.max_side, "seed": self.seed, "upright": self.upright,
+            "max_side": self.max_side, "resize": self.resize, "seed": self.seed, "upright": self.upright,
         }
 
     def identity(self) -> dict:
@@ -146,10 +153,20 @@ class MethodSpec:
 
     def describe(self) -> str:
         """One line for the console."""
-        resize = f"longer side at most {self.max_side} px" if self.max_side else "full resolution"
+        resize = {"shrink": f"longer side at most {self.max_side} px",
+                  "exact": f"longer side exactly {self.max_side} px (enlarged too)",
+                  "exact-div8": f"longer side exactly {self.max_side} px, sides floored to multiples of 8",
+                  }[self.resize] if self.max_side else "full resolution"
         net = f" ({self.backbone})" if self.backbone else ""
         seed = f"; seed {self.seed}" if self.seed is not None else ""
         return f"matcher {self.matcher}{net}; resize: {resize}{seed}"
+
+
+def identity_changes(before: dict, now: dict) -> list[str]:
+    """The keys of a recorded identity (config.yaml) that differ from `now`'s, sorted."""
+    # Records written before resize modes existed were all resized the one way there was.
+    before = {"resize": "shrink", **before}
+    return [k for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k)]
 
 
 def _numbers(values, name: str) -> tuple[float, ...]:

@@ -32,7 +32,7 @@ from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers import check_device, is_out_of_memory
 from .matchers.base import Matcher
 from .matches import Matches
-from .method import MethodSpec
+from .method import MethodSpec, identity_changes
 from .report import print_summary
 from .shards import merge_when_complete, shard_dir, shard_slice
 from .viz import draw_matches, save_image
@@ -49,22 +49,24 @@ PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 def match_pair(
     matcher: Matcher, image0: str | Path | np.ndarray, image1: str | Path | np.ndarray,
     max_side: int | None = None, seed: int = 0, rotations: tuple[int, int] = (0, 0),
+    resize: str = "shrink",
 ) -> Matches:
     """Match two images (paths or H x W x 3 RGB uint8 arrays); keypoints in original pixels.
 
     rotations: quarter turns (np.rot90, counter-clockwise) that make each image upright, as
     a YFCC/ScanNet pair list's rot0/rot1 give them; the images are matched upright (CNN
     features are not rotation invariant) and the keypoints mapped back to the stored images.
-    The images are shrunk so the longer side is at most `max_side` (None: full size),
-    matched, and the keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
+    The images are resized by their longer side to `max_side` (None: full size; `resize`:
+    how, images.RESIZE_MODES, by default shrunk to at most max_side), matched, and the
+    keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
     matchers with a RANSAC inside give the same matches every time. ``info`` holds the
     matcher's diagnostics plus size0/size1 (original w, h), match_size0/1 and match_seconds.
     """
     image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
     image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
     upright0, upright1 = np.rot90(image0, rotations[0]), np.rot90(image1, rotations[1])
-    small0, scale0 = resize_max_side(np.ascontiguousarray(upright0), max_side)
-    small1, scale1 = resize_max_side(np.ascontiguousarray(upright1), max_side)
+    small0, scale0 = resize_max_side(np.ascontiguousarray(upright0), max_side, resize)
+    small1, scale1 = resize_max_side(np.ascontiguousarray(upright1), max_side, resize)
     cv2.setRNGSeed(int(seed))
     t = time.perf_counter()
     m = matcher.match(small0, small1)
@@ -116,7 +118,7 @@ def match_cached_pair(
     images: the pair's images already decoded (the match stage decodes ahead), else read here."""
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
-                         pair_rotations(pair, method))
+                         pair_rotations(pair, method), method.resize)
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
 
 
@@ -334,8 +336,7 @@ def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark,
                          "--overwrite replaces its matches")
     if eval_only or before is None or method is None:
         return previous
-    now = method.identity()
-    changed = [k for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k)]
+    changed = identity_changes(before, method.identity())
     if previous.get("benchmark") != benchmark.name:
         changed.insert(0, "benchmark")
     if changed:

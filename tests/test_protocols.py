@@ -166,6 +166,69 @@ def test_loftr_protocol_resizes_megadepth_to_840(shared_data, tmp_path):
     assert result.exit_code == 0, result.output
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["identity"]["max_side"] == 840 and config["evaluation"]["protocol"] == "loftr"
+    # KITTI's 1241 x 376: 840 x round(254.5) = 255, each side floored to a multiple of 8 (LoFTR's df).
+    from e3cm_bench.cache import MatchCache
+
+    assert config["identity"]["resize"] == "exact-div8"
+    cache = MatchCache(out / "matches.h5")
+    assert tuple(cache.read(cache.names()[0]).info["match_size0"]) == (840, 248)
+
+
+@pytest.mark.parametrize("size", [(1296, 968), (1024, 683), (1241, 376), (376, 1241), (2000, 1500), (600, 1599)])
+def test_resize_modes_give_the_reference_loaders_sizes_and_pixels(size):
+    """exact = SuperGlue's process_resize (`--resize N`), exact-div8 = LoFTR's get_resized_wh then
+    get_divisible_wh(df=8): the longer side scaled to N, enlarging too, Python's round; then
+    cv2.resize with its default (bilinear) interpolation. shrink never enlarges."""
+    from e3cm_bench.images import resize_max_side
+
+    w, h = size
+    image = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    for side in (840, 1600):
+        scale = side / max(w, h)
+        w_ref, h_ref = int(round(w * scale)), int(round(h * scale))
+        for how, expected in (("exact", (w_ref, h_ref)), ("exact-div8", (w_ref // 8 * 8, h_ref // 8 * 8))):
+            resized, scale_xy = resize_max_side(image, side, how)
+            assert resized.shape[1::-1] == expected, (how, side)
+            np.testing.assert_array_equal(resized, cv2.resize(image, expected))
+            assert scale_xy == pytest.approx((w / expected[0], h / expected[1]))
+        shrunk, _ = resize_max_side(image, side, "shrink")
+        assert max(shrunk.shape[:2]) == min(side, max(w, h))
+    with pytest.raises(ValueError, match="unknown resize"):
+        resize_max_side(image, 840, "bicubic")
+
+
+def test_superglue_protocol_enlarges_to_1600_as_its_eval_command(shared_data, tmp_path):
+    """ScanNet's 1296 x 968 frames (YFCC pair-list format): the default shrinks them to 1200,
+    `--protocol superglue` resizes them to 1600 x 1195, as match_pairs.py --resize 1600 does."""
+    from e3cm_bench.cache import MatchCache
+
+    root = shared_data / "scannet_sample"
+    sizes = {}
+    for protocol in ("default", "superglue"):
+        out = tmp_path / protocol
+        result = invoke("yfcc", "--root", root, "--pairs", root / "pairs_with_gt.txt", "--out", out,
+                        "--matcher", "sift", "--protocol", protocol, "--limit", 1)
+        assert result.exit_code == 0, result.output
+        config = yaml.safe_load((out / "config.yaml").read_text())
+        cache = MatchCache(out / "matches.h5")
+        sizes[protocol] = (config["identity"]["max_side"], config["identity"]["resize"],
+                           tuple(cache.read(cache.names()[0]).info["match_size0"]))
+    assert sizes["default"] == (1200, "shrink", (1200, 896))
+    assert sizes["superglue"] == (1600, "exact", (1600, 1195))
+
+
+def test_a_run_written_before_resize_modes_resumes(shared_data, tmp_path):
+    root = shared_data / "scannet_sample"
+    args = ("yfcc", "--root", root, "--pairs", root / "pairs_with_gt.txt", "--out", tmp_path / "old", "--matcher", "sift")
+    assert invoke(*args, "--limit", 1).exit_code == 0
+    config_path = tmp_path / "old" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    del config["identity"]["resize"]  # as an older e3cm-bench wrote it
+    config_path.write_text(yaml.safe_dump(config))
+    result = invoke(*args, "--limit", 1)
+    assert result.exit_code == 0 and "all 1 pairs found" in result.output, result.output
+    refused = invoke(*args, "--limit", 1, "--protocol", "superglue")
+    assert refused.exit_code != 0 and "resize" in refused.output
 
 
 def test_a_protocol_of_another_benchmark_is_a_one_line_error(tmp_path):

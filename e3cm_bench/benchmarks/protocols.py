@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 @dataclass(frozen=True)
 class Protocol:
     """max_side: {benchmark: longer side for matching, None = full resolution}; a benchmark
-    not listed keeps its own default. method_options: deep-matcher settings the reference
+    not listed keeps its own default. resize: {benchmark: how images are brought to that side,
+    images.RESIZE_MODES}; not listed: shrink (ours). method_options: deep-matcher settings the reference
     code used (num_levels, channel_order), per benchmark. drop_failures: pairs whose pose
     could not be estimated leave the AUC (instead of counting with error inf). upright:
     turn images upright by the pair list's rot0/rot1 before matching (keypoints are mapped
@@ -24,17 +25,14 @@ class Protocol:
     description: str
     benchmarks: tuple[str, ...]
     max_side: dict = field(default_factory=dict)
+    resize: dict = field(default_factory=dict)
     method_options: dict = field(default_factory=dict)
     drop_failures: bool = False
     upright: bool = True
     standard: bool = True
 
-    def to_dict(self, benchmark: str) -> dict:
-        return {
-            "name": self.name, "description": self.description, "standard": self.standard,
-            "drop_failures": self.drop_failures, "upright": self.upright,
-            "method_options": dict(self.method_options.get(benchmark, {})),
-        }
+    def resize_mode(self, benchmark: str) -> str:
+        return self.resize.get(benchmark, "shrink")
 
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
@@ -44,13 +42,14 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         ("hpatches", "megadepth", "yfcc"),
     ),
     Protocol(
-        "loftr", "LoFTR's MegaDepth-1500 test config: longer side 840 px",
-        ("megadepth",), max_side={"megadepth": 840},
+        "loftr", "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "
+        "floored to a multiple of 8, bilinear",
+        ("megadepth",), max_side={"megadepth": 840}, resize={"megadepth": "exact-div8"},
     ),
     Protocol(
         "superglue", "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
-        "longer side 1600 px",
-        ("yfcc",), max_side={"yfcc": 1600},
+        "longer side resized to 1600 px (enlarged too), bilinear",
+        ("yfcc",), max_side={"yfcc": 1600}, resize={"yfcc": "exact"},
     ),
     Protocol(
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
