@@ -126,8 +126,7 @@ def reproduce(
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
     dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
     protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
-    ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)), protocol=protocol.name,
-                                 drop_failures=protocol.drop_failures)
+    ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)), **protocol.eval_fields(benchmark.name))
     out = Path(out)
     methods = [experiment_method(entry, experiment, benchmark, backbone, max_side) for entry in experiment["methods"]]
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)

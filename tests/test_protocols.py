@@ -212,9 +212,33 @@ def test_superglue_protocol_enlarges_to_1600_as_its_eval_command(shared_data, tm
         config = yaml.safe_load((out / "config.yaml").read_text())
         cache = MatchCache(out / "matches.h5")
         sizes[protocol] = (config["identity"]["max_side"], config["identity"]["resize"],
-                           tuple(cache.read(cache.names()[0]).info["match_size0"]))
-    assert sizes["default"] == (1200, "shrink", (1200, 896))
-    assert sizes["superglue"] == (1600, "exact", (1600, 1195))
+                           tuple(cache.read(cache.names()[0]).info["match_size0"]),
+                           config["evaluation"]["pose_ransac_px"], config["evaluation"]["pose_ransac_frame"])
+    assert sizes["default"] == (1200, "shrink", (1200, 896), 0.5, "original")
+    assert sizes["superglue"] == (1600, "exact", (1600, 1195), 1.0, "matched")
+
+
+def test_a_ransac_threshold_in_matched_pixels_is_superglues_normalised_threshold():
+    """SuperGlue: 1 px / mean focal of K scaled to the resized image. Ours: the threshold in stored
+    pixels over the stored K's mean focal; the two normalised thresholds must agree."""
+    from e3cm_bench.benchmarks import get_benchmark
+    from e3cm_bench.benchmarks.base import EvalSettings
+    from e3cm_bench.datasets.base import Pair
+    from e3cm_bench.matches import Matches
+
+    K0 = np.array([[1065.0, 0, 512], [0, 1065.0, 384], [0, 0, 1]])
+    K1 = np.array([[900.0, 0, 400], [0, 900.0, 300], [0, 0, 1]])
+    pair = Pair("p", None, None, K0=K0, K1=K1, T_0to1=np.eye(4))
+    # Image 0 stored 1024 x 768, matched at 1600 x 1200; image 1 stored upright-rotated 600 x 800,
+    # matched at 1200 x 1600.
+    info = {"size0": (1024, 768), "match_size0": (1600, 1200), "size1": (600, 800), "match_size1": (1200, 1600)}
+    matches = Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
+    pose = get_benchmark("yfcc")
+    ev = EvalSettings(pose_ransac_px=1.0, pose_ransac_frame="matched")
+    ours = pose.ransac_px(pair, matches, ev) / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
+    K0_resized, K1_resized = K0[0, 0] * 1600 / 1024, K1[0, 0] * 1600 / 800
+    assert ours == pytest.approx(1.0 / np.mean([K0_resized, K1_resized]))
+    assert pose.ransac_px(pair, matches, EvalSettings(pose_ransac_px=0.5)) == 0.5
 
 
 def test_a_run_written_before_resize_modes_resumes(shared_data, tmp_path):

@@ -30,6 +30,9 @@ class EvalSettings:
     homography_max_iters: int = 5000
     homography_confidence: float = 0.9999
     pose_ransac_px: float = 0.5
+    # The pixels pose_ransac_px is in: "original" (the stored images, PROTOCOLS §3) or "matched"
+    # (the images as resized for matching, SuperGlue's: 1 px at its 1600 px).
+    pose_ransac_frame: str = "original"
     pose_confidence: float = 0.99999
     precision_thresholds: tuple[float, ...] = metrics.PRECISION_THRESHOLDS
     correct_px: float = 3.0  # --viz: a homography match is drawn green within this reprojection error

@@ -35,10 +35,28 @@ class PoseBenchmark(Benchmark):
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         row = metrics.evaluate_pose_pair(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
-            pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=ev.pose_ransac_px,
+            pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=self.ransac_px(pair, matches, ev),
             confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds,
         )
         return {"pair": pair.name, **row}
+
+    @staticmethod
+    def ransac_px(pair: Pair, matches: Matches, ev: EvalSettings) -> float:
+        """The essential-matrix RANSAC threshold in pixels of the stored images (whose K the pair
+        carries). Given in the matched images' pixels (SuperGlue's way), it is scaled by the
+        ratio of the mean focal lengths: stored over matched, per image the longer sides' ratio."""
+        if ev.pose_ransac_frame == "original":
+            return ev.pose_ransac_px
+        if ev.pose_ransac_frame != "matched":
+            raise ValueError(f"pose_ransac_frame must be 'original' or 'matched', got {ev.pose_ransac_frame!r}")
+        try:
+            stored_over_matched = [max(matches.info[f"size{i}"]) / max(matches.info[f"match_size{i}"]) for i in (0, 1)]
+        except KeyError:
+            raise ValueError(f"{pair.name}: the cached matches do not record the size they were matched at, "
+                             "which a threshold in matched pixels needs") from None
+        focal = [pair.K0[0, 0], pair.K0[1, 1], pair.K1[0, 0], pair.K1[1, 1]]
+        matched = [f / stored_over_matched[i // 2] for i, f in enumerate(focal)]
+        return float(ev.pose_ransac_px * np.mean(focal) / np.mean(matched))
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         return metrics.summarize_pose(rows, ev.precision_thresholds, ev.drop_failures)

@@ -19,7 +19,8 @@ class Protocol:
     code used (num_levels, channel_order), per benchmark. drop_failures: pairs whose pose
     could not be estimated leave the AUC (instead of counting with error inf). upright:
     turn images upright by the pair list's rot0/rot1 before matching (keypoints are mapped
-    back to the stored images). standard: False flags every table row it produced."""
+    back to the stored images). evaluation: {benchmark: EvalSettings fields the reference's
+    evaluation sets}. standard: False flags every table row it produced."""
 
     name: str
     description: str
@@ -29,10 +30,15 @@ class Protocol:
     method_options: dict = field(default_factory=dict)
     drop_failures: bool = False
     upright: bool = True
+    evaluation: dict = field(default_factory=dict)
     standard: bool = True
 
     def resize_mode(self, benchmark: str) -> str:
         return self.resize.get(benchmark, "shrink")
+
+    def eval_fields(self, benchmark: str) -> dict:
+        """The EvalSettings fields this protocol sets on `benchmark`."""
+        return {"protocol": self.name, "drop_failures": self.drop_failures, **self.evaluation.get(benchmark, {})}
 
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
@@ -48,8 +54,9 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     ),
     Protocol(
         "superglue", "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
-        "longer side resized to 1600 px (enlarged too), bilinear",
+        "longer side resized to 1600 px (enlarged too), bilinear; essential-matrix RANSAC at 1 px of the resized images",
         ("yfcc",), max_side={"yfcc": 1600}, resize={"yfcc": "exact"},
+        evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
     ),
     Protocol(
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
