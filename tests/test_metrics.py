@@ -191,6 +191,26 @@ def test_pose_auc_by_hand():
     assert pose_auc([6.0, math.inf, 1.0, 3.0]) == pytest.approx([37.5, 57.5, 66.25])
 
 
+def test_pose_auc_equals_the_reference_convention_on_random_errors_with_ties():
+    """SuperGlue's / LoFTR's pose_auc, restated: sort all errors (failures as inf), put (0, 0)
+    first with recall k / N at the k-th, keep the points whose error is below the threshold
+    (searchsorted, left side), hold the last recall to the threshold, trapezoid, divide."""
+    def reference(errors, threshold):
+        e = np.concatenate([[0.0], np.sort(errors)])
+        r = np.concatenate([[0.0], np.arange(1, len(errors) + 1) / len(errors)])
+        last = np.searchsorted(e, threshold)
+        x, y = np.append(e[:last], threshold), np.append(r[:last], r[last - 1])
+        return 100 * float(np.sum((x[1:] - x[:-1]) * (y[1:] + y[:-1]) / 2)) / threshold
+
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        errors = rng.integers(0, 25, rng.integers(1, 30)).astype(float)  # whole numbers: ties at 5, 10, 20
+        errors[rng.random(len(errors)) < 0.2] = np.inf
+        if rng.random() < 0.5:
+            errors[np.isfinite(errors)] += rng.random(np.isfinite(errors).sum())
+        assert pose_auc(list(errors)) == pytest.approx([reference(errors, t) for t in (5, 10, 20)], abs=1e-12)
+
+
 def test_pose_auc_edge_cases():
     # An error exactly at the threshold does not count (SuperGlue's and LoFTR's pose_auc);
     # just below it, the curve (0,0) -> (5,1) has area 2.5 -> 50 %.
