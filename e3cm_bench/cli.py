@@ -168,9 +168,10 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     preset = get_protocol(protocol, benchmark)
     if max_side is None and benchmark in preset.max_side:
         max_side = preset.max_side[benchmark] or 0
-    options = parse_settings(settings)
     if matcher in NEEDS_BACKBONE:
         options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order)}
+    else:  # precision, channel order and the preset's network settings concern deep matchers only
+        options = parse_settings(settings)
     return MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
         get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
