@@ -184,6 +184,7 @@ def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_opti
          scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
+    console.print(preset.line(), markup=False)
     ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **preset.eval_fields(benchmark))
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)

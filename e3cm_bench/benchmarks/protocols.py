@@ -36,6 +36,10 @@ class Protocol:
     def resize_mode(self, benchmark: str) -> str:
         return self.resize.get(benchmark, "shrink")
 
+    def line(self) -> str:
+        """What a run prints before it starts, so that the settings behind its numbers are on screen."""
+        return f"protocol {self.name}: {self.description}"
+
     def eval_fields(self, benchmark: str) -> dict:
         """The EvalSettings fields this protocol sets on `benchmark`."""
         return {"protocol": self.name, "drop_failures": self.drop_failures, **self.evaluation.get(benchmark, {})}
@@ -43,7 +47,7 @@ class Protocol:
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
-        "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side 1200, HPatches full size; "
+        "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side at most 1200, HPatches full size; "
         "failures count with error inf; YFCC images turned upright)",
         ("hpatches", "megadepth", "yfcc"),
     ),
