@@ -151,15 +151,21 @@ class MethodSpec:
         """The label as a folder name: 'e3cm [efficientnet_lite0]' -> 'e3cm_efficientnet_lite0'."""
         return self.label.replace(" ", "_").replace("[", "").replace("]", "")
 
+    @property
+    def resize_description(self) -> str:
+        """The size images are matched at, in words."""
+        if not self.max_side:
+            return "full resolution"
+        return {"shrink": f"longer side at most {self.max_side} px",
+                "exact": f"longer side exactly {self.max_side} px (enlarged too)",
+                "exact-div8": f"longer side exactly {self.max_side} px, sides floored to multiples of 8",
+                }[self.resize]
+
     def describe(self) -> str:
         """One line for the console."""
-        resize = {"shrink": f"longer side at most {self.max_side} px",
-                  "exact": f"longer side exactly {self.max_side} px (enlarged too)",
-                  "exact-div8": f"longer side exactly {self.max_side} px, sides floored to multiples of 8",
-                  }[self.resize] if self.max_side else "full resolution"
         net = f" ({self.backbone})" if self.backbone else ""
         seed = f"; seed {self.seed}" if self.seed is not None else ""
-        return f"matcher {self.matcher}{net}; resize: {resize}{seed}"
+        return f"matcher {self.matcher}{net}; resize: {self.resize_description}{seed}"
 
 
 def identity_changes(before: dict, now: dict) -> list[str]:

@@ -259,11 +259,10 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
 
 
 def too_big_message(method: MethodSpec, error: BaseException) -> str:
-    resize = f"longer side {method.max_side} px" if method.max_side else "full resolution"
     # A MemoryError of DeepMatcher.check_memory says how much is needed and which side fits.
     hint = str(error) if isinstance(error, MemoryError) and "--max-side" in str(error) else \
         "pass a smaller --max-side, e.g. 1600"
-    return (f"its images at {resize} do not fit in memory for {method.label} (the pairs matched before it are "
+    return (f"its images at {method.resize_description} do not fit in memory for {method.label} (the pairs matched before it are "
             f"kept): {hint}")
 
 
