@@ -4,11 +4,23 @@ A baseline is a CSV with one row per run: ``benchmark, method`` and the metrics 
 (the paper-table metrics of the benchmark, plus MMA@3 for homography benchmarks). A metric
 that fell by more than its tolerance is a regression (exit 1); one that rose by more is a
 notice, since a silent improvement is also a change worth seeing.
+
+The numbers move with what made them: the CPU's instruction set (oneDNN picks other
+convolution kernels on AVX2 than on AVX-512), the torch build, the thread count. So the
+baseline's ``environment`` column records, per row, the versions and CPU settings of the run
+it was written from (`environment_string`), and a check names what differs from them
+(`environment_notes`): information, never a failure.
+
+Tolerances: a ``--tolerance`` on the command line (``METHOD:METRIC=T`` for one method,
+``METRIC=T`` for all) > the most specific row of a ``--tolerances`` file (columns benchmark,
+method, metric, tolerance; ``*`` = any) > DEFAULT_TOLERANCES. See `Tolerances`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +48,14 @@ DEFAULT_TOLERANCES = {
     "P": 0.15,
 }
 KEYS = ("benchmark", "method")
+ENVIRONMENT_COLUMN = "environment"  # not a metric: where the row's numbers were made
+NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN)
+# What the environment string records, in its order: the packages the numbers depend on, then
+# the CPU settings (config.yaml's environment; the ISA variables only where they were set).
+ENVIRONMENT_PACKAGES = ("python", "torch", "torchvision", "numpy", "opencv-python-headless")
+ISA_KEYS = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
+TOLERANCE_FILE_COLUMNS = ("benchmark", "method", "metric", "tolerance")
+ANY = "*"
 
 
 def baseline_metrics(run: Run) -> dict[str, float]:
@@ -64,8 +84,112 @@ def find_runs(paths: list[Path]) -> list[Run]:
 
 
 def write_baseline(runs: list[Run], path: Path) -> Path:
-    rows = [{"benchmark": run.benchmark.name, "method": run.label, **baseline_metrics(run)} for run in runs]
+    rows = [{"benchmark": run.benchmark.name, "method": run.label, **baseline_metrics(run),
+             ENVIRONMENT_COLUMN: environment_string(run.config)} for run in runs]
     return write_csv(pd.DataFrame(rows), path)
+
+
+# --------------------------------------------------------------------------- environment
+
+
+def run_environment_items(config: dict) -> dict[str, str]:
+    """What a run's numbers depend on, from its config.yaml, as ordered ``name -> value`` strings.
+
+    Packages (ENVIRONMENT_PACKAGES, from ``versions``), then ``cpu`` (torch's CPU capability),
+    the ISA variables that were set, ``threads`` (from ``environment``). A run written before
+    ``environment`` was recorded has only its packages; one without ``versions`` nothing.
+    """
+    versions = config.get("versions") if isinstance(config.get("versions"), dict) else {}
+    environment = config.get("environment") if isinstance(config.get("environment"), dict) else {}
+    # torch's version with its build tag (environment.torch) where recorded, else the package's
+    packages = {**versions, **({"torch": environment["torch"]} if environment.get("torch") else {})}
+    items = {name: str(packages[name]) for name in ENVIRONMENT_PACKAGES if packages.get(name) is not None}
+    if environment.get("cpu_capability") is not None:
+        items["cpu"] = str(environment["cpu_capability"])
+    items.update({name: str(environment[name]) for name in ISA_KEYS if environment.get(name)})
+    if environment.get("threads") is not None:
+        items["threads"] = str(environment["threads"])
+    return {name: _clean(value) for name, value in items.items()}
+
+
+def _clean(value: str) -> str:
+    """A value that survives the string's syntax (no separators, no spaces)."""
+    return "".join(value.split()).replace(";", ",").replace("=", ":") or "?"
+
+
+def environment_string(config: dict) -> str:
+    """E.g. ``python=3.12.3; torch=2.14.1+cu130; ...; cpu=AVX512; threads=2`` (see run_environment_items)."""
+    return "; ".join(f"{name}={value}" for name, value in run_environment_items(config).items())
+
+
+def parse_environment(value) -> dict[str, str]:
+    """An environment string back into ``name -> value``; empty for a missing cell, and pieces
+    that are no ``name=value`` are ignored (a hand-edited note does not break a check)."""
+    if not isinstance(value, str):
+        return {}
+    items = {}
+    for piece in value.split(";"):
+        name, sep, item = piece.partition("=")
+        if sep and name.strip() and item.strip():
+            items[name.strip()] = item.strip()
+    return items
+
+
+def _same_version(before: str, now: str) -> bool:
+    """Equal, or equal but for a build tag only one side records (``2.14.1`` vs ``2.14.1+cu130``:
+    a package's metadata may lack the tag that torch's own version string has)."""
+    if before == now:
+        return True
+    (b, b_tag), (n, n_tag) = before.partition("+")[::2], now.partition("+")[::2]
+    return b == n and not (b_tag and n_tag)
+
+
+def environment_differences(baseline: dict[str, str], measured: dict[str, str]) -> list[str]:
+    """``name before -> now`` for each setting recorded on both sides that differs, packages first.
+
+    A side that records the CPU settings (``cpu``) but no ISA variable had it unset; a side that
+    records no CPU settings (a run older than them) is compared on its packages only.
+    """
+    both_cpu = "cpu" in baseline and "cpu" in measured
+    order = [*ENVIRONMENT_PACKAGES, "cpu", *ISA_KEYS, "threads"]
+    names = sorted(set(baseline) | set(measured), key=lambda n: (order.index(n) if n in order else len(order), n))
+    changes = []
+    for name in names:
+        before, now = baseline.get(name), measured.get(name)
+        if name in ISA_KEYS and both_cpu:
+            before, now = before or "unset", now or "unset"
+        if before is None or now is None or _same_version(before, now):
+            continue
+        changes.append(f"{name} {before} -> {now}")
+    return changes
+
+
+def environment_notes(runs: list[Run], baseline_path: Path) -> list[str]:
+    """One line per distinct difference between the runs' environments and their baseline rows'.
+
+    A difference shared by every run compared is one line; one that only some runs have names them.
+    Runs without a baseline row, and rows without an environment, are not compared.
+    """
+    baseline = read_baseline(baseline_path)
+    if ENVIRONMENT_COLUMN not in baseline.columns:
+        return []
+    rows = {(str(r["benchmark"]), str(r["method"])): parse_environment(r[ENVIRONMENT_COLUMN])
+            for _, r in baseline.iterrows()}
+    groups: dict[tuple[str, ...], list[str]] = {}
+    compared = 0
+    for run in runs:
+        key = (run.benchmark.name, run.label)
+        if key not in rows or not rows[key]:
+            continue
+        compared += 1
+        changes = environment_differences(rows[key], run_environment_items(run.config))
+        if changes:
+            groups.setdefault(tuple(changes), []).append(f"{run.label} on {run.benchmark.name}")
+    notes = []
+    for changes, names in groups.items():
+        line = f"environment differs from the baseline's: {', '.join(changes)}"
+        notes.append(line if len(names) == compared else f"{line} ({', '.join(names)})")
+    return notes
 
 
 @dataclass
@@ -92,25 +216,130 @@ class Finding:
         return "ok"
 
 
-def parse_tolerances(items: list[str] | None) -> dict[str, float]:
-    tolerances = dict(DEFAULT_TOLERANCES)
+# --------------------------------------------------------------------------- tolerances
+
+
+def _tolerance_value(text, where: str) -> float:
+    """A tolerance: a finite number >= 0 (a NaN one would let every change pass)."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: tolerance {text!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"{where}: tolerance must be a finite number >= 0, got {text!r}")
+    return value
+
+
+def parse_tolerance_options(items: list[str] | None) -> dict[tuple[str | None, str], float]:
+    """``--tolerance`` items: ``METRIC=T`` -> (None, metric), ``METHOD:METRIC=T`` -> (method, metric)."""
+    tolerances: dict[tuple[str | None, str], float] = {}
     for item in items or []:
-        metric, sep, value = item.partition("=")
-        try:
-            tolerances[metric.strip()] = float(value)
-        except ValueError:
-            sep = ""
-        if not sep or not metric.strip():
+        target, sep, value = item.partition("=")
+        method, colon, metric = target.rpartition(":")
+        method, metric = method.strip(), metric.strip()
+        if not sep or not metric or (colon and not method):
             raise ValueError(f"--tolerance: expected METRIC=VALUE (e.g. auc@10=2.5), got {item!r}")
+        try:
+            float(value)
+        except ValueError:
+            raise ValueError(f"--tolerance: expected METRIC=VALUE (e.g. auc@10=2.5), got {item!r}") from None
+        tolerances[(method or None, metric)] = _tolerance_value(value, f"--tolerance {item}")
     return tolerances
 
 
-def compare(runs: list[Run], baseline_path: Path, tolerances: dict[str, float]) -> tuple[list[Finding], list[str]]:
-    """Each baseline metric of each run, and the problems that are no metric (runs missing)."""
-    baseline = read_csv(baseline_path, what="baseline (write one with check --update)")
+def parse_tolerances(items: list[str] | None) -> dict[str, float]:
+    """DEFAULT_TOLERANCES with the ``METRIC=T`` items applied (per metric, for all methods).
+
+    A ``METHOD:METRIC=T`` item is refused here, since a per-metric table cannot hold it: use
+    `Tolerances.load`, which takes both.
+    """
+    tolerances = dict(DEFAULT_TOLERANCES)
+    for (method, metric), value in parse_tolerance_options(items).items():
+        if method is not None:
+            raise ValueError(f"--tolerance: {method}:{metric} is per method; use Tolerances.load")
+        tolerances[metric] = value
+    return tolerances
+
+
+def read_tolerance_file(path: Path) -> dict[tuple[str, str, str], float]:
+    """A tolerance CSV (benchmark, method, metric, tolerance; other columns ignored; ``*`` = any)
+    as ``(benchmark, method, metric) -> tolerance``; a one-line ValueError naming the file for
+    missing columns, empty keys, a tolerance that is no finite number >= 0, or a repeated row."""
+    path = Path(path)
+    table = read_csv(path, what="tolerance file")
+    table.columns = [str(c).strip() for c in table.columns]
+    missing = [c for c in TOLERANCE_FILE_COLUMNS if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected {', '.join(TOLERANCE_FILE_COLUMNS)})")
+    tolerances: dict[tuple[str, str, str], float] = {}
+    lines: dict[tuple[str, str, str], int] = {}
+    for index, row in table.iterrows():
+        line = int(index) + 2  # the header is line 1
+        key = []
+        for column in TOLERANCE_FILE_COLUMNS[:3]:
+            value = row[column]
+            if pd.isna(value) or not str(value).strip():
+                raise ValueError(f"{path}: line {line}: empty {column}")
+            key.append(str(value).strip())
+        key = tuple(key)
+        if key in tolerances:
+            raise ValueError(f"{path}: line {line}: {', '.join(key)} is also on line {lines[key]}")
+        tolerances[key] = _tolerance_value(row["tolerance"], f"{path}: line {line} ({', '.join(key)})")
+        lines[key] = line
+    return tolerances
+
+
+@dataclass
+class Tolerances:
+    """Which tolerance applies to a metric of a method on a benchmark, most specific first:
+
+    1. command line for this method (``--tolerance METHOD:METRIC=T``),
+    2. command line for every method (``--tolerance METRIC=T``),
+    3. file rows: benchmark+method > ``*``+method > benchmark+``*`` > ``*``+``*``,
+    4. DEFAULT_TOLERANCES.
+    """
+
+    defaults: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_TOLERANCES))
+    rows: Mapping[tuple[str, str, str], float] = field(default_factory=dict)
+    options: Mapping[tuple[str | None, str], float] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, items: list[str] | None = None, path: Path | None = None) -> Tolerances:
+        """From ``--tolerance`` items and a ``--tolerances`` file (either may be absent)."""
+        options = parse_tolerance_options(items)
+        rows = read_tolerance_file(path) if path is not None else {}
+        return cls(rows=rows, options=options)
+
+    def get(self, benchmark: str, method: str, metric: str) -> float | None:
+        candidates = (
+            self.options.get((method, metric)),
+            self.options.get((None, metric)),
+            self.rows.get((benchmark, method, metric)),
+            self.rows.get((ANY, method, metric)),
+            self.rows.get((benchmark, ANY, metric)),
+            self.rows.get((ANY, ANY, metric)),
+            self.defaults.get(metric),
+        )
+        return next((value for value in candidates if value is not None), None)
+
+
+def read_baseline(path: Path) -> pd.DataFrame:
+    baseline = read_csv(path, what="baseline (write one with check --update)")
     missing_columns = [c for c in KEYS if c not in baseline.columns]
     if missing_columns:
-        raise ValueError(f"{baseline_path}: missing column(s) {', '.join(missing_columns)}")
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing_columns)}")
+    return baseline
+
+
+def compare(runs: list[Run], baseline_path: Path,
+            tolerances: Tolerances | Mapping[str, float]) -> tuple[list[Finding], list[str]]:
+    """Each baseline metric of each run, and the problems that are no metric (runs missing).
+
+    ``tolerances``: a `Tolerances`, or a plain ``metric -> tolerance`` mapping (parse_tolerances).
+    """
+    if not isinstance(tolerances, Tolerances):
+        tolerances = Tolerances(defaults=dict(tolerances))
+    baseline = read_baseline(baseline_path)
     rows = {(str(r["benchmark"]), str(r["method"])): r for _, r in baseline.iterrows()}
     seen, findings, problems = set(), [], []
     for run in runs:
@@ -121,11 +350,14 @@ def compare(runs: list[Run], baseline_path: Path, tolerances: dict[str, float]) 
         seen.add(key)
         measured = baseline_metrics(run)
         for metric in baseline.columns:
-            if metric in KEYS or pd.isna(rows[key][metric]) and metric not in measured:
+            if metric in NOT_METRICS or pd.isna(rows[key][metric]) and metric not in measured:
                 continue
-            tolerance = tolerances.get(metric)
+            tolerance = tolerances.get(key[0], key[1], metric)
             if tolerance is None:
-                raise ValueError(f"{baseline_path}: no tolerance for metric {metric!r}; pass --tolerance {metric}=T")
+                raise ValueError(f"{baseline_path}: no tolerance for metric {metric!r}; pass --tolerance {metric}=T "
+                                 "or give it a row in --tolerances")
+            if not math.isfinite(tolerance) or tolerance < 0:  # a plain mapping is not validated on the way in
+                raise ValueError(f"{baseline_path}: tolerance of {metric!r} must be a finite number >= 0, got {tolerance!r}")
             findings.append(Finding(key[0], key[1], metric, float(rows[key][metric]),
                                     float(measured.get(metric, np.nan)), tolerance))
     for key in rows:
@@ -134,13 +366,19 @@ def compare(runs: list[Run], baseline_path: Path, tolerances: dict[str, float]) 
     return findings, problems
 
 
-def markdown_summary(findings: list[Finding], problems: list[str], baseline_path: Path) -> str:
-    """A Markdown report (GitHub Actions: append it to $GITHUB_STEP_SUMMARY)."""
+def markdown_summary(findings: list[Finding], problems: list[str], baseline_path: Path,
+                     notes: Sequence[str] = (), tolerance_file: Path | None = None) -> str:
+    """A Markdown report (GitHub Actions: append it to $GITHUB_STEP_SUMMARY); ``notes``: the
+    environment differences (environment_notes), listed above the table."""
     marks = {"ok": "ok", "regression": "**regression**", "improvement": "improved"}
     lines = [f"### e3cm-bench check against `{baseline_path}`", ""]
     bad = [f for f in findings if f.status == "regression"]
     lines.append(f"{len(findings)} metrics checked: {len(bad)} regression(s), "
                  f"{sum(f.status == 'improvement' for f in findings)} improvement(s), {len(problems)} problem(s).")
+    if tolerance_file is not None:
+        lines += ["", f"Tolerances: the command line's, then `{tolerance_file}`, then the defaults."]
+    if notes:
+        lines += [""] + [f"- {note}" for note in notes]
     lines += ["", "| benchmark | method | metric | baseline | measured | change | tolerance | status |",
               "|---|---|---|---:|---:|---:|---:|---|"]
     for f in findings:

@@ -358,21 +358,29 @@ def demo(
 @friendly_errors
 def check(
     run_dirs: Annotated[list[Path], typer.Argument(help="Run folders, or folders holding run folders (e.g. e3cm-demo/hpatches).")],
-    baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics), e.g. results/baselines/demo_hpatches.csv.")],
-    tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance", help="METRIC=T: allowed fall (absolute) of a metric; repeatable.")] = None,
-    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs instead of checking.")] = False,
+    baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics, environment), e.g. results/baselines/demo_hpatches.csv.")],
+    tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance", help="METRIC=T, or METHOD:METRIC=T for one method: allowed fall (absolute) of a metric; repeatable; wins over --tolerances.")] = None,
+    tolerances: Annotated[Optional[Path], typer.Option("--tolerances", help="CSV of tolerances: benchmark, method, metric, tolerance (* = any; the most specific row applies; other columns ignored).")] = None,
+    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs (with each run's environment) instead of checking.")] = False,
     summary: Annotated[Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
 ) -> None:
-    """Compare runs' summaries with a baseline: exit 1 naming each metric that fell by more than its tolerance."""
+    """Compare runs' summaries with a baseline: exit 1 naming each metric that fell by more than its tolerance.
+
+    Where a run's versions or CPU settings differ from those its baseline row was written with,
+    one line names each difference (information: the numbers may move with them)."""
     runs = regression.find_runs(run_dirs)
     if update:
         regression.write_baseline(runs, baseline)
         console.print(f"baseline: {len(runs)} runs written to {baseline}")
         return
-    findings, problems = regression.compare(runs, baseline, regression.parse_tolerances(tolerance))
-    text = regression.markdown_summary(findings, problems, baseline)
+    limits = regression.Tolerances.load(tolerance, tolerances)
+    findings, problems = regression.compare(runs, baseline, limits)
+    notes = regression.environment_notes(runs, baseline)
+    text = regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
     if summary is not None:
         regression.write_summary(text, summary)
+    for note in notes:
+        console.print(note, highlight=False, markup=False, soft_wrap=True)  # one line, however long
     for f in findings:
         if f.status != "ok":
             style = "bold red" if f.status == "regression" else "yellow"

@@ -1,4 +1,4 @@
-"""Reading and writing the files of a run: atomic writes, YAML, CSV, hashes, versions.
+"""Reading and writing the files of a run: atomic writes, YAML, CSV, hashes, versions, environment.
 
 Every file the toolkit writes goes through `write_atomically`, so an interrupted write
 leaves the old file or the new one, never a truncated mix. Every reader turns a broken
@@ -24,6 +24,10 @@ import pandas as pd
 import yaml
 
 PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headless", "h5py", "pandas")
+# Environment variables that choose the CPU kernels (oneDNN's convolutions, ATen's vectorised ops),
+# and the CPU flags that decide which kernels the defaults pick.
+ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
+CPU_FLAGS = ("avx512_bf16", "avx512f", "avx2")
 CSV_FLOAT_FORMAT = "%.8g"
 
 
@@ -35,6 +39,51 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             versions[name] = "not installed"
     return versions
+
+
+def _cpuinfo() -> tuple[str | None, set[str] | None]:
+    """The CPU's model name and flags from /proc/cpuinfo (first processor); (None, None) where absent."""
+    try:
+        text = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return None, None
+    model, flags = None, None
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if model is None and key in ("model name", "Processor", "cpu model"):
+            model = value.strip() or None
+        elif flags is None and key in ("flags", "Features"):
+            flags = set(value.split())
+        if model is not None and flags is not None:
+            break
+    return model, flags
+
+
+def run_environment() -> dict:
+    """What a run's numbers depend on beyond package versions (config.yaml's ``environment``).
+
+    torch's version string with its build tag, the CPU capability torch dispatches to
+    (``torch.backends.cpu.get_cpu_capability()``: AVX512, AVX2, DEFAULT ...), the environment
+    variables that change it (recorded only when set), torch's thread count, the CPU model and
+    whether it has the avx512_bf16 / avx512f / avx2 flags (null where /proc/cpuinfo is absent).
+    oneDNN picks other convolution kernels on other instruction sets, and those round differently.
+    """
+    import torch  # lazily: files.py is imported by commands that never need torch
+
+    try:
+        capability = str(torch.backends.cpu.get_cpu_capability())
+    except (AttributeError, RuntimeError):  # torch before 2.1
+        capability = "unknown"
+    model, flags = _cpuinfo()
+    # torch's own version string names its build (2.14.1+cu130, 2.14.1+cpu), which the
+    # package metadata in `versions` may not.
+    environment = {"torch": str(torch.__version__), "cpu_capability": capability}
+    environment.update({name: os.environ[name] for name in ISA_VARIABLES if os.environ.get(name)})
+    environment["threads"] = int(torch.get_num_threads())
+    environment["cpu_model"] = model or platform.processor() or platform.machine() or "unknown"
+    environment["cpu_flags"] = None if flags is None else {flag: flag in flags for flag in CPU_FLAGS}
+    return environment
 
 
 def file_sha256(path: str | Path) -> str:

@@ -27,7 +27,7 @@ from rich.text import Text
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import BLOCK_PAIRS, MatchCache
 from .datasets.base import Pair, PairList
-from .files import FolderLock, absolute_paths, load_yaml, package_versions, save_yaml, write_csv
+from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml, write_csv
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers import check_device, is_out_of_memory
 from .matchers.base import Matcher
@@ -552,7 +552,10 @@ def _open_run(
         "device": source.get("device", device) if source else device,
         "dataset": {**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
         "evaluation": asdict(ev),
+        # Where the numbers were made (this stage's, like versions); neither is part of the
+        # identity that decides whether a folder may be resumed (_previous_config).
         "versions": package_versions(),
+        "environment": run_environment(),
         "timing": (previous or {}).get("timing", {}),
     }
     if (previous or {}).get("feature_reuse"):  # counts of earlier stages; add_stats adds this one's

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
+import yaml
 from typer.testing import CliRunner
 
 from e3cm_bench.cli import app
@@ -57,6 +59,27 @@ def test_demo_rerun_reuses_data_and_matches(demo_out):
     assert flat(result.output).count("found in") == 2 and "matching (" not in result.output
 
 
+def test_runs_record_their_environment_which_does_not_block_a_resume(demo_out, tmp_path):
+    """config.yaml's versions and environment say where the numbers were made; a folder made
+    elsewhere (or before the environment was recorded) still resumes, and gets this one's."""
+    config = yaml.safe_load((demo_out / "hpatches" / "sift" / "config.yaml").read_text())
+    assert config["environment"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert config["environment"]["threads"] == torch.get_num_threads()
+    out = tmp_path / "e3cm-demo"
+    shutil.copytree(demo_out, out)
+    for set_name in ("hpatches", "scenes"):
+        path = out / set_name / "sift" / "config.yaml"
+        old = yaml.safe_load(path.read_text())
+        del old["environment"]
+        old["versions"] = {**old["versions"], "torch": "1.0.0", "numpy": "1.0.0"}
+        path.write_text(yaml.safe_dump(old, sort_keys=False))
+    result = invoke("demo", "--out", out, "--quick", "--methods", "sift")
+    assert result.exit_code == 0 and flat(result.output).count("found in") == 2 and "matching (" not in result.output
+    for set_name in ("hpatches", "scenes"):
+        config = yaml.safe_load((out / set_name / "sift" / "config.yaml").read_text())
+        assert config["environment"]["torch"] == torch.__version__ and config["versions"]["numpy"] != "1.0.0"
+
+
 def test_demo_rejects_unknown_methods(tmp_path):
     line = one_line_error(invoke("demo", "--out", tmp_path / "d", "--methods", "e3cm,superglue"))
     assert "superglue" in line and "e3cm-ransac" in line
@@ -71,7 +94,9 @@ def checked(demo_out, tmp_path) -> tuple[Path, Path]:
     result = invoke("check", runs, "--baseline", baseline, "--update")
     assert result.exit_code == 0 and "2 runs written" in flat(result.output)
     table = pd.read_csv(baseline)
-    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3"]
+    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment"]
+    assert table["environment"].str.contains(f"; torch={torch.__version__}; ", regex=False).all()
+    assert table["environment"].str.contains(f"; cpu={torch.backends.cpu.get_cpu_capability()}; ", regex=False).all()
     return runs, baseline
 
 
@@ -133,3 +158,4 @@ def test_committed_baselines_cover_the_demo():
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
         assert sorted(table["method"]) == sorted(DEMO_METHODS)
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()
+
