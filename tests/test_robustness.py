@@ -50,6 +50,65 @@ def cli(*args, **kwargs) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint, **kwargs)
 
 
+# The real command, but once its N-th pair is stored (its block file written and closed, as
+# after any pair) it writes the stored names to MARKER (atomically) and waits there, in the
+# main thread, where Python runs signal handlers, until a signal ends it. A test then signals
+# it at a known point, however fast or slow the machine is. The wait is a loop of short
+# sleeps, not signal.pause(): a signal that lands between the marker and the wait would be
+# missed by pause() for good, while the loop sees it at its next turn.
+_PARK_AFTER_PAIRS = """
+import os, sys, threading, time
+from pathlib import Path
+from e3cm_bench.cache import MatchCache
+
+after, marker = int(sys.argv.pop(1)), Path(sys.argv.pop(1))
+store, stored = MatchCache.write, []
+
+def store_then_park(self, name, matches, attrs=None):
+    store(self, name, matches, attrs)
+    stored.append(name)
+    if len(stored) < after:
+        return
+    if threading.current_thread() is not threading.main_thread():  # a signal would not reach the wait
+        sys.stderr.write(f"parked run: pairs are stored in thread {threading.current_thread().name!r}, "
+                         "not the main one; the test's way of stopping the run must change\\n")
+        sys.stderr.flush()
+        os._exit(3)
+    Path(f"{marker}.tmp").write_text("\\n".join(stored))
+    os.replace(f"{marker}.tmp", marker)
+    while True:
+        time.sleep(0.05)
+
+MatchCache.write = store_then_park
+from e3cm_bench.cli import app
+app()
+"""
+
+
+def parked_cli(after_pairs: int, marker: Path, *args) -> subprocess.Popen:
+    """cli(*args) that stops for a signal once it has stored `after_pairs` pairs (see _PARK_AFTER_PAIRS)."""
+    return subprocess.Popen([sys.executable, "-c", _PARK_AFTER_PAIRS, str(after_pairs), str(marker), *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
+
+
+def wait_parked(process: subprocess.Popen, marker: Path, timeout: float = 600) -> list[str]:
+    """The names a parked_cli run had stored when it stopped; fails the test if it ends or takes
+    longer than `timeout` seconds (a deadline for a stuck run only: the verdict never depends on it)."""
+    deadline = time.monotonic() + timeout
+    while not marker.exists():
+        if process.poll() is not None:
+            out, err = process.communicate()
+            pytest.fail(f"the run ended (code {process.returncode}) before storing the pairs it was to stop after:\n"
+                        f"{out[-2000:]}\n{err[-4000:]}")
+        if time.monotonic() > deadline:
+            process.kill()
+            out, err = process.communicate()
+            pytest.fail(f"the run had not stored the pairs it was to stop after within {timeout:.0f} s:\n"
+                        f"{out[-2000:]}\n{err[-4000:]}")
+        time.sleep(0.02)  # polls a run that waits for us: how long this takes changes nothing
+    return marker.read_text().split("\n")
+
+
 @pytest.fixture
 def hpatches_copy(shared_data, tmp_path) -> Path:
     root = tmp_path / "hpatches"
@@ -74,17 +133,18 @@ def same_csvs(a: Path, b: Path) -> None:
 
 def test_a_second_run_into_the_same_folder_is_refused_while_the_first_runs(hpatches_copy, tmp_path):
     out = tmp_path / "run"
-    # Long enough (15 pairs at full size) to be still running when the second has started.
-    first = cli("hpatches", "--root", hpatches_copy, "--out", out, *LITE, "--max-side", 0)
-    deadline = time.time() + 120
-    while not (out / "config.yaml").is_file() and first.poll() is None and time.time() < deadline:
-        time.sleep(0.05)  # the first run has the lock once it has written its identity
+    # The first run holds the lock, stopped after its first pair until it is sent Ctrl-C, so it
+    # is still running while the second is refused, however fast the machine.
+    first = parked_cli(1, tmp_path / "parked", "hpatches", "--root", hpatches_copy, "--out", out, *LITE,
+                       "--max-side", 320)
+    assert len(wait_parked(first, tmp_path / "parked")) == 1
     second = cli("hpatches", "--root", hpatches_copy, "--out", out, "--matcher", "sift")
     _, err = second.communicate(timeout=120)
     still_running = first.poll() is None
     first.send_signal(signal.SIGINT)
-    first.communicate(timeout=120)
+    _, first_err = first.communicate(timeout=120)
     assert still_running, "the first run ended before the second was refused: the test proves nothing"
+    assert first.returncode == 130, first_err
     assert second.returncode == 2, err
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and "another run is using this folder" in lines[0] and f"pid {first.pid}" in lines[0]
@@ -337,8 +397,9 @@ def test_console_table_keeps_bracketed_labels(hpatches_copy, tmp_path):
 def interrupt_args(shared_data, tmp_path_factory):
     root = tmp_path_factory.mktemp("intr") / "hpatches"
     shutil.copytree(shared_data / "hpatches-sequences-release", root)
-    # Feature reuse off: with it the 14 pairs after the first one take well under a second,
-    # and the signal could arrive after the run has ended.
+    # Feature reuse off: every pair runs the backbone itself, so the resume is tested apart from
+    # the feature cache. (It also once kept the run slow enough for a signal to land mid-run;
+    # the interrupted runs now stop at a known pair instead, see parked_cli.)
     args = ["hpatches", "--root", root, "--matcher", "direct", *LITE, "--max-side", 320, "--feature-cache-mb", 0]
     reference = root.parent / "reference"
     done = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", *map(str, args), "--out", str(reference)],
@@ -350,18 +411,15 @@ def interrupt_args(shared_data, tmp_path_factory):
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_a_signalled_run_resumes_to_the_same_csvs(interrupt_args, tmp_path, sig):
     args, reference = interrupt_args
-    out = tmp_path / "run"
-    process = cli(*args, "--out", out)
-    deadline = time.time() + 300
-    while not (out / "matches.h5").exists() and time.time() < deadline:  # the first pair is written
-        time.sleep(0.02)
+    out, marker = tmp_path / "run", tmp_path / "parked"
+    process = parked_cli(2, marker, *args, "--out", out)
+    stored = wait_parked(process, marker)  # the run waits, after its 2nd pair, for the signal
     process.send_signal(sig)
     _, err = process.communicate(timeout=120)
     assert process.returncode == (-9 if sig == signal.SIGKILL else 130), err
     if sig == signal.SIGINT:
         assert "interrupted" in err and "Traceback" not in err
-    done_before = len(MatchCache(out / "matches.h5").names())
-    assert done_before < 15
+    assert len(stored) == 2 and MatchCache(out / "matches.h5").names() == sorted(stored)  # 13 of 15 left
     rerun = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", *map(str, args), "--out", str(out)],
                            capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, rerun.stderr
