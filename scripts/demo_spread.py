@@ -1,66 +1,75 @@
-"""Run-to-run spread of the demo's metrics, from which `check`'s default tolerances are chosen.
+"""`check`'s tolerances from the spread of the demo's metrics across environments.
 
-Runs the demo with several estimator seeds (the data stays the same) and once with a
-single CPU thread, then prints, per metric, the largest difference from the seed-0 run
-over all methods and both sets, and twice that as the proposed tolerance. Deterministic
-methods (e3cm top8, direct, sift) are matched once and only re-evaluated under other seeds.
+Reads the demo tables of every cell of an environment matrix (scripts/env_matrix.sh:
+OUT/<torch>/<variant>/demo/{hpatches,scenes}_table.csv; variants: native kernels, oneDNN one
+instruction set lower, ATen's default kernels, one thread), and writes, per benchmark, method
+and metric, the range measured (max - min over the cells) and the tolerance: twice the range,
+floored at one step of the metric (one pair of 15 for h_acc, one point for MMA@3 and AUC,
+0.1 for P). Estimator seeds move nothing (OpenCV 5's RANSAC ignores cv2.setRNGSeed), so
+they are not part of the matrix.
 
-    python scripts/demo_spread.py [--out runs/spread] [--seeds 0 1 2]
+    python scripts/demo_spread.py --matrix runs/env_matrix [--write results/baselines/demo_tolerances.csv]
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import subprocess
-import sys
+import math
 from pathlib import Path
 
 import pandas as pd
 
-DETERMINISTIC = ("e3cm", "direct", "sift")  # draw no random numbers while matching
-SETS = ("hpatches", "scenes")
+SETS = {"hpatches": "hpatches", "scenes": "yfcc"}  # demo set -> benchmark name
+NOT_METRICS = ("method", "source", "n_pairs", "vs_paper", "protocol")
+FLOORS = {"h_acc@1": 0.07, "h_acc@3": 0.07, "h_acc@5": 0.07, "mma@3": 0.01, "auc@5": 1.0, "auc@10": 1.0,
+          "auc@20": 1.0, "P": 0.1}
 
 
-def table(run: Path, set_name: str) -> pd.DataFrame:
-    t = pd.read_csv(run / f"{set_name}_table.csv").set_index("method")
-    return t.drop(columns=[c for c in ("source", "n_pairs") if c in t.columns])
+def cells(matrix: Path) -> list[tuple[str, str, Path]]:
+    """(torch, variant, demo folder) of each cell with both tables."""
+    found = []
+    for demo in sorted(matrix.glob("*/*/demo")):
+        if all((demo / f"{s}_table.csv").is_file() for s in SETS):
+            found.append((demo.parent.parent.name, demo.parent.name, demo))
+    return found
+
+
+def spread(matrix: Path) -> pd.DataFrame:
+    rows = []
+    for torch_version, variant, demo in cells(matrix):
+        for set_name, benchmark in SETS.items():
+            table = pd.read_csv(demo / f"{set_name}_table.csv")
+            for _, row in table.iterrows():
+                for metric in (c for c in table.columns if c not in NOT_METRICS):
+                    rows.append({"benchmark": benchmark, "method": row["method"], "metric": metric,
+                                 "cell": f"{torch_version}/{variant}", "value": float(row[metric])})
+    values = pd.DataFrame(rows)
+    if values.empty:
+        raise SystemExit(f"{matrix}: no cell with both demo tables (run scripts/env_matrix.sh first)")
+    grouped = values.groupby(["benchmark", "method", "metric"], sort=False)["value"]
+    out = grouped.agg(["min", "max", "count"]).reset_index()
+    out["spread"] = out["max"] - out["min"]
+    out["tolerance"] = [max(2 * s, FLOORS.get(m, 0.0)) for s, m in zip(out["spread"], out["metric"])]
+    # Rounded up to two significant digits, so the file reads as chosen, not as noise.
+    out["tolerance"] = [math.ceil(t / 10 ** (math.floor(math.log10(t)) - 1)) * 10 ** (math.floor(math.log10(t)) - 1)
+                        for t in out["tolerance"]]
+    return out.rename(columns={"count": "cells"})
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("runs/spread"))
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--matrix", type=Path, default=Path("runs/env_matrix"))
+    parser.add_argument("--write", type=Path, default=None, help="write the tolerances CSV (check --tolerances)")
     args = parser.parse_args()
-    variants = {f"seed{s}": (s, {}) for s in args.seeds}
-    variants["threads1"] = (args.seeds[0], {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
-    reference = args.out / f"seed{args.seeds[0]}"
-    for name, (seed, env) in variants.items():
-        out = args.out / name
-        if out != reference and not env and (reference / "hpatches").is_dir():
-            for set_name in SETS:  # the seed changes no match of these: reuse them, evaluate anew
-                for method in DETERMINISTIC:
-                    if not (out / set_name / method).exists():
-                        shutil.copytree(reference / set_name / method, out / set_name / method)
-        command = [sys.executable, "-m", "e3cm_bench.cli", "demo", "--out", str(out), "--seed", str(seed)]
-        print("+", " ".join(command), env or "", flush=True)
-        subprocess.run(command, check=True, env={**os.environ, **env}, stdout=subprocess.DEVNULL)
-
-    rows = []
-    for set_name in SETS:
-        base = table(reference, set_name)
-        for name in variants:
-            other = table(args.out / name, set_name)
-            diff = (other - base).abs()
-            for metric in diff.columns:
-                rows.append({"set": set_name, "variant": name, "metric": metric, "max_abs_diff": diff[metric].max(),
-                             "worst_method": diff[metric].idxmax()})
-    spread = pd.DataFrame(rows)
-    print(spread.to_string(index=False))
-    worst = spread.groupby("metric")["max_abs_diff"].max()
-    print("\nlargest difference per metric, and twice that:")
-    print(pd.DataFrame({"max_abs_diff": worst, "2x": 2 * worst}).to_string())
+    found = cells(args.matrix)
+    print(f"{len(found)} cells: {', '.join(f'{t}/{v}' for t, v, _ in found)}")
+    table = spread(args.matrix)
+    with pd.option_context("display.width", 200, "display.max_rows", 500):
+        print(table.round(4).to_string(index=False))
+    if args.write:
+        columns = ["benchmark", "method", "metric", "tolerance", "spread", "min", "max", "cells"]
+        table[columns].round(6).to_csv(args.write, index=False)
+        print(f"written: {args.write}")
 
 
 if __name__ == "__main__":
