@@ -259,3 +259,26 @@ def test_dfm_corrected_differs_only_where_the_release_slips(matchers, seed0_weig
     h = image1.shape[0]
     assert (release.keypoints1[:, 1] >= h - 16).any()
     assert not (corrected.keypoints1[:, 1] >= h - 16).any()
+
+
+def test_parity_script_on_a_reference_file(seed0_weights, tmp_path):
+    """scripts/parity.py runs the checks on any file in the fixtures' layout: it passes on the
+    reference's own r09 lists and fails, naming the list, when one list is moved by a pixel."""
+    import subprocess
+    import sys
+
+    ref = dict(np.load(PARITY / "graf12_640.npz"))
+    r09 = {k: v for k, v in ref.items() if k.startswith("r09_")}
+    good, bad = tmp_path / "good.npz", tmp_path / "bad.npz"
+    np.savez(good, **r09)
+    np.savez(bad, **{**r09, "r09_L2_A": r09["r09_L2_A"] + 4.0})  # one cell of level 2 off
+    command = [sys.executable, str(REPO_ROOT / "scripts" / "parity.py"), "--weights", str(seed0_weights),
+               "--perturbations", "2"]
+    images = [str(PARITY / "graf12_640_A.png"), str(PARITY / "graf12_640_B.png")]
+    ok = subprocess.run([*command, str(good), *images], capture_output=True, text=True, timeout=900)
+    print(ok.stdout)
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    assert "r09 cascade from reference lists: reference 304, ours 304, identical 304" in ok.stdout
+    failed = subprocess.run([*command, str(bad), *images], capture_output=True, text=True, timeout=900)
+    print(failed.stdout)
+    assert failed.returncode == 1 and "failed:" in failed.stdout and "r09_L2" in failed.stdout.splitlines()[-1]
