@@ -241,7 +241,7 @@ def dfm_stage0(top0: torch.Tensor, top1: torch.Tensor, level: int, ref: dict, n:
 
 def dfm_stage1(pyramid: Callable[[np.ndarray], tuple[list[torch.Tensor], torch.Tensor | None]],
                image0: np.ndarray, image1: np.ndarray, H: np.ndarray, ref: dict, what: str,
-               n: int = N_PERTURBATIONS) -> tuple[ListParity, tuple[np.ndarray, np.ndarray]]:
+               n: int | None = N_PERTURBATIONS) -> tuple[ListParity, tuple[np.ndarray, np.ndarray]]:
     """DFM's stage 1 and final filter on B warped by H (the reference's own H_init proves the
     stage; the matcher's H gives the end-to-end list), against the reference's dfm_A/B with
     ties measured. `pyramid` maps an RGB image to (maps, stage-1 map or None) as the DFM
@@ -261,6 +261,7 @@ def dfm_stage1(pyramid: Callable[[np.ndarray], tuple[list[torch.Tensor], torch.T
 
     maps0, maps_w = [*feats0, top0], [*feats_w, top_w]
     ours = stage1(maps0, maps_w)
+    n = N_PERTURBATIONS if n is None else n
     return compare(what, ours, (ref["dfm_A"], ref["dfm_B"]), under_perturbation(stage1, [maps0, maps_w], n)), ours
 
 
