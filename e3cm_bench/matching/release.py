@@ -210,9 +210,10 @@ def release_cascade(
     points0: list[np.ndarray], points1: list[np.ndarray], cascade: ReleaseCascade = ReleaseCascade()
 ) -> dict:
     """The release's cascade over per-level point lists (deepest first) -> the finest level's
-    survivors, with each level's count and F and which fallback (if any) decided the result."""
+    survivors, with each level's survivors, count and F and which fallback (if any) decided
+    the result."""
     finest = len(points0) - 1
-    out = {"counts": {}, "fundamentals": {}, "fallback": None}
+    out = {"counts": {}, "survivors": {}, "fundamentals": {}, "fallback": None}
     if len(points0[0]) < 8:
         out["fallback"] = "fewer than 8 deepest matches: unfiltered finest level"
         out["points0"], out["points1"] = points0[finest], points1[finest]
@@ -234,6 +235,7 @@ def release_cascade(
         if passed.any():
             x0, x1 = x0[passed], x1[passed]
         out["counts"][i] = len(x0)
+        out["survivors"][i] = (x0, x1)
         F = release_fundamental(x0, x1, cascade)
         out["fundamentals"][i] = F
         out["fallback"] = None
