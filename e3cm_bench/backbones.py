@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .files import file_sha256
-from .matchers import PRECISIONS
+from .matchers.base import PRECISIONS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

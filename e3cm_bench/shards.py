@@ -7,12 +7,11 @@ shared between processes. `merge_run` checks that all N shards exist, are comple
 share one identity, evaluates every pair from the shards' caches, and writes the usual
 CSVs, plots and config.yaml into OUT. The last shard to finish merges automatically.
 Launching is left to the cluster's scheduler (SLURM arrays, scripts/slurm/) or to
-`run_shards` (one local process per worker or device; submitit for SLURM).
+`launch.run_shards` (one local process per worker or device; submitit for SLURM).
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pandas as pd
@@ -20,10 +19,11 @@ from rich.console import Console
 
 from .benchmarks import EvalSettings, get_benchmark
 from .cache import MatchCache
+from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
 from .files import FolderLock, load_yaml, package_versions, save_yaml
+from .report import print_summary
 
 SHARDS_DIR = "shards"
-
 
 def parse_shard(text: str) -> tuple[int, int]:
     """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""
@@ -35,16 +35,13 @@ def parse_shard(text: str) -> tuple[int, int]:
         raise ValueError(f"--shard {text}: K must be between 1 and N")
     return k, n
 
-
 def shard_slice(n_pairs: int, shard: tuple[int, int]) -> slice:
     """The K-th of N contiguous slices of n_pairs items; sizes differ by at most one."""
     k, n = shard
     return slice(n_pairs * (k - 1) // n, n_pairs * k // n)
 
-
 def shard_dir(out: Path, shard: tuple[int, int]) -> Path:
     return Path(out) / SHARDS_DIR / f"{shard[0]}-of-{shard[1]}"
-
 
 class ShardedCache:
     """Reads a pair's matches from whichever shard's cache holds it."""
@@ -64,7 +61,6 @@ class ShardedCache:
             raise KeyError(f"pair {name!r} is in no shard's cache")
         return self.where[name].read(name)
 
-
 def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
     configs = {}
     for folder in sorted((Path(out) / SHARDS_DIR).glob("*-of-*")):
@@ -75,7 +71,6 @@ def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
                 configs[(config["shard"]["index"], config["shard"]["count"])] = config
     return configs
 
-
 def all_shards_complete(out: Path) -> bool:
     configs = shard_configs(out)
     if not configs:
@@ -83,12 +78,8 @@ def all_shards_complete(out: Path) -> bool:
     n = next(iter(configs))[1]
     return set(configs) == {(k, n) for k in range(1, n + 1)} and all(c["shard"].get("complete") for c in configs.values())
 
-
 def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
     """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
-    from .runner import CACHE_FILE, CONFIG_FILE, evaluate_and_report
-    from .report import print_summary
-
     console = console or Console()
     out = Path(out)
     configs = shard_configs(out)
@@ -149,7 +140,6 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
                   console=console)
     return pd.DataFrame([summary])
 
-
 def merge_when_complete(out: Path, console: Console) -> bool:
     """Merge if every shard is finished; False when some are not, or another process is merging.
 
@@ -165,72 +155,3 @@ def merge_when_complete(out: Path, console: Console) -> bool:
             return False
         raise
     return True
-
-
-# --------------------------------------------------------------------------- launching
-
-
-def threads_per_worker(workers: int) -> int:
-    return max(1, (os.cpu_count() or 1) // workers)
-
-
-def run_shard_job(kwargs: dict) -> dict:
-    """One shard in this process (what a local worker or a SLURM array task runs)."""
-    import torch
-
-    from .runner import run_benchmark
-
-    threads = kwargs.pop("threads", None)
-    if threads:
-        torch.set_num_threads(threads)
-    summary = run_benchmark(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
-    return summary.iloc[0].to_dict()
-
-
-def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher: str = "local",
-               console: Console | None = None, slurm: dict | None = None) -> list:
-    """Run the N shards of one run: `launcher` local (one process each, at most len(devices)
-    at once, torch threads divided among them on a CPU) or slurm (a submitit array; runs
-    locally, one process per shard, where no SLURM is found). Returns each shard's summary
-    (local) or the submitted jobs (slurm)."""
-    console = console or Console()
-    devices = devices or ["cpu"]
-    jobs = []
-    for k in range(1, n + 1):
-        device = devices[(k - 1) % len(devices)]
-        threads = threads_per_worker(len(devices)) if device == "cpu" else None
-        jobs.append({**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True})
-    if launcher == "slurm":
-        try:
-            import submitit
-        except ImportError:
-            raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
-        executor = submitit.AutoExecutor(folder=Path(kwargs["out"]) / SHARDS_DIR / "slurm")
-        params = {"timeout_min": 24 * 60, "slurm_array_parallelism": n, **(slurm or {})}
-        if executor.cluster != "slurm":
-            params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
-        executor.update_parameters(**params)
-        submitted = executor.map_array(run_shard_job, jobs)
-        console.print(f"submitted {n} shard(s) to {executor.cluster}: job {submitted[0].job_id.split('_')[0]}; "
-                      f"they merge when the last one finishes (or: e3cm-bench merge {kwargs['out']})", markup=False)
-        if executor.cluster == "slurm":
-            return submitted
-        return [job.result() for job in submitted]
-    import concurrent.futures
-    import multiprocessing
-
-    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state shared across fork
-    with concurrent.futures.ProcessPoolExecutor(max_workers=len(devices), mp_context=context) as pool:
-        futures = [pool.submit(run_shard_job, job) for job in jobs]
-        results = []
-        for k, future in enumerate(futures, start=1):
-            results.append(future.result())
-            console.print(f"shard {k}-of-{n} done", markup=False)
-    merged = Path(kwargs["out"]) / "summary.csv"
-    if merged.is_file():  # the last worker merged; show what a single run would have shown
-        from .report import print_summary
-
-        summary = pd.read_csv(merged).iloc[0].to_dict()
-        print_summary(summary, f"{n} shards merged -> {kwargs['out']}", console=console)
-    return results
-

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..backbones import Backbone
-from . import CHANNEL_ORDERS
+from .base import CHANNEL_ORDERS
 from .base import Matcher
 
 

@@ -1,0 +1,72 @@
+"""The evaluate stage of a run: cached matches + ground truth -> per-pair rows, the summary,
+and the reports (CSVs, the run's plot, --viz drawings). Shared by the runner, merged shards
+and imported matches; it never matches."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+from rich.console import Console
+
+from .benchmarks import Benchmark, EvalSettings
+from .cache import MatchCache
+from .datasets.base import Pair
+from .files import write_csv
+from .images import load_image
+from .viz import draw_matches, save_image
+
+CONFIG_FILE = "config.yaml"
+CACHE_FILE = "matches.h5"
+
+
+def evaluate_stage(
+    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
+) -> tuple[pd.DataFrame, dict]:
+    """Every pair's row from its cached matches and ground truth, and the summary of the rows."""
+    rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
+    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), benchmark.summarize(rows, ev)
+
+
+def write_reports(
+    benchmark: Benchmark, out: Path, label: str, per_pair: pd.DataFrame, summary: dict,
+    pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
+) -> None:
+    """per_pair.csv, summary.csv, the run's plot, and drawings of the first `viz` pairs."""
+    write_csv(per_pair, out / "per_pair.csv")
+    write_csv(pd.DataFrame([summary]), out / "summary.csv")
+    benchmark.plot_run(label, summary, per_pair, out)
+    for pair in pairs[:viz]:
+        matches = cache.read(pair.name)
+        canvas = draw_matches(
+            load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
+            correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
+        )
+        save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
+
+
+def evaluate_and_report(
+    benchmark: Benchmark, out: Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
+    ev: EvalSettings, viz: int, console: Console,
+) -> tuple[list[Pair], dict]:
+    """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
+    skipped ones; returns the pairs evaluated and the summary."""
+    failed = {name for name, _ in skipped}
+    pairs = [p for p in pairs if p.name not in failed]
+    if not pairs:
+        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
+    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
+        summary["n_skipped"] = len(skipped)
+    write_skipped(skipped, out / "skipped.csv", console)
+    write_reports(benchmark, out, label, per_pair, summary, pairs, cache, ev, viz)
+    return pairs, summary
+
+
+def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) -> None:
+    """skipped.csv (pair, reason) when pairs were skipped; no stale file when none were."""
+    if not skipped:
+        path.unlink(missing_ok=True)
+        return
+    write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
+    console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)

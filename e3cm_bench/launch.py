@@ -1,0 +1,78 @@
+"""Launching a run's shards: one local process per worker or device, or a SLURM array
+(submitit). Each shard is an ordinary run (runner.run_benchmark with shard=(K, N)); the
+last to finish merges (shards.py)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pandas as pd
+from rich.console import Console
+
+from .report import print_summary
+from .shards import SHARDS_DIR
+
+
+def threads_per_worker(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
+def run_shard_job(kwargs: dict) -> dict:
+    """One shard in this process (what a local worker or a SLURM array task runs)."""
+    import torch
+
+    from .runner import run_benchmark  # in the worker: a shard loads the models
+
+    threads = kwargs.pop("threads", None)
+    if threads:
+        torch.set_num_threads(threads)
+    summary = run_benchmark(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
+    return summary.iloc[0].to_dict()
+
+
+def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher: str = "local",
+               console: Console | None = None, slurm: dict | None = None) -> list:
+    """Run the N shards of one run: `launcher` local (one process each, at most len(devices)
+    at once, torch threads divided among them on a CPU) or slurm (a submitit array; runs
+    locally, one process per shard, where no SLURM is found). Returns each shard's summary
+    (local) or the submitted jobs (slurm)."""
+    console = console or Console()
+    devices = devices or ["cpu"]
+    jobs = []
+    for k in range(1, n + 1):
+        device = devices[(k - 1) % len(devices)]
+        threads = threads_per_worker(len(devices)) if device == "cpu" else None
+        jobs.append({**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True})
+    if launcher == "slurm":
+        try:
+            import submitit
+        except ImportError:
+            raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
+        executor = submitit.AutoExecutor(folder=Path(kwargs["out"]) / SHARDS_DIR / "slurm")
+        params = {"timeout_min": 24 * 60, "slurm_array_parallelism": n, **(slurm or {})}
+        if executor.cluster != "slurm":
+            params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
+        executor.update_parameters(**params)
+        submitted = executor.map_array(run_shard_job, jobs)
+        console.print(f"submitted {n} shard(s) to {executor.cluster}: job {submitted[0].job_id.split('_')[0]}; "
+                      f"they merge when the last one finishes (or: e3cm-bench merge {kwargs['out']})", markup=False)
+        if executor.cluster == "slurm":
+            return submitted
+        return [job.result() for job in submitted]
+    import concurrent.futures
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state shared across fork
+    with concurrent.futures.ProcessPoolExecutor(max_workers=len(devices), mp_context=context) as pool:
+        futures = [pool.submit(run_shard_job, job) for job in jobs]
+        results = []
+        for k, future in enumerate(futures, start=1):
+            results.append(future.result())
+            console.print(f"shard {k}-of-{n} done", markup=False)
+    merged = Path(kwargs["out"]) / "summary.csv"
+    if merged.is_file():  # the last worker merged; show what a single run would have shown
+        summary = pd.read_csv(merged).iloc[0].to_dict()
+        print_summary(summary, f"{n} shards merged -> {kwargs['out']}", console=console)
+    return results
+
