@@ -27,11 +27,12 @@ from .synth.textures import demo_pair
 from .experiments import reproduce as reproduce_experiment
 from .experiments import EXPERIMENT_COPY, merge_experiment, write_table
 from .images import load_image
-from .matchers import MATCHERS, NEEDS_BACKBONE
+from .matchers import get_matcher
 from .matching import ESTIMATORS
 from .method import MethodSpec, parse_numbers
 from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
-from .shards import merge_run, parse_shard, run_shards
+from .launch import run_shards
+from .shards import merge_run, parse_shard
 from .viz import draw_matches, save_image
 
 app = typer.Typer(
@@ -43,11 +44,11 @@ console = Console()
 err_console = Console(stderr=True)
 
 # Options shared by `match` and the benchmark commands.
-MatcherOpt = Annotated[str, typer.Option("--matcher", help=f"One of: {', '.join(MATCHERS)}.")]
+MatcherOpt = Annotated[str, typer.Option("--matcher", help="A matcher's name (e3cm-bench matchers lists them: built-ins and installed plugins) or package.module:factory.")]
 BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)}.")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", help="Local state-dict file for the backbone (instead of the ImageNet download).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
-EstimatorOpt = Annotated[str, typer.Option("--estimator", "--cascade-estimator", help=f"How the cascade estimates F per level: {', '.join(ESTIMATORS)} (top8 = the paper).")]
+EstimatorOpt = Annotated[Optional[str], typer.Option("--estimator", "--cascade-estimator", help=f"e3cm: how the cascade estimates F per level: {', '.join(ESTIMATORS)} (default top8 = the paper).")]
 SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson thresholds in pixels for levels 0,1,2,3, comma-separated.")]
 RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
@@ -106,7 +107,7 @@ def match(
     weights: WeightsOpt = None,
     max_side: Annotated[Optional[int], typer.Option("--max-side", help="Resize so the longer side is at most N px.")] = None,
     device: DeviceOpt = "cpu",
-    estimator: EstimatorOpt = "top8",
+    estimator: EstimatorOpt = None,
     sampson_px: SampsonOpt = None,
     ratio: RatioOpt = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the robust estimators inside the matcher.")] = 0,
@@ -129,7 +130,7 @@ def match(
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
         parse_numbers(ratio, "--ratio"), max_side or None, seed,
-        options=parse_settings(settings, precision, channel_order) if matcher in NEEDS_BACKBONE else parse_settings(settings),
+        options=parse_settings(settings, precision, channel_order) if get_matcher(matcher).needs_backbone else parse_settings(settings),
     )
     t = time.perf_counter()
     m = method.build(device)
@@ -144,7 +145,7 @@ def match(
         correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), result, EvalSettings())
     save_image(out / "matches.png", draw_matches(img0, img1, k0, k1, correct=correct, max_lines=500))
 
-    console.print(f"[bold]{len(k0)} matches[/] ({m.name}, {backbone if matcher in NEEDS_BACKBONE else 'no backbone'}) -> {out}/matches.npz, matches.png")
+    console.print(f"[bold]{len(k0)} matches[/] ({get_matcher(matcher).name}, {method.backbone or 'no backbone'}) -> {out}/matches.npz, matches.png")
     if correct is not None:
         console.print(f"demo ground truth: {correct.mean() * 100 if len(correct) else 0:.1f}% of matches within 3 px")
     info = result.info
@@ -168,7 +169,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     preset = get_protocol(protocol, benchmark)
     if max_side is None and benchmark in preset.max_side:
         max_side = preset.max_side[benchmark] or 0
-    if matcher in NEEDS_BACKBONE:
+    if get_matcher(matcher).needs_backbone:
         options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order)}
     else:  # precision, channel order and the preset's network settings concern deep matchers only
         options = parse_settings(settings)
@@ -229,7 +230,7 @@ def hpatches(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
@@ -251,7 +252,7 @@ def megadepth(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
@@ -272,7 +273,7 @@ def yfcc(
     root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = "top8", sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
+    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
@@ -400,7 +401,7 @@ def check(
 def calibrate(
     root: Annotated[Path, typer.Option("--root", help="Stereo sequence: KITTI odometry (image_0/, image_1/, calib.txt) or raw (image_00/data, image_01/data, calib_cam_to_cam.txt) layout.")],
     out: OutOpt,
-    matcher: Annotated[list[str], typer.Option("--matcher", help=f"Matcher(s) to compare (repeatable): {', '.join(MATCHERS)}; e3cm-ransac = e3cm with --estimator ransac.")] = ["e3cm"],  # noqa: B006
+    matcher: Annotated[list[str], typer.Option("--matcher", help="Matcher(s) to compare (repeatable), as for the benchmarks (e3cm-bench matchers).")] = ["e3cm"],  # noqa: B006
     backbone: BackboneOpt = "vgg19",
     weights: WeightsOpt = None,
     frames: Annotated[list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")] = [1, 3, 5, 10],  # noqa: B006
@@ -413,12 +414,99 @@ def calibrate(
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
     methods = []
     for name in matcher:
-        options = {"matcher": "e3cm", "estimator": "ransac"} if name == "e3cm-ransac" else {"matcher": name}
-        label = name if backbone == "vgg19" or name == "sift" else f"{name} [{backbone}]"
-        methods.append(MethodSpec.create(backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
-                                         label=label, **options))
+        label = name if backbone == "vgg19" or not get_matcher(name).needs_backbone else f"{name} [{backbone}]"
+        methods.append(MethodSpec.create(name, backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
+                                         label=label))
     run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
                     unrectified=unrectified, overwrite=overwrite, console=console)
+
+
+@app.command("import")
+@friendly_errors
+def import_matches(
+    benchmark: Annotated[str, typer.Argument(help="hpatches, megadepth or yfcc.")],
+    root: RootOpt,
+    out: OutOpt,
+    hloc: Annotated[Optional[tuple[Path, Path]], typer.Option("--hloc", help="FEATURES.h5 MATCHES.h5 written by hloc (or in its layout).")] = None,
+    npz: Annotated[Optional[Path], typer.Option("--npz", help="Folder of <pair name>.npz (keypoints0, keypoints1, optional scores).")] = None,
+    label: LabelOpt = None,
+    skip_bad: SkipBadOpt = False,
+    overwrite: OverwriteOpt = False,
+    viz: VizOpt = 0,
+    seed: SeedOpt = 0,
+    ransac_px: RansacOpt = None,
+    protocol: ProtocolOpt = "default",
+    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files.")] = None,
+    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list.")] = None,
+    exclude_large: Annotated[bool, typer.Option("--exclude-large", help="HPatches: the 108-sequence protocol.")] = False,
+    sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: keep these sequences (names or globs).")] = None,
+) -> None:
+    """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
+    from .imported import HlocSource, NpzSource, import_run
+
+    if (hloc is None) == (npz is None):
+        raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5 or --npz DIR")
+    bench = get_benchmark(benchmark)
+    options = {"hpatches": {"exclude_large": exclude_large, "sequences": sequences}, "megadepth": {"scene_info": scene_info},
+               "yfcc": {"pairs": pairs}}.get(bench.name, {})
+    dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.dataset_options})
+    preset = get_protocol(protocol, bench.name)
+    ev = bench.eval_settings(seed=seed, ransac_px=ransac_px, **preset.eval_fields(bench.name))
+    source = HlocSource(*hloc) if hloc is not None else NpzSource(npz)
+    import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
+               console=console)
+
+
+@app.command()
+@friendly_errors
+def matchers(
+    names: Annotated[Optional[list[str]], typer.Argument(help="Only these matchers (names or package.module:factory).")] = None,
+) -> None:
+    """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings and defaults."""
+    from .matchers import broken_plugins, entries
+
+    shown = [get_matcher(name) for name in names] if names else entries()
+    for line in describe_matchers(shown):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+    for name, why in ([] if names else sorted(broken_plugins().items())):
+        console.print(f"{name}  (not loaded) {why}", markup=False, highlight=False, soft_wrap=True)
+
+
+def describe_matchers(shown) -> list[str]:
+    """The `matchers` listing: a head line per matcher, then its settings with their defaults."""
+    import dataclasses
+
+    from .matchers import BackboneSettings
+
+    lines = []
+    for entry in shown:
+        lines.append(f"{entry.name}  ({entry.origin})  {entry.description}")
+        if entry.preset_of is not None:
+            lines.append(f"    = {entry.preset_of} with " + ", ".join(f"{k}={v}" for k, v in entry.preset.items()))
+            continue
+        settings = []
+        for f in entry.setting_fields():
+            if not f.init:
+                continue
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            settings.append(f"{f.name}={_setting_text(default)}")
+        lines.append("    settings: " + (", ".join(settings) or "none"))
+        if entry.needs_backbone:
+            net = ", ".join(f"{f.name}={_setting_text(f.default)}" for f in dataclasses.fields(BackboneSettings))
+            lines.append(f"    backbone: --backbone, --weights; {net}")
+        if entry.shorthands:
+            lines.append("    shorthands: " + ", ".join(f"--{n.replace('_', '-')}" for n in entry.shorthands))
+        if entry.paper_row:
+            lines.append(f"    paper row: {entry.paper_row}")
+    return lines
+
+
+def _setting_text(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    if isinstance(value, bool):
+        return str(value).lower()
+    return "none" if value is None else str(value)
 
 
 synth_app = typer.Typer(no_args_is_help=True, help="Write synthetic data with exact ground truth.")

@@ -25,7 +25,7 @@ BACKBONE = "efficientnet_lite0"  # the ImageNet backbone that needs no download
 METHODS = {
     "e3cm": {"matcher": "e3cm"},
     "e3cm-release": {"matcher": "e3cm-release"},
-    "e3cm-ransac": {"matcher": "e3cm", "estimator": "ransac"},
+    "e3cm-ransac": {"matcher": "e3cm-ransac"},
     "e3cm-plus": {"matcher": "e3cm-plus"},
     "direct": {"matcher": "direct"},
     "dfm": {"matcher": "dfm"},

@@ -18,7 +18,7 @@ from . import report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
 from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
-from .matchers import MATCHERS, NEEDS_BACKBONE
+from .matchers import get_matcher
 from .method import MethodSpec
 from .runner import run_benchmark, run_methods
 
@@ -46,7 +46,8 @@ def experiment_method(
         protocol_side = protocol.max_side[benchmark.name] or 0 if benchmark.name in protocol.max_side else None
         max_side = benchmark.max_side(entry.get("max_side", experiment.get("max_side", protocol_side)))
     settings = dict(entry.get("settings") or {})
-    if matcher in NEEDS_BACKBONE:
+    deep = get_matcher(matcher).needs_backbone
+    if deep:
         settings = {**protocol.method_options.get(benchmark.name, {}), **settings}
     options = dict(
         matcher=matcher, weights=entry.get("weights"), estimator=entry.get("estimator"),
@@ -57,7 +58,7 @@ def experiment_method(
     spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
     # The default label names the method's own backbone; a forced one is added in brackets.
     label = entry.get("label") or replace(spec, backbone=own_backbone if spec.backbone else None).default_label()
-    if backbone_override and matcher in NEEDS_BACKBONE and backbone_override != own_backbone:
+    if backbone_override and deep and backbone_override != own_backbone:
         label = f"{label} [{backbone_override}]"
     return spec.with_label(label)
 
@@ -81,8 +82,12 @@ def load_experiment(path: Path) -> dict:
         raise ValueError(f"{path}: 'methods' must be a non-empty list")
     labels = set()
     for i, method in enumerate(methods):
-        if not isinstance(method, dict) or method.get("matcher") not in MATCHERS:
-            raise ValueError(f"{path}: methods[{i}] needs 'matcher', one of {', '.join(MATCHERS)}")
+        if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
+            raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
+        try:
+            get_matcher(method["matcher"])
+        except ValueError as exc:
+            raise ValueError(f"{path}: methods[{i}]: {exc}") from None
         unknown = set(method) - METHOD_KEYS
         if unknown:
             raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")

@@ -26,9 +26,64 @@ class Matches:
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.keypoints0 = np.asarray(self.keypoints0, dtype=np.float32).reshape(-1, 2)
-        self.keypoints1 = np.asarray(self.keypoints1, dtype=np.float32).reshape(-1, 2)
-        self.scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
+        """Arrays of the right shapes and lengths, or a one-line MatchesError (scores None:
+        every match scores 1)."""
+        self.keypoints0 = _points(self.keypoints0, "keypoints0")
+        self.keypoints1 = _points(self.keypoints1, "keypoints1")
+        if len(self.keypoints0) != len(self.keypoints1):
+            raise MatchesError(f"keypoints0 has {len(self.keypoints0)} points, keypoints1 {len(self.keypoints1)}")
+        if self.scores is None:
+            self.scores = np.ones(len(self.keypoints0), np.float32)
+        try:
+            scores = np.asarray(self.scores, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise MatchesError(f"scores: not numbers ({type(self.scores).__name__})") from None
+        if scores.size != len(self.keypoints0) or scores.ndim > 1 and scores.size != scores.shape[0]:
+            raise MatchesError(f"scores has shape {scores.shape}, expected ({len(self.keypoints0)},)")
+        self.scores = scores.reshape(-1)
+        if not isinstance(self.info, dict):
+            raise MatchesError(f"info must be a dict, got {type(self.info).__name__}")
 
     def __len__(self) -> int:
         return len(self.keypoints0)
+
+
+class MatchesError(ValueError):
+    """Matches that cannot be what they claim: wrong shapes or lengths, NaN, outside the image."""
+
+
+def _points(values, name: str) -> np.ndarray:
+    try:
+        points = np.asarray(values, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise MatchesError(f"{name}: not numbers ({type(values).__name__})") from None
+    if points.size == 0:
+        return points.reshape(0, 2)
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise MatchesError(f"{name} has shape {points.shape}, expected N x 2")
+    return points
+
+
+# A keypoint may sit on the image's outer edge: pixel-centre convention, the image spans
+# [-0.5, w - 0.5] x [-0.5, h - 0.5]; a hair of slack for float32 rounding.
+EDGE_SLACK_PX = 1e-3
+
+
+def check_in_image(matches: Matches, size0: tuple[int, int], size1: tuple[int, int], bounded: bool = True) -> None:
+    """A MatchesError naming the first problem: a keypoint that is not finite, or (bounded)
+    outside its image of size (w, h)."""
+    for i, (points, (w, h)) in enumerate(((matches.keypoints0, size0), (matches.keypoints1, size1))):
+        bad = ~np.isfinite(points).all(axis=1)
+        if bad.any():
+            raise MatchesError(f"keypoints{i}: {int(bad.sum())} point(s) not finite (first: row {int(np.flatnonzero(bad)[0])})")
+        if not bounded:
+            continue
+        lo = -0.5 - EDGE_SLACK_PX
+        outside = (points[:, 0] < lo) | (points[:, 1] < lo) | (points[:, 0] > w - 0.5 + EDGE_SLACK_PX) \
+            | (points[:, 1] > h - 0.5 + EDGE_SLACK_PX)
+        if outside.any():
+            x, y = points[np.flatnonzero(outside)[0]]
+            raise MatchesError(f"keypoints{i}: {int(outside.sum())} point(s) outside the {w}x{h} image "
+                               f"(first: {x:.1f}, {y:.1f})")
+    if not np.isfinite(matches.scores).all():
+        raise MatchesError("scores: not all finite")

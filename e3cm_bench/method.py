@@ -12,8 +12,7 @@ from pathlib import Path
 
 from .files import file_sha256
 from .images import RESIZE_MODES
-from .matchers import MATCHERS, NEEDS_BACKBONE, check_settings, is_random
-from .matching import ESTIMATORS
+from .matchers import check_settings, get_matcher, resolve
 
 
 @dataclass(frozen=True)
@@ -28,6 +27,8 @@ class MethodSpec:
     shrink, ours; exact, SuperGlue's; exact-div8, LoFTR's). seed: the seed of the matcher's robust estimators, None for
     matchers that draw no random numbers (their matches do not depend on it). upright: match
     images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
+    plugin: what a matcher from outside this package is, as sorted (key, value) pairs: its
+    distribution and version, or its module and the module file's sha256 (None: built-in).
     label: the name in tables and plots; not part of the identity.
     """
 
@@ -40,6 +41,7 @@ class MethodSpec:
     resize: str = "shrink"
     seed: int | None = None
     upright: bool = True
+    plugin: tuple[tuple[str, object], ...] | None = None
     label: str = field(default="", compare=False)
 
     @classmethod
@@ -58,29 +60,30 @@ class MethodSpec:
         upright: bool = True,
         resize: str = "shrink",
     ) -> MethodSpec:
-        """Options as a user gives them -> a spec. Settings that do not apply to the matcher are
-        ignored (ratio: deep matchers; estimator, sampson_px: e3cm), never guessed.
-        options: further settings of the matcher by name (`--set KEY=VALUE`: e.g. dfm's
-        variant, e3cm's ratio_at, num_levels, channel_order); these are checked, and a
-        name the matcher does not have is an error."""
-        if matcher not in MATCHERS:
-            raise ValueError(f"unknown matcher {matcher!r}; choose one of: {', '.join(MATCHERS)}")
-        deep = matcher in NEEDS_BACKBONE
+        """Options as a user gives them -> a spec. The shorthands ratio, estimator and
+        sampson_px become settings of the matcher where it takes them (its registry entry
+        says) and are ignored where not, never guessed. options: further settings by name
+        (`--set KEY=VALUE`: e.g. dfm's variant, e3cm's ratio_at, num_levels, channel_order);
+        these are checked, and a name the matcher does not have is an error. A preset
+        (e3cm-ransac) becomes its matcher with its settings (the same identity, and the same
+        default label: e3cm + estimator ransac reads e3cm-ransac)."""
+        entry, _ = resolve(matcher, {})  # a preset's own matcher
+        deep = entry.needs_backbone
         settings: dict = {}
-        if deep and ratio is not None:
-            settings["ratio"] = _numbers(ratio, "ratio")
-            if any(not 0 < r <= 1 for r in settings["ratio"]):
-                raise ValueError(f"--ratio values must be in (0, 1], got {','.join(map(str, ratio))}")
-        if matcher == "e3cm":
-            estimator = estimator or "top8"
-            if estimator not in ESTIMATORS:
-                raise ValueError(f"unknown cascade estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
-            settings["estimator"] = estimator
-            if sampson_px is not None:
-                settings["sampson_px"] = _numbers(sampson_px, "sampson_px")
-        for key, value in (options or {}).items():
-            settings[key] = _numbers(value, key) if isinstance(value, (list, tuple)) else value
-        check_settings(matcher, settings)
+        shorthands = {"ratio": ratio, "estimator": estimator, "sampson_px": sampson_px}
+        for name in entry.shorthands:
+            value = shorthands[name]
+            if value is None:
+                continue
+            settings[name] = value if name == "estimator" else _numbers(value, name)
+            if name == "ratio" and any(not 0 < r <= 1 for r in settings["ratio"]):
+                raise ValueError(f"--ratio values must be in (0, 1], got {','.join(map(str, value))}")
+        for name, value in (options or {}).items():
+            settings[name] = _numbers(value, name) if isinstance(value, (list, tuple)) else value
+        entry, settings = resolve(matcher, settings)
+        settings = {**entry.recorded, **settings}
+        key = entry.name if get_matcher(matcher).preset_of is not None else matcher
+        instance = check_settings(key, settings)
         if max_side is not None and max_side <= 0:
             raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
         if resize not in RESIZE_MODES:
@@ -92,15 +95,16 @@ class MethodSpec:
                 raise ValueError(f"{path}: weights file not found")
             weights_sha256 = file_sha256(path)
         spec = cls(
-            matcher=matcher,
+            matcher=key,
             backbone=backbone if deep else None,
             weights=str(weights) if deep and weights is not None else None,
             weights_sha256=weights_sha256,
             settings=tuple(sorted(settings.items())),
             max_side=max_side,
             resize=resize,
-            seed=int(seed) if is_random(matcher, settings) else None,
+            seed=int(seed) if entry.is_random(instance) else None,
             upright=bool(upright),
+            plugin=tuple(sorted(entry.source.items())) if entry.source else None,
         )
         return spec.with_label(label or spec.default_label())
 
@@ -112,12 +116,18 @@ class MethodSpec:
             "matcher": self.matcher, "backbone": self.backbone, "weights": self.weights,
             "weights_sha256": self.weights_sha256, "settings": self.settings,
             "max_side": self.max_side, "resize": self.resize, "seed": self.seed, "upright": self.upright,
+            "plugin": self.plugin,
         }
 
     def identity(self) -> dict:
-        """What the matches depend on, as plain YAML-ready values (config.yaml `identity`)."""
+        """What the matches depend on, as plain YAML-ready values (config.yaml `identity`);
+        `plugin` only for a matcher from outside this package."""
         fields = self.identity_fields()
         fields["settings"] = {k: list(v) if isinstance(v, tuple) else v for k, v in self.settings}
+        if self.plugin is None:
+            del fields["plugin"]
+        else:
+            fields["plugin"] = dict(self.plugin)
         return fields
 
     def settings_dict(self) -> dict:
@@ -126,7 +136,8 @@ class MethodSpec:
     def default_label(self) -> str:
         """matcher[-backbone unless vgg19][-estimator unless top8][-dfm variant unless release]:
         e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
-        label = self.matcher if self.backbone in (None, "vgg19") else f"{self.matcher}-{self.backbone}"
+        name = get_matcher(self.matcher).name  # package.module:factory -> the factory's matcher name
+        label = name if self.backbone in (None, "vgg19") else f"{name}-{self.backbone}"
         settings = self.settings_dict()
         estimator = settings.get("estimator", "top8")
         label = label if estimator == "top8" else f"{label}-{estimator}"

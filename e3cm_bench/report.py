@@ -76,26 +76,23 @@ def load_run(run_dir: str | Path) -> Run:
     return Run(dir=run_dir, config=config, summary=summary, per_pair=per_pair, benchmark=benchmark, label=label)
 
 
-# Which paper row a run is to be compared with, by what produced it: the paper's E3CM numbers
-# came from the authors' released code (e3cm-release), its DFM numbers from the DFM release.
-# The paper-as-written `e3cm`, our variants and ablations have no paper row.
-PAPER_ROW_OF_MATCHER = {"sift": "SIFT+NN", "e3cm-release": "E3CM", "dfm": "DFM"}
-
-
 def paper_row_of(run: Run) -> str | None:
-    """The paper row by matcher (PAPER_ROW_OF_MATCHER); a deep method on a backbone other
-    than the paper's VGG19, a dfm variant other than the release, or an e3cm-release with
-    changed settings gets none."""
+    """The paper row a run compares with: its matcher's registry entry names it (the paper's
+    E3CM numbers came from the authors' released code, e3cm-release; its DFM numbers from
+    the DFM release), when the run was made as the paper's were (the entry says which
+    settings keep it so) on the paper's VGG19. Our variants and ablations have none."""
+    from .matchers import get_matcher
+
     identity = run.config.get("identity") or {}
-    matcher = identity.get("matcher")
-    settings = identity.get("settings") or {}
     if identity.get("backbone") not in (None, "vgg19"):
         return None
-    if matcher == "dfm" and settings.get("variant", "release") != "release":
+    try:
+        entry = get_matcher(identity.get("matcher"))
+    except (ValueError, TypeError):  # a plugin not installed here, or an imported run
         return None
-    if matcher == "e3cm-release" and set(settings) - {"channel_order", "num_levels"}:
+    if entry.paper_row is None or not entry.paper_setting(identity.get("settings") or {}):
         return None
-    return PAPER_ROW_OF_MATCHER.get(matcher)
+    return entry.paper_row
 
 
 def protocol_of(run: Run) -> tuple[str, bool]:

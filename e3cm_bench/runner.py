@@ -27,18 +27,15 @@ from rich.text import Text
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import BLOCK_PAIRS, MatchCache
 from .datasets.base import Pair, PairList
-from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml, write_csv
+from .devices import check_device, is_out_of_memory
+from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
+from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
-from .matchers import check_device, is_out_of_memory
 from .matchers.base import Matcher
-from .matches import Matches
+from .matches import Matches, MatchesError, check_in_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
 from .shards import merge_when_complete, shard_dir, shard_slice
-from .viz import draw_matches, save_image
-
-CONFIG_FILE = "config.yaml"
-CACHE_FILE = "matches.h5"
 # What match_pair adds to a result's info and the cache keeps next to each pair's matches.
 PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 
@@ -69,7 +66,7 @@ def match_pair(
     small1, scale1 = resize_max_side(np.ascontiguousarray(upright1), max_side, resize)
     cv2.setRNGSeed(int(seed))
     t = time.perf_counter()
-    m = matcher.match(small0, small1)
+    m = checked_match(matcher, small0, small1)
     info = {
         **m.info,
         "size0": (image0.shape[1], image0.shape[0]),
@@ -83,6 +80,35 @@ def match_pair(
     keypoints0 = unrotate_points(to_original_pixels(m.keypoints0, scale0), rotations[0], info["size0"])
     keypoints1 = unrotate_points(to_original_pixels(m.keypoints1, scale1), rotations[1], info["size1"])
     return Matches(keypoints0, keypoints1, m.scores, info)
+
+
+class MatcherError(ValueError):
+    """A matcher that raised, or returned something that is not sound matches."""
+
+
+def checked_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray) -> Matches:
+    """matcher.match, with what it returns checked: a Matches of N x 2 keypoints and N scores,
+    all finite, inside the images (unless the matcher says its points may leave them). A
+    matcher that raises or returns anything else gives a MatcherError naming it; running out
+    of memory is left as it is (the runner says what to do about it)."""
+    name = getattr(matcher, "name", type(matcher).__name__)
+    try:
+        m = matcher.match(image0, image1)
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as error:  # noqa: BLE001 - whatever a plugin raises ends in one line
+        if is_out_of_memory(error):
+            raise
+        raise MatcherError(f"matcher {name} raised {type(error).__name__}: {error}") from error
+    if not isinstance(m, Matches):
+        raise MatcherError(f"matcher {name} returned {type(m).__name__}, expected e3cm_bench.Matches")
+    try:
+        m = Matches(m.keypoints0, m.keypoints1, m.scores, m.info)  # shapes and lengths, again: fields may be reassigned
+        check_in_image(m, (image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]),
+                       bounded=getattr(matcher, "keypoints_in_image", True))
+    except MatchesError as error:
+        raise MatcherError(f"matcher {name} returned bad matches: {error}") from None
+    return m
 
 
 def unrotate_points(points: np.ndarray, quarter_turns: int, stored_size: tuple[int, int]) -> np.ndarray:
@@ -243,6 +269,8 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
                     if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
                         raise
                     raise ValueError(f"pair {pair.name}: {too_big_message(job.method, error)}") from None
+                except MatcherError as error:
+                    raise MatcherError(f"pair {pair.name}: {error} (the pairs matched before it are kept)") from error
                 except ImageError as error:
                     if job.skipped is None:
                         raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
@@ -264,58 +292,6 @@ def too_big_message(method: MethodSpec, error: BaseException) -> str:
         "pass a smaller --max-side, e.g. 1600"
     return (f"its images at {method.resize_description} do not fit in memory for {method.label} (the pairs matched before it are "
             f"kept): {hint}")
-
-
-def evaluate_stage(
-    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
-) -> tuple[pd.DataFrame, dict]:
-    """Every pair's row from its cached matches and ground truth, and the summary of the rows."""
-    rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
-    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), benchmark.summarize(rows, ev)
-
-
-def write_reports(
-    benchmark: Benchmark, out: Path, label: str, per_pair: pd.DataFrame, summary: dict,
-    pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
-) -> None:
-    """per_pair.csv, summary.csv, the run's plot, and drawings of the first `viz` pairs."""
-    write_csv(per_pair, out / "per_pair.csv")
-    write_csv(pd.DataFrame([summary]), out / "summary.csv")
-    benchmark.plot_run(label, summary, per_pair, out)
-    for pair in pairs[:viz]:
-        matches = cache.read(pair.name)
-        canvas = draw_matches(
-            load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
-            correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
-        )
-        save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
-
-
-def evaluate_and_report(
-    benchmark: Benchmark, out: Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
-    ev: EvalSettings, viz: int, console: Console,
-) -> tuple[list[Pair], dict]:
-    """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
-    skipped ones; returns the pairs evaluated and the summary."""
-    failed = {name for name, _ in skipped}
-    pairs = [p for p in pairs if p.name not in failed]
-    if not pairs:
-        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
-    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
-        summary["n_skipped"] = len(skipped)
-    write_skipped(skipped, out / "skipped.csv", console)
-    write_reports(benchmark, out, label, per_pair, summary, pairs, cache, ev, viz)
-    return pairs, summary
-
-
-def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) -> None:
-    """skipped.csv (pair, reason) when pairs were skipped; no stale file when none were."""
-    if not skipped:
-        path.unlink(missing_ok=True)
-        return
-    write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
-    console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
 
 
 # --------------------------------------------------------------------------- a run
@@ -493,7 +469,9 @@ class _OpenRun:
 
     def job(self) -> MatchJob:
         def record_matcher(matcher: Matcher) -> None:
-            self.config["matcher"] = matcher.config()
+            # what the matcher says of itself (a plugin's object may have no config())
+            describe = getattr(matcher, "config", None)
+            self.config["matcher"] = describe() if callable(describe) else {"matcher": getattr(matcher, "name", type(matcher).__name__)}
             save_yaml(self.config, self.out / CONFIG_FILE)
 
         return MatchJob(self.method, self.todo, self.cache, self.skipped if self.skip_bad else None, record_matcher)

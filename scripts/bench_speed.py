@@ -95,9 +95,8 @@ def main() -> None:
     args = parser.parse_args()
     sizes = args.size or ["640x480", "1200x900"]
 
-    matcher_name, estimator = (("e3cm", "ransac") if args.matcher == "e3cm-ransac" else (args.matcher, None))
     options = {} if args.precision == "fp32" else {"precision": args.precision}
-    spec = MethodSpec.create(matcher_name, args.backbone, args.weights, estimator=estimator, options=options)
+    spec = MethodSpec.create(args.matcher, args.backbone, args.weights, options=options)
     matcher = spec.build(args.device, pretrained=not args.random_weights)
     release = None
     if args.compare_release is not None:

@@ -1,10 +1,23 @@
-"""The matcher interface: two images in, matches in the images' pixels out."""
+"""What a matcher is: the `Matcher` interface, and the `MatcherEntry` that registers one.
+
+numpy only: the registry, the CLI's listing and the backbones read these names without
+loading a model.
+"""
 
 from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
 from ..matches import Matches
+
+# The network's input channel order, and its precision (fp32 exact; bf16 on CPUs with
+# AVX-512 BF16 / AMX and recent GPUs, fp16 on GPUs: autocast).
+CHANNEL_ORDERS = ("rgb", "bgr")
+PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 class Matcher:
@@ -12,12 +25,110 @@ class Matcher:
 
     ``image0``/``image1`` are H x W x 3 uint8 RGB arrays. A matcher never reads files.
     ``config()`` returns every setting its result depends on (written to config.yaml).
+    ``keypoints_in_image``: whether every keypoint it returns lies in its image (the runner
+    checks it: a point outside is a broken matcher). The two releases are reproduced with
+    their slips, and the DFM release's final filter tests y against the padded width, so
+    their points may lie in the padding: they set it False.
     """
 
     name = "base"
+    keypoints_in_image = True
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:  # pragma: no cover
         raise NotImplementedError
 
     def config(self) -> dict:
         return {"matcher": self.name}
+
+
+@dataclass(frozen=True)
+class BackboneSettings:
+    """The settings every matcher on a backbone takes besides its own: how many levels of the
+    pyramid it uses (the E3CM release's match_small_img uses 4), the channel order fed to the
+    network, and the network's precision."""
+
+    num_levels: int = 5
+    channel_order: str = "rgb"
+    precision: str = "fp32"
+
+    def __post_init__(self) -> None:
+        levels = self.num_levels
+        if not isinstance(levels, int) or isinstance(levels, bool) or not 2 <= levels <= 5:
+            raise ValueError(f"num_levels must be a whole number 2..5, got {levels!r}")
+        if self.channel_order not in CHANNEL_ORDERS:
+            raise ValueError(f"channel_order must be rgb or bgr, got {self.channel_order!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be fp32, bf16 or fp16, got {self.precision!r}")
+
+
+BACKBONE_SETTINGS = tuple(f.name for f in dataclasses.fields(BackboneSettings))
+
+
+def never(settings: Any) -> bool:
+    return False
+
+
+def always(settings: Any) -> bool:
+    return True
+
+
+@dataclass(frozen=True)
+class MatcherEntry:
+    """One matcher in the registry (matchers/registry.py), built-in or a plugin's.
+
+    name: what --matcher, configs and the API call it. description: one line.
+    settings: a dataclass of its own settings (defaults; __post_init__ raises a one-line
+        ValueError for a bad value), or None for a matcher that takes none.
+    build: settings instance -> Matcher; a matcher on a backbone is built as
+        ``build(settings, net=..., channel_order=...)`` with the loaded `backbones.Backbone`.
+    needs_backbone: it runs on a backbone (--backbone, --weights and BackboneSettings apply).
+    is_random: settings instance -> whether the matcher draws from OpenCV's RNG (a RANSAC
+        inside); then the seed is part of the identity of its matches.
+    shorthands: which of the option shorthands --ratio, --estimator, --sampson-px it takes
+        (each is a setting of the same name).
+    recorded: settings written into the identity even when not given (e3cm's estimator, so
+        that the identity of every e3cm run names it).
+    preset_of, preset: a name for another matcher with fixed settings (e3cm-ransac = e3cm with
+        estimator ransac): it builds, and is identified as, that matcher with those settings.
+    paper_row: the paper's table row its runs compare with, when paper_setting(settings dict)
+        says they were made as the paper's were.
+    origin: "built-in", "plugin DIST VERSION" or "module NAME" (set by the registry).
+    source: what the plugin's code is, for the identity: {"package", "version"} or
+        {"module", "sha256"}; None for built-ins (the package's own version is in config.yaml).
+    """
+
+    name: str
+    description: str
+    build: Callable[..., Matcher]
+    settings: type | None = None
+    needs_backbone: bool = False
+    is_random: Callable[[Any], bool] = never
+    shorthands: tuple[str, ...] = ()
+    recorded: dict = field(default_factory=dict)
+    preset_of: str | None = None
+    preset: dict = field(default_factory=dict)
+    paper_row: str | None = None
+    paper_setting: Callable[[dict], bool] = always
+    origin: str = "built-in"
+    source: dict | None = None
+
+    def setting_fields(self) -> list[dataclasses.Field]:
+        return list(dataclasses.fields(self.settings)) if self.settings is not None else []
+
+    def make_settings(self, given: dict) -> Any:
+        """Its settings dataclass from the settings given by name (backbone settings taken out
+        first); a one-line ValueError for an unknown name or a bad value."""
+        if self.settings is None:
+            if given:
+                raise ValueError(f"{self.name} takes no settings, got {', '.join(sorted(given))}")
+            return None
+        known = {f.name for f in self.setting_fields() if f.init}
+        unknown = sorted(set(given) - known)
+        if unknown:
+            extra = f", {', '.join(BACKBONE_SETTINGS)}" if self.needs_backbone else ""
+            raise ValueError(f"{self.name}: unknown setting(s) {', '.join(unknown)}; it takes: "
+                             f"{', '.join(sorted(known)) or 'none'}{extra}")
+        try:
+            return self.settings(**given)
+        except TypeError as exc:  # a value of the wrong kind inside the dataclass
+            raise ValueError(f"{self.name}: {exc}") from None

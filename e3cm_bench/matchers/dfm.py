@@ -10,6 +10,7 @@ minimum of stage-0 inliers).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
@@ -39,6 +40,26 @@ def check_dfm_settings(settings: dict) -> None:
         raise ValueError("dfm ratio needs 5 values: refinement into levels 0..3, then stage 1's dense matching")
 
 
+@dataclass(frozen=True)
+class DFMMatcherSettings:
+    """dfm's settings. variant: release (the DFM release), corrected (its two slips fixed) or
+    bench (this project's reading of the paper). ratio: levels 0..3 refinement, then stage 1's
+    dense matching (None: the variant's, 0.9,0.9,0.9,0.9,0.95). bench only:
+    homography_threshold_px (None: 1.5 x the deepest stride) and min_inliers of stage 0."""
+
+    variant: str = "release"
+    ratio: tuple[float, ...] | None = None
+    homography_threshold_px: float | None = None
+    min_inliers: int | None = None
+
+    def __post_init__(self) -> None:
+        check_dfm_settings(self.given())
+
+    def given(self) -> dict:
+        """The fields set (not None): DFMMatcher's keyword arguments."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+
 class DFMMatcher(DeepMatcher):
     """Two-stage DFM: a coarse homography warp, then hierarchical matching on the warped pair.
 
@@ -52,6 +73,9 @@ class DFMMatcher(DeepMatcher):
         super().__init__(backbone, name, channel_order)
         check_dfm_settings({"variant": variant, **settings})
         self.variant = variant
+        # The release's final filter tests y against the padded width (a slip kept): its points
+        # may lie below the image.
+        self.keypoints_in_image = variant == "bench"
         if variant == "bench":
             self.settings = DFMSettings(**settings)
         else:

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..backbones import Backbone
 from ..matching.pipeline import E3CMSettings, match_pyramids
 from .base import Matches
 from .deep import DeepMatcher
+
+
+@dataclass
+class DirectSettings(E3CMSettings):
+    """E3CMSettings with the cascade off: `direct` is that ablation and nothing else."""
+
+    cascade: bool = False
+
+    def __post_init__(self) -> None:
+        if self.cascade:
+            raise ValueError("direct is e3cm without the cascade: cascade stays false (--matcher e3cm has it)")
+        super().__post_init__()
 
 
 class E3CMMatcher(DeepMatcher):
@@ -18,6 +32,8 @@ class E3CMMatcher(DeepMatcher):
         settings = settings or E3CMSettings()
         super().__init__(backbone, name or ("e3cm" if settings.cascade else "direct"), channel_order)
         self.settings = settings
+        # The releases' handling (valid_cells_only false) keeps points of padding cells.
+        self.keypoints_in_image = bool(settings.valid_cells_only)
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
         feats0, feats1, t_backbone = self.pyramids(image0, image1)

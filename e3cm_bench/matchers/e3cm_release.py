@@ -39,6 +39,9 @@ class E3CMReleaseSettings:
 
 
 class E3CMReleaseMatcher(DeepMatcher):
+    # The release keeps the points of padding cells (matching/release.py).
+    keypoints_in_image = False
+
     def __init__(self, backbone: Backbone, settings: E3CMReleaseSettings | None = None, name: str = "e3cm-release",
                  channel_order: str = "rgb"):
         super().__init__(backbone, name, channel_order)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -15,6 +17,24 @@ from e3cm_bench.matchers.base import Matcher, Matches
 # detections. (OpenCV's enable_precise_upscale avoids the shift too, but detects a
 # different, slightly worse set of points on HPatches.)
 UPSCALE_OFFSET_PX = 0.25
+
+
+@dataclass(frozen=True)
+class SiftSettings:
+    """max_keypoints: OpenCV's strongest responses kept (0: all); ratio: Lowe's ratio test;
+    cross_check: keep mutual nearest neighbours only."""
+
+    max_keypoints: int = 8000
+    ratio: float = 0.8
+    cross_check: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.max_keypoints, int) or isinstance(self.max_keypoints, bool) or self.max_keypoints < 0:
+            raise ValueError(f"max_keypoints must be a whole number >= 0 (0: no limit), got {self.max_keypoints!r}")
+        if not isinstance(self.ratio, (int, float)) or not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio!r}")
+        if not isinstance(self.cross_check, bool):
+            raise ValueError(f"cross_check must be true or false, got {self.cross_check!r}")
 
 
 class SiftMatcher(Matcher):

@@ -1,0 +1,219 @@
+"""The matcher registry: name -> MatcherEntry, the twin of the benchmark registry.
+
+Three ways in, one `register`:
+- built-ins (matchers/builtin.py) on the first lookup;
+- plugins: packages that declare entries in the entry-point group ``e3cm_bench.matchers``
+  (pyproject: ``[project.entry-points."e3cm_bench.matchers"] orb = "my_pkg:ENTRY"``); the
+  object is a MatcherEntry, or a callable returning one or several;
+- ``--matcher package.module:factory``: a module on the Python path, no packaging; the
+  factory is a MatcherEntry, or a callable returning one or a Matcher.
+
+A plugin that fails to load costs only itself: it is listed with its error, and asking for
+it gives that error in one line. Models load when a matcher is built, never at lookup.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.metadata
+from pathlib import Path
+
+from ..files import file_sha256
+from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
+
+ENTRY_POINT_GROUP = "e3cm_bench.matchers"
+
+_REGISTRY: dict[str, MatcherEntry] = {}
+_BROKEN: dict[str, str] = {}  # plugin entry point -> why it did not load
+_loaded = False
+
+
+def register(entry: MatcherEntry, replace: bool = False) -> MatcherEntry:
+    """Add a matcher; a name taken by another matcher is an error unless replace."""
+    if not isinstance(entry, MatcherEntry):
+        raise ValueError(f"register: expected a MatcherEntry, got {type(entry).__name__}")
+    _load()
+    if entry.name in _REGISTRY and not replace and _REGISTRY[entry.name] is not entry:
+        raise ValueError(f"matcher {entry.name!r} is already registered ({_REGISTRY[entry.name].origin})")
+    _REGISTRY[entry.name] = entry
+    return entry
+
+
+def unregister(name: str) -> None:
+    _REGISTRY.pop(name, None)
+
+
+def matcher_names() -> list[str]:
+    """Every registered matcher's name (built-ins first, then plugins, in load order)."""
+    _load()
+    return list(_REGISTRY)
+
+
+def entries() -> list[MatcherEntry]:
+    _load()
+    return list(_REGISTRY.values())
+
+
+def broken_plugins() -> dict[str, str]:
+    """Plugin entry points that failed to load: name -> one line."""
+    _load()
+    return dict(_BROKEN)
+
+
+def get_matcher(name: str) -> MatcherEntry:
+    """The entry of `name`: a registered matcher, or ``module:factory`` (imported on first use)."""
+    _load()
+    if name in _REGISTRY:
+        return _REGISTRY[name]
+    if name in _BROKEN:
+        raise ValueError(f"matcher {name!r}: {_BROKEN[name]}")
+    if isinstance(name, str) and ":" in name:
+        entry = _from_module(name)
+        _REGISTRY[name] = entry
+        return entry
+    raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(_REGISTRY)} "
+                     "(or a plugin's, or package.module:factory)")
+
+
+def resolve(name: str, settings: dict) -> tuple[MatcherEntry, dict]:
+    """A preset's base entry and its settings with the preset's; other entries as they are.
+    A setting given against the preset's is an error (e3cm-ransac with estimator top8)."""
+    entry = get_matcher(name)
+    if entry.preset_of is None:
+        return entry, dict(settings)
+    clash = sorted(k for k, v in entry.preset.items() if k in settings and settings[k] != v)
+    if clash:
+        fixed = ", ".join(f"{k}={entry.preset[k]}" for k in clash)
+        raise ValueError(f"{name} is {entry.preset_of} with {fixed}; use --matcher {entry.preset_of} to change it")
+    return get_matcher(entry.preset_of), {**settings, **entry.preset}
+
+
+def split_settings(entry: MatcherEntry, settings: dict) -> tuple[dict, dict]:
+    """(the matcher's own settings, its backbone settings)."""
+    own = {k: v for k, v in settings.items() if not (entry.needs_backbone and k in BACKBONE_SETTINGS)}
+    return own, {k: v for k, v in settings.items() if k not in own}
+
+
+def check_settings(name: str, settings: dict):
+    """The validated settings instance of matcher `name` (builds no model); a one-line
+    ValueError where `settings` do not fit it."""
+    entry = get_matcher(name)
+    own, net = split_settings(entry, settings)
+    if net:
+        BackboneSettings(**net)
+    return entry.make_settings(own)
+
+
+def is_random(name: str, settings: dict) -> bool:
+    """Whether the matcher draws from OpenCV's RNG under these settings (its seed then
+    belongs to the identity of its matches)."""
+    entry = get_matcher(name)
+    return bool(entry.is_random(check_settings(name, settings)))
+
+
+def build_matcher(
+    name: str = "e3cm",
+    backbone: str = "vgg19",
+    weights: str | None = None,
+    device: str = "cpu",
+    pretrained: bool = True,
+    settings: dict | None = None,
+    loaded: dict | None = None,
+) -> Matcher:
+    """A matcher by name (a preset's settings added). `settings` holds the matcher's own fields
+    and, for a matcher on a backbone, BackboneSettings' fields. loaded: backbones built
+    before, by what they were built from; a matcher asking for the same one reuses it
+    instead of loading the weights again."""
+    entry, settings = resolve(name, settings or {})
+    own, net_settings = split_settings(entry, settings)
+    instance = entry.make_settings(own)
+    if not entry.needs_backbone:
+        return entry.build(instance)
+    from ..backbones import load_backbone
+    from ..devices import check_device
+
+    net_settings = BackboneSettings(**net_settings)
+    check_device(device)
+    key = (backbone, str(weights), pretrained, device, net_settings.num_levels, net_settings.precision)
+    net = None if loaded is None else loaded.get(key)
+    if net is None:
+        net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device,
+                            num_levels=net_settings.num_levels, precision=net_settings.precision)
+        if loaded is not None:
+            loaded[key] = net
+    return entry.build(instance, net=net, channel_order=net_settings.channel_order)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def _load() -> None:
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
+    from .builtin import BUILTIN
+
+    for entry in BUILTIN:
+        _REGISTRY[entry.name] = entry
+    load_plugins()
+
+
+def load_plugins() -> None:
+    """Register every entry point of the group (again: a test may add a distribution)."""
+    for point in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        dist = getattr(point, "dist", None)
+        origin = f"plugin {dist.name} {dist.version}" if dist is not None else f"plugin {point.value}"
+        source = {"package": dist.name, "version": dist.version} if dist is not None else {"entry_point": point.value}
+        try:
+            found = _entries_of(point.load(), point.value)
+        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the toolkit
+            _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) failed to load: {type(exc).__name__}: {exc}"
+            continue
+        _BROKEN.pop(point.name, None)
+        for entry in found:
+            if entry.name in _REGISTRY and _REGISTRY[entry.name].origin == "built-in":
+                _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) tries to replace the built-in {entry.name!r}"
+                continue
+            _REGISTRY[entry.name] = dataclasses.replace(entry, origin=origin, source=source)
+
+
+def _entries_of(obj, where: str) -> list[MatcherEntry]:
+    if callable(obj) and not isinstance(obj, MatcherEntry):
+        obj = obj()
+    found = [obj] if isinstance(obj, MatcherEntry) else list(obj) if isinstance(obj, (list, tuple)) else []
+    if not found or not all(isinstance(e, MatcherEntry) for e in found):
+        raise ValueError(f"{where}: expected a MatcherEntry (or a callable returning one or a list of them)")
+    return found
+
+
+def _from_module(name: str) -> MatcherEntry:
+    module_name, _, attr = name.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:  # noqa: BLE001 - one line, whatever the module does wrong
+        raise ValueError(f"--matcher {name}: cannot import {module_name} ({type(exc).__name__}: {exc})") from None
+    if not hasattr(module, attr):
+        raise ValueError(f"--matcher {name}: module {module_name} has no {attr!r}")
+    factory = getattr(module, attr)
+    file = getattr(module, "__file__", None)
+    source = {"module": module_name, "sha256": file_sha256(Path(file)) if file else None}
+    origin = f"module {module_name}" + (f" ({file})" if file else "")
+    if isinstance(factory, MatcherEntry):
+        entry = factory
+    elif callable(factory):
+        try:
+            made = factory()
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"--matcher {name}: {attr}() raised {type(exc).__name__}: {exc}") from None
+        if isinstance(made, MatcherEntry):
+            entry = made
+        elif callable(getattr(made, "match", None)):
+            entry = MatcherEntry(name=attr, description=f"{attr}() of {module_name}", build=lambda settings: factory())
+        else:
+            raise ValueError(f"--matcher {name}: {attr}() returned {type(made).__name__}, "
+                             "expected a MatcherEntry or a matcher (an object with match(image0, image1))")
+    else:
+        raise ValueError(f"--matcher {name}: {attr} is a {type(factory).__name__}, expected a MatcherEntry or a factory")
+    return dataclasses.replace(entry, origin=origin, source=source)
