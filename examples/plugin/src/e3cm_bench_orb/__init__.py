@@ -1,0 +1,77 @@
+"""ORB + mutual nearest neighbour: a complete e3cm-bench matcher plugin.
+
+A plugin is a `MatcherEntry`: a name, one line of description, a settings dataclass (its
+defaults are what `e3cm-bench matchers` lists; a bad value raises a one-line ValueError),
+and a function building the matcher from the settings. The matcher has one method,
+``match(image0, image1) -> Matches``: H x W x 3 uint8 RGB arrays in, keypoints in those
+images' pixels out (pixel-centre convention: the top-left pixel's centre is (0, 0)).
+The benchmark resizes the images first and maps the keypoints back itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from e3cm_bench import Matcher, MatcherEntry, Matches
+
+
+@dataclass(frozen=True)
+class OrbSettings:
+    """max_keypoints: ORB's strongest corners kept per image; scale_factor, n_levels: its
+    pyramid; fast_threshold: the FAST corner threshold."""
+
+    max_keypoints: int = 5000
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.max_keypoints, int) or self.max_keypoints < 1:
+            raise ValueError(f"max_keypoints must be a whole number >= 1, got {self.max_keypoints!r}")
+        if not 1.0 < float(self.scale_factor) <= 2.0:
+            raise ValueError(f"scale_factor must be in (1, 2], got {self.scale_factor!r}")
+        if not isinstance(self.n_levels, int) or not 1 <= self.n_levels <= 16:
+            raise ValueError(f"n_levels must be a whole number 1..16, got {self.n_levels!r}")
+
+
+class OrbMatcher(Matcher):
+    """ORB on the grey images; a match is a pair of mutual nearest neighbours in Hamming
+    distance. Scores: 1 - distance / 256 (higher is better). OpenCV places the corners of
+    coarser pyramid levels by scaling alone; they are kept as OpenCV gives them."""
+
+    name = "orb"
+
+    def __init__(self, settings: OrbSettings) -> None:
+        self.settings = settings
+        self._orb = cv2.ORB_create(nfeatures=settings.max_keypoints, scaleFactor=float(settings.scale_factor),
+                                   nlevels=settings.n_levels, fastThreshold=settings.fast_threshold)
+
+    def config(self) -> dict:
+        return {"matcher": self.name, **self.settings.__dict__}
+
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
+        points0, descriptors0 = self._detect(image0)
+        points1, descriptors1 = self._detect(image1)
+        info = {"n_keypoints0": len(points0), "n_keypoints1": len(points1)}
+        if descriptors0 is None or descriptors1 is None:
+            return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
+        pairs = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(descriptors0, descriptors1)
+        index0 = np.array([m.queryIdx for m in pairs], int)
+        index1 = np.array([m.trainIdx for m in pairs], int)
+        scores = np.array([1.0 - m.distance / 256.0 for m in pairs])
+        return Matches(points0[index0], points1[index1], scores, info)
+
+    def _detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        keypoints, descriptors = self._orb.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), None)
+        return np.array([k.pt for k in keypoints], np.float32).reshape(-1, 2), descriptors
+
+
+ENTRY = MatcherEntry(
+    name="orb",
+    description="ORB + mutual nearest neighbour (OpenCV): the example plugin",
+    build=OrbMatcher,
+    settings=OrbSettings,
+)
