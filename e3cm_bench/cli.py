@@ -494,6 +494,10 @@ def describe_matchers(shown) -> list[str]:
         if entry.needs_backbone:
             net = ", ".join(f"{f.name}={_setting_text(f.default)}" for f in dataclasses.fields(BackboneSettings))
             lines.append(f"    backbone: --backbone, --weights; {net}")
+        if entry.model:
+            lines.append("    model: --device, --weights FILE (else the library's weights, downloaded into its cache once)")
+        if entry.requires:
+            lines.append(f"    needs: {', '.join(entry.requires)} (pip install 'e3cm-bench[peers]')")
         if entry.shorthands:
             lines.append("    shorthands: " + ", ".join(f"--{n.replace('_', '-')}" for n in entry.shorthands))
         if entry.paper_row:

@@ -88,16 +88,22 @@ class MethodSpec:
             raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
         if resize not in RESIZE_MODES:
             raise ValueError(f"unknown resize {resize!r}; choose one of {', '.join(RESIZE_MODES)}")
+        entry.check_requirements()
+        takes_weights = deep or entry.model
         weights_sha256 = None
-        if deep and weights is not None:
+        if takes_weights and weights is not None:
             path = Path(weights)
             if not path.is_file():
                 raise ValueError(f"{path}: weights file not found")
             weights_sha256 = file_sha256(path)
+        elif entry.weights is not None:
+            # the files the library loads (fetched into its cache first): names and hashes
+            files = entry.weights(instance)
+            weights_sha256 = ", ".join(f"{f.name}={file_sha256(f.fetch())}" for f in files)
         spec = cls(
             matcher=key,
             backbone=backbone if deep else None,
-            weights=str(weights) if deep and weights is not None else None,
+            weights=str(weights) if takes_weights and weights is not None else None,
             weights_sha256=weights_sha256,
             settings=tuple(sorted(settings.items())),
             max_side=max_side,

@@ -26,6 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
 PLUGIN_SRC = REPO / "examples" / "plugin" / "src"
 BUILTINS = ("e3cm", "e3cm-ransac", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift")
+PEERS = ("loftr", "superpoint+superglue", "superpoint+lightglue", "disk+lightglue", "aliked+lightglue")
 
 
 def invoke(*args):
@@ -38,8 +39,8 @@ def invoke(*args):
 
 
 def test_builtins_are_registered_entries_with_settings_and_origin():
-    assert matcher_names()[:len(BUILTINS)] == list(BUILTINS)
-    for name in BUILTINS:
+    assert matcher_names()[:len(BUILTINS + PEERS)] == list(BUILTINS + PEERS)
+    for name in BUILTINS + PEERS:
         entry = get_matcher(name)
         assert isinstance(entry, MatcherEntry) and entry.origin == "built-in" and entry.description
     assert get_matcher("sift").needs_backbone is False and get_matcher("dfm").needs_backbone is True
@@ -105,7 +106,7 @@ def test_no_matcher_name_is_dispatched_on_outside_its_entry():
         if path.name == "builtin.py":
             continue
         for line, value in _string_constants_compared(ast.parse(path.read_text())):
-            if value in BUILTINS:
+            if value in BUILTINS + PEERS:
                 branches.append(f"{path.relative_to(REPO)}:{line}: {value!r}")
     assert branches == []
 

@@ -92,6 +92,11 @@ class MatcherEntry:
         estimator ransac): it builds, and is identified as, that matcher with those settings.
     paper_row: the paper's table row its runs compare with, when paper_setting(settings dict)
         says they were made as the paper's were.
+    model: it loads a network of its own (a peer): built as ``build(settings, device=...,
+        weights=FILE or None, pretrained=...)``; --device and --weights FILE apply to it.
+    requires: modules it needs beyond the base install (checked before anything runs).
+    weights: settings -> the files it loads the libraries' way (peers/weights.py); their
+        names and sha256 enter the identity.
     origin: "built-in", "plugin DIST VERSION" or "module NAME" (set by the registry).
     source: what the plugin's code is, for the identity: {"package", "version"} or
         {"module", "sha256"}; None for built-ins (the package's own version is in config.yaml).
@@ -109,8 +114,20 @@ class MatcherEntry:
     preset: dict = field(default_factory=dict)
     paper_row: str | None = None
     paper_setting: Callable[[dict], bool] = always
+    model: bool = False
+    requires: tuple[str, ...] = ()
+    weights: Callable[[Any], list] | None = None
     origin: str = "built-in"
     source: dict | None = None
+
+    def check_requirements(self) -> None:
+        """A one-line ValueError naming what to install when a module it needs is missing."""
+        import importlib.util
+
+        missing = [name for name in self.requires if importlib.util.find_spec(name) is None]
+        if missing:
+            raise ValueError(f"{self.name} needs {', '.join(missing)}, which the peers extra installs: "
+                             "pip install 'e3cm-bench[peers]'")
 
     def setting_fields(self) -> list[dataclasses.Field]:
         return list(dataclasses.fields(self.settings)) if self.settings is not None else []

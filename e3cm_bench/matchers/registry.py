@@ -128,6 +128,12 @@ def build_matcher(
     entry, settings = resolve(name, settings or {})
     own, net_settings = split_settings(entry, settings)
     instance = entry.make_settings(own)
+    if entry.model:
+        from ..devices import check_device
+
+        entry.check_requirements()
+        check_device(device)
+        return entry.build(instance, device=device, weights=weights, pretrained=pretrained)
     if not entry.needs_backbone:
         return entry.build(instance)
     from ..backbones import load_backbone
@@ -155,7 +161,9 @@ def _load() -> None:
     _loaded = True
     from .builtin import BUILTIN
 
-    for entry in BUILTIN:
+    from .peers import PEERS
+
+    for entry in (*BUILTIN, *PEERS):  # the peers' entries import neither kornia nor transformers
         _REGISTRY[entry.name] = entry
     load_plugins()
 

@@ -1,0 +1,164 @@
+"""The paper's supervised rows as registered matchers, on the well-kept libraries that ship
+them (the optional extra ``e3cm-bench[peers]``: kornia, transformers). Nothing here imports
+them until a peer is built; without the extra, asking for one says what to install.
+
+Settings default to each model's reference evaluation settings (README "Peers" names the
+source of each); weights come the libraries' way (weights.py) or from --weights FILE.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..base import MatcherEntry
+from .weights import HubFile, HubModel
+
+PEER_REQUIREMENTS = ("kornia", "transformers")
+LOFTR_WEIGHTS = ("outdoor", "indoor", "indoor_new")
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+def _whole(value, low: int, name: str) -> None:
+    _check(isinstance(value, int) and not isinstance(value, bool) and value >= low,
+           f"{name} must be a whole number >= {low}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class LoFTRSettings:
+    """weights: kornia's outdoor (MegaDepth), indoor or indoor_new (ScanNet);
+    match_threshold: the coarse dual-softmax threshold (LoFTR's configs: 0.2)."""
+
+    weights: str = "outdoor"
+    match_threshold: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check(self.weights in LOFTR_WEIGHTS, f"weights must be one of {', '.join(LOFTR_WEIGHTS)}, got {self.weights!r}")
+        _check(isinstance(self.match_threshold, (int, float)) and 0 <= self.match_threshold < 1,
+               f"match_threshold must be in [0, 1), got {self.match_threshold!r}")
+
+
+@dataclass(frozen=True)
+class SuperGlueSettings:
+    """SuperGlue's match_pairs.py defaults (its ScanNet evaluation), outdoor weights; its YFCC
+    evaluation sets max_keypoints 2048 and nms_radius 3."""
+
+    weights: str = "outdoor"
+    max_keypoints: int = 1024
+    keypoint_threshold: float = 0.005
+    nms_radius: int = 4
+    sinkhorn_iterations: int = 20
+    match_threshold: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check(self.weights in ("outdoor", "indoor"), f"weights must be outdoor or indoor, got {self.weights!r}")
+        _whole(self.max_keypoints, 1, "max_keypoints")
+        _whole(self.nms_radius, 1, "nms_radius")
+        _whole(self.sinkhorn_iterations, 1, "sinkhorn_iterations")
+        for name in ("keypoint_threshold", "match_threshold"):
+            value = getattr(self, name)
+            _check(isinstance(value, (int, float)) and 0 <= value < 1, f"{name} must be in [0, 1), got {value!r}")
+
+
+@dataclass(frozen=True)
+class LightGlueSettings:
+    """glue-factory's official LightGlue evaluation: 2048 keypoints, detection threshold 0,
+    no early stopping or pruning (depth and width confidence -1), filter_threshold 0.1.
+    nms_radius: SuperPoint's NMS radius (3), DISK's window (5), ALIKED's radius (2)."""
+
+    max_keypoints: int = 2048
+    detection_threshold: float = 0.0
+    nms_radius: int = 3
+    depth_confidence: float = -1.0
+    width_confidence: float = -1.0
+    filter_threshold: float = 0.1
+
+    def __post_init__(self) -> None:
+        _whole(self.max_keypoints, 1, "max_keypoints")
+        _whole(self.nms_radius, 1, "nms_radius")
+        _check(isinstance(self.filter_threshold, (int, float)) and 0 <= self.filter_threshold < 1,
+               f"filter_threshold must be in [0, 1), got {self.filter_threshold!r}")
+
+
+@dataclass(frozen=True)
+class DiskLightGlueSettings(LightGlueSettings):
+    nms_radius: int = 5
+
+
+@dataclass(frozen=True)
+class AlikedLightGlueSettings(LightGlueSettings):
+    nms_radius: int = 2
+
+
+def _loftr(settings, **model):
+    from .loftr import LoFTRMatcher
+
+    return LoFTRMatcher(settings, **model)
+
+
+def _superglue(settings, **model):
+    from .superglue import SuperGlueMatcher
+
+    return SuperGlueMatcher(settings, **model)
+
+
+def _lightglue(kind: str):
+    def build(settings, **model):
+        from .lightglue import LightGlueMatcher
+
+        return LightGlueMatcher(kind, settings, **model)
+
+    return build
+
+
+def _loftr_weights(settings: LoFTRSettings) -> list:
+    name = {"outdoor": "loftr_outdoor.ckpt", "indoor": "loftr_indoor.ckpt", "indoor_new": "loftr_indoor_ds_new.ckpt"}
+    file = name[settings.weights]
+    return [HubFile(file, (f"https://huggingface.co/kornia/loftr/resolve/main/{file}",
+                           f"https://cmp.felk.cvut.cz/~mishkdmy/models/{file}"))]
+
+
+def _lightglue_weights(kind: str):
+    release = f"{kind}_lightglue.pth"
+    lightglue = HubFile(f"{kind}_lightglue_v0-1_arxiv-pth",
+                        (f"https://huggingface.co/kornia/lightglue/resolve/main/{release}",
+                         f"https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/{release}"))
+    extractor = {
+        "superpoint": HubModel("magic-leap-community/superpoint"),
+        "disk": HubFile("depth-save.pth", ("https://huggingface.co/kornia/disk/resolve/main/depth-save.pth",
+                                           "https://raw.githubusercontent.com/cvlab-epfl/disk/master/depth-save.pth")),
+        "aliked": HubFile("aliked-n16.pth", ("https://huggingface.co/kornia/aliked/resolve/main/aliked-n16.pth",
+                                             "https://github.com/Shiaoming/ALIKED/raw/main/models/aliked-n16.pth")),
+    }[kind]
+    return lambda settings: [extractor, lightglue]
+
+
+def _superglue_weights(settings: SuperGlueSettings) -> list:
+    from .superglue import SUPERGLUE_REPOS
+
+    return [HubModel(SUPERGLUE_REPOS[settings.weights])]
+
+
+def _as_published(settings: dict) -> bool:
+    """The paper's rows are the released models at their own settings."""
+    return not settings
+
+
+PEERS = (
+    MatcherEntry("loftr", "LoFTR, detector-free transformer matching (kornia; weights outdoor / indoor)",
+                 _loftr, LoFTRSettings, model=True, requires=("kornia",), weights=_loftr_weights, paper_row="LoFTR",
+                 paper_setting=_as_published),
+    MatcherEntry("superpoint+superglue", "SuperPoint + SuperGlue (transformers; Magic Leap's weights, non-commercial licence)",
+                 _superglue, SuperGlueSettings, model=True, requires=("transformers",), weights=_superglue_weights,
+                 paper_row="SuperPoint+SuperGlue", paper_setting=_as_published),
+    MatcherEntry("superpoint+lightglue", "SuperPoint (transformers) + LightGlue (kornia)",
+                 _lightglue("superpoint"), LightGlueSettings, model=True, requires=("kornia", "transformers"),
+                 weights=_lightglue_weights("superpoint")),
+    MatcherEntry("disk+lightglue", "DISK + LightGlue (kornia)", _lightglue("disk"), DiskLightGlueSettings, model=True,
+                 requires=("kornia",), weights=_lightglue_weights("disk")),
+    MatcherEntry("aliked+lightglue", "ALIKED-n16 + LightGlue (kornia)", _lightglue("aliked"), AlikedLightGlueSettings,
+                 model=True, requires=("kornia",), weights=_lightglue_weights("aliked")),
+)

@@ -1,0 +1,123 @@
+"""`superpoint+lightglue`, `disk+lightglue`, `aliked+lightglue`: LightGlue (Lindenberger et al.
+2023, kornia's implementation and weights) on SuperPoint (transformers), DISK or ALIKED
+(kornia) keypoints. Each image keeps its own size; keypoints are in the pixel-centre
+convention throughout (the convention LightGlue's extractors hand it)."""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ...matches import Matches
+from ..base import Matcher
+from .common import grey, numpy, rgb
+
+SUPERPOINT_REPO = "magic-leap-community/superpoint"
+
+
+class Extractor:
+    """Keypoints (N x 2, pixels) and descriptors (N x D) of one image."""
+
+    def __init__(self, kind: str, settings, device: str, pretrained: bool):
+        import kornia.feature as KF
+
+        self.kind, self.settings, self.device = kind, settings, device
+        if kind == "superpoint":
+            from transformers import SuperPointConfig, SuperPointForKeypointDetection
+
+            options = {"keypoint_threshold": settings.detection_threshold, "max_keypoints": settings.max_keypoints,
+                       "nms_radius": settings.nms_radius}
+            self.model = (SuperPointForKeypointDetection.from_pretrained(SUPERPOINT_REPO, **options) if pretrained
+                          else SuperPointForKeypointDetection(SuperPointConfig(**options)))
+        elif kind == "disk":
+            self.model = KF.DISK.from_pretrained("depth", device=torch.device(device)) if pretrained else KF.DISK()
+        else:
+            options = {"max_num_keypoints": settings.max_keypoints, "detection_threshold": settings.detection_threshold,
+                       "nms_radius": settings.nms_radius}
+            self.model = (KF.ALIKED.from_pretrained("aliked-n16", device=torch.device(device), **options) if pretrained
+                          else KF.ALIKED("aliked-n16", **options))
+        self.model = self.model.eval().to(device)
+
+    @torch.inference_mode()
+    def __call__(self, image: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        s = self.settings
+        if self.kind == "superpoint":
+            out = self.model(pixel_values=grey(image, self.device))  # one channel: it reads channel 0 only
+            keep = out.mask[0] > 0
+            size = torch.tensor([image.shape[1], image.shape[0]], device=out.keypoints.device)
+            # relative coordinates back to the pixel indices they came from (centres of pixels)
+            return (out.keypoints[0][keep] * size).round(), out.descriptors[0][keep]
+        if self.kind == "disk":
+            f = self.model(rgb(image, self.device), n=s.max_keypoints, window_size=s.nms_radius,
+                           score_threshold=s.detection_threshold, pad_if_not_divisible=True)[0]
+        else:
+            f = self.model(rgb(image, self.device))[0]
+        return f.keypoints.float(), f.descriptors
+
+
+@contextlib.contextmanager
+def _hub_holding(weights: Path, file_name: str):
+    """torch.hub's cache pointed, for one construction, at a folder holding `weights` under the
+    name kornia looks for: kornia then loads a local release file its own way (key renaming)."""
+    previous = torch.hub.get_dir()
+    with tempfile.TemporaryDirectory() as folder:
+        (Path(folder) / "checkpoints").mkdir()
+        (Path(folder) / "checkpoints" / file_name).symlink_to(Path(weights).resolve())
+        torch.hub.set_dir(folder)
+        try:
+            yield
+        finally:
+            torch.hub.set_dir(previous)
+
+
+def lightglue_file_name(features: str) -> str:
+    """kornia's cache name of the LightGlue weights for `features`."""
+    import kornia.feature as KF
+
+    return f"{KF.LightGlue.features[features]['weights']}_{KF.LightGlue.version}.pth".replace(".", "-")
+
+
+class LightGlueMatcher(Matcher):
+    """keypoints + descriptors of each image -> LightGlue's matches above filter_threshold.
+    Scores: LightGlue's matching scores. weights: a LightGlue release .pth (the extractor's
+    weights come from its library's cache)."""
+
+    def __init__(self, kind: str, settings, device: str = "cpu", weights: str | Path | None = None,
+                 pretrained: bool = True):
+        import kornia.feature as KF
+
+        self.name, self.settings, self.device = f"{kind}+lightglue", settings, device
+        self.extractor = Extractor(kind, settings, device, pretrained)
+        options = {"depth_confidence": settings.depth_confidence, "width_confidence": settings.width_confidence,
+                   "filter_threshold": settings.filter_threshold}
+        if weights is not None:
+            with _hub_holding(Path(weights), lightglue_file_name(kind)):
+                self.model = KF.LightGlue(features=kind, **options)
+        elif pretrained:
+            self.model = KF.LightGlue(features=kind, **options)
+        else:  # random weights with the feature's own dimensions, nothing downloaded
+            shape = {k: v for k, v in KF.LightGlue.features[kind].items() if k != "weights"}
+            self.model = KF.LightGlue(features=None, **{**options, **shape})
+        self.model = self.model.eval().to(device)
+
+    def config(self) -> dict:
+        return {"matcher": self.name, **self.settings.__dict__}
+
+    @torch.inference_mode()
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
+        (k0, d0), (k1, d1) = self.extractor(image0), self.extractor(image1)
+        info = {"n_keypoints0": len(k0), "n_keypoints1": len(k1)}
+        if len(k0) == 0 or len(k1) == 0:
+            return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
+
+        def view(k, d, image):
+            return {"keypoints": k[None], "descriptors": d[None],
+                    "image_size": torch.tensor([[image.shape[1], image.shape[0]]], device=k.device)}
+
+        out = self.model({"image0": view(k0, d0, image0), "image1": view(k1, d1, image1)})
+        pairs, scores = out["matches"][0], out["scores"][0]
+        return Matches(numpy(k0[pairs[:, 0]]), numpy(k1[pairs[:, 1]]), numpy(scores), info)
