@@ -182,11 +182,13 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
-         scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB) -> None:
+         scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB,
+         pose_estimator: str | None = None) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     console.print(preset.line(), markup=False)
-    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **preset.eval_fields(benchmark))
+    fields = {**preset.eval_fields(benchmark), **({"estimator": pose_estimator} if pose_estimator else {})}
+    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **fields)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)
     several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
@@ -222,6 +224,7 @@ VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (gree
 SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in skipped.csv and count them; --skip-missing is the old name.")]
 CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
+PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench[poselib]'); --eval-only may change it.")]
 
 
 @app.command()
@@ -235,7 +238,7 @@ def hpatches(
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
@@ -243,7 +246,7 @@ def hpatches(
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
 @app.command()
@@ -256,7 +259,7 @@ def megadepth(
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
@@ -264,7 +267,7 @@ def megadepth(
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
 @app.command()
@@ -277,7 +280,7 @@ def yfcc(
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None,
+    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
@@ -285,7 +288,7 @@ def yfcc(
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
     _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
 @app.command()
@@ -435,6 +438,7 @@ def import_matches(
     viz: VizOpt = 0,
     seed: SeedOpt = 0,
     ransac_px: RansacOpt = None,
+    pose_estimator: PoseEstimatorOpt = None,
     protocol: ProtocolOpt = "default",
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files.")] = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list.")] = None,
@@ -451,7 +455,8 @@ def import_matches(
                "yfcc": {"pairs": pairs}}.get(bench.name, {})
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.dataset_options})
     preset = get_protocol(protocol, bench.name)
-    ev = bench.eval_settings(seed=seed, ransac_px=ransac_px, **preset.eval_fields(bench.name))
+    fields = {**preset.eval_fields(bench.name), **({"estimator": pose_estimator} if pose_estimator else {})}
+    ev = bench.eval_settings(seed=seed, ransac_px=ransac_px, **fields)
     source = HlocSource(*hloc) if hloc is not None else NpzSource(npz)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
                console=console)

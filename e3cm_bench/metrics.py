@@ -12,10 +12,10 @@ from collections.abc import Iterable, Mapping, Sequence
 import cv2
 import numpy as np
 
+from e3cm_bench.estimators import homography as estimate_homography
+from e3cm_bench.estimators import relative_pose as estimate_relative_pose
 from e3cm_bench.geometry import (
     essential_from_pose,
-    estimate_homography,
-    estimate_relative_pose,
     normalize_keypoints,
     rotation_angle_deg,
     symmetric_epipolar_distance,
@@ -95,15 +95,17 @@ def evaluate_homography_pair(
     ransac_threshold: float = 3.0,
     max_iters: int = 5000,
     confidence: float = 0.9999,
+    estimator: str = "opencv",
 ) -> dict:
-    """One HPatches row: n_matches, mma@1..mma@10, h_error (inf when RANSAC finds no H)."""
+    """One HPatches row: n_matches, mma@1..mma@10, h_error (inf when RANSAC finds no H).
+    estimator: opencv or poselib (estimators.py)."""
     kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
     for t, value in zip(MMA_THRESHOLDS, mma_per_pair(kpts0, kpts1, H_gt)):
         row[f"mma@{t}"] = float(value)
     cv2.setRNGSeed(int(seed))
-    H_est = estimate_homography(kpts0, kpts1, ransac_threshold, max_iters, confidence)
+    H_est = estimate_homography(kpts0, kpts1, ransac_threshold, max_iters, confidence, estimator, seed)
     row["h_error"] = homography_corner_error(H_est, H_gt, width0, height0)
     return row
 
@@ -157,13 +159,16 @@ def evaluate_pose_pair(
     ransac_threshold: float = 0.5,
     confidence: float = 0.99999,
     precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS,
+    estimator: str = "opencv",
+    sizes: tuple | None = None,
 ) -> dict:
-    """One pose row: n_matches, err_R, err_t, err_pose (max of both), precision@t for each t."""
+    """One pose row: n_matches, err_R, err_t, err_pose (max of both), precision@t for each t.
+    estimator: opencv or poselib (estimators.py); sizes: the images' (w, h), for PoseLib's cameras."""
     kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
     cv2.setRNGSeed(int(seed))
-    estimate = estimate_relative_pose(kpts0, kpts1, K0, K1, ransac_threshold, confidence)
+    estimate = estimate_relative_pose(kpts0, kpts1, K0, K1, ransac_threshold, confidence, estimator, seed, sizes)
     R, t = (estimate[0], estimate[1]) if estimate is not None else (None, None)
     row["err_R"], row["err_t"] = pose_error(T_0to1, R, t)
     row["err_pose"] = max(row["err_R"], row["err_t"])

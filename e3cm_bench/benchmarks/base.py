@@ -38,6 +38,13 @@ class EvalSettings:
     correct_px: float = 3.0  # --viz: a homography match is drawn green within this reprojection error
     protocol: str = "default"  # benchmarks/protocols.py; a non-default one also sets the method's resize etc.
     drop_failures: bool = False  # pose pairs without an estimate leave the AUC (protocol e3cm-release)
+    # The robust estimator of the evaluation's H and relative pose: opencv or poselib (estimators.py).
+    estimator: str = "opencv"
+
+    def __post_init__(self) -> None:
+        from ..estimators import check_estimator
+
+        check_estimator(self.estimator)
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ class HomographyBenchmark(Benchmark):
         row = metrics.evaluate_homography_pair(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.H, width, height,
             seed=ev.seed, ransac_threshold=ev.homography_ransac_px, max_iters=ev.homography_max_iters,
-            confidence=ev.homography_confidence,
+            confidence=ev.homography_confidence, estimator=ev.estimator,
         )
         return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
 

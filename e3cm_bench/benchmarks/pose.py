@@ -36,7 +36,8 @@ class PoseBenchmark(Benchmark):
         row = metrics.evaluate_pose_pair(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
             pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=self.ransac_px(pair, matches, ev),
-            confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds,
+            confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds, estimator=ev.estimator,
+            sizes=(tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None,
         )
         return {"pair": pair.name, **row}
 

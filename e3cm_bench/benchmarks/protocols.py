@@ -63,6 +63,12 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
     ),
     Protocol(
+        "gluefactory", "glue-factory's MegaDepth-1500 evaluation (its official LightGlue configs): longer side resized "
+        "to 1600 px (enlarged too), PoseLib's relative pose at 2 px of the resized images (its README's command)",
+        ("megadepth",), max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
+        evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"}},
+    ),
+    Protocol(
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
         "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
         ("hpatches", "megadepth", "yfcc"),

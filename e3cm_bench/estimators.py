@@ -1,0 +1,76 @@
+"""The robust estimators of the evaluation, behind one function each: OpenCV (the default,
+as SuperGlue's and LoFTR's evaluations) or PoseLib (glue-factory's MegaDepth-1500 default).
+Which one is an evaluation setting (EvalSettings.estimator): --eval-only may change it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import geometry
+
+ESTIMATORS = ("opencv", "poselib")
+
+
+def _poselib():
+    try:
+        import poselib
+    except ImportError:
+        raise ValueError("--pose-estimator poselib needs PoseLib: pip install 'e3cm-bench[poselib]'") from None
+    return poselib
+
+
+def check_estimator(name: str) -> str:
+    if name not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {name!r}; choose one of {', '.join(ESTIMATORS)}")
+    if name == ESTIMATORS[1]:
+        _poselib()
+    return name
+
+
+def _camera(K: np.ndarray, size: tuple[int, int] | None) -> dict:
+    K = np.asarray(K, dtype=np.float64)
+    w, h = size if size is not None else (int(round(2 * K[0, 2])), int(round(2 * K[1, 2])))
+    return {"model": "PINHOLE", "width": int(w), "height": int(h), "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
+
+
+def relative_pose(
+    kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.ndarray, threshold_px: float, confidence: float,
+    estimator: str = "opencv", seed: int = 0, sizes: tuple | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(R, t, inlier mask) of camera 1 relative to camera 0, or None. opencv: essential-matrix
+    RANSAC on normalised points, the threshold divided by the mean focal (geometry.py);
+    poselib: its LO-RANSAC with threshold_px as max_epipolar_error (pixels) and bundle
+    refinement, seeded with `seed`."""
+    if estimator == "opencv":
+        return geometry.estimate_relative_pose(kpts0, kpts1, K0, K1, threshold_px, confidence)
+    if len(kpts0) < 5:
+        return None
+    poselib = _poselib()
+    size0, size1 = sizes if sizes is not None else (None, None)
+    pose, info = poselib.estimate_relative_pose(
+        np.ascontiguousarray(kpts0, np.float64), np.ascontiguousarray(kpts1, np.float64),
+        _camera(K0, size0), _camera(K1, size1),
+        {"max_epipolar_error": float(threshold_px), "success_prob": float(confidence), "seed": int(seed)}, {})
+    if not info.get("num_inliers"):
+        return None
+    return np.asarray(pose.R), np.asarray(pose.t).ravel(), np.asarray(info["inliers"], bool)
+
+
+def homography(
+    x0: np.ndarray, x1: np.ndarray, threshold_px: float, max_iters: int, confidence: float,
+    estimator: str = "opencv", seed: int = 0,
+) -> np.ndarray | None:
+    """H mapping image-0 pixels to image-1 pixels, or None (OpenCV's RANSAC or PoseLib's)."""
+    if estimator == "opencv":
+        return geometry.estimate_homography(x0, x1, threshold_px, max_iters, confidence)
+    if len(x0) < 4:
+        return None
+    poselib = _poselib()
+    H, info = poselib.estimate_homography(
+        np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64),
+        {"max_reproj_error": float(threshold_px), "max_iterations": int(max_iters), "success_prob": float(confidence),
+         "seed": int(seed)}, {})
+    H = np.asarray(H, dtype=np.float64)
+    if not info.get("num_inliers") or not np.all(np.isfinite(H)):
+        return None
+    return H
