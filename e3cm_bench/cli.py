@@ -319,6 +319,7 @@ def reproduce(
     skip_bad: SkipBadOpt = False,
     compare: CompareOpt = True,
     shard: ShardOpt = None,
+    methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     if not config.is_file():
@@ -326,7 +327,7 @@ def reproduce(
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
                          skip_bad=skip_bad, max_side=max_side, compare=compare, console=console,
-                         shard=parse_shard(shard) if shard else None)
+                         shard=parse_shard(shard) if shard else None, only=methods.split(",") if methods else None)
 
 
 @app.command()

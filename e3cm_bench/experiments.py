@@ -30,7 +30,7 @@ EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone
 
 def experiment_method(
     entry: dict, experiment: dict, benchmark: Benchmark, backbone_override: str | None = None,
-    max_side_override: int | None = None,
+    max_side_override: int | None = None, available: bool = True,
 ) -> MethodSpec:
     """The MethodSpec of one `methods:` entry of an experiment config.
 
@@ -53,7 +53,7 @@ def experiment_method(
         matcher=matcher, weights=entry.get("weights"), estimator=entry.get("estimator"),
         sampson_px=entry.get("sampson_px"), ratio=entry.get("ratio"), max_side=max_side,
         seed=int(experiment.get("seed", 0)), options=settings, upright=protocol.upright,
-        resize=protocol.resize_mode(benchmark.name),
+        resize=protocol.resize_mode(benchmark.name), available=available,
     )
     spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
     # The default label names the method's own backbone; a forced one is added in brackets.
@@ -92,7 +92,7 @@ def load_experiment(path: Path) -> dict:
         if unknown:
             raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")
         try:
-            label = experiment_method(method, config, benchmark).label
+            label = experiment_method(method, config, benchmark, available=False).label
         except ValueError as exc:
             raise ValueError(f"{path}: methods[{i}]: {exc}") from None
         if label in labels:
@@ -117,8 +117,10 @@ def reproduce(
     compare: bool = True,
     console: Console | None = None,
     shard: tuple[int, int] | None = None,
+    only: list[str] | None = None,
 ) -> tuple[Path, Path] | None:
-    """Run every method of an experiment config, then write its table and plots.
+    """Run every method of an experiment config (or those labelled in `only`), then write its
+    table and plots.
 
     backbone: replaces the backbone of every deep method (e.g. efficientnet_lite0 offline);
     the labels then say so. shard=(K, N): every method runs its K-th shard; the table is
@@ -133,7 +135,20 @@ def reproduce(
     protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
     ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)), **protocol.eval_fields(benchmark.name))
     out = Path(out)
-    methods = [experiment_method(entry, experiment, benchmark, backbone, max_side) for entry in experiment["methods"]]
+    entries = experiment["methods"]
+    if only:
+        # the config's own labels (a backbone forced on the deep methods adds to them later)
+        labels = [experiment_method(e, experiment, benchmark, None, max_side, available=False).label for e in entries]
+        unknown = sorted(set(only) - set(labels))
+        if unknown:
+            raise ValueError(f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}")
+        entries = [e for e, label in zip(entries, labels) if label in only]
+    methods = []
+    for i, entry in enumerate(entries):
+        try:
+            methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
+        except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
+            raise ValueError(f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)") from None
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": skip_bad}

@@ -59,6 +59,7 @@ class MethodSpec:
         options: dict | None = None,
         upright: bool = True,
         resize: str = "shrink",
+        available: bool = True,
     ) -> MethodSpec:
         """Options as a user gives them -> a spec. The shorthands ratio, estimator and
         sampson_px become settings of the matcher where it takes them (its registry entry
@@ -66,7 +67,9 @@ class MethodSpec:
         (`--set KEY=VALUE`: e.g. dfm's variant, e3cm's ratio_at, num_levels, channel_order);
         these are checked, and a name the matcher does not have is an error. A preset
         (e3cm-ransac) becomes its matcher with its settings (the same identity, and the same
-        default label: e3cm + estimator ransac reads e3cm-ransac)."""
+        default label: e3cm + estimator ransac reads e3cm-ransac). available=False checks the
+        options only (a config's validation): a peer's extra and weights are not looked for,
+        and the spec, without their hashes, is not one to run."""
         entry, _ = resolve(matcher, {})  # a preset's own matcher
         deep = entry.needs_backbone
         settings: dict = {}
@@ -88,7 +91,8 @@ class MethodSpec:
             raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
         if resize not in RESIZE_MODES:
             raise ValueError(f"unknown resize {resize!r}; choose one of {', '.join(RESIZE_MODES)}")
-        entry.check_requirements()
+        if available:
+            entry.check_requirements()
         takes_weights = deep or entry.model
         weights_sha256 = None
         if takes_weights and weights is not None:
@@ -96,7 +100,7 @@ class MethodSpec:
             if not path.is_file():
                 raise ValueError(f"{path}: weights file not found")
             weights_sha256 = file_sha256(path)
-        elif entry.weights is not None:
+        elif entry.weights is not None and available:
             # the files the library loads (fetched into its cache first): names and hashes
             files = entry.weights(instance)
             weights_sha256 = ", ".join(f"{f.name}={file_sha256(f.fetch())}" for f in files)

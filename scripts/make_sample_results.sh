@@ -9,7 +9,8 @@ cd "$(dirname "$0")/.."
 data="${1:-../shared/data}"
 # Resolutions as in the configs (HPatches full size, pose pairs longer side 1200); no
 # difference columns: these are not the paper's datasets, so measured - paper means nothing.
-common=(--backbone efficientnet_lite0 --no-compare)
+# The peers' rows need their weights (a download this machine cannot make): the built-in methods only.
+common=(--backbone efficientnet_lite0 --no-compare --methods sift,dfm,e3cm-release,e3cm,e3cm-ransac,e3cm-plus,direct)
 
 e3cm-bench reproduce configs/table1_hpatches.yaml --root "$data/hpatches-sequences-release" --out runs/sample/table1_hpatches "${common[@]}"
 e3cm-bench reproduce configs/table2_megadepth.yaml --root "$data/megadepth_test_1500" \

@@ -32,6 +32,7 @@ def test_every_paper_config_is_valid(name):
         assert {m["backbone"] for m in config["methods"]} == {"vgg19", "densenet161", "resnet152", "mobilenet_v3_large", "googlenet"}
     else:
         assert {"e3cm", "direct", "dfm", "sift"} <= set(labels)
+        assert {"loftr", "superpoint+superglue", "superpoint+lightglue"} <= set(labels)  # the supervised peers
         assert all(m.get("backbone", "vgg19") == "vgg19" for m in config["methods"])  # the paper's backbone
 
 
@@ -89,7 +90,8 @@ def test_table_refuses_mixed_benchmarks(two_runs, tmp_path, shared_data):
 def test_reproduce_runs_every_method_and_writes_the_table(tmp_path, shared_data):
     out = tmp_path / "table1"
     args = ["reproduce", CONFIGS / "table1_hpatches.yaml", "--root", shared_data / "hpatches-sequences-release",
-            "--out", out, "--backbone", "efficientnet_lite0", "--limit", 1, "--max-side", 320, "--sequences", "v_graffiti"]
+            "--out", out, "--backbone", "efficientnet_lite0", "--limit", 1, "--max-side", 320, "--sequences", "v_graffiti",
+            "--methods", "sift,dfm,e3cm-release,e3cm,e3cm-ransac,e3cm-plus,direct"]  # the peers need weights
     result = invoke(*args)
     assert result.exit_code == 0
     table = pd.read_csv(out / "table.csv")
@@ -126,3 +128,24 @@ def test_default_labels_follow_backbone_and_estimator(tmp_path):
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "e3cm"}, {"matcher": "e3cm"}]}))
     with pytest.raises(ValueError, match="two methods are labelled 'e3cm'"):
         load_experiment(config)
+
+
+def test_reproduce_names_a_method_it_cannot_run_and_the_way_round(tmp_path, shared_data):
+    """Offline, the peers' weights cannot be fetched: one line naming the method and --methods."""
+    import os
+
+    env = {"TORCH_HOME": str(tmp_path / "torch"), "HF_HUB_OFFLINE": "1", "HF_HUB_CACHE": str(tmp_path / "hf"),
+           "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY": "http://127.0.0.1:9"}
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", "reproduce", str(CONFIGS / "table1_hpatches.yaml"),
+                             "--root", str(shared_data / "hpatches-sequences-release"), "--out", str(tmp_path / "o"),
+                             "--limit", "1"], env={**os.environ, **env}, capture_output=True, text=True, timeout=600)
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert result.returncode == 2 and len(errors) == 1, result.stderr
+    assert "table1_hpatches.yaml: loftr: weights loftr_outdoor.ckpt are not in" in errors[0]
+    assert errors[0].endswith("(--methods runs a subset)")
+    line = one_line_error(invoke("reproduce", CONFIGS / "table1_hpatches.yaml", "--root", shared_data / "hpatches-sequences-release",
+                                 "--out", tmp_path / "p", "--methods", "sift,nope"))
+    assert "--methods nope: no such method" in line
