@@ -425,6 +425,28 @@ def calibrate(
                     unrectified=unrectified, overwrite=overwrite, console=console)
 
 
+@app.command()
+@friendly_errors
+def download(
+    name: Annotated[str, typer.Argument(help="hpatches, megadepth-1500, yfcc or scannet-1500.")],
+    to: Annotated[Optional[Path], typer.Option("--to", help="Folder for the data (default: $E3CM_BENCH_DATA, else ./data).")] = None,
+    origin: Annotated[Optional[str], typer.Option("--from", help="A mirror URL or a file already downloaded, instead of the source's URL.")] = None,
+    sha256: Annotated[Optional[str], typer.Option("--sha256", help="The expected sha256 of the --from file.")] = None,
+    check: Annotated[bool, typer.Option("--check", help="Only check what is in place (counts against a complete copy).")] = False,
+) -> None:
+    """Fetch a benchmark's data (progress, resume, sha256), unpack it safely, and check it."""
+    from .datasets.sources import get_source
+    from .download import check as check_data
+    from .download import download as fetch_data
+
+    source = get_source(name)
+    to = to or Path(os.environ.get("E3CM_BENCH_DATA", "data"))
+    if not check:
+        root = fetch_data(source, to, origin, sha256, console)
+        console.print(f"{source.name}: in {root}", markup=False)
+    console.print(check_data(source, to), markup=False)
+
+
 @app.command("import")
 @friendly_errors
 def import_matches(

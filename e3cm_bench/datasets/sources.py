@@ -1,0 +1,79 @@
+"""Where each benchmark's data comes from: one table, data not code (what `download` fetches).
+
+sha256: pinned where a trustworthy hash is known; None where none is published (HPatches,
+glue-factory and hloc publish none): then the hash of the first download is recorded in
+the lock file beside the data (download.LOCK_FILE) and checked from then on.
+A source without a URL cannot be fetched by a script (a Google Drive folder): `download`
+prints its steps instead, and `download NAME --check` verifies what was placed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Part:
+    """One file of a source: where it comes from, what it is called, what it unpacks to."""
+
+    file: str
+    url: str | None = None
+    sha256: str | None = None
+    size: int | None = None  # bytes, for the free-disk check before downloading
+    extract: bool = True     # an archive to unpack (else the file is placed as it is)
+
+
+@dataclass(frozen=True)
+class Source:
+    name: str
+    benchmark: str
+    folder: str              # the folder under --to that holds the data (the benchmark's --root)
+    parts: tuple[Part, ...]
+    manual: str = ""         # the steps a script cannot do
+    expected: dict = field(default_factory=dict)  # what a complete copy holds (counts)
+
+
+SOURCES: dict[str, Source] = {s.name: s for s in [
+    Source(
+        "hpatches", "hpatches", "hpatches-sequences-release",
+        (Part("hpatches-sequences-release.zip",
+              "https://huggingface.co/datasets/vbalnt/hpatches/resolve/main/hpatches-sequences-release.zip",
+              size=1_300_000_000),),
+        expected={"sequences": 116, "images": 696},
+    ),
+    Source(
+        "megadepth-1500", "megadepth", "megadepth_test_1500",
+        (Part("scene_info/0015_0.1_0.3.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0015_0.1_0.3.npz", extract=False),
+         Part("scene_info/0015_0.3_0.5.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0015_0.3_0.5.npz", extract=False),
+         Part("scene_info/0022_0.1_0.3.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.1_0.3.npz", extract=False),
+         Part("scene_info/0022_0.3_0.5.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.3_0.5.npz", extract=False),
+         Part("scene_info/0022_0.5_0.7.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.5_0.7.npz", extract=False)),
+        manual=("the images are in LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, "
+                "file megadepth_test_1500.tar): download it by hand and unpack it so that "
+                "{folder}/Undistorted_SfM/0015/images/ and .../0022/images/ hold the images"),
+        expected={"pairs": 1500},
+    ),
+    Source(
+        "yfcc", "yfcc", "yfcc100m",
+        (Part("yfcc_test_pairs_with_gt.txt",
+              "https://raw.githubusercontent.com/magicleap/SuperGluePretrainedNetwork/master/assets/yfcc_test_pairs_with_gt.txt",
+              extract=False),),
+        manual=("the test images come from OANet's raw data, whose host is down; OANet's issue #32 points to Google Drive "
+                "folder 1qbnrDSXJhnXC0MiZNNqW7vezAHlkBNgo: download the four scenes' test images by hand into "
+                "{folder}/<scene>/test/images/ (buckingham_palace, notre_dame_front_facade, reichstag, sacre_coeur)"),
+        expected={"pairs": 4000},
+    ),
+    Source(
+        "scannet-1500", "yfcc", "scannet_test_1500",
+        (),
+        manual=("LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, file "
+                "scannet_test_1500.tar) holds the images and the pair list: download it by hand and unpack it into {folder}/"),
+        expected={"pairs": 1500},
+    ),
+]}
+
+
+def get_source(name: str) -> Source:
+    if name not in SOURCES:
+        raise ValueError(f"unknown data {name!r}; choose one of {', '.join(SOURCES)}")
+    return SOURCES[name]
