@@ -33,6 +33,10 @@ class Source:
     expected: dict = field(default_factory=dict)  # what a complete copy holds (counts)
 
 
+# LoFTR's MegaDepth-1500 pair lists, in its repository.
+LOFTR_SCENE_INFO = "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info"
+LOFTR_SCENES = ("0015_0.1_0.3", "0015_0.3_0.5", "0022_0.1_0.3", "0022_0.3_0.5", "0022_0.5_0.7")
+
 SOURCES: dict[str, Source] = {s.name: s for s in [
     Source(
         "hpatches", "hpatches", "hpatches-sequences-release",
@@ -43,11 +47,7 @@ SOURCES: dict[str, Source] = {s.name: s for s in [
     ),
     Source(
         "megadepth-1500", "megadepth", "megadepth_test_1500",
-        (Part("scene_info/0015_0.1_0.3.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0015_0.1_0.3.npz", extract=False),
-         Part("scene_info/0015_0.3_0.5.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0015_0.3_0.5.npz", extract=False),
-         Part("scene_info/0022_0.1_0.3.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.1_0.3.npz", extract=False),
-         Part("scene_info/0022_0.3_0.5.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.3_0.5.npz", extract=False),
-         Part("scene_info/0022_0.5_0.7.npz", "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info/0022_0.5_0.7.npz", extract=False)),
+        tuple(Part(f"scene_info/{scene}.npz", f"{LOFTR_SCENE_INFO}/{scene}.npz", extract=False) for scene in LOFTR_SCENES),
         manual=("the images are in LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, "
                 "file megadepth_test_1500.tar): download it by hand and unpack it so that "
                 "{folder}/Undistorted_SfM/0015/images/ and .../0022/images/ hold the images"),
