@@ -31,6 +31,7 @@ from .matchers import get_matcher
 from .matching import ESTIMATORS
 from .method import MethodSpec, parse_numbers
 from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
+from .download import find_root
 from .launch import run_shards
 from .shards import merge_run, parse_shard
 from .viz import draw_matches, save_image
@@ -213,7 +214,7 @@ WorkersOpt = Annotated[int, typer.Option("--workers", help="Run N shards at once
 DevicesOpt = Annotated[Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")]
 LauncherOpt = Annotated[str, typer.Option("--launcher", help="slurm: submit --shards N as a SLURM array (submitit; runs locally where SLURM is absent).")]
 ShardsOpt = Annotated[int, typer.Option("--shards", help="Number of shards for --launcher slurm.")]
-RootOpt = Annotated[Path, typer.Option("--root", help="Dataset root folder.")]
+RootOpt = Annotated[Optional[Path], typer.Option("--root", help="Dataset root folder (default: the downloaded data under $E3CM_BENCH_DATA, else ./data; e3cm-bench datasets).")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Run folder (config.yaml, matches.h5, CSVs, plots).")]
 MaxSideOpt = Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (0 = full resolution).")]
 LimitOpt = Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs.")]
@@ -230,7 +231,7 @@ PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", hel
 @app.command()
 @friendly_errors
 def hpatches(
-    root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
+    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
@@ -245,14 +246,14 @@ def hpatches(
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
-    _run("hpatches", method, root, out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+    _run("hpatches", method, find_root("hpatches", root), out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
 @app.command()
 @friendly_errors
 def megadepth(
-    root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
+    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
@@ -266,14 +267,14 @@ def megadepth(
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
-    _run("megadepth", method, root, out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+    _run("megadepth", method, find_root("megadepth", root), out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
 @app.command()
 @friendly_errors
 def yfcc(
-    root: RootOpt, out: OutOpt, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
+    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
     max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
     overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
@@ -287,7 +288,7 @@ def yfcc(
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order)
-    _run("yfcc", method, root, out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
+    _run("yfcc", method, find_root("yfcc", root), out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
 
@@ -307,8 +308,8 @@ def table(
 @friendly_errors
 def reproduce(
     config: Annotated[Path, typer.Argument(help="Experiment config, e.g. configs/table1_hpatches.yaml.")],
-    root: RootOpt,
     out: OutOpt,
+    root: RootOpt = None,
     backbone: Annotated[Optional[str], typer.Option("--backbone", help="Use this backbone for every deep method (labels say so).")] = None,
     limit: LimitOpt = None,
     device: DeviceOpt = "cpu",
@@ -325,6 +326,10 @@ def reproduce(
     if not config.is_file():
         raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
+    if root is None:
+        from .experiments import load_experiment
+
+        root = find_root(load_experiment(config)["benchmark"], None)
     reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
                          skip_bad=skip_bad, max_side=max_side, compare=compare, console=console,
                          shard=parse_shard(shard) if shard else None, only=methods.split(",") if methods else None)
@@ -439,20 +444,37 @@ def download(
     from .download import check as check_data
     from .download import download as fetch_data
 
+    from .datasets.sources import data_dir
+
     source = get_source(name)
-    to = to or Path(os.environ.get("E3CM_BENCH_DATA", "data"))
+    to = to or data_dir()
     if not check:
         root = fetch_data(source, to, origin, sha256, console)
         console.print(f"{source.name}: in {root}", markup=False)
     console.print(check_data(source, to), markup=False)
 
 
+@app.command()
+@friendly_errors
+def datasets(
+    to: Annotated[Optional[Path], typer.Option("--to", help="The data folder (default: $E3CM_BENCH_DATA, else ./data).")] = None,
+) -> None:
+    """Where each benchmark's data is looked for, and whether it is missing, incomplete or complete."""
+    from .datasets.sources import SOURCES, data_dir
+    from .download import status
+
+    to = to or data_dir()
+    console.print(f"data folder: {to} (benchmark commands use it when --root is not given)", markup=False)
+    for source in SOURCES.values():
+        console.print(status(source, to), markup=False, highlight=False, soft_wrap=True)
+
+
 @app.command("import")
 @friendly_errors
 def import_matches(
     benchmark: Annotated[str, typer.Argument(help="hpatches, megadepth or yfcc.")],
-    root: RootOpt,
     out: OutOpt,
+    root: RootOpt = None,
     hloc: Annotated[Optional[tuple[Path, Path]], typer.Option("--hloc", help="FEATURES.h5 MATCHES.h5 written by hloc (or in its layout).")] = None,
     npz: Annotated[Optional[Path], typer.Option("--npz", help="Folder of <pair name>.npz (keypoints0, keypoints1, optional scores).")] = None,
     label: LabelOpt = None,
@@ -474,6 +496,7 @@ def import_matches(
     if (hloc is None) == (npz is None):
         raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5 or --npz DIR")
     bench = get_benchmark(benchmark)
+    root = find_root(bench.name, root)
     options = {"hpatches": {"exclude_large": exclude_large, "sequences": sequences}, "megadepth": {"scene_info": scene_info},
                "yfcc": {"pairs": pairs}}.get(bench.name, {})
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.dataset_options})

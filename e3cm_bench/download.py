@@ -183,8 +183,9 @@ def check(source: Source, to: Path) -> str:
         raise DownloadError(f"{root}: not found; e3cm-bench download {source.name} --to {to} fetches it")
     try:
         dataset = get_benchmark(source.benchmark).load_dataset(root)
-    except ValueError as error:
-        raise DownloadError(f"{source.name} at {root} is incomplete: {error}") from None
+    except ValueError as error:  # the dataset's own words, without the advice meant for a run
+        reason = str(error).split(", e.g. ")[0].split("; pass --skip-bad")[0]
+        raise DownloadError(f"{source.name} at {root} is incomplete: {reason}") from None
     found = {"pairs": len(dataset)}
     if "sequences" in source.expected:  # an HPatches copy is counted in sequences and images
         sequences = [d for d in root.iterdir() if d.is_dir() and d.name[:2] in ("i_", "v_")]
@@ -194,6 +195,36 @@ def check(source: Source, to: Path) -> str:
         counts = ", ".join(f"{k} {got} of {want}" for k, (got, want) in short.items())
         raise DownloadError(f"{source.name} at {root} is incomplete: {counts}")
     return f"{source.name} at {root}: complete (" + ", ".join(f"{v} {k}" for k, v in found.items()) + ")"
+
+
+def find_root(benchmark: str, root: Path | None) -> Path:
+    """--root as given, else the benchmark's data under data_dir(), which must be there and
+    complete (a one-line error names the download command that fixes it)."""
+    from .datasets.sources import data_dir, source_of
+
+    if root is not None:
+        return Path(root)
+    source = source_of(benchmark)
+    try:
+        check(source, data_dir())
+    except DownloadError as error:
+        raise DownloadError(f"no --root given and {error}; e3cm-bench download {source.name} --to {data_dir()} "
+                            "fetches it (or pass --root)") from None
+    return data_dir() / source.folder
+
+
+def status(source: Source, to: Path) -> str:
+    """One line for `e3cm-bench datasets`: where a source's data is looked for and what is there."""
+    root = Path(to) / source.folder
+    lock = Path(to) / LOCK_FILE
+    try:
+        line = check(source, to)
+    except DownloadError as error:
+        text = str(error)
+        return f"{source.name}: {'missing' if 'not found' in text else 'incomplete'} at {root} ({text.split(': ', 1)[-1]})"
+    recorded = json.loads(lock.read_text()) if lock.is_file() else {}
+    hashes = [part.file for part in source.parts if part.file in recorded]
+    return line + (f"; sha256 recorded for {', '.join(hashes)}" if hashes else "; no download recorded (placed by hand)")
 
 
 def _check_member(archive: Path, name: str, kind: int) -> None:

@@ -191,3 +191,28 @@ def test_from_a_file_already_downloaded_and_the_manual_steps(shared_data, tmp_pa
     assert "Google Drive" in line and "--check" in line
     line = one_line_error(invoke("download", "hpatches", "--to", tmp_path / "empty", "--check"))
     assert "not found; e3cm-bench download hpatches" in line
+
+
+def test_datasets_reports_complete_partial_and_missing_and_commands_find_the_data(shared_data, tmp_path, monkeypatch):
+    import e3cm_bench.datasets.sources as sources
+
+    data = tmp_path / "data"
+    (data / "hpatches-sequences-release").mkdir(parents=True)
+    for sequence in ("v_boat", "v_graffiti", "i_leuven"):
+        (data / "hpatches-sequences-release" / sequence).symlink_to(shared_data / "hpatches-sequences-release" / sequence)
+    monkeypatch.setenv("E3CM_BENCH_DATA", str(data))
+    text = invoke("datasets").output
+    assert f"data folder: {data}" in text
+    assert "hpatches: incomplete at" in text and "sequences 3 of 116, images 18 of 696" in " ".join(text.split())
+    assert "yfcc: missing at" in text and "scannet-1500: missing at" in text
+    # a benchmark command without --root looks there, and says what fixes an incomplete copy
+    line = one_line_error(invoke("hpatches", "--out", tmp_path / "run", "--matcher", "sift", "--limit", 1))
+    assert "no --root given and hpatches at" in line and f"e3cm-bench download hpatches --to {data}" in line
+    # a copy that holds what it should is complete, and is found
+    small = Source("hpatches", "hpatches", "hpatches-sequences-release",
+                   sources.SOURCES["hpatches"].parts, expected={"sequences": 3, "images": 18})
+    monkeypatch.setitem(sources.SOURCES, "hpatches", small)
+    text = invoke("datasets").output
+    assert "hpatches at" in text and "complete (3 sequences, 18 images); no download recorded (placed by hand)" in " ".join(text.split())
+    result = invoke("hpatches", "--out", tmp_path / "run", "--matcher", "sift", "--limit", 1, "--max-side", 320)
+    assert result.exit_code == 0 and (tmp_path / "run" / "summary.csv").is_file()

@@ -10,6 +10,7 @@ prints its steps instead, and `download NAME --check` verifies what was placed.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -77,3 +78,15 @@ def get_source(name: str) -> Source:
     if name not in SOURCES:
         raise ValueError(f"unknown data {name!r}; choose one of {', '.join(SOURCES)}")
     return SOURCES[name]
+
+
+def data_dir() -> Path:
+    """Where data lives unless --root says otherwise: $E3CM_BENCH_DATA, else ./data."""
+    import os
+
+    return Path(os.environ.get("E3CM_BENCH_DATA") or "data")
+
+
+def source_of(benchmark: str) -> Source:
+    """The source whose data a benchmark reads by default (the first listed for it)."""
+    return next(s for s in SOURCES.values() if s.benchmark == benchmark)
