@@ -38,9 +38,6 @@ from .images import load_image
 from .matches import Matches, MatchesError, check_in_image
 from .report import print_summary
 
-FORMATS = ("hloc", "npz")
-
-
 class MissingPair(LookupError):
     """A benchmark pair the source holds no matches for."""
 
@@ -52,6 +49,7 @@ class HlocSource:
     """hloc's features.h5 + matches.h5 (module docstring)."""
 
     format = "hloc"
+    per_pair = False  # two files for all pairs: any change is another source
 
     def __init__(self, features: Path, matches: Path) -> None:
         self.features, self.matches = Path(features), Path(matches)
@@ -61,13 +59,20 @@ class HlocSource:
             if not h5py.is_hdf5(path):
                 raise ValueError(f"{path}: not an HDF5 file")
 
-    def files(self) -> dict[str, str]:
+    def files(self, pairs: list[Pair]) -> dict[str, str]:
         return {"features": file_sha256(self.features), "matches": file_sha256(self.matches)}
 
-    def expected(self, name0: str, name1: str) -> str:
-        return f"{self.matches}: group {hloc_pair_key(name0, name1)}"
+    def identity(self, files: dict[str, str]) -> dict:
+        return {"format": self.format, "files": files}
 
-    def read(self, name0: str, name1: str) -> Matches:
+    def location(self) -> dict:
+        return {"features": str(self.features), "matches": str(self.matches)}
+
+    def expected(self, pair: Pair, root: Path) -> str:
+        return f"{self.matches}: group {hloc_pair_key(image_name(pair.image0, root), image_name(pair.image1, root))}"
+
+    def read(self, pair: Pair, root: Path) -> Matches:
+        name0, name1 = image_name(pair.image0, root), image_name(pair.image1, root)
         with h5py.File(self.features, "r") as features, h5py.File(self.matches, "r") as matches:
             group, swapped = _find_pair(matches, name0, name1)
             if group is None:
@@ -113,6 +118,7 @@ class NpzSource:
     """A folder of <pair name>.npz (module docstring)."""
 
     format = "npz"
+    per_pair = True  # one file per pair: a resume may add or fix the files of pairs not yet imported
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
@@ -122,16 +128,23 @@ class NpzSource:
     def path(self, pair_name: str) -> Path:
         return self.folder / f"{pair_name}.npz"
 
-    def files(self, pairs: list[Pair] | None = None) -> dict[str, str]:
+    def files(self, pairs: list[Pair]) -> dict[str, str]:
         """Each pair's file's sha256 (only those of the benchmark's pairs: the folder may hold more)."""
-        names = [p.name for p in pairs] if pairs is not None else []
-        return {f"{n}.npz": file_sha256(self.path(n)) for n in names if self.path(n).is_file()}
+        return {f"{p.name}.npz": file_sha256(self.path(p.name)) for p in pairs if self.path(p.name).is_file()}
 
-    def expected(self, name0: str, name1: str, pair_name: str = "") -> str:
-        return str(self.path(pair_name))
+    def identity(self, files: dict[str, str]) -> dict:
+        """One digest for the folder: each file's hash by name."""
+        digest = hashlib.sha256("\n".join(f"{k} {v}" for k, v in sorted(files.items())).encode()).hexdigest()
+        return {"format": self.format, "n_files": len(files), "sha256": digest}
 
-    def read_pair(self, pair_name: str) -> Matches:
-        path = self.path(pair_name)
+    def location(self) -> dict:
+        return {"folder": str(self.folder)}
+
+    def expected(self, pair: Pair, root: Path) -> str:
+        return str(self.path(pair.name))
+
+    def read(self, pair: Pair, root: Path) -> Matches:
+        path = self.path(pair.name)
         if not path.is_file():
             raise MissingPair(f"{path}: not found")
         try:
@@ -173,13 +186,8 @@ def import_run(
     out = Path(out)
     root = Path(root).resolve()
     pairs = list(dataset)
-    files = source.files(pairs) if isinstance(source, NpzSource) else source.files()
-    identity = {"imported": {"format": source.format, "files": files}}
-    if isinstance(source, NpzSource):  # one digest for the folder: each file's hash by name
-        digest = hashlib.sha256("\n".join(f"{k} {v}" for k, v in sorted(files.items())).encode()).hexdigest()
-        identity = {"imported": {"format": "npz", "n_files": len(files), "sha256": digest}}
-    where = {"features": str(source.features), "matches": str(source.matches)} if isinstance(source, HlocSource) \
-        else {"folder": str(source.folder)}
+    files = source.files(pairs)
+    identity = {"imported": source.identity(files)}
     label = label or f"imported-{source.format}"
     out.mkdir(parents=True, exist_ok=True)
     with FolderLock(out):
@@ -191,15 +199,15 @@ def import_run(
                 (out / name).unlink(missing_ok=True)
         done = set(cache.names())
         if config_path.exists():
-            _check_resume(load_yaml(config_path), config_path, benchmark, identity, files, done)
+            _check_resume(load_yaml(config_path), config_path, benchmark, identity, files if source.per_pair else None, done)
         config = {
             "benchmark": benchmark.name, "method": label, "identity": identity,
-            "matcher": {"imported": source.format, **where}, "device": None,
+            "matcher": {"imported": source.format, **source.location()}, "device": None,
             "dataset": {**dataset.describe(), "limit": None, "n_pairs_evaluated": len(pairs)},
             "evaluation": asdict(ev), "versions": package_versions(), "environment": run_environment(),
             "timing": {},
         }
-        if isinstance(source, NpzSource):  # each pair's file, so that a resume can tell what changed
+        if source.per_pair:  # each pair's file, so that a resume can tell what changed
             config["imported_files"] = files
         save_yaml(config, config_path)
         skipped = list(dataset.skipped)
@@ -208,9 +216,8 @@ def import_run(
         for pair in pairs:
             if pair.name in done:
                 continue
-            name0, name1 = image_name(pair.image0, root), image_name(pair.image1, root)
             try:
-                matches = source.read_pair(pair.name) if isinstance(source, NpzSource) else source.read(name0, name1)
+                matches = source.read(pair, root)
                 size0, size1 = _size(pair.image0), _size(pair.image1)
                 check_in_image(matches, size0, size1)
             except MissingPair as error:
@@ -228,11 +235,9 @@ def import_run(
                      "match_seconds": float("nan")}
             cache.write(pair.name, matches, attrs)
         if missing and not skip_bad:
-            first = pairs[[p.name for p in pairs].index(missing[0])]
-            where = source.expected(image_name(first.image0, root), image_name(first.image1, root), *(
-                [first.name] if isinstance(source, NpzSource) else []))
+            first = next(p for p in pairs if p.name == missing[0])
             raise ValueError(f"{len(missing)} of {len(pairs)} pairs are not in the source (first: {missing[0]}, "
-                             f"expected at {where}); --skip-bad evaluates the others")
+                             f"expected at {source.expected(first, root)}); --skip-bad evaluates the others")
         config["timing"] = {"import_seconds": time.perf_counter() - t}
         pairs_done, summary = evaluate_and_report(benchmark, out, label, pairs, skipped, cache, ev, viz, console)
         config["dataset"]["n_skipped"] = len(skipped)
@@ -242,16 +247,17 @@ def import_run(
     return summary
 
 
-def _check_resume(before: dict, path: Path, benchmark: Benchmark, identity: dict, files: dict, done: set[str]) -> None:
-    """Refuse to add to matches imported from other sources. An npz folder may gain or fix the
-    files of pairs not imported yet (a resume after a bad pair); those already imported must
-    be the same files."""
-    recorded = before.get("identity") or {}
+def _check_resume(before: dict, path: Path, benchmark: Benchmark, identity: dict, files: dict | None,
+                  done: set[str]) -> None:
+    """Refuse to add to matches imported from other sources. files: each pair's file's hash,
+    for a source of one file per pair (npz), which may gain or fix the files of pairs not
+    imported yet (a resume after a bad pair); those already imported must be the same files."""
     if before.get("benchmark") != benchmark.name:
         raise ValueError(f"{path}: this folder holds a {before.get('benchmark')} run; choose another --out")
-    old, new = recorded.get("imported") or {}, identity["imported"]
-    if old.get("format") == new["format"] == "npz":
-        changed = sorted(n for n in done if (before.get("imported_files") or {}).get(f"{n}.npz") != files.get(f"{n}.npz"))
+    old, new = (before.get("identity") or {}).get("imported") or {}, identity["imported"]
+    if files is not None and old.get("format") == new["format"]:
+        recorded = before.get("imported_files") or {}
+        changed = sorted(n for n in done if recorded.get(f"{n}.npz") != files.get(f"{n}.npz"))
         if not changed:
             return
         why = f"{len(changed)} imported pair file(s) changed since (first: {changed[0]}.npz)"
