@@ -181,6 +181,15 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     )
 
 
+def _eval_settings(benchmark: str, protocol: str, seed: int, ransac_px: float | None,
+                   pose_estimator: str | None) -> EvalSettings:
+    """The evaluation settings of a command: the protocol's, then --ransac-px and --pose-estimator."""
+    fields = get_protocol(protocol, benchmark).eval_fields(benchmark)
+    if pose_estimator:
+        fields["estimator"] = pose_estimator
+    return get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **fields)
+
+
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
          scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB,
@@ -188,8 +197,7 @@ def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_opti
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     console.print(preset.line(), markup=False)
-    fields = {**preset.eval_fields(benchmark), **({"estimator": pose_estimator} if pose_estimator else {})}
-    ev = get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **fields)
+    ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)
     several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
@@ -440,11 +448,9 @@ def download(
     check: Annotated[bool, typer.Option("--check", help="Only check what is in place (counts against a complete copy).")] = False,
 ) -> None:
     """Fetch a benchmark's data (progress, resume, sha256), unpack it safely, and check it."""
-    from .datasets.sources import get_source
+    from .datasets.sources import data_dir, get_source
     from .download import check as check_data
     from .download import download as fetch_data
-
-    from .datasets.sources import data_dir
 
     source = get_source(name)
     to = to or data_dir()
@@ -497,12 +503,9 @@ def import_matches(
         raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5 or --npz DIR")
     bench = get_benchmark(benchmark)
     root = find_root(bench.name, root)
-    options = {"hpatches": {"exclude_large": exclude_large, "sequences": sequences}, "megadepth": {"scene_info": scene_info},
-               "yfcc": {"pairs": pairs}}.get(bench.name, {})
+    options = {"exclude_large": exclude_large, "sequences": sequences, "scene_info": scene_info, "pairs": pairs}
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.dataset_options})
-    preset = get_protocol(protocol, bench.name)
-    fields = {**preset.eval_fields(bench.name), **({"estimator": pose_estimator} if pose_estimator else {})}
-    ev = bench.eval_settings(seed=seed, ransac_px=ransac_px, **fields)
+    ev = _eval_settings(bench.name, protocol, seed, ransac_px, pose_estimator)
     source = HlocSource(*hloc) if hloc is not None else NpzSource(npz)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
                console=console)

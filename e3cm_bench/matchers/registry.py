@@ -19,6 +19,7 @@ import importlib
 import importlib.metadata
 from pathlib import Path
 
+from ..devices import check_device
 from ..files import file_sha256
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
 
@@ -105,13 +106,6 @@ def check_settings(name: str, settings: dict):
     return entry.make_settings(own)
 
 
-def is_random(name: str, settings: dict) -> bool:
-    """Whether the matcher draws from OpenCV's RNG under these settings (its seed then
-    belongs to the identity of its matches)."""
-    entry = get_matcher(name)
-    return bool(entry.is_random(check_settings(name, settings)))
-
-
 def build_matcher(
     name: str = "e3cm",
     backbone: str = "vgg19",
@@ -129,15 +123,12 @@ def build_matcher(
     own, net_settings = split_settings(entry, settings)
     instance = entry.make_settings(own)
     if entry.model:
-        from ..devices import check_device
-
         entry.check_requirements()
         check_device(device)
         return entry.build(instance, device=device, weights=weights, pretrained=pretrained)
     if not entry.needs_backbone:
         return entry.build(instance)
     from ..backbones import load_backbone
-    from ..devices import check_device
 
     net_settings = BackboneSettings(**net_settings)
     check_device(device)
@@ -160,7 +151,6 @@ def _load() -> None:
         return
     _loaded = True
     from .builtin import BUILTIN
-
     from .peers import PEERS
 
     for entry in (*BUILTIN, *PEERS):  # the peers' entries import neither kornia nor transformers
