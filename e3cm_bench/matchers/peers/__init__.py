@@ -114,26 +114,36 @@ def _lightglue(kind: str):
     return build
 
 
+# The weights files, named and located by kornia's own tables (read when a run is set up,
+# after the extra is known to be installed), so that the file hashed is the file kornia loads.
 def _loftr_weights(settings: LoFTRSettings) -> list:
-    name = {"outdoor": "loftr_outdoor.ckpt", "indoor": "loftr_indoor.ckpt", "indoor_new": "loftr_indoor_ds_new.ckpt"}
-    file = name[settings.weights]
-    return [HubFile(file, (f"https://huggingface.co/kornia/loftr/resolve/main/{file}",
-                           f"https://cmp.felk.cvut.cz/~mishkdmy/models/{file}"))]
+    from kornia.feature.loftr.loftr import urls
+
+    return [HubFile.of(urls[settings.weights])]
 
 
 def _lightglue_weights(kind: str):
-    release = f"{kind}_lightglue.pth"
-    lightglue = HubFile(f"{kind}_lightglue_v0-1_arxiv-pth",
-                        (f"https://huggingface.co/kornia/lightglue/resolve/main/{release}",
-                         f"https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/{release}"))
-    extractor = {
-        "superpoint": HubModel("magic-leap-community/superpoint"),
-        "disk": HubFile("depth-save.pth", ("https://huggingface.co/kornia/disk/resolve/main/depth-save.pth",
-                                           "https://raw.githubusercontent.com/cvlab-epfl/disk/master/depth-save.pth")),
-        "aliked": HubFile("aliked-n16.pth", ("https://huggingface.co/kornia/aliked/resolve/main/aliked-n16.pth",
-                                             "https://github.com/Shiaoming/ALIKED/raw/main/models/aliked-n16.pth")),
-    }[kind]
-    return lambda settings: [extractor, lightglue]
+    def files(settings) -> list:
+        import kornia.feature as KF
+        from kornia.core.download import hf_url
+
+        from .lightglue import SUPERPOINT_REPO, lightglue_file_name
+
+        if kind == "superpoint":
+            extractor = HubModel(SUPERPOINT_REPO)
+        elif kind == "disk":
+            from kornia.feature.disk.disk import urls
+
+            extractor = HubFile.of(urls["depth"])
+        else:
+            from kornia.feature.aliked.aliked import _CHECKPOINT_URLS
+
+            extractor = HubFile.of([url.format("aliked-n16") for url in _CHECKPOINT_URLS])
+        lightglue = HubFile.of([hf_url("lightglue", f"{kind}_lightglue.pth"), KF.LightGlue.url.format(KF.LightGlue.version, kind)],
+                               lightglue_file_name(kind))
+        return [extractor, lightglue]
+
+    return files
 
 
 def _superglue_weights(settings: SuperGlueSettings) -> list:

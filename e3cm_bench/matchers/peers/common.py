@@ -20,3 +20,12 @@ def rgb(image: np.ndarray, device: str) -> torch.Tensor:
 
 def numpy(tensor: torch.Tensor) -> np.ndarray:
     return tensor.detach().float().cpu().numpy()
+
+
+def superpoint_keypoints(out, image: np.ndarray, device: str):
+    """transformers' SuperPoint output for one image -> (keypoints N x 2 at the pixel indices
+    they came from, i.e. pixel centres; scores N; descriptors N x D). transformers returns
+    positions relative to the image size."""
+    keep = out.mask[0] > 0
+    size = torch.tensor([image.shape[1], image.shape[0]], device=out.keypoints.device)
+    return (out.keypoints[0][keep] * size).round(), out.scores[0][keep], out.descriptors[0][keep]

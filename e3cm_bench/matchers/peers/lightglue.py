@@ -14,7 +14,7 @@ import torch
 
 from ...matches import Matches
 from ..base import Matcher
-from .common import grey, numpy, rgb
+from .common import grey, numpy, rgb, superpoint_keypoints
 
 SUPERPOINT_REPO = "magic-leap-community/superpoint"
 
@@ -47,10 +47,8 @@ class Extractor:
         s = self.settings
         if self.kind == "superpoint":
             out = self.model(pixel_values=grey(image, self.device))  # one channel: it reads channel 0 only
-            keep = out.mask[0] > 0
-            size = torch.tensor([image.shape[1], image.shape[0]], device=out.keypoints.device)
-            # relative coordinates back to the pixel indices they came from (centres of pixels)
-            return (out.keypoints[0][keep] * size).round(), out.descriptors[0][keep]
+            keypoints, _, descriptors = superpoint_keypoints(out, image, self.device)
+            return keypoints, descriptors
         if self.kind == "disk":
             f = self.model(rgb(image, self.device), n=s.max_keypoints, window_size=s.nms_radius,
                            score_threshold=s.detection_threshold, pad_if_not_divisible=True)[0]

@@ -10,7 +10,7 @@ import torch
 
 from ...matches import Matches
 from ..base import Matcher
-from .common import grey, numpy
+from .common import grey, numpy, superpoint_keypoints
 
 SUPERGLUE_REPOS = {"outdoor": "magic-leap-community/superglue_outdoor",
                    "indoor": "magic-leap-community/superglue_indoor"}
@@ -54,10 +54,7 @@ class SuperGlueMatcher(Matcher):
 
     @torch.inference_mode()
     def _detect(self, image: np.ndarray):
-        out = self.model.keypoint_detector(pixel_values=grey(image, self.device))
-        keep = out.mask[0] > 0
-        size = torch.tensor([image.shape[1], image.shape[0]], device=out.keypoints.device)
-        return (out.keypoints[0][keep] * size).round(), out.scores[0][keep], out.descriptors[0][keep]
+        return superpoint_keypoints(self.model.keypoint_detector(pixel_values=grey(image, self.device)), image, self.device)
 
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:

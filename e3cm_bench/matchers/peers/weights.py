@@ -16,6 +16,12 @@ class HubFile:
     file_name: str
     urls: tuple[str, ...]
 
+    @classmethod
+    def of(cls, urls, file_name: str | None = None) -> HubFile:
+        """kornia's own URL list, cached (as kornia caches it) under file_name, else the first
+        URL's file name."""
+        return cls(file_name or urls[0].rsplit("/", 1)[-1], tuple(urls))
+
     @property
     def name(self) -> str:
         return f"kornia:{self.file_name}"
