@@ -267,7 +267,7 @@ def megadepth(
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
-    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info).")] = None,
+    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info; a ROOT in glue-factory's megadepth1500 layout needs none).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,

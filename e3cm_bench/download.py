@@ -198,19 +198,23 @@ def check(source: Source, to: Path) -> str:
 
 
 def find_root(benchmark: str, root: Path | None) -> Path:
-    """--root as given, else the benchmark's data under data_dir(), which must be there and
-    complete (a one-line error names the download command that fixes it)."""
-    from .datasets.sources import data_dir, source_of
+    """--root as given, else the benchmark's data under data_dir() in the first of its layouts
+    that is there and complete (else a one-line error names the download command that fixes it)."""
+    from .datasets.sources import data_dir, default_sources
 
     if root is not None:
         return Path(root)
-    source = source_of(benchmark)
-    try:
-        check(source, data_dir())
-    except DownloadError as error:
-        raise DownloadError(f"no --root given and {error}; e3cm-bench download {source.name} --to {data_dir()} "
-                            "fetches it (or pass --root)") from None
-    return data_dir() / source.folder
+    sources = default_sources(benchmark)
+    errors = []
+    for source in sources:
+        try:
+            check(source, data_dir())
+            return data_dir() / source.folder
+        except DownloadError as error:
+            errors.append(error)
+    fixes = " or ".join(f"e3cm-bench download {s.name} --to {data_dir()}" for s in sources)
+    problem = str(errors[0]).split("; e3cm-bench download")[0]
+    raise DownloadError(f"no --root given and {problem}; {fixes} fetches it (or pass --root)")
 
 
 def status(source: Source, to: Path) -> str:

@@ -30,3 +30,35 @@ def one_line_error(result) -> str:
 def flat(text: str) -> str:
     """Output with rich's line wrapping undone (whitespace runs -> one space)."""
     return " ".join(text.split())
+
+
+def gluefactory_layout(scene_infos, folder, image_for) -> int:
+    """Writes the pairs of LoFTR scene_info files into glue-factory's megadepth1500 layout under
+    `folder` (views.txt, pairs.txt, images/ named by basename), in the lists' order; written
+    here from the layout's description, independently of the reader. image_for(path relative
+    to the LoFTR root, destination) places each image. Returns the number of pairs."""
+    from pathlib import Path
+
+    from e3cm_bench.datasets.megadepth import load_scene_info
+
+    folder = Path(folder)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    views, pairs = {}, []
+    for path in scene_infos:
+        scene = load_scene_info(Path(path))
+        for (i, j), *_ in scene["pair_infos"]:
+            names = []
+            for k in (i, j):
+                relative = str(scene["image_paths"][k])
+                name = Path(relative).name
+                if name not in views:
+                    K, P = np.asarray(scene["intrinsics"][k], float), np.asarray(scene["poses"][k], float)
+                    numbers = [*P[:3, :3].ravel(), *P[:3, 3]]
+                    views[name] = " ".join([name, *(repr(float(v)) for v in numbers), "PINHOLE", "8", "8",
+                                            *(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))])
+                    image_for(relative, folder / "images" / name)
+                names.append(name)
+            pairs.append(" ".join(names))
+    (folder / "views.txt").write_text("\n".join(views.values()) + "\n")
+    (folder / "pairs.txt").write_text("\n".join(pairs) + "\n")
+    return len(pairs)

@@ -13,6 +13,7 @@ from e3cm_bench.benchmarks import BENCHMARKS
 from e3cm_bench.datasets import DatasetError, HPatches, MegaDepth1500, YFCC100M
 from e3cm_bench.geometry import warp_points
 from e3cm_bench.metrics import evaluate_pose_pair
+from helpers import gluefactory_layout
 
 
 def touch(path: Path) -> Path:
@@ -220,6 +221,75 @@ def test_kitti_ground_truth_agrees_with_sift(megadepth_root: Path):
     assert sum(e < 5.0 for e in errors) >= 3, errors
     # The opposite convention (poses[i] @ inv(poses[j])) is off by far more (~17 deg here).
     assert all(bad > 3 * good for good, bad in zip(errors, errors_if_inverted)), errors_if_inverted
+
+
+def tiny_image(relative: str, destination: Path) -> None:
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    if not destination.exists():
+        cv2.imwrite(str(destination), np.zeros((4, 4), np.uint8))
+
+
+def test_megadepth_both_layouts_give_the_same_1500_pairs_in_the_same_order(megadepth_root: Path, tmp_path: Path):
+    """The real LoFTR lists, and the same numbers written in glue-factory's layout: one reader each,
+    the same pairs (images, K, T_0to1) in the same order. Images are stand-ins (the pairs' ground truth is real)."""
+    scene_infos = [megadepth_root / "scene_info" / f"{s}.npz" for s in
+                   ("0015_0.1_0.3", "0015_0.3_0.5", "0022_0.1_0.3", "0022_0.3_0.5", "0022_0.5_0.7")]
+    loftr = tmp_path / "megadepth_test_1500"
+    (loftr / "scene_info").mkdir(parents=True)
+    for path in scene_infos:
+        (loftr / "scene_info" / path.name).symlink_to(path)
+    n = gluefactory_layout(scene_infos, tmp_path / "megadepth1500",
+                           lambda relative, destination: (tiny_image(relative, loftr / relative),
+                                                          tiny_image(relative, destination)))
+    assert n == 1500
+    a = MegaDepth1500(loftr)
+    b = MegaDepth1500(tmp_path)  # the folder that holds megadepth1500/, as glue-factory unpacks it
+    assert (a.layout, b.layout) == ("loftr", "gluefactory") and len(a) == len(b) == 1500
+    assert b.settings()["views"] == str(tmp_path / "megadepth1500" / "views.txt")
+    for pa, pb in zip(a, b):
+        assert (pa.image0.name, pa.image1.name) == (pb.image0.name, pb.image1.name)
+        assert pb.name == f"megadepth1500/{pa.image0.stem}--{pa.image1.stem}"
+        np.testing.assert_array_equal(pa.K0, pb.K0)
+        np.testing.assert_array_equal(pa.K1, pb.K1)
+        np.testing.assert_allclose(pa.T_0to1, pb.T_0to1, rtol=0, atol=1e-12)
+
+
+def write_views(folder: Path, lines: list[str], pairs: list[str]) -> Path:
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    for name in ("a.jpg", "b.jpg", "c.jpg"):
+        tiny_image(name, folder / "images" / name)
+    (folder / "views.txt").write_text("\n".join(lines) + "\n")
+    (folder / "pairs.txt").write_text("\n".join(pairs) + "\n")
+    return folder
+
+
+POSE = "1 0 0 0 1 0 0 0 1 0 0 0"
+MOVED = "1 0 0 0 1 0 0 0 1 1 0 0"
+
+
+def test_gluefactory_layout_bad_input_is_one_line_naming_the_file(tmp_path: Path):
+    good = [f"a.jpg {POSE} PINHOLE 8 8 500 500 4 4", f"b.jpg {MOVED} SIMPLE_PINHOLE 8 8 500 4 4"]
+    dataset = MegaDepth1500(write_views(tmp_path / "ok", good, ["a.jpg b.jpg"]))
+    np.testing.assert_array_equal(dataset[0].K1, [[500, 0, 4], [0, 500, 4], [0, 0, 1]])
+    np.testing.assert_allclose(dataset[0].T_0to1[:3, 3], [1, 0, 0])
+    cases = [
+        (good, ["a.jpg b.jpg c.jpg"], r"pairs\.txt: line 1 holds 3 names, not two"),
+        (good, ["a.jpg c.jpg"], r"pairs\.txt: line 1 names c\.jpg, which views\.txt does not list"),
+        ([f"a.jpg {POSE} PINHOLE 8"], ["a.jpg a.jpg"], r"views\.txt: line 1 holds 15 fields"),
+        ([f"a.jpg {POSE} PINHOLE 8 8 500 x 4 4"], ["a.jpg a.jpg"], r"views\.txt: line 1: a pose or camera value is not a number"),
+        (good + [good[0]], ["a.jpg b.jpg"], r"views\.txt: line 3: view a\.jpg is listed twice"),
+    ]
+    for number, (views, pairs, says) in enumerate(cases):
+        with pytest.raises(DatasetError, match=says):
+            MegaDepth1500(write_views(tmp_path / str(number), views, pairs))
+    # a camera K cannot describe is a bad pair: refused, or skipped with --skip-bad
+    distorted = good + [f"c.jpg {MOVED} OPENCV 8 8 500 500 4 4 0.1 0 0 0"]
+    folder = write_views(tmp_path / "distorted", distorted, ["a.jpg b.jpg", "a.jpg c.jpg"])
+    with pytest.raises(DatasetError, match=r"views\.txt: line 3: camera OPENCV has non-zero distortion"):
+        MegaDepth1500(folder)
+    assert [p.name for p in MegaDepth1500(folder, skip_bad=True)] == ["megadepth1500/a--b"]
+    with pytest.raises(DatasetError, match=r"holds neither scene_info/\*\.npz .* nor views\.txt and pairs\.txt"):
+        MegaDepth1500(tmp_path / "ok" / "images")
 
 
 # --------------------------------------------------------------------------- YFCC100M / ScanNet

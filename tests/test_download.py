@@ -216,3 +216,44 @@ def test_datasets_reports_complete_partial_and_missing_and_commands_find_the_dat
     assert "hpatches at" in text and "complete (3 sequences, 18 images); no download recorded (placed by hand)" in " ".join(text.split())
     result = invoke("hpatches", "--out", tmp_path / "run", "--matcher", "sift", "--limit", 1, "--max-side", 320)
     assert result.exit_code == 0 and (tmp_path / "run" / "summary.csv").is_file()
+
+
+def test_megadepth_in_gluefactorys_layout_downloads_and_is_found_without_root(shared_data, tmp_path, monkeypatch):
+    """glue-factory's megadepth1500.zip layout (the real KITTI pairs written in it), served here:
+    downloaded, unpacked, listed by `datasets`, and found by `megadepth` without --root where
+    LoFTR's layout is absent."""
+    import dataclasses
+
+    import e3cm_bench.datasets.sources as sources
+    from helpers import gluefactory_layout
+
+    kitti = shared_data / "megadepth_test_1500"
+    staging = tmp_path / "staging" / "megadepth1500"
+    n = gluefactory_layout([kitti / "scene_info" / "kitti00_seq.npz"], staging,
+                           lambda relative, destination: destination.write_bytes((kitti / relative).read_bytes()))
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for path in sorted(staging.rglob("*")):
+            if path.is_file():
+                zf.write(path, path.relative_to(staging.parent).as_posix())
+    server = Server({"/megadepth1500.zip": buffer.getvalue()})
+    try:
+        for name in ("megadepth-1500", "megadepth-1500-gluefactory"):
+            monkeypatch.setitem(sources.SOURCES, name, dataclasses.replace(sources.SOURCES[name], expected={"pairs": n}))
+        data = tmp_path / "data"
+        result = invoke("download", "megadepth-1500-gluefactory", "--to", data, "--from", server.url + "/megadepth1500.zip")
+        assert result.exit_code == 0 and (data / "megadepth1500" / "views.txt").is_file()
+        monkeypatch.setenv("E3CM_BENCH_DATA", str(data))
+        text = " ".join(invoke("datasets").output.split())
+        assert "megadepth-1500: missing at" in text
+        assert f"megadepth-1500-gluefactory at {data / 'megadepth1500'}: complete ({n} pairs); sha256 recorded" in text
+        result = invoke("megadepth", "--out", tmp_path / "run", "--matcher", "sift", "--limit", 1, "--max-side", 320)
+        assert result.exit_code == 0
+        config = (tmp_path / "run" / "config.yaml").read_text()
+        assert "layout: gluefactory" in config and str(data / "megadepth1500" / "pairs.txt") in config
+    finally:
+        server.close()
+    # neither layout present: the line names both download commands
+    monkeypatch.setenv("E3CM_BENCH_DATA", str(tmp_path / "empty"))
+    line = one_line_error(invoke("megadepth", "--out", tmp_path / "run2", "--matcher", "sift"))
+    assert "e3cm-bench download megadepth-1500 --to" in line and "or e3cm-bench download megadepth-1500-gluefactory --to" in line

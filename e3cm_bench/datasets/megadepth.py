@@ -1,4 +1,14 @@
-"""MegaDepth-1500: the LoFTR ``scene_info/*.npz`` pair lists, images relative to the root."""
+"""MegaDepth-1500 in either layout it is distributed in.
+
+- LoFTR's: ``ROOT/scene_info/*.npz`` pair lists, image paths relative to ROOT (the protocol's).
+- glue-factory's ``megadepth1500.zip``: ``ROOT/views.txt`` (one line per image:
+  ``name R(9) t(3) MODEL width height params``, R, t world-to-camera, COLMAP's camera),
+  ``ROOT/pairs.txt`` (``name0 name1`` per line), images under ``ROOT/images/``.
+
+Both give the same pairs from the same numbers: the intrinsics are COLMAP's in both (a
+principal point of width/2 is COLMAP's corner convention) and are used as they are, as the
+protocol does with LoFTR's lists; T_0to1 = T1 @ inv(T0) for world-to-camera poses.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +26,9 @@ SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
 
 
 class MegaDepth1500(PairList):
-    """Pairs from every ``root/scene_info/*.npz`` (sorted), or from the ``scene_info`` paths given.
+    """Pairs from every ``root/scene_info/*.npz`` (sorted), or from the ``scene_info`` paths given,
+    or, where ROOT holds glue-factory's layout instead (``views.txt``, ``pairs.txt``; also
+    found in ``ROOT/megadepth1500``), from its pair list in its order.
 
     Each npz holds per-image ``image_paths`` (relative to root, None for unused images),
     ``intrinsics`` (3x3), ``poses`` (world-to-camera 4x4) and ``pair_infos``, entries
@@ -32,6 +44,16 @@ class MegaDepth1500(PairList):
         skip_bad: bool = False,
     ) -> None:
         self.root = require_directory(root, "MegaDepth")
+        self.layout = "loftr"
+        if scene_info is None and not (self.root / "scene_info").is_dir():
+            found = gluefactory_folder(self.root)
+            if found is None:
+                raise DatasetError(f"{self.root}: holds neither scene_info/*.npz (LoFTR's MegaDepth-1500 layout) "
+                                   "nor views.txt and pairs.txt (glue-factory's megadepth1500)")
+            self.layout, self.root, self.scene_info = "gluefactory", found, []
+            pairs, bad = read_gluefactory(found)
+            super().__init__(pairs, found / GLUEFACTORY_PAIRS, skip_bad, bad)
+            return
         if scene_info is None:
             self.scene_info = sorted((self.root / "scene_info").glob("*.npz"))
             if not self.scene_info:
@@ -79,11 +101,106 @@ class MegaDepth1500(PairList):
         return pairs, bad
 
     def settings(self) -> dict:
+        if self.layout == "gluefactory":
+            return {"dataset": self.name, "root": str(self.root), "layout": self.layout,
+                    "views": str(self.root / GLUEFACTORY_VIEWS), "pairs": str(self.root / GLUEFACTORY_PAIRS)}
         return {
             "dataset": self.name,
             "root": str(self.root),
             "scene_info": [str(p) for p in self.scene_info],
         }
+
+
+GLUEFACTORY_VIEWS, GLUEFACTORY_PAIRS, GLUEFACTORY_SCENE = "views.txt", "pairs.txt", "megadepth1500"
+# COLMAP camera models whose parameters start with the pinhole ones; any further parameters are
+# distortion, which must be zero (MegaDepth's images are undistorted) for K to describe the camera.
+PINHOLE_PARAMS = {"PINHOLE": 4, "SIMPLE_PINHOLE": 3, "SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4}
+
+
+def gluefactory_folder(root: Path) -> Path | None:
+    """ROOT, or ROOT/megadepth1500, where it holds glue-factory's views.txt and pairs.txt."""
+    for folder in (root, root / GLUEFACTORY_SCENE):
+        if (folder / GLUEFACTORY_VIEWS).is_file() and (folder / GLUEFACTORY_PAIRS).is_file():
+            return folder
+    return None
+
+
+def read_gluefactory(folder: Path) -> tuple[list[Pair], list[tuple[str, str]]]:
+    """The pairs of glue-factory's megadepth1500 folder in pairs.txt's order, and (name, problem)
+    of those whose ground truth is unusable. Names are ``megadepth1500/<stem0>--<stem1>``."""
+    views = _read_views(folder / GLUEFACTORY_VIEWS)
+    pairs_path = folder / GLUEFACTORY_PAIRS
+    pairs, bad = [], []
+    for number, line in enumerate(_lines(pairs_path), 1):
+        names = line.split()
+        if len(names) != 2:
+            raise DatasetError(f"{pairs_path}: line {number} holds {len(names)} names, not two")
+        for image in names:
+            if image not in views:
+                raise DatasetError(f"{pairs_path}: line {number} names {image}, which views.txt does not list")
+        (K0, T0, problem0), (K1, T1, problem1) = views[names[0]], views[names[1]]
+        image0, image1 = folder / "images" / names[0], folder / "images" / names[1]
+        name = f"{GLUEFACTORY_SCENE}/{image0.stem}--{image1.stem}"
+        try:
+            for problem in (problem0, problem1):
+                if problem:
+                    raise DatasetError(problem)
+            T_0to1 = T1 @ np.linalg.inv(T0)
+            check_pose(T_0to1, f"{pairs_path}: line {number}")
+        except DatasetError as error:
+            bad.append((name, str(error)))
+            continue
+        pairs.append(Pair(name=name, image0=image0, image1=image1, K0=K0, K1=K1, T_0to1=T_0to1,
+                          meta={"scene": GLUEFACTORY_SCENE}))
+    return pairs, bad
+
+
+def _lines(path: Path) -> list[str]:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise DatasetError(f"{path}: not readable ({' '.join(str(error).split())})") from None
+    return [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+
+
+def _read_views(path: Path) -> dict[str, tuple]:
+    """name -> (K, world-to-camera 4x4, problem or ""); a line that cannot be parsed is an error."""
+    views = {}
+    for number, line in enumerate(_lines(path), 1):
+        fields = line.split()
+        where = f"{path}: line {number}"
+        if len(fields) < 16:
+            raise DatasetError(f"{where} holds {len(fields)} fields; expected name R(9) t(3) MODEL width height params")
+        name, model = fields[0], fields[13]
+        try:
+            numbers = np.array(fields[1:13] + fields[16:], dtype=np.float64)
+        except ValueError:
+            raise DatasetError(f"{where}: a pose or camera value is not a number") from None
+        if not np.all(np.isfinite(numbers)):
+            raise DatasetError(f"{where}: non-finite pose or camera values")
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = numbers[:9].reshape(3, 3), numbers[9:12]
+        params, problem = numbers[12:], ""
+        n = PINHOLE_PARAMS.get(model)
+        if n is None or len(params) < n:
+            problem = f"{where}: camera model {model} with {len(params)} parameters is not a pinhole camera"
+            K = np.eye(3)
+        else:
+            fx, fy, cx, cy = params[:4] if n == 4 else (params[0], params[0], params[1], params[2])
+            K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+            if np.any(params[n:] != 0):
+                problem = f"{where}: camera {model} has non-zero distortion; MegaDepth's images are undistorted"
+            else:
+                try:
+                    check_intrinsics(K, where)
+                except DatasetError as error:
+                    problem = str(error)
+        if name in views:
+            raise DatasetError(f"{where}: view {name} is listed twice")
+        views[name] = (K, T, problem)
+    if not views:
+        raise DatasetError(f"{path}: lists no views")
+    return views
 
 
 # What a scene_info pickle may build: numpy arrays, dtypes and scalars (module paths of numpy

@@ -32,6 +32,7 @@ class Source:
     parts: tuple[Part, ...]
     manual: str = ""         # the steps a script cannot do
     expected: dict = field(default_factory=dict)  # what a complete copy holds (counts)
+    same_data_as: str = ""   # another source's data in another layout (either one serves)
 
 
 # LoFTR's MegaDepth-1500 pair lists, in its repository.
@@ -53,6 +54,11 @@ SOURCES: dict[str, Source] = {s.name: s for s in [
                 "file megadepth_test_1500.tar): download it by hand and unpack it so that "
                 "{folder}/Undistorted_SfM/0015/images/ and .../0022/images/ hold the images"),
         expected={"pairs": 1500},
+    ),
+    Source(
+        "megadepth-1500-gluefactory", "megadepth", "megadepth1500",
+        (Part("megadepth1500.zip", "https://cvg-data.inf.ethz.ch/megadepth/megadepth1500.zip"),),
+        expected={"pairs": 1500}, same_data_as="megadepth-1500",
     ),
     Source(
         "yfcc", "yfcc", "yfcc100m",
@@ -87,6 +93,8 @@ def data_dir() -> Path:
     return Path(os.environ.get("E3CM_BENCH_DATA") or "data")
 
 
-def source_of(benchmark: str) -> Source:
-    """The source whose data a benchmark reads by default (the first listed for it)."""
-    return next(s for s in SOURCES.values() if s.benchmark == benchmark)
+def default_sources(benchmark: str) -> list[Source]:
+    """Where a benchmark's default data may be, in the order the folders are looked for: its
+    first source, then the same data in other layouts (never another dataset it also reads)."""
+    first = next(s for s in SOURCES.values() if s.benchmark == benchmark)
+    return [first] + [s for s in SOURCES.values() if s.same_data_as == first.name]
