@@ -100,6 +100,9 @@ class MethodSpec:
             if not path.is_file():
                 raise ValueError(f"{path}: weights file not found")
             weights_sha256 = file_sha256(path)
+            if entry.weights_beside is not None and available:
+                beside = entry.weights_beside(instance)
+                weights_sha256 = ", ".join([weights_sha256] + [f"{f.name}={file_sha256(f.fetch())}" for f in beside])
         elif entry.weights is not None and available:
             # the files the library loads (fetched into its cache first): names and hashes
             files = entry.weights(instance)

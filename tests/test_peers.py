@@ -184,3 +184,119 @@ def test_a_release_checkpoint_loads_from_weights_file(tmp_path):
     model = spec.build("cpu").model
     key = "backbone.layer1.0.conv1.weight"
     assert torch.equal(model.state_dict()[key], reference.state_dict()[key])
+
+
+def superglue_release_checkpoint(seed: int = 3, layers: int = 18) -> dict:
+    """Random tensors in the layout of Magic Leap's superglue_*.pth: 1x1 Conv1d weights
+    (out, in, 1) and BatchNorm1d entries under kenc.encoder.{0,1,3,4,...,12}, gnn.layers.N.attn
+    (proj.0-2, merge) and .mlp (0 conv, 1 norm, 3 conv), final_proj, bin_score."""
+    g = torch.Generator().manual_seed(seed)
+
+    def conv(out, inp, prefix):
+        return {f"{prefix}.weight": torch.randn(out, inp, 1, generator=g) / inp ** 0.5,
+                f"{prefix}.bias": torch.randn(out, generator=g) * 0.1}
+
+    def norm(n, prefix):
+        return {f"{prefix}.weight": 1 + 0.1 * torch.randn(n, generator=g), f"{prefix}.bias": 0.1 * torch.randn(n, generator=g),
+                f"{prefix}.running_mean": 0.1 * torch.randn(n, generator=g), f"{prefix}.running_var": 0.5 + torch.rand(n, generator=g),
+                f"{prefix}.num_batches_tracked": torch.tensor(7)}
+
+    state, sizes = {}, [3, 32, 64, 128, 256, 256]
+    for k in range(5):
+        state |= conv(sizes[k + 1], sizes[k], f"kenc.encoder.{3 * k}")
+        if k < 4:
+            state |= norm(sizes[k + 1], f"kenc.encoder.{3 * k + 1}")
+    for n in range(layers):
+        for j in range(3):
+            state |= conv(256, 256, f"gnn.layers.{n}.attn.proj.{j}")
+        state |= conv(256, 256, f"gnn.layers.{n}.attn.merge")
+        state |= conv(512, 512, f"gnn.layers.{n}.mlp.0") | norm(512, f"gnn.layers.{n}.mlp.1") | conv(256, 512, f"gnn.layers.{n}.mlp.3")
+    return state | conv(256, 256, "final_proj") | {"bin_score": torch.tensor(2.3)}
+
+
+def release_attention(state: dict, prefix: str, x: torch.Tensor, source: torch.Tensor, heads: int = 4) -> torch.Tensor:
+    """The release's multi-head attention, written from its definition: channels (B, C, N) cut
+    into heads as channel = d * heads + h, softmax(q.k / sqrt(C / heads)), then the merge."""
+    def conv(name, t):
+        return torch.einsum("oc,bcn->bon", state[f"{prefix}.{name}.weight"][..., 0], t) + state[f"{prefix}.{name}.bias"][:, None]
+
+    b, c, _ = x.shape
+    q, k, v = (conv(f"proj.{j}", t).view(b, c // heads, heads, -1) for j, t in enumerate((x, source, source)))
+    prob = torch.softmax(torch.einsum("bdhn,bdhm->bhnm", q, k) / (c // heads) ** 0.5, dim=-1)
+    return conv("merge", torch.einsum("bhnm,bdhm->bdhn", prob, v).reshape(b, c, -1))
+
+
+def test_superglue_release_weights_load_into_transformers_and_compute_the_releases_attention():
+    """Every tensor of a release-format checkpoint lands in transformers' SuperGlue (nothing
+    missing but SuperPoint, nothing unexpected), and with the heads' channels reordered its
+    attention equals the release's on the same input; without the reordering it would not."""
+    from transformers import SuperGlueConfig, SuperGlueForKeypointMatching, SuperPointConfig
+
+    from e3cm_bench.matchers.peers.superglue import load_release, release_state_dict
+
+    state = superglue_release_checkpoint()
+    converted = release_state_dict(state, heads=4)
+    model = SuperGlueForKeypointMatching(SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict())).eval()
+    missing, unexpected = model.load_state_dict(converted, strict=False)
+    assert not unexpected and all(k.startswith("keypoint_detector.") for k in missing)
+    assert len(converted) == len(state)
+    torch.manual_seed(4)
+    x, source = torch.randn(1, 256, 40), torch.randn(1, 256, 55)
+    ours = model.gnn.layers[3].attention(x.transpose(1, 2), encoder_hidden_states=source.transpose(1, 2))[0]
+    theirs = release_attention(state, "gnn.layers.3.attn", x, source)
+    torch.testing.assert_close(ours.transpose(1, 2), theirs, rtol=1e-4, atol=1e-5)
+    unordered = SuperGlueForKeypointMatching(SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict())).eval()
+    unordered.load_state_dict(release_state_dict(state, heads=1), strict=False)  # names only
+    plain = unordered.gnn.layers[3].attention(x.transpose(1, 2), encoder_hidden_states=source.transpose(1, 2))[0]
+    assert (plain.transpose(1, 2) - theirs).abs().max() > 1e-2
+    # the kept layers are the release's numbers (a 1x1 conv is a linear layer)
+    assert torch.equal(model.final_projection.final_proj.weight, state["final_proj.weight"][..., 0])
+    assert torch.equal(model.keypoint_encoder.encoder[4].weight, state["kenc.encoder.12.weight"][..., 0])
+    assert torch.equal(model.gnn.layers[0].mlp[0].batch_norm.running_var, state["gnn.layers.0.mlp.1.running_var"])
+    assert float(model.bin_score.detach()) == pytest.approx(2.3)
+
+
+def test_a_superglue_release_pth_runs_from_weights_file_with_superpoint_from_the_cache(tmp_path, shared_data):
+    """--weights superglue_outdoor.pth (the release's format): SuperGlue from the file, SuperPoint
+    from transformers' cache (offline); both hashes in the identity; a file of another kind is one line."""
+    env = {"HF_HUB_CACHE": str(tmp_path / "hf"), "HF_HUB_OFFLINE": "1", "TORCH_HOME": str(tmp_path / "torch"),
+           "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY": "http://127.0.0.1:9"}
+    release = tmp_path / "superglue_outdoor.pth"
+    torch.save(superglue_release_checkpoint(), release)
+    wrong = tmp_path / "not_superglue.pth"
+    torch.save({"matcher.backbone.weight": torch.zeros(2)}, wrong)
+    code = f"""
+        import hashlib, json, os
+        from pathlib import Path
+        import numpy as np, torch
+        from transformers import SuperPointConfig, SuperPointForKeypointDetection
+        from e3cm_bench.images import load_image, resize_max_side
+        from e3cm_bench.method import MethodSpec
+
+        torch.manual_seed(5)
+        superpoint = SuperPointForKeypointDetection(SuperPointConfig())
+        snapshot = Path(os.environ["HF_HUB_CACHE"]) / "models--magic-leap-community--superpoint"
+        (snapshot / "refs").mkdir(parents=True)
+        (snapshot / "refs" / "main").write_text("0" * 40)
+        superpoint.save_pretrained(snapshot / "snapshots" / ("0" * 40))
+        spec = MethodSpec.create("superpoint+superglue", weights="{release}", options={{"match_threshold": 0.0}})
+        matcher = spec.build("cpu")
+        same_superpoint = all(torch.equal(v, superpoint.state_dict()[k]) for k, v in matcher.model.keypoint_detector.state_dict().items())
+        image = resize_max_side(load_image("{shared_data / 'hpatches-sequences-release' / 'v_boat' / '1.ppm'}"), 320)[0]
+        matches = matcher.match(image, image[:200, :300].copy())
+        out = {{"identity": spec.identity(), "same_superpoint": same_superpoint, "n": len(matches.keypoints0),
+               "sha": hashlib.sha256(Path("{release}").read_bytes()).hexdigest()}}
+        try:
+            MethodSpec.create("superpoint+superglue", weights="{wrong}").build("cpu")
+        except ValueError as error:
+            out["wrong"] = str(error)
+        print(json.dumps(out))
+    """
+    result = _run(code, env, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = yaml.safe_load(result.stdout.strip().splitlines()[-1])
+    assert out["identity"]["weights"] == str(release)
+    assert out["identity"]["weights_sha256"].startswith(f"{out['sha']}, hf:magic-leap-community/superpoint=")
+    assert out["same_superpoint"] and out["n"] > 0
+    assert out["wrong"].startswith(f"{wrong}: cannot load as SuperGlue's release weights (not a SuperGlue release checkpoint")
+    assert "\n" not in out["wrong"]

@@ -97,6 +97,8 @@ class MatcherEntry:
     requires: modules it needs beyond the base install (checked before anything runs).
     weights: settings -> the files it loads the libraries' way (peers/weights.py); their
         names and sha256 enter the identity.
+    weights_beside: settings -> the library files it still loads when --weights FILE replaces
+        its own (e.g. the keypoint extractor); they enter the identity after the file's hash.
     origin: "built-in", "plugin DIST VERSION" or "module NAME" (set by the registry).
     source: what the plugin's code is, for the identity: {"package", "version"} or
         {"module", "sha256"}; None for built-ins (the package's own version is in config.yaml).
@@ -117,6 +119,7 @@ class MatcherEntry:
     model: bool = False
     requires: tuple[str, ...] = ()
     weights: Callable[[Any], list] | None = None
+    weights_beside: Callable[[Any], list] | None = None
     origin: str = "built-in"
     source: dict | None = None
 

@@ -127,7 +127,8 @@ def _lightglue_weights(kind: str):
         import kornia.feature as KF
         from kornia.core.download import hf_url
 
-        from .lightglue import SUPERPOINT_REPO, lightglue_file_name
+        from .common import SUPERPOINT_REPO
+        from .lightglue import lightglue_file_name
 
         if kind == "superpoint":
             extractor = HubModel(SUPERPOINT_REPO)
@@ -146,10 +147,23 @@ def _lightglue_weights(kind: str):
     return files
 
 
+def _lightglue_extractor(kind: str):
+    """With --weights FILE (LightGlue's), the extractor's weights still come from the cache."""
+    files = _lightglue_weights(kind)
+    return lambda settings: files(settings)[:1]
+
+
 def _superglue_weights(settings: SuperGlueSettings) -> list:
     from .superglue import SUPERGLUE_REPOS
 
     return [HubModel(SUPERGLUE_REPOS[settings.weights])]
+
+
+def _superpoint_weights(settings) -> list:
+    """With --weights FILE (SuperGlue's release .pth), SuperPoint comes from transformers' cache."""
+    from .common import SUPERPOINT_REPO
+
+    return [HubModel(SUPERPOINT_REPO)]
 
 
 def _as_published(settings: dict) -> bool:
@@ -163,12 +177,16 @@ PEERS = (
                  paper_setting=_as_published),
     MatcherEntry("superpoint+superglue", "SuperPoint + SuperGlue (transformers; Magic Leap's weights, non-commercial licence)",
                  _superglue, SuperGlueSettings, model=True, requires=("transformers",), weights=_superglue_weights,
+                 weights_beside=_superpoint_weights,
                  paper_row="SuperPoint+SuperGlue", paper_setting=_as_published),
     MatcherEntry("superpoint+lightglue", "SuperPoint (transformers) + LightGlue (kornia)",
                  _lightglue("superpoint"), LightGlueSettings, model=True, requires=("kornia", "transformers"),
-                 weights=_lightglue_weights("superpoint")),
+                 weights=_lightglue_weights("superpoint"),
+                 weights_beside=_lightglue_extractor("superpoint")),
     MatcherEntry("disk+lightglue", "DISK + LightGlue (kornia)", _lightglue("disk"), DiskLightGlueSettings, model=True,
-                 requires=("kornia",), weights=_lightglue_weights("disk")),
+                 requires=("kornia",), weights=_lightglue_weights("disk"),
+                 weights_beside=_lightglue_extractor("disk")),
     MatcherEntry("aliked+lightglue", "ALIKED-n16 + LightGlue (kornia)", _lightglue("aliked"), AlikedLightGlueSettings,
-                 model=True, requires=("kornia",), weights=_lightglue_weights("aliked")),
+                 model=True, requires=("kornia",), weights=_lightglue_weights("aliked"),
+                 weights_beside=_lightglue_extractor("aliked")),
 )

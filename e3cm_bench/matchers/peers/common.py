@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+SUPERPOINT_REPO = "magic-leap-community/superpoint"  # transformers' SuperPoint (Magic Leap's weights)
+
 
 def grey(image: np.ndarray, device: str) -> torch.Tensor:
     """H x W x 3 uint8 RGB -> 1 x 1 x H x W float in [0, 1] (ITU-R 601 luma, as OpenCV's)."""

@@ -14,9 +14,8 @@ import torch
 
 from ...matches import Matches
 from ..base import Matcher
-from .common import grey, numpy, rgb, superpoint_keypoints
+from .common import SUPERPOINT_REPO, grey, numpy, rgb, superpoint_keypoints
 
-SUPERPOINT_REPO = "magic-leap-community/superpoint"
 
 
 class Extractor:
