@@ -4,18 +4,26 @@ A pair name such as ``"v_graffiti/1-2"`` becomes the nested group ``v_graffiti/1
 holding the datasets ``keypoints0``, ``keypoints1`` (N x 2 float32) and ``scores``
 (N float32), plus the caller's attributes (image sizes, timings).
 
-Crash safety comes from three rules. A file is opened for one write and closed right
-after, so a run killed between pairs leaves closed, consistent files. The attribute
-``complete=1`` is set last, so a run killed in the middle of a write leaves an entry that
-``names`` and ``read`` ignore and the next run simply rewrites. And the pairs are spread
-over block files of at most BLOCK_PAIRS pairs (``matches.h5``, ``matches.001.h5``, ...):
-a file damaged by a crash, a full disk or a copy cut short costs only its own pairs, which
-``names`` leaves out (listing the file in ``damaged``) so that the run matches them again.
+Crash safety: a block file on disk is never opened for writing. A write reads the block
+into memory, adds the pair there (HDF5 on an in-memory file), writes the result to a
+temporary file beside it with plain Python I/O, flushes it to disk and renames it over the
+block (an atomic replace). A full disk, a signal or a crash at any point leaves the old
+block whole, every earlier pair readable; a full disk is an OSError (ENOSPC) that the
+caller turns into one line, never an HDF5 library failure. The space a write needs (the
+block and the pair, twice for the rename) is checked first (DiskFullError). The attribute
+``complete=1`` is still set last, and the pairs are spread over block files of at most
+BLOCK_PAIRS pairs (``matches.h5``, ``matches.001.h5``, ...), so that a block damaged by
+other means (a copy cut short) costs only its own pairs, which ``names`` leaves out
+(listing the file in ``damaged``) so that the run matches them again.
 """
 
 from __future__ import annotations
 
+import errno
+import io
+import os
 import re
+import shutil
 from pathlib import Path
 
 import h5py
@@ -26,6 +34,34 @@ from e3cm_bench.matches import Matches
 DATASETS = ("keypoints0", "keypoints1", "scores")
 COMPLETE_ATTR = "complete"
 BLOCK_PAIRS = 50  # pairs per file: the most a damaged file can cost
+SPARE_BYTES = 256 << 10  # kept free beyond what a write needs (config.yaml and the like)
+
+
+class DiskFullError(OSError):
+    """Not enough free space for the next write; one line naming the folder and the space."""
+
+    def __init__(self, folder: Path, need: int, free: int) -> None:
+        super().__init__(errno.ENOSPC, f"{folder}: not enough free disk space ({_size(free)} free, about {_size(need)} "
+                                       "needed for the next write); free some space and rerun the same command: "
+                                       "every pair already written resumes")
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def check_free_space(folder: Path, need: int) -> None:
+    """DiskFullError unless `folder`'s filesystem has `need` bytes (plus SPARE_BYTES) free."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < need + SPARE_BYTES:
+        raise DiskFullError(folder, need + SPARE_BYTES, free)
 
 
 class MatchCache:
@@ -117,7 +153,15 @@ class MatchCache:
             raise ValueError(f"attribute name {COMPLETE_ATTR!r} is reserved by the match cache")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         block = self._block_for(name)
-        with _open(block, "a") as file:
+        old = block.read_bytes() if block.exists() else b""
+        payload = sum(np.asarray(v).nbytes for v in (matches.keypoints0, matches.keypoints1, matches.scores))
+        check_free_space(block.parent, 2 * (len(old) + payload) + 65536)
+        buffer = io.BytesIO(old)
+        try:
+            file = h5py.File(buffer, "a")
+        except OSError:
+            raise ValueError(_not_hdf5_message(block)) from None
+        with file:
             group = file.require_group(key)
             # Clear only this entry's own content: a group may also be the parent of
             # other pairs' groups (a name that prefixes another), which must survive.
@@ -131,7 +175,8 @@ class MatchCache:
                     raise TypeError(
                         f"attribute {attr!r}={value!r} cannot be stored in HDF5 ({error})"
                     ) from error
-            group.attrs[COMPLETE_ATTR] = 1  # last, so an interrupted write reads as absent
+            group.attrs[COMPLETE_ATTR] = 1  # last, so an entry is never complete half-written
+        _replace(block, buffer.getbuffer())
         if name not in self._where:
             self._counts[block] = self._counts.get(block, 0) + 1
         self._where[name] = block
@@ -150,6 +195,20 @@ class MatchCache:
                 return last
             return self._block(index + 1)
         return self.path
+
+def _replace(path: Path, data) -> None:
+    """`data` becomes the content of `path` all at once: written beside it, flushed, renamed over it."""
+    temporary = path.with_name(f".{path.name}.writing")
+    try:
+        with open(temporary, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
 
 def _open(path: Path, mode: str) -> h5py.File:
     # h5py reports a foreign file as a bare OSError; say which file and what to do.

@@ -21,7 +21,7 @@ from .cache import MatchCache
 from .calibration import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
 from .datasets.base import Pair
 from .datasets.stereo import StereoSequence, load_stereo_sequence
-from .files import FolderLock, load_yaml, package_versions, save_yaml, write_csv
+from .files import FolderLock, load_yaml, package_versions, read_csv, save_yaml, write_csv
 from .images import load_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
@@ -39,6 +39,16 @@ class CalibrationSettings:
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
     seed: int = 0
+
+
+SET_FILE = "calibrate.yaml"  # the folder's sequence, settings and methods
+
+
+def _plain(value):
+    """As YAML gives it back (tuples become lists)."""
+    import yaml
+
+    return yaml.safe_load(yaml.safe_dump(value))
 
 
 def windows(n_frames: int, size: int) -> list[range]:
@@ -99,7 +109,18 @@ def run_calibration(
     out = Path(out)
     console.print(f"calibrate: {sequence.layout} sequence {sequence.root}, {len(sequence)} frames, windows of "
                   f"{', '.join(map(str, settings.frames))} frames", markup=False)
-    all_windows = []
+    # The folder holds one calibration (sequence and settings) and the set of every method
+    # calibrated into it: a later run with other methods adds to the set, and the top-level
+    # tables cover all of them; another sequence or other settings are refused.
+    record_path = out / SET_FILE
+    record = {"sequence": str(sequence.root), "calibration": asdict(settings), "methods": {}}
+    if record_path.is_file() and not overwrite:
+        before = load_yaml(record_path)
+        if before.get("sequence") != record["sequence"] or before.get("calibration") != _plain(record["calibration"]):
+            raise ValueError(f"{record_path}: this folder holds a calibration of another sequence or with other "
+                             "settings; pass --overwrite or choose another --out")
+        record["methods"] = dict(before.get("methods") or {})
+    all_windows = {}
     for method in methods:
         run_dir = out / method.folder
         with FolderLock(run_dir):
@@ -125,10 +146,15 @@ def run_calibration(
             table = calibrate_windows(sequence, matches, settings, (width, height))
             write_csv(table, run_dir / "windows.csv")
             write_csv(summarize(table), run_dir / "summary.csv")
-            all_windows.append(table.assign(method=method.label))
-    windows_df = pd.concat(all_windows, ignore_index=True)
+            all_windows[method.label] = table.assign(method=method.label)
+        record["methods"][method.label] = method.folder
+        save_yaml(record, record_path)
+    for label, folder in record["methods"].items():
+        if label not in all_windows:  # calibrated by an earlier run into this folder
+            all_windows[label] = read_csv(out / folder / "windows.csv", what=f"{label}'s windows.csv").assign(method=label)
+    windows_df = pd.concat(all_windows.values(), ignore_index=True)
     write_csv(windows_df, out / "windows.csv")
-    summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows])
+    summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows.values()])
     summary = summary[["method", *[c for c in summary.columns if c != "method"]]]
     write_csv(summary, out / "summary.csv")
     plots.plot_calibration_boxplots(windows_df, max(settings.frames), out / "calibration_boxplot.png")

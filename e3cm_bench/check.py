@@ -331,6 +331,13 @@ def read_baseline(path: Path) -> pd.DataFrame:
     return baseline
 
 
+def _baseline_value(value, path: Path, key: tuple[str, str], metric: str) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {metric} of {key[1]} on {key[0]} is {value!r}, not a number") from None
+
+
 def compare(runs: list[Run], baseline_path: Path,
             tolerances: Tolerances | Mapping[str, float]) -> tuple[list[Finding], list[str]]:
     """Each baseline metric of each run, and the problems that are no metric (runs missing).
@@ -340,6 +347,14 @@ def compare(runs: list[Run], baseline_path: Path,
     if not isinstance(tolerances, Tolerances):
         tolerances = Tolerances(defaults=dict(tolerances))
     baseline = read_baseline(baseline_path)
+    metrics = [c for c in baseline.columns if c not in NOT_METRICS]
+    if not metrics:
+        raise ValueError(f"{baseline_path}: holds no metric column (only {', '.join(baseline.columns)}); "
+                         "write the baseline with check --update")
+    for _, metric in tolerances.options:
+        if metric not in metrics:
+            raise ValueError(f"{baseline_path}: has no column {metric!r}, which --tolerance asks to check "
+                             f"(its metrics: {', '.join(metrics)})")
     rows = {(str(r["benchmark"]), str(r["method"])): r for _, r in baseline.iterrows()}
     seen, findings, problems = set(), [], []
     for run in runs:
@@ -349,17 +364,24 @@ def compare(runs: list[Run], baseline_path: Path,
             continue
         seen.add(key)
         measured = baseline_metrics(run)
-        for metric in baseline.columns:
-            if metric in NOT_METRICS or pd.isna(rows[key][metric]) and metric not in measured:
-                continue
+        checked = 0
+        for metric in metrics:
+            value = _baseline_value(rows[key][metric], baseline_path, key, metric)
+            if np.isnan(value) and metric not in measured:
+                continue  # a column of another benchmark's rows
+            if np.isnan(value) and not np.isnan(measured.get(metric, np.nan)):
+                raise ValueError(f"{baseline_path}: {metric} of {key[1]} on {key[0]} is empty or NaN while the run "
+                                 "measures it; a baseline must hold every value it checks (rewrite it with check --update)")
+            checked += 1
             tolerance = tolerances.get(key[0], key[1], metric)
             if tolerance is None:
                 raise ValueError(f"{baseline_path}: no tolerance for metric {metric!r}; pass --tolerance {metric}=T "
                                  "or give it a row in --tolerances")
             if not math.isfinite(tolerance) or tolerance < 0:  # a plain mapping is not validated on the way in
                 raise ValueError(f"{baseline_path}: tolerance of {metric!r} must be a finite number >= 0, got {tolerance!r}")
-            findings.append(Finding(key[0], key[1], metric, float(rows[key][metric]),
-                                    float(measured.get(metric, np.nan)), tolerance))
+            findings.append(Finding(key[0], key[1], metric, value, float(measured.get(metric, np.nan)), tolerance))
+        if not checked:
+            raise ValueError(f"{baseline_path}: no metric of {key[1]} on {key[0]} has a value to check against")
     for key in rows:
         if key not in seen:
             problems.append(f"{baseline_path}: {key[1]} on {key[0]} has no run among those checked")

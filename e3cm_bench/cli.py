@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -13,9 +14,10 @@ import typer
 from rich.console import Console
 
 from .backbones import BACKBONES, BackboneError
+from .cache import DiskFullError
 from .benchmarks import get_benchmark
 from .benchmarks.protocols import PROTOCOLS, get_protocol
-from .files import load_yaml_text
+from .files import load_yaml_text, writable_folder
 from .benchmarks import EvalSettings
 from . import check as regression
 from .datasets.base import DatasetError, Pair
@@ -32,7 +34,7 @@ from .matching import ESTIMATORS
 from .method import MethodSpec, parse_numbers
 from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
 from .download import find_root
-from .launch import run_shards
+from .launch import check_workers, run_shards
 from .shards import merge_run, parse_shard
 from .viz import draw_matches, save_image
 
@@ -75,6 +77,23 @@ def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_ord
     return settings
 
 
+def os_error_line(exc: OSError) -> str:
+    """One line for an OSError: the file, the problem, and for a full disk what to do."""
+    import errno
+
+    where = exc.filename or ""
+    text = exc.strerror or str(exc)
+    if isinstance(exc, DiskFullError) or exc.errno != errno.ENOSPC:
+        return f"{where}: {text}" if where and where not in text else text
+    free = ""
+    try:
+        free = f" ({shutil.disk_usage(Path(where).parent if where else '.').free / 2**20:.1f} MiB free)"
+    except OSError:
+        pass
+    return (f"{where or 'the output folder'}: no space left on device{free}; free some space and rerun the same "
+            "command: every pair already written resumes")
+
+
 def friendly_errors(command):
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback.
 
@@ -90,6 +109,17 @@ def friendly_errors(command):
                 raise
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except MemoryError as exc:
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "not enough memory"
+            err_console.print(f"[bold red]error:[/] out of memory: {detail}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except OSError as exc:  # a full disk, a folder that cannot be written: what and where, in one line
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
+            err_console.print(f"[bold red]error:[/] {os_error_line(exc)}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")
@@ -120,6 +150,7 @@ def match(
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     if (image0 is None) != (image1 is None):
         raise ValueError("give two images, or none for the built-in demo pair")
+    writable_folder(out)  # before any work: a folder that cannot take the results is one line now
     H = None
     if image0 is None:
         img0, img1, H = demo_pair()
@@ -139,7 +170,6 @@ def match(
     result = match_pair(m, img0, img1, method.max_side, method.seed_for_matching)
     k0, k1 = result.keypoints0, result.keypoints1
 
-    out.mkdir(parents=True, exist_ok=True)
     np.savez(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
     correct = None
     if H is not None:
@@ -204,6 +234,8 @@ def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_opti
                                             ("--launcher slurm", launcher == "slurm")) if given]
     if len(several) > 1:
         raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
+    if not devices:
+        check_workers(workers)
     if workers or devices:
         device_list = devices.split(",") if devices else ["cpu"] * workers
         run_shards(run, len(device_list), devices=device_list, console=console)

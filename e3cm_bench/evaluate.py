@@ -10,7 +10,7 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import Benchmark, EvalSettings
-from .cache import MatchCache
+from .cache import MatchCache, check_free_space
 from .datasets.base import Pair
 from .files import write_csv
 from .images import load_image
@@ -45,6 +45,10 @@ def write_reports(
         save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
 
 
+REPORT_BYTES = 16 << 20  # a run's CSVs and plots, with room to spare
+VIZ_BYTES = 2 << 20      # one match drawing
+
+
 def evaluate_and_report(
     benchmark: Benchmark, out: Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
     ev: EvalSettings, viz: int, console: Console,
@@ -58,6 +62,7 @@ def evaluate_and_report(
     per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
+    check_free_space(out, REPORT_BYTES + max(viz, 0) * VIZ_BYTES)  # the reports (tables, plots) need room too
     write_skipped(skipped, out / "skipped.csv", console)
     write_reports(benchmark, out, label, per_pair, summary, pairs, cache, ev, viz)
     return pairs, summary

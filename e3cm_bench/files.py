@@ -143,22 +143,65 @@ def save_yaml(data: dict, path: str | Path) -> Path:
     return write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
+MAX_YAML_BYTES = 1 << 20  # a config of this toolkit is a few KiB
+MAX_YAML_DEPTH = 32       # nesting levels; its configs use four
+
+
+class YamlRefused(yaml.YAMLError):
+    """A YAML document this toolkit will not read (aliases, too deep); the message says why."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing aliases (an alias bomb expands a few KiB into gigabytes)
+    and nesting deeper than MAX_YAML_DEPTH (deep nesting exhausts the recursion limit)."""
+
+    _depth = 0
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise YamlRefused(f"aliases (*name) are not accepted (line {mark.line + 1}); write the values out")
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                mark = self.peek_event().start_mark
+                raise YamlRefused(f"nested deeper than {MAX_YAML_DEPTH} levels (line {mark.line + 1})")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def safe_yaml(text: str):
+    """One YAML document read with the bounded safe loader (YAMLError when refused or broken)."""
+    if len(text) > MAX_YAML_BYTES:
+        raise YamlRefused(f"{len(text)} bytes, over the {MAX_YAML_BYTES} a config may hold")
+    return yaml.load(text, Loader=_BoundedLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def load_yaml_text(text: str):
     """One YAML value from a command-line string ('4' -> 4, 'false' -> False, 'own' -> 'own')."""
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
+        return safe_yaml(text)
+    except YamlRefused:
+        raise ValueError(f"--set value {text[:40]!r}: not accepted") from None
+    except (yaml.YAMLError, RecursionError):
         return text
 
 
 def load_yaml(path: str | Path, what: str = "YAML file") -> dict:
-    """A YAML mapping; ValueError naming the file when it is missing, broken or not a mapping."""
+    """A YAML mapping; ValueError naming the file when it is missing, too large, broken,
+    refused (aliases, deep nesting) or not a mapping."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: {what} not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        size = path.stat().st_size
+        if size > MAX_YAML_BYTES:
+            raise ValueError(f"{path}: {size} bytes, over the {MAX_YAML_BYTES} a {what} may hold")
+        data = safe_yaml(path.read_text())
+    except YamlRefused as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as exc:
         first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
         raise ValueError(f"{path}: not valid YAML ({first_line})") from None
     if not isinstance(data, dict):
@@ -181,6 +224,22 @@ def read_csv(path: str | Path, what: str = "CSV file") -> pd.DataFrame:
         raise ValueError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
 
 
+def writable_folder(folder: Path) -> Path:
+    """`folder`, created if needed; a ValueError in one line where it names a file, cannot be
+    created, or cannot be written to."""
+    folder = Path(folder)
+    existing = next((p for p in [folder, *folder.parents] if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise ValueError(f"{existing}: is a file, not a folder; choose another --out")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"{folder}: cannot create the folder ({error.strerror}); choose another --out") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{folder}: the folder is not writable; choose another --out or make it writable")
+    return folder
+
+
 class FolderLock:
     """An exclusive lock on a run folder, held while a run reads and writes it.
 
@@ -194,7 +253,7 @@ class FolderLock:
         self._fd: int | None = None
 
     def __enter__(self) -> FolderLock:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        writable_folder(self.path.parent)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -8,7 +8,9 @@ pixel edges, not pixel centres, scale linearly.
 
 from __future__ import annotations
 
+import os
 import re
+import threading
 from pathlib import Path
 
 import cv2
@@ -56,6 +58,46 @@ class ImageError(ValueError):
     """An image that cannot be used; the message names the file and the problem."""
 
 
+MAX_PIXELS = 100_000_000  # the largest image decoded (3 bytes a pixel); E3CM_BENCH_MAX_PIXELS raises it
+MAX_PIXELS_VARIABLE = "E3CM_BENCH_MAX_PIXELS"
+_PIL_BOUND = threading.Lock()
+
+
+def max_pixels() -> int:
+    value = os.environ.get(MAX_PIXELS_VARIABLE)
+    if not value:
+        return MAX_PIXELS
+    try:
+        bound = int(value)
+    except ValueError:
+        raise ImageError(f"{MAX_PIXELS_VARIABLE}={value!r} is not a whole number of pixels") from None
+    if bound < 1:
+        raise ImageError(f"{MAX_PIXELS_VARIABLE}={value!r} must be positive")
+    return bound
+
+
+def check_pixel_count(path: str | Path) -> None:
+    """ImageError when the header announces more pixels than max_pixels(), read before any
+    decoding: a small file can hold a huge image (a 389 KB PNG of 20000 x 20000 decodes into
+    1.2 GB, and every copy after). Formats PIL does not know are left to OpenCV."""
+    from PIL import Image, UnidentifiedImageError
+
+    bound = max_pixels()
+    with _PIL_BOUND:  # PIL's own bound (a process-wide setting) is this one's to enforce, here
+        previous, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(path) as image:
+                width, height = image.size
+        except (UnidentifiedImageError, OSError, ValueError):
+            return
+        finally:
+            Image.MAX_IMAGE_PIXELS = previous
+    if width * height > bound:
+        size = f"{width} x {height} ({width * height / 1e6:.0f} megapixels)"
+        raise ImageError(f"{path}: {size}, over the bound of {bound / 1e6:g} megapixels an image is decoded at "
+                         f"(it is decoded whole before --max-side shrinks it); set {MAX_PIXELS_VARIABLE}=N to raise the bound")
+
+
 def load_image(path: str | Path) -> np.ndarray:
     """H x W x 3 uint8 RGB; grayscale files are replicated to three channels."""
     # Checked first: OpenCV would print its own warning for a missing file before our error,
@@ -63,6 +105,7 @@ def load_image(path: str | Path) -> np.ndarray:
     problem = image_file_problem(path)
     if problem:
         raise ImageError(f"{path}: {problem}")
+    check_pixel_count(path)
     # IMREAD_COLOR always yields 3 channels: gray is replicated, alpha dropped, 16-bit scaled.
     # OpenCV's own log lines about a broken file would precede our one-line error: silenced.
     level = cv2.utils.logging.getLogLevel()

@@ -184,12 +184,13 @@ def import_run(
     console = console or Console()
     ev = ev or EvalSettings()
     out = Path(out)
+    if viz < 0:
+        raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
     root = Path(root).resolve()
     pairs = list(dataset)
     files = source.files(pairs)
     identity = {"imported": source.identity(files)}
     label = label or f"imported-{source.format}"
-    out.mkdir(parents=True, exist_ok=True)
     with FolderLock(out):
         cache = MatchCache(out / CACHE_FILE)
         config_path = out / CONFIG_FILE

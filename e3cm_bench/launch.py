@@ -14,8 +14,58 @@ from .report import print_summary
 from .shards import SHARDS_DIR
 
 
+WORKER_BYTES = 2 << 30  # memory one local CPU worker may take (torch, a backbone, two images' pyramids)
+
+
 def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // workers)
+
+
+def max_cpu_workers() -> tuple[int, str]:
+    """How many local CPU workers this machine holds: one per core, and WORKER_BYTES of
+    available memory each; with the reason, for the message."""
+    from .devices import available_host_memory
+
+    cores = os.cpu_count() or 1
+    free = available_host_memory()
+    by_memory = cores if free is None else max(1, free // WORKER_BYTES)
+    why = f"{cores} cores" + ("" if free is None else f", {free / 2**30:.1f} GiB available at about {WORKER_BYTES / 2**30:.0f} GiB each")
+    return max(1, min(cores, by_memory)), why
+
+
+def check_workers(workers: int) -> None:
+    """A one-line ValueError for a --workers the machine cannot hold."""
+    if workers < 0:
+        raise ValueError(f"--workers must be 0 (one process) or more, got {workers}")
+    bound, why = max_cpu_workers()
+    if workers > bound:
+        raise ValueError(f"--workers {workers}: this machine holds at most {bound} ({why}); "
+                         "for more, run shards on more machines (--shard K/N or --launcher slurm)")
+
+
+def _die_with_parent(parent: int) -> None:
+    """In a worker: end when the process that started it ends (Linux: the kernel sends SIGTERM;
+    a killed parent otherwise leaves its workers running on)."""
+    import signal
+
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before the line above took effect
+        os._exit(1)
+
+
+def worker_pool(n: int):
+    """N fresh worker processes (spawned: no torch state shared across fork) that die with this one."""
+    import concurrent.futures
+    import multiprocessing
+
+    return concurrent.futures.ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
+                                                  initializer=_die_with_parent, initargs=(os.getpid(),))
 
 
 def run_shard_job(kwargs: dict) -> dict:
@@ -60,11 +110,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
         if executor.cluster == "slurm":
             return submitted
         return [job.result() for job in submitted]
-    import concurrent.futures
-    import multiprocessing
-
-    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state shared across fork
-    with concurrent.futures.ProcessPoolExecutor(max_workers=len(devices), mp_context=context) as pool:
+    with worker_pool(len(devices)) as pool:
         futures = [pool.submit(run_shard_job, job) for job in jobs]
         results = []
         for k, future in enumerate(futures, start=1):

@@ -437,6 +437,8 @@ def _run_folders(
 ) -> list[dict]:
     """Lock every folder, open each run, match what they still need in one stage, then
     evaluate and report each."""
+    if viz < 0:
+        raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
     with ExitStack() as locks:
         opened = []
         for out, method in runs:

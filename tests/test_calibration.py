@@ -186,3 +186,14 @@ def test_calibrate_end_to_end_with_sift(synthetic, tmp_path):
     assert again.exit_code == 0 and "matching (" not in again.output  # matches are reused
     line = one_line_error(invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--frames", 10))
     assert "6 frames" in line and "10" in line
+    # a second run with another matcher joins the folder's set: the top-level tables hold both
+    other = invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "direct", "--backbone", "efficientnet_lite0",
+                   "--max-side", 480, "--frames", 1, "--frames", 5)
+    assert other.exit_code == 0, other.output
+    summary = pd.read_csv(out / "summary.csv")
+    assert set(summary["method"]) == {"sift", "direct [efficientnet_lite0]"} and len(summary) == 4
+    assert set(pd.read_csv(out / "windows.csv")["method"]) == {"sift", "direct [efficientnet_lite0]"}
+    # other settings in the same folder are refused, and nothing there changes
+    line = one_line_error(invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--frames", 2))
+    assert "calibrate.yaml: this folder holds a calibration of another sequence or with other settings" in line
+    assert set(pd.read_csv(out / "summary.csv")["method"]) == {"sift", "direct [efficientnet_lite0]"}

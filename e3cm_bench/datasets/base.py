@@ -139,11 +139,19 @@ def check_intrinsics(K: np.ndarray, where: str) -> None:
                            f"last row {K[2].tolist()})")
 
 
+MIN_TRANSLATION = 1e-9  # below this the translation's direction, half of the pose error, is undefined
+
+
 def check_pose(T: np.ndarray, where: str) -> None:
-    """T (4x4) must hold a rotation (orthonormal, det +1) and a finite translation."""
+    """T (4x4) must hold a rotation (orthonormal, det +1) and a translation that is not zero
+    (the pose error compares translation directions, which a zero translation has none of:
+    SuperGlue's and LoFTR's evaluations cannot score such a pair either)."""
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-3):
         raise DatasetError(f"{where}: the relative pose's rotation is not a rotation (det {np.linalg.det(R):.3g})")
+    if not np.linalg.norm(T[:3, 3]) > MIN_TRANSLATION:
+        raise DatasetError(f"{where}: the relative pose has no translation (the cameras share a centre), "
+                           "so its translation error is undefined")
 
 
 def require_directory(root: Path, what: str) -> Path:

@@ -148,14 +148,9 @@ def available_memory(device: torch.device) -> int | None:
     None where it cannot be read."""
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0]
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
+    from ..devices import available_host_memory
+
+    return available_host_memory()
 
 
 def level0_cosine(map0: torch.Tensor, map1: torch.Tensor, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
