@@ -226,7 +226,7 @@ class Backbone(nn.Module):
     # Peak memory of matching a pair, in multiples of its two pyramids: the activations
     # alive during a pass, the pyramids themselves and the matcher's normalised copies.
     # Measured: VGG19 fp32 on a 1600 x 1200 pair peaked at 5.5 GB RSS (weights included)
-    # with 1.9 GB of pyramids (README "Speed").
+    # with 1.9 GB of pyramids (docs/speed.md "Speed").
     PEAK_PER_PYRAMID = 3.0
 
     def pyramid_bytes(self, height: int, width: int) -> int:

@@ -59,7 +59,7 @@ SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs) or fp16 (GPUs).")]
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
 FeatureCacheOpt = Annotated[float, typer.Option("--feature-cache-mb", help="Memory (MiB) for reusing an image's feature maps across the pairs that share it; 0 = off. Never changes a result.")]
-ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (README: Protocols).")]
+ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
 
 
 def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb") -> dict:

@@ -147,8 +147,8 @@ class MethodSpec:
         return dict(self.settings)
 
     def default_label(self) -> str:
-        """matcher[-backbone unless vgg19][-estimator unless top8][-dfm variant unless release]:
-        e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
+        """The matcher's name, then "-backbone" unless vgg19, "-estimator" unless top8, "-variant"
+        of dfm unless release: e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
         name = get_matcher(self.matcher).name  # package.module:factory -> the factory's matcher name
         label = name if self.backbone in (None, "vgg19") else f"{name}-{self.backbone}"
         settings = self.settings_dict()

@@ -4,7 +4,7 @@ A reference file (layout of ../shared/parity: `r09_L{l}_A/B`, `r095_L{l}_A/B`, `
 `r095_F{l}`, `dfm_A/B`, `dfm_Hinit`) holds what the E3CM release and the DFM release
 output on one pair. Rounding of the CNN features moves with the CPU's kernels and the torch
 build (measured on VGG19: 3e-7 .. 5.3e-6 of each map's norm between AVX-512, AVX2 and ATen's
-default kernels; tests/test_parity.py, README "Parity"), and a match whose ratio or
+default kernels; tests/test_parity.py, docs/methods.md "Parity"), and a match whose ratio or
 similarity margin sits below that can flip. So parity is proved in two ways:
 
 - **stage by stage on the reference's own inputs**: each refinement from the reference's

@@ -2,7 +2,7 @@
 
 The registry (registry.py) finds a matcher by name: the built-ins (builtin.py), plugins in
 the entry-point group ``e3cm_bench.matchers``, or ``package.module:factory``. Adding one
-needs no edit here: README "Benchmark your own matcher". Models are imported when a
+needs no edit here: docs/own-matcher.md "Benchmark your own matcher". Models are imported when a
 matcher is built, so listing names does not load a network.
 """
 

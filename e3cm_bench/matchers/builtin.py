@@ -1,5 +1,5 @@
 """The built-in matchers' registry entries: registered by the registry's first lookup through
-the same `MatcherEntry` every plugin gives. What each name means is fixed (README
+the same `MatcherEntry` every plugin gives. What each name means is fixed (docs/methods.md
 "Matchers"): a row's meaning never drifts with a setting's default."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""e3cm-plus: this project's best training-free variant of E3CM (README "e3cm-plus").
+"""e3cm-plus: this project's best training-free variant of E3CM (docs/methods.md "e3cm-plus").
 
 The paper's idea is kept: deep matches refined level by level, each level's epipolar geometry
 rejecting the next level's outliers. What changed, where measurements on the choosing split
@@ -40,7 +40,7 @@ from .deep import DeepMatcher
 # than this, or scales (either axis, or one against the other) by more than this factor.
 # Measured with Lite0 on the choosing split: KITTI pairs turn 0-3 degrees and scale
 # 0.85-1.00; HPatches i_leuven is the identity; v_boat turns 7-51 degrees and zooms 1.13-2.4;
-# v_graffiti turns 0-35 degrees and stretches 1.2-3.8 (README "e3cm-plus").
+# v_graffiti turns 0-35 degrees and stretches 1.2-3.8 (docs/methods.md "e3cm-plus").
 PREWARP_MIN_ROTATION_DEG = 5.0
 PREWARP_MAX_SCALE = 1.25
 # realign: the RANSAC threshold of the homography refitted to the final (level-0) matches.

@@ -24,7 +24,7 @@ from .refine import refine_to_children
 
 
 # Sampson thresholds (px) for the candidates of levels 0..3, chosen on the shared data with
-# EfficientNet-Lite0 (15 HPatches pairs, 31 KITTI pairs; README "Choosing the Sampson
+# EfficientNet-Lite0 (15 HPatches pairs, 31 KITTI pairs; docs/methods.md "Choosing the Sampson
 # thresholds"): an 8-point F from 8 cell centres is coarse, so top-8 needs 4x the cell size of
 # the F's level to keep good matches; a RANSAC F over all matches is accurate to half a cell.
 DEFAULT_SAMPSON_PX = {
@@ -42,7 +42,7 @@ class E3CMSettings:
     ratio: ratio-test threshold per level 0..4 (the deepest level used takes its own entry).
     sampson_px: rejection threshold in pixels for the candidates of level 0..3, i.e. the
         threshold applied after refining into that level with F of the level above.
-        None takes the measured default of the estimator (DEFAULT_SAMPSON_PX; README).
+        None takes the measured default of the estimator (DEFAULT_SAMPSON_PX; docs/methods.md).
     estimator: how F_l is estimated (top8 = the paper; ransac / prosac = ablations).
     ransac_cells: RANSAC threshold of F_l at level l, in cells of that level (x 2^l = pixels).
     ratio_at: refinement's B->A ratio read at the matched B child ("matched", as Eq. 2 states

@@ -2,7 +2,7 @@
 them (the optional extra ``e3cm-bench[peers]``: kornia, transformers). Nothing here imports
 them until a peer is built; without the extra, asking for one says what to install.
 
-Settings default to each model's reference evaluation settings (README "Peers" names the
+Settings default to each model's reference evaluation settings (docs/peers.md "Peers" names the
 source of each); weights come the libraries' way (weights.py) or from --weights FILE.
 """
 

@@ -1,0 +1,105 @@
+"""MkDocs build hooks: measured tables rendered from the committed CSVs, the CLI reference
+written by Typer from the app itself. Nothing in the site is retyped from a run.
+
+In a page:
+    {{ csv_table("results/sample/table1_hpatches/table.csv", columns=[...], where="source == 'measured'",
+                 rename={...}, decimals=2, pivot={"index": ..., "columns": ..., "values": ...}) }}
+    {{ cli_reference }}
+Paths are relative to the repository root (the folder of mkdocs.yml). Only literals are
+accepted as arguments (read with ast.literal_eval): a page cannot run code.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference)\s*\}\}", re.S)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# Figures the pages show, kept where the runs wrote them: added to the site as they are.
+FIGURES = ("results/**/*.png", "results/**/*.jpg")
+
+
+def on_files(files, config):
+    from mkdocs.structure.files import File
+
+    root = Path(config["config_file_path"]).resolve().parent
+    for pattern in FIGURES:
+        for path in sorted(root.glob(pattern)):
+            files.append(File(path.relative_to(root).as_posix(), str(root), config["site_dir"], config["use_directory_urls"]))
+    return files
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    root = Path(config["config_file_path"]).resolve().parent
+    return MACRO.sub(lambda m: render(m.group(1), root, page.file.src_path), markdown)
+
+
+def render(call: str, root: Path, page: str) -> str:
+    """One macro's Markdown; a broken macro, a missing file or column fails the build in one line."""
+    from mkdocs.exceptions import PluginError
+
+    try:
+        if call == "cli_reference":
+            return cli_reference()
+        node = ast.parse(call, mode="eval").body
+        args = [ast.literal_eval(a) for a in node.args]
+        kwargs = {k.arg: ast.literal_eval(k.value) for k in node.keywords}
+        return csv_table(root, *args, page=page, **kwargs)
+    except (ValueError, SyntaxError, KeyError, TypeError) as error:
+        raise PluginError(f"{page}: {error}") from None
+
+
+def csv_table(root: Path, path: str, columns=None, where: str | None = None, rename: dict | None = None,
+              decimals=None, pivot: dict | None = None, page: str = "") -> str:
+    """A Markdown table of the CSV at root/path: rows filtered by `where` (a pandas query),
+    optionally pivoted, the `columns` in order, renamed, numbers rounded to `decimals`
+    (one number, or per column). A missing file or column fails the build, naming both."""
+    import pandas as pd
+
+    file = root / path
+    if not file.is_file():
+        raise ValueError(f"{page}: csv_table: {path} not found")
+    table = pd.read_csv(file)
+    if where:
+        table = table.query(where)
+    if pivot:
+        table = table.pivot(index=pivot["index"], columns=pivot["columns"], values=pivot["values"]).reset_index()
+        table.columns = [str(c) for c in table.columns]
+    if columns:
+        missing = [c for c in columns if c not in table.columns]
+        if missing:
+            raise ValueError(f"{page}: csv_table: {path} has no column(s) {', '.join(missing)}")
+        table = table[list(columns)]
+    header = [(rename or {}).get(c, c) for c in table.columns]
+    numeric = [pd.api.types.is_numeric_dtype(table[c]) for c in table.columns]
+
+    def cell(value, column) -> str:
+        if isinstance(value, float) and value != value:
+            return ""
+        places = decimals.get(column) if isinstance(decimals, dict) else decimals
+        if places is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return f"{value:.{places}f}"
+        if isinstance(value, float) and value.is_integer():
+            return str(int(value))
+        return str(value).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" if n else "---" for n in numeric) + "|"]
+    for _, row in table.iterrows():
+        lines.append("| " + " | ".join(cell(row[c], c) for c in table.columns) + " |")
+    return "\n".join(lines) + f"\n\n<small>Rendered at build time from `{path}`.</small>\n"
+
+
+def cli_reference() -> str:
+    """Every command's usage, arguments and options, as Typer writes them for the app."""
+    import typer
+    from typer.cli import get_docs_for_click
+
+    from e3cm_bench.cli import app
+
+    command = typer.main.get_command(app)
+    text = get_docs_for_click(obj=command, ctx=typer.Context(command), name="e3cm-bench", title="e3cm-bench")
+    return re.sub(r"^# e3cm-bench\n", "", text)

@@ -1,0 +1,115 @@
+"""The documentation (issue 25): the strict MkDocs build, tables rendered from the CSVs that
+hold them, runnable examples run as written, and the README's headline table against its CSV."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+RUNNABLE = re.compile(r"<!-- runnable -->\n```python\n(.*?)```", re.S)
+
+
+def runnable_blocks() -> list[tuple[str, int, str]]:
+    """(page, index, code) of every fenced block marked runnable in docs/*.md; the Python API
+    page's is run by tests/test_api.py, with its own checks."""
+    blocks = []
+    for page in sorted((REPO / "docs").glob("*.md")):
+        for index, match in enumerate(RUNNABLE.finditer(page.read_text())):
+            blocks.append((page.name, index, match.group(1)))
+    return blocks
+
+
+def test_there_are_runnable_examples_and_the_api_page_has_one():
+    pages = [page for page, _, _ in runnable_blocks()]
+    assert "api.md" in pages and len(pages) >= 2
+
+
+@pytest.mark.parametrize("page, index, code", [b for b in runnable_blocks() if b[0] != "api.md"],
+                         ids=lambda v: v if isinstance(v, str) and v.endswith(".md") else None)
+def test_runnable_examples_run_as_written(page, index, code, shared_data, tmp_path):
+    work = tmp_path / "checkout"  # a checkout-like folder: ../shared/data and runs/ resolve here
+    work.mkdir()
+    (tmp_path / "shared").symlink_to(shared_data.parent)
+    done = subprocess.run([sys.executable, "-c", code], cwd=work, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, f"{page} block {index}:\n{done.stderr[-2000:]}"
+
+
+def test_readme_headline_table_is_the_csvs():
+    """Every row of the README's headline table equals results/sample/table1_hpatches/table.csv
+    (rounded as shown), so the README cannot drift from the run either."""
+    text = (REPO / "README.md").read_text()
+    section = text.split("## Headline")[1].split("\n## ")[0]
+    rows = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    table = pd.read_csv(REPO / "results/sample/table1_hpatches/table.csv").query("source == 'measured'").set_index("method")
+    assert len(rows) == len(table) == 7
+    for row in rows:
+        method, *values = [cell.strip() for cell in row.strip("|").split("|")]
+        expected = [f"{table.loc[method, column]:.2f}" for column in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3")]
+        assert values == expected, (method, values, expected)
+
+
+def mkdocs_build(root: Path, site: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(root / "mkdocs.yml"), "-d", str(site)],
+                          capture_output=True, text=True, timeout=600, env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    pytest.importorskip("mkdocs", reason="the docs extra (mkdocs) is not installed")
+    pytest.importorskip("mkdocstrings", reason="the docs extra (mkdocstrings) is not installed")
+    site = tmp_path_factory.mktemp("site")
+    built = mkdocs_build(REPO, site)
+    assert built.returncode == 0, built.stderr[-3000:]
+    return site
+
+
+def test_the_strict_build_has_every_page_the_cli_and_api_references(site):
+    pages = ["getting-started", "data", "benchmarks", "methods", "peers", "own-matcher", "results", "speed",
+             "robustness", "calibration", "cluster", "cli", "api", "development"]
+    for page in pages:
+        assert (site / page / "index.html").is_file(), page
+    cli = (site / "cli" / "index.html").read_text()
+    for command in ("e3cm-bench hpatches", "e3cm-bench download", "e3cm-bench datasets", "--pose-estimator"):
+        assert command in cli, command
+    api = (site / "api" / "index.html").read_text()
+    assert "run_benchmark" in api and "MatcherEntry" in api and "weights_beside" in api
+    assert (site / "results" / "perf" / "scaling.png").is_file()  # figures come from results/ as the runs wrote them
+
+
+def test_no_measured_table_is_retyped(site):
+    """Every table a page renders from a CSV says so, and no page holds the old hand-typed
+    sample table any more."""
+    results = (site / "results" / "index.html").read_text()
+    for path in ("results/sample/table1_hpatches/table.csv", "results/baselines/demo_hpatches.csv"):
+        assert f"Rendered at build time from <code>{path}</code>" in results
+    for page in (REPO / "docs").glob("*.md"):
+        assert "| e3cm-plus [efficientnet_lite0]    | measured |" not in page.read_text(), page
+
+
+def test_a_changed_csv_changes_the_rendered_page(site, tmp_path):
+    """A copy of the repository's docs with one CSV edited: the page built from it shows the
+    edit (the build reads the CSV; nothing is cached or retyped)."""
+    copy = tmp_path / "repo"
+    copy.mkdir()
+    for name in ("mkdocs.yml", "docs", "results", "e3cm_bench"):
+        source = REPO / name
+        (shutil.copytree if source.is_dir() else shutil.copy)(source, copy / name)
+    csv = copy / "results/sample/table1_hpatches/table.csv"
+    table = pd.read_csv(csv)
+    row = (table["method"] == "sift") & (table["source"] == "measured")
+    table.loc[row, "method"] = "sift-edited"
+    table.loc[row, "h_acc@1"] = 0.777
+    table.to_csv(csv, index=False)
+    before = (site / "results" / "index.html").read_text()
+    built = mkdocs_build(copy, tmp_path / "site")
+    assert built.returncode == 0, built.stderr[-3000:]
+    after = (tmp_path / "site" / "results" / "index.html").read_text()
+    cells = r"sift-edited</td>\s*<td[^>]*>measured</td>\s*<td[^>]*>0\.78</td>"
+    assert re.search(cells, after) and not re.search(cells, before)
