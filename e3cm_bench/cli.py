@@ -150,7 +150,7 @@ def match(
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     if (image0 is None) != (image1 is None):
         raise ValueError("give two images, or none for the built-in demo pair")
-    writable_folder(out)  # before any work: a folder that cannot take the results is one line now
+    writable_folder(out, create=False)  # before any work: a folder that cannot take the results is one line now
     H = None
     if image0 is None:
         img0, img1, H = demo_pair()
@@ -170,6 +170,7 @@ def match(
     result = match_pair(m, img0, img1, method.max_side, method.seed_for_matching)
     k0, k1 = result.keypoints0, result.keypoints1
 
+    writable_folder(out)
     np.savez(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
     correct = None
     if H is not None:
@@ -342,6 +343,20 @@ def table(
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
     write_table(list(run_dirs), out, reference, compare, console)
+
+
+@app.command()
+@friendly_errors
+def report(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders of one benchmark (each with config.yaml, summary.csv, per_pair.csv).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder of the site (index.html, pairs/, runs/, img/).")] = Path("report"),
+    compare: CompareOpt = True,
+) -> None:
+    """A static site of runs: the paper-layout table, plots, every pair per method (sortable, filterable)
+    and match drawings of the worst and a sample of pairs; opens from the file system, no server."""
+    from .reportsite import write_report
+
+    write_report(list(run_dirs), out, console=console, compare=compare)
 
 
 @app.command()

@@ -22,7 +22,6 @@ from .matchers import get_matcher
 from .method import MethodSpec
 from .runner import run_benchmark, run_methods
 
-REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
 METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side", "settings"}
 EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods", "protocol"}
@@ -167,7 +166,16 @@ def reproduce(
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
                       f"(or: e3cm-bench merge {out})", markup=False)
         return None
-    return write_table(run_dirs, out / "table", compare=compare, console=console)
+    return _table_and_report(run_dirs, out, compare, console)
+
+
+def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None) -> tuple[Path, Path]:
+    """OUT/table.{csv,md} with its plots, and the report site OUT/report/ for the same runs."""
+    from .reportsite import write_report
+
+    written = write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
+    write_report(run_dirs, Path(out) / "report", console=console, compare=compare)
+    return written
 
 
 def merge_experiment(out: Path, compare: bool = True, console: Console | None = None) -> tuple[Path, Path]:
@@ -178,7 +186,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
     run_dirs = [Path(out) / folder for folder in experiment["runs"]]
     for run_dir in run_dirs:
         merge_run(run_dir, console=console)
-    return write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
+    return _table_and_report(run_dirs, Path(out), compare, console)
 
 
 def write_table(
@@ -195,7 +203,7 @@ def write_table(
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
     if reference is None and benchmark.paper_table and paper_rows:
-        candidate = REPO_RESULTS / "paper" / benchmark.paper_table
+        candidate = report.REPO_RESULTS / "paper" / benchmark.paper_table
         reference = candidate if candidate.is_file() else None
         if reference is None:
             console.print(f"[yellow]note[/]: {candidate} not found; the table has no paper reference rows")

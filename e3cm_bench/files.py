@@ -224,13 +224,19 @@ def read_csv(path: str | Path, what: str = "CSV file") -> pd.DataFrame:
         raise ValueError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
 
 
-def writable_folder(folder: Path) -> Path:
-    """`folder`, created if needed; a ValueError in one line where it names a file, cannot be
+def writable_folder(folder: Path, create: bool = True) -> Path:
+    """`folder`, created if needed (create=False: only checked, so that a command failing
+    later leaves nothing behind); a ValueError in one line where it names a file, cannot be
     created, or cannot be written to."""
     folder = Path(folder)
     existing = next((p for p in [folder, *folder.parents] if p.exists()), None)
     if existing is not None and not existing.is_dir():
         raise ValueError(f"{existing}: is a file, not a folder; choose another --out")
+    if not create:
+        if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+            what = "the folder is not writable" if existing == folder else f"cannot create the folder ({existing} is not writable)"
+            raise ValueError(f"{folder}: {what}; choose another --out or make it writable")
+        return folder
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:

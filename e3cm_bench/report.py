@@ -21,6 +21,8 @@ from .benchmarks import Benchmark, get_benchmark
 from .files import load_yaml, read_csv, write_atomically, write_csv
 from .formats import format_number
 
+REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"  # results/paper/: the paper's numbers
+
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
 

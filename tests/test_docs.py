@@ -71,7 +71,7 @@ def site(tmp_path_factory):
 
 
 def test_the_strict_build_has_every_page_the_cli_and_api_references(site):
-    pages = ["getting-started", "data", "benchmarks", "methods", "peers", "own-matcher", "results", "speed",
+    pages = ["getting-started", "data", "benchmarks", "methods", "peers", "own-matcher", "results", "report", "speed",
              "robustness", "calibration", "cluster", "cli", "api", "development"]
     for page in pages:
         assert (site / page / "index.html").is_file(), page

@@ -89,7 +89,7 @@ def test_yfcc_pairs_carry_their_rotations_to_the_runner(tmp_path):
     for name in ("a.jpg", "b.jpg"):
         cv2.imwrite(str(tmp_path / name), np.full((32, 48, 3), 128, np.uint8))
     K = "100 0 24 0 100 16 0 0 1"
-    T = " ".join(map(str, np.eye(4).ravel()))
+    T = " ".join(map(str, [1, 0, 0, 0.5, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]))  # a pose needs a translation
     (tmp_path / "pairs.txt").write_text(f"a.jpg b.jpg 0 3 {K} {K} {T}\n")
     pair = next(iter(YFCC100M(tmp_path, pairs=tmp_path / "pairs.txt")))
     assert pair_rotations(pair, MethodSpec.create("sift")) == (0, 3)

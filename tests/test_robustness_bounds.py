@@ -366,3 +366,16 @@ def test_match_on_a_pair_too_large_for_memory_is_one_line(shared_data, tmp_path,
     image = shared_data / "hpatches-sequences-release" / "v_boat" / "1.ppm"
     line = one_line_error(invoke("match", image, image, "--backbone", "efficientnet_lite0", "--out", tmp_path / "m"))
     assert "out of memory: about" in line and "GiB needed at" in line and "--max-side" in line
+
+
+def test_a_full_disk_while_the_reports_are_written_is_one_line_and_keeps_the_matches(shared_data, tmp_path, monkeypatch):
+    import e3cm_bench.evaluate as evaluate
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "run" / "mma.png"))
+
+    monkeypatch.setattr(evaluate, "write_reports", full)
+    line = one_line_error(invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", tmp_path / "run",
+                                 "--matcher", "sift", "--sequences", "v_boat", "--limit", 2))
+    assert f"{tmp_path / 'run' / 'mma.png'}: no space left on device" in line and "every pair already written resumes" in line
+    assert len(MatchCache(tmp_path / "run" / "matches.h5").names()) == 2

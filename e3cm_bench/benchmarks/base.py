@@ -67,6 +67,10 @@ class Benchmark:
     paper_table: str | None = None
     table_metrics: Mapping[str, str] = field(default_factory=dict)
     table_extras: tuple[str, ...] = ("n_pairs",)
+    # The report page (reportsite.py): the per_pair.csv columns shown for each method, and the
+    # column and threshold above which a pair counts as failed (a NaN or inf value fails too).
+    report_columns: tuple[str, ...] = ("n_matches",)
+    failure: tuple[str, float] | None = None
 
     def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
         unknown = set(options) - set(self.dataset_options)

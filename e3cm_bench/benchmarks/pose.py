@@ -28,6 +28,8 @@ class PoseBenchmark(Benchmark):
             "P": metrics.precision_key(metrics.PRECISION_THRESHOLDS[0]),
         }
     )
+    report_columns: tuple[str, ...] = ("n_matches", "err_pose", "precision@1e-4")
+    failure: tuple[str, float] | None = ("err_pose", 10.0)  # degrees: a miss at AUC@10's threshold
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return ["pair", "n_matches", "err_R", "err_t", "err_pose", *map(metrics.precision_key, ev.precision_thresholds)]
