@@ -56,16 +56,23 @@ SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson
 RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
 LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
-PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs) or fp16 (GPUs).")]
+PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs), fp16 (GPUs), or auto: bf16 where the device computes it natively, else fp32 (fp16 on a GPU without bf16).")]
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
 FeatureCacheOpt = Annotated[float, typer.Option("--feature-cache-mb", help="Memory (MiB) for reusing an image's feature maps across the pairs that share it; 0 = off. Never changes a result.")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
 
 
-def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb") -> dict:
+def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:
     """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
     a precision other than fp32 and a channel order other than rgb join them (the defaults are
-    left out, so that runs with them keep their identity)."""
+    left out, so that runs with them keep their identity). --precision auto is resolved for
+    `device` here (the identity records what runs); a precision that will be emulated is said."""
+    if precision != "fp32":
+        from .devices import resolve_precision
+
+        precision, warning = resolve_precision(precision, device)
+        if warning:
+            err_console.print(f"[yellow]warning[/]: {warning}", highlight=False, soft_wrap=True)
     settings = {} if precision == "fp32" else {"precision": precision}
     if channel_order != "rgb":
         settings["channel_order"] = channel_order
@@ -162,7 +169,7 @@ def match(
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
         parse_numbers(ratio, "--ratio"), max_side or None, seed,
-        options=parse_settings(settings, precision, channel_order) if get_matcher(matcher).needs_backbone else parse_settings(settings),
+        options=parse_settings(settings, precision, channel_order, device) if get_matcher(matcher).needs_backbone else parse_settings(settings),
     )
     t = time.perf_counter()
     m = method.build(device)
@@ -195,14 +202,14 @@ def match(
 def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
             sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
             settings: list[str] | None, protocol: str, precision: str = "fp32",
-            channel_order: str = "rgb") -> MethodSpec:
+            channel_order: str = "rgb", device: str = "cpu") -> MethodSpec:
     """The method of a benchmark command. --max-side unset takes the protocol's side, else the
     benchmark's default (resized the protocol's way); the protocol's matcher settings apply where --set gives none."""
     preset = get_protocol(protocol, benchmark)
     if max_side is None and benchmark in preset.max_side:
         max_side = preset.max_side[benchmark] or 0
     if get_matcher(matcher).needs_backbone:
-        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order)}
+        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order, device)}
     else:  # precision, channel order and the preset's network settings concern deep matchers only
         options = parse_settings(settings)
     return MethodSpec.create(
@@ -286,7 +293,7 @@ def hpatches(
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order)
+                     precision, channel_order, device)
     _run("hpatches", method, find_root("hpatches", root), out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
@@ -307,7 +314,7 @@ def megadepth(
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order)
+                     precision, channel_order, device)
     _run("megadepth", method, find_root("megadepth", root), out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 
@@ -328,7 +335,7 @@ def yfcc(
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order)
+                     precision, channel_order, device)
     _run("yfcc", method, find_root("yfcc", root), out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
          (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
 

@@ -41,3 +41,44 @@ def available_host_memory() -> int | None:
     except OSError:
         pass
     return None
+
+
+# Measured (docs/speed.md): bf16 autocast on a CPU without native bf16 instructions (an AMD
+# EPYC with AVX2, no AVX-512 BF16 or AMX) took 111.5 s per pair at 1200x900 where fp32 took
+# 21.2 s: oneDNN emulates it.
+EMULATED_BF16_SLOWDOWN = 111.5 / 21.2
+
+
+def native_bf16(device: str) -> bool:
+    """Whether `device` computes bf16 natively: a CUDA GPU torch says supports it, or a CPU
+    with AVX-512 BF16 or AMX (the flags oneDNN's bf16 kernels need)."""
+    import torch
+
+    kind = torch.device(device).type
+    if kind == "cuda":
+        return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+    if kind != "cpu":
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:
+    """--precision as it will run on `device`, and a one-line warning where it will be slow:
+    auto picks bf16 where the device computes it natively (fp16 on a GPU without bf16), else
+    fp32; bf16 asked for on a CPU without native bf16 runs, emulated, with a warning."""
+    import torch
+
+    kind = torch.device(device).type
+    if precision == "auto":
+        if native_bf16(device):
+            return "bf16", None
+        return ("fp16" if kind in ("cuda", "mps") else "fp32"), None
+    if precision == "bf16" and kind == "cpu" and not native_bf16(device):
+        return "bf16", (f"this CPU has no native bf16 (AVX-512 BF16 or AMX): bf16 will be emulated, measured "
+                        f"{EMULATED_BF16_SLOWDOWN:.1f}x slower than fp32 on such a CPU; --precision fp32 or auto is faster here")
+    return precision, None
