@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..backbones import Backbone
 from ..matching.pipeline import E3CMSettings, match_pyramids
+from ..matching.subpixel import refine_lk
 from .base import Matches
 from .deep import DeepMatcher
 
@@ -42,7 +44,14 @@ class E3CMMatcher(DeepMatcher):
         out = match_pyramids(feats0, feats1, size0, size1, self.settings)
         info = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}
         info["timings"] = {"backbone": t_backbone, **out["timings"]}
-        return Matches(out["keypoints0"], out["keypoints1"], out["scores"], info)
+        k0, k1, scores = out["keypoints0"], out["keypoints1"], out["scores"]
+        if self.settings.refine != "none":
+            t = time.perf_counter()
+            k1, keep = refine_lk(image0, image1, k0, k1, window=self.settings.refine_window,
+                                 drop=self.settings.refine == "lk-strict")
+            k0, k1, scores = k0[keep], k1[keep], scores[keep]
+            info["timings"]["refine"] = time.perf_counter() - t
+        return Matches(k0, k1, scores, info)
 
     def settings_dict(self) -> dict:
         return self.settings.to_dict()

@@ -53,6 +53,9 @@ class E3CMSettings:
     subpixel: move each level-0 keypoint of B to the peak of a parabola fitted to its
         similarity with A's pixel at B's pixel and its 4 neighbours (e3cm-plus; off in the
         paper).
+    refine: sub-pixel refinement of the final matches on the images (matching/subpixel.py):
+        none (the paper), lk (LK fit kept where forward-backward consistent), lk-strict (and
+        the inconsistent matches dropped); refine_window: its patch side in pixels.
     """
 
     cascade: bool = True
@@ -67,10 +70,18 @@ class E3CMSettings:
     ratio_at: str = "matched"
     valid_cells_only: bool = True
     subpixel: bool = False
+    refine: str = "none"
+    refine_window: int = 9
 
     def __post_init__(self) -> None:
         if self.ratio_at not in ("matched", "own"):
             raise ValueError(f"ratio_at must be 'matched' or 'own', got {self.ratio_at!r}")
+        from .subpixel import REFINE_MODES
+
+        if self.refine not in REFINE_MODES:
+            raise ValueError(f"refine must be one of {', '.join(REFINE_MODES)}, got {self.refine!r}")
+        if not (isinstance(self.refine_window, int) and 3 <= self.refine_window <= 31 and self.refine_window % 2):
+            raise ValueError(f"refine_window must be an odd number of pixels from 3 to 31, got {self.refine_window!r}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
         self.ratio = tuple(float(r) for r in self.ratio)
