@@ -21,7 +21,7 @@ from .cache import MatchCache
 from .calibration import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
 from .datasets.base import Pair
 from .datasets.stereo import StereoSequence, load_stereo_sequence
-from .files import FolderLock, load_yaml, package_versions, read_csv, save_yaml, write_csv
+from .files import FolderLock, load_yaml, package_versions, read_csv, save_yaml, write_csv, yaml_plain
 from .images import load_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
@@ -42,13 +42,6 @@ class CalibrationSettings:
 
 
 SET_FILE = "calibrate.yaml"  # the folder's sequence, settings and methods
-
-
-def _plain(value):
-    """As YAML gives it back (tuples become lists)."""
-    import yaml
-
-    return yaml.safe_load(yaml.safe_dump(value))
 
 
 def windows(n_frames: int, size: int) -> list[range]:
@@ -116,7 +109,7 @@ def run_calibration(
     record = {"sequence": str(sequence.root), "calibration": asdict(settings), "methods": {}}
     if record_path.is_file() and not overwrite:
         before = load_yaml(record_path)
-        if before.get("sequence") != record["sequence"] or before.get("calibration") != _plain(record["calibration"]):
+        if before.get("sequence") != record["sequence"] or before.get("calibration") != yaml_plain(record["calibration"]):
             raise ValueError(f"{record_path}: this folder holds a calibration of another sequence or with other "
                              "settings; pass --overwrite or choose another --out")
         record["methods"] = dict(before.get("methods") or {})

@@ -59,11 +59,9 @@ def native_bf16(device: str) -> bool:
         return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
     if kind != "cpu":
         return False
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
-    except OSError:
-        return False
+    from .files import cpu_info
+
+    flags = cpu_info()[1] or set()
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 

@@ -41,7 +41,7 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def _cpuinfo() -> tuple[str | None, set[str] | None]:
+def cpu_info() -> tuple[str | None, set[str] | None]:
     """The CPU's model name and flags from /proc/cpuinfo (first processor); (None, None) where absent."""
     try:
         text = Path("/proc/cpuinfo").read_text(errors="replace")
@@ -75,7 +75,7 @@ def run_environment() -> dict:
         capability = str(torch.backends.cpu.get_cpu_capability())
     except (AttributeError, RuntimeError):  # torch before 2.1
         capability = "unknown"
-    model, flags = _cpuinfo()
+    model, flags = cpu_info()
     # torch's own version string names its build (2.14.1+cu130, 2.14.1+cpu), which the
     # package metadata in `versions` may not.
     environment = {"torch": str(torch.__version__), "cpu_capability": capability}
@@ -116,12 +116,12 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
     return path
 
 
-def _plain(value):
+def yaml_plain(value):
     """YAML-safe plain Python values (paths, tuples, numpy scalars)."""
     if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): yaml_plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [yaml_plain(v) for v in value]
     if isinstance(value, Path):
         return str(value)
     if hasattr(value, "item") and not isinstance(value, (str, bytes)):
@@ -139,7 +139,7 @@ def absolute_paths(value):
 
 
 def save_yaml(data: dict, path: str | Path) -> Path:
-    text = yaml.safe_dump(_plain(data), sort_keys=False)
+    text = yaml.safe_dump(yaml_plain(data), sort_keys=False)
     return write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
