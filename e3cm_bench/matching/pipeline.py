@@ -17,7 +17,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major
+from . import SCORED_ESTIMATORS
+from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, level0_norms
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
 from .refine import refine_to_children
@@ -157,14 +158,14 @@ def match_pyramids(
             return valid_extent(size0, level), valid_extent(size1, level)
         return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
 
-    # The deepest level is matched densely and level 0 scored patch by patch (cascade), so both
-    # are normalised whole, level 0 stored channels-last for the confidence score's gathers.
-    # The levels between are read only at children of matches: refine_to_children normalises
-    # those as it reads them.
+    # The deepest level is matched densely, so it is normalised whole. Level 0 is read only in
+    # the patches the confidence score looks at (top8 and PROSAC): its norms are computed once
+    # and only the pixels read are divided by them. The levels between are read only at
+    # children of matches: refine_to_children normalises those as it reads them.
     t = time.perf_counter()
-    unit0 = unit1 = None
-    if settings.cascade:
-        unit0, unit1 = pixel_major(F.normalize(feats0[0], dim=0)), pixel_major(F.normalize(feats1[0], dim=0))
+    norms = None
+    if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
+        norms = level0_norms(feats0[0]), level0_norms(feats1[0])
     timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -186,10 +187,11 @@ def match_pyramids(
             x0 = _np(cell_centres(cells0, level))
             x1 = _np(cell_centres(cells1, level))
             conf = None
-            if settings.estimator in ("top8", "prosac") and len(cells0) >= 8:
+            if settings.estimator in SCORED_ESTIMATORS and len(cells0) >= 8:
                 # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
                 top = 8 if settings.estimator == "top8" else None
-                conf = _np(confidence_scores(unit0, unit1, cells0, cells1, level, settings.confidence_eps, top=top))
+                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps,
+                                                 top=top, norms=norms))
             F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
             fundamentals[level] = F_l
             timings["cascade"] += time.perf_counter() - t
