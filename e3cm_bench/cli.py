@@ -58,7 +58,7 @@ LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs), fp16 (GPUs), or auto: bf16 where the device computes it natively, else fp32 (fp16 on a GPU without bf16).")]
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
-FeatureCacheOpt = Annotated[float, typer.Option("--feature-cache-mb", help="Memory (MiB) for reusing an image's feature maps across the pairs that share it; 0 = off. Never changes a result.")]
+FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
 
 
@@ -230,14 +230,14 @@ def _eval_settings(benchmark: str, protocol: str, seed: int, ransac_px: float | 
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
-         scale: tuple, protocol: str = "default", feature_cache_mb: float = FEATURE_CACHE_MB,
+         scale: tuple, protocol: str = "default", feature_cache_mb: float | None = FEATURE_CACHE_MB,
          pose_estimator: str | None = None) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     console.print(preset.line(), markup=False)
     ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
-               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz)
+               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz, feature_cache_mb=feature_cache_mb)
     several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
                                             ("--launcher slurm", launcher == "slurm")) if given]
     if len(several) > 1:
@@ -253,7 +253,7 @@ def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_opti
         run_shards(run, shards, launcher="slurm", console=console)
     else:
         run_benchmark(**run, eval_only=eval_only, device=device, shard=parse_shard(shard) if shard else None,
-                      console=console, feature_cache_mb=feature_cache_mb)
+                      console=console)
 
 
 # Options of the three benchmark commands.

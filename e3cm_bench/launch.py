@@ -93,7 +93,13 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
     for k in range(1, n + 1):
         device = devices[(k - 1) % len(devices)]
         threads = threads_per_worker(len(devices)) if device == "cpu" else None
-        jobs.append({**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True})
+        job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True}
+        if launcher == "local" and device == "cpu" and kwargs.get("feature_cache_mb") is None:
+            from .matchers.feature_cache import auto_cache_mb
+
+            # local CPU workers share the host's memory: each gets its part of the default budget
+            job["feature_cache_mb"] = auto_cache_mb("cpu") / sum(d == "cpu" for d in devices)
+        jobs.append(job)
     if launcher == "slurm":
         try:
             import submitit

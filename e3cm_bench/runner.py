@@ -34,6 +34,7 @@ from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
 from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
+from .matchers.feature_cache import SpillStore, auto_cache_mb, auto_spill_mb
 from .matches import Matches, MatchesError, check_in_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
@@ -185,9 +186,14 @@ def progress_bar(console: Console) -> Progress:
 # --------------------------------------------------------------------------- stages
 
 
-# Memory for the feature pyramids of recent images (matchers/deep.py FeatureCache): pairs that
-# share an image reuse its maps. VGG19 at 1200 x 900 needs about 0.5 GiB per image, Lite0 0.12.
-FEATURE_CACHE_MB = 2048
+# Memory for the feature pyramids of the run's images (matchers/feature_cache.py): pairs that
+# share an image reuse its maps. None: half the memory available when the stage starts, at most
+# 16 GiB (feature_cache.auto_cache_mb). VGG19 at 1200 x 900 needs about 0.5 GiB per image,
+# Lite0 0.12; bf16 and fp16 maps are held in half of that.
+FEATURE_CACHE_MB = None
+# What memory cannot hold goes to this folder of the run (removed when the stage ends), up to
+# half the free disk space there, at most 64 GiB (feature_cache.auto_spill_mb); 0: never.
+SPILL_FOLDER = ".feature-spill"
 
 
 def reuse_order(pairs: list[Pair], resident: int = 16) -> list[Pair]:
@@ -251,9 +257,11 @@ def resident_images(matchers: list, feature_cache_mb: float, max_sides: list[int
     sizes = []
     for matcher, side in zip(matchers, max_sides):
         backbone = getattr(matcher, "backbone", None)
-        if feature_cache_mb and getattr(matcher, "feature_cache", None) is not None and hasattr(backbone, "pyramid_bytes"):
+        cache = getattr(matcher, "feature_cache", None)
+        if feature_cache_mb and cache is not None and hasattr(backbone, "pyramid_bytes"):
             side = side or 1600
-            sizes.append(backbone.pyramid_bytes(int(side * 3 / 4), side))
+            narrow = 2 if cache.compact_dtype is not None else 1  # bf16 / fp16 maps held in 2 bytes
+            sizes.append(backbone.pyramid_bytes(int(side * 3 / 4), side) // narrow)
     if not sizes:
         return 16
     return max(2, int(feature_cache_mb * 2**20 // max(sizes)))
@@ -280,30 +288,46 @@ class MatchJob:
 
 def match_stage(
     method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
-    skipped: list[tuple[str, str]] | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
+    skipped: list[tuple[str, str]] | None = None, feature_cache_mb: float | None = FEATURE_CACHE_MB,
+    spill_mb: float | None = None,
 ) -> dict:
     """Build the matcher, match the pairs not yet cached, write each to the cache; returns the
-    job's stats (see MatchJob). feature_cache_mb: memory for reusing feature maps across
-    pairs (0: off)."""
+    job's stats (see MatchJob). feature_cache_mb, spill_mb: see match_jobs."""
     job = MatchJob(method, todo, cache, skipped, on_matcher)
-    match_jobs([job], device, console, feature_cache_mb)
+    match_jobs([job], device, console, feature_cache_mb, spill_mb)
     return job.stats
 
 
-def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cache_mb: float = FEATURE_CACHE_MB) -> None:
+def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cache_mb: float | None = FEATURE_CACHE_MB,
+               spill_mb: float | None = None) -> None:
     """Match the pairs of several methods in one pass over the pairs.
 
     Each pair's images are decoded once for all methods, and deep matchers with the same
     backbone settings share one backbone and one feature cache, so an image goes through
     the network once for all of them (reproduce's deep methods but dfm). Nothing about a
     result changes: each method's matches go to its own cache.
+
+    feature_cache_mb: memory (MiB) for the feature pyramids of images that have pairs left
+    (0: no reuse; None: half the memory available now, at most 16 GiB). spill_mb: disk for
+    the pyramids memory cannot hold, in the first job's run folder (0: none; None: half the
+    free disk space there, at most 64 GiB). The pairs are matched in `reuse_order`; an
+    image's maps are dropped once its last pair is matched.
     """
+    budget = auto_cache_mb(device) if feature_cache_mb is None else float(feature_cache_mb)
+    spill_root = jobs[0].cache.path.parent / SPILL_FOLDER if jobs else None
+    if spill_root is not None:
+        shutil.rmtree(spill_root, ignore_errors=True)  # what an interrupted stage left
+    disk = 0.0 if not budget or spill_root is None else auto_spill_mb(spill_root) if spill_mb is None else float(spill_mb)
     matchers, groups, loaded = [], {}, {}
     for job in jobs:
         matcher = job.method.build(device, loaded=loaded)  # one backbone (one weights load) per setting
-        if feature_cache_mb and getattr(matcher, "uses_feature_cache", False):
-            group = groups.setdefault(matcher.feature_identity(), {"matcher": matcher, "labels": []})
-            matcher.share_features_of(group["matcher"], feature_cache_mb)
+        if budget and getattr(matcher, "uses_feature_cache", False):
+            identity = matcher.feature_identity()
+            if identity not in groups:
+                spill = SpillStore(spill_root / str(len(groups)), disk) if disk > 0 else None
+                groups[identity] = {"matcher": matcher, "labels": [], "spill": spill}
+            group = groups[identity]
+            matcher.share_features_of(group["matcher"], budget, group["spill"])
             group["labels"].append(job.method.label)
         if job.on_matcher is not None:
             job.on_matcher(matcher)
@@ -316,34 +340,59 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
             pairs.setdefault(pair.name, pair)
             wanted.setdefault(pair.name, []).append(i)
     labels = ", ".join(job.method.label for job in jobs)
-    with progress_bar(console) as progress, ThreadPoolExecutor(max_workers=1) as executor:
-        task = progress.add_task(f"matching ({labels})", total=sum(len(job.todo) for job in jobs))
-        resident = resident_images(matchers, feature_cache_mb, [job.method.max_side for job in jobs])
-        for pair, images in decoded_ahead(reuse_order(list(pairs.values()), resident), executor):
-            for i in wanted[pair.name]:
-                job, t = jobs[i], time.perf_counter()
-                try:
-                    match_cached_pair(matchers[i], pair, job.method, job.cache, images.result())
-                    job.stats["pairs_matched"] += 1
-                except (RuntimeError, MemoryError) as error:
-                    if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
-                        raise
-                    raise ValueError(f"pair {pair.name}: {too_big_message(job.method, error)}") from None
-                except MatcherError as error:
-                    raise MatcherError(f"pair {pair.name}: {error} (the pairs matched before it are kept)") from error
-                except ImageError as error:
-                    if job.skipped is None:
-                        raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
-                                         "--skip-bad skips such pairs)") from None
-                    job.skipped.append((pair.name, str(error)))
-                job.stats["match_seconds"] += time.perf_counter() - t
-                progress.advance(task)
-    for job, matcher in zip(jobs, matchers):
-        reuse = getattr(matcher, "feature_cache", None)
-        if reuse is not None:
-            shared = groups[matcher.feature_identity()]["labels"]
-            job.stats["feature_reuse"] = {"cache_mb": feature_cache_mb, "backbone_passes": reuse.misses,
-                                          "reused": reuse.hits, "shared_by": shared}
+    feature_caches = [group["matcher"].feature_cache for group in groups.values()]
+    try:
+        with progress_bar(console) as progress, ThreadPoolExecutor(max_workers=1) as executor:
+            task = progress.add_task(f"matching ({labels})", total=sum(len(job.todo) for job in jobs))
+            # the order keeps the images that memory and disk hold together close to their pairs
+            resident = resident_images(matchers, budget + disk, [job.method.max_side for job in jobs])
+            order = reuse_order(list(pairs.values()), resident)
+            last_use = {file: k for k, pair in enumerate(order) for file in (str(pair.image0), str(pair.image1))}
+            for k, (pair, images) in enumerate(decoded_ahead(order, executor)):
+                files = (str(pair.image0), str(pair.image1))
+                for feature_cache in feature_caches:
+                    feature_cache.pair_files = files
+                for i in wanted[pair.name]:
+                    _match_one(jobs[i], matchers[i], pair, images)
+                    progress.advance(task)
+                for file in dict.fromkeys(files):
+                    if last_use[file] == k:  # no pair left: its maps are not needed again
+                        for feature_cache in feature_caches:
+                            feature_cache.done_with(file)
+    finally:
+        for feature_cache in feature_caches:
+            feature_cache.close()
+        if spill_root is not None:
+            shutil.rmtree(spill_root, ignore_errors=True)
+    for group in groups.values():
+        reuse = group["matcher"].feature_cache
+        stats = {"cache_mb": round(budget), "spill_mb": round(disk), **reuse.stats(), "shared_by": group["labels"]}
+        for job, matcher in zip(jobs, matchers):
+            if getattr(matcher, "feature_cache", None) is reuse:
+                job.stats["feature_reuse"] = stats
+        console.print(f"feature maps ({', '.join(group['labels'])}): {stats['backbone_passes']} backbone passes for "
+                      f"{stats['distinct_images']} images ({stats['passes_per_image']:.2f} per image), "
+                      f"{stats.get('read_from_disk', 0)} read back from disk")
+
+
+def _match_one(job: MatchJob, matcher: Matcher, pair: Pair, images) -> None:
+    """One method's match of one pair, into its cache; errors in one line naming the pair."""
+    t = time.perf_counter()
+    try:
+        match_cached_pair(matcher, pair, job.method, job.cache, images.result())
+        job.stats["pairs_matched"] += 1
+    except (RuntimeError, MemoryError) as error:
+        if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
+            raise
+        raise ValueError(f"pair {pair.name}: {too_big_message(job.method, error)}") from None
+    except MatcherError as error:
+        raise MatcherError(f"pair {pair.name}: {error} (the pairs matched before it are kept)") from error
+    except ImageError as error:
+        if job.skipped is None:
+            raise ImageError(f"{error} (pair {pair.name}; the pairs matched before it are kept; "
+                             "--skip-bad skips such pairs)") from None
+        job.skipped.append((pair.name, str(error)))
+    job.stats["match_seconds"] += time.perf_counter() - t
 
 
 def too_big_message(method: MethodSpec, error: BaseException) -> str:
@@ -407,12 +456,13 @@ def run_benchmark(
     shard: tuple[int, int] | None = None,
     dataset_load: dict | None = None,
     console: Console | None = None,
-    feature_cache_mb: float = FEATURE_CACHE_MB,
+    feature_cache_mb: float | None = FEATURE_CACHE_MB,
 ) -> pd.DataFrame:
     """Run (or resume, or only evaluate) one method on one benchmark; returns summary.csv's row.
 
-    feature_cache_mb: memory for reusing an image's feature maps across the pairs that share
-    it (0: off; it never changes a result).
+    feature_cache_mb: memory (MiB) for reusing an image's feature maps across the pairs that
+    share it (0: off; None: sized from the memory available, see match_jobs; it never changes
+    a result).
     The pairs come from `dataset`, or from the benchmark's dataset at `root` with
     `dataset_options`. `method` may be None only with eval_only (the folder's own is used).
     shard=(K, N): only the K-th of N slices of the pairs, as a run in OUT/shards/K-of-N/;
@@ -470,7 +520,7 @@ def run_methods(
     viz: int = 0,
     device: str = "cpu",
     console: Console | None = None,
-    feature_cache_mb: float = FEATURE_CACHE_MB,
+    feature_cache_mb: float | None = FEATURE_CACHE_MB,
 ) -> list[dict]:
     """Run (or resume) several methods on the same pairs, each into its own folder (OUT, METHOD).
 
@@ -493,7 +543,7 @@ def run_methods(
 def _run_folders(
     benchmark: Benchmark, runs: list[tuple[Path, MethodSpec | None]], dataset: PairList, ev: EvalSettings,
     limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
-    shard: tuple[int, int] | None = None, load: dict | None = None, feature_cache_mb: float = FEATURE_CACHE_MB,
+    shard: tuple[int, int] | None = None, load: dict | None = None, feature_cache_mb: float | None = FEATURE_CACHE_MB,
 ) -> list[dict]:
     """Lock every folder, open each run, match what they still need in one stage, then
     evaluate and report each."""
@@ -543,9 +593,13 @@ class _OpenRun:
         config, spent = self.config, dict(spent)
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
-            before = config.get("feature_reuse") or {}
-            config["feature_reuse"] = {"cache_mb": reuse["cache_mb"], "shared_by": reuse["shared_by"],
-                                       **{k: before.get(k, 0) + reuse[k] for k in ("backbone_passes", "reused")}}
+            before, reuse = config.get("feature_reuse") or {}, dict(reuse)
+            for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full"):
+                if key in reuse:  # counts of a resumed run add up over its stages
+                    reuse[key] += before.get(key, 0)
+            if reuse.get("distinct_images"):
+                reuse["passes_per_image"] = round(reuse["backbone_passes"] / reuse["distinct_images"], 4)
+            config["feature_reuse"] = reuse
         timing = config["timing"]
         for key, value in spent.items():
             timing[key] = timing.get(key, 0) + value

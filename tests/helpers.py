@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import h5py
 import numpy as np
 
 
@@ -62,3 +64,17 @@ def gluefactory_layout(scene_infos, folder, image_for) -> int:
     (folder / "views.txt").write_text("\n".join(views.values()) + "\n")
     (folder / "pairs.txt").write_text("\n".join(pairs) + "\n")
     return len(pairs)
+
+
+def cached_arrays(folder: Path) -> dict:
+    out = {}
+    with h5py.File(folder / "matches.h5") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def assert_same_arrays(folder: Path, reference: Path) -> None:
+    got, want = cached_arrays(folder), cached_arrays(reference)
+    assert got.keys() == want.keys() and len(want) > 0
+    for name in want:
+        assert np.array_equal(got[name], want[name]), name

@@ -6,7 +6,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 import pytest
 import yaml
@@ -16,20 +15,7 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import ImageError
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import decoded_ahead, run_benchmark, run_methods
-
-
-def cached_arrays(folder: Path) -> dict:
-    out = {}
-    with h5py.File(folder / "matches.h5") as f:
-        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-    return out
-
-
-def assert_same_arrays(folder: Path, reference: Path) -> None:
-    got, want = cached_arrays(folder), cached_arrays(reference)
-    assert got.keys() == want.keys() and len(want) > 0
-    for name in want:
-        assert np.array_equal(got[name], want[name]), name
+from helpers import assert_same_arrays
 
 
 def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path):

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
-from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -14,49 +12,12 @@ import torch
 from ..backbones import Backbone
 from .base import CHANNEL_ORDERS
 from .base import Matcher
+from .feature_cache import FeatureCache, SpillStore
 
 
 def image_to_tensor(image: np.ndarray, device: torch.device | str) -> torch.Tensor:
     """H x W x 3 uint8 RGB -> 1 x 3 x H x W float in [0, 1]."""
     return torch.from_numpy(np.ascontiguousarray(image)).to(device).permute(2, 0, 1)[None].float() / 255.0
-
-
-class FeatureCache:
-    """The feature pyramids of recently seen images, up to a memory budget (least recently used
-    out first). Keyed by the image's content, so the same image in several pairs of a run is
-    passed through the backbone once; the stored maps are the computed ones, so reuse
-    changes no result."""
-
-    def __init__(self, max_mb: float):
-        self.max_bytes = int(max_mb * 2**20)
-        self.entries: OrderedDict[str, list[torch.Tensor]] = OrderedDict()
-        self.bytes = 0
-        self.hits = 0
-        self.misses = 0
-
-    @staticmethod
-    def key(image: np.ndarray, channel_order: str) -> str:
-        digest = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16)
-        return f"{image.shape}:{image.dtype}:{channel_order}:{digest.hexdigest()}"
-
-    def get(self, key: str) -> list[torch.Tensor] | None:
-        maps = self.entries.get(key)
-        if maps is None:
-            self.misses += 1
-            return None
-        self.entries.move_to_end(key)
-        self.hits += 1
-        return maps
-
-    def put(self, key: str, maps: list[torch.Tensor]) -> None:
-        size = sum(m.numel() * m.element_size() for m in maps)
-        if size > self.max_bytes:
-            return
-        self.entries[key] = maps
-        self.bytes += size
-        while self.bytes > self.max_bytes:
-            _, old = self.entries.popitem(last=False)
-            self.bytes -= sum(m.numel() * m.element_size() for m in old)
 
 
 class DeepMatcher(Matcher):
@@ -77,22 +38,24 @@ class DeepMatcher(Matcher):
     # Whether match() takes its pyramids from features() (and so from the cache).
     uses_feature_cache = True
 
-    def reuse_features(self, max_mb: float) -> None:
-        """Keep the pyramids of recent images (up to max_mb MiB) for pairs that share an image."""
-        self.feature_cache = FeatureCache(max_mb) if max_mb > 0 else None
+    def reuse_features(self, max_mb: float, spill: SpillStore | None = None) -> None:
+        """Keep the pyramids of recent images (up to max_mb MiB, then in `spill` on disk) for
+        pairs that share an image; maps of a bf16 or fp16 backbone are held in that precision."""
+        narrow = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(getattr(self.backbone, "precision", "fp32"))
+        self.feature_cache = FeatureCache(max_mb, spill, narrow) if max_mb > 0 else None
 
     def feature_identity(self) -> str:
         """Everything an image's pyramid depends on besides the image itself."""
         return json.dumps({**self.backbone.describe(), "channel_order": self.channel_order,
                            "device": str(self.device)}, sort_keys=True)
 
-    def share_features_of(self, other: DeepMatcher, max_mb: float) -> None:
+    def share_features_of(self, other: DeepMatcher, max_mb: float, spill: SpillStore | None = None) -> None:
         """Take other's backbone (when built apart) and feature cache (made if it has none), so
         that the two matchers pass each image through the network once between them."""
         if other.feature_identity() != self.feature_identity():
             raise ValueError("matchers with different backbone settings cannot share feature maps")
         if other.feature_cache is None:
-            other.reuse_features(max_mb)
+            other.reuse_features(max_mb, spill)
         self.backbone, self.feature_cache = other.backbone, other.feature_cache
 
     @property
@@ -104,12 +67,15 @@ class DeepMatcher(Matcher):
             image = image[..., ::-1]
         return image_to_tensor(image, self.device)
 
-    def features(self, image: np.ndarray) -> list[torch.Tensor]:
-        """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l."""
+    def features(self, image: np.ndarray, which: int | None = None) -> list[torch.Tensor]:
+        """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l. which: 0 or 1, the
+        image's place in the pair the match stage is matching (the cache learns which file
+        the maps belong to, and drops them once that file has no pair left)."""
         if self.feature_cache is None:
             return self.backbone(self.network_input(image))
         key = FeatureCache.key(image, self.channel_order)
-        maps = self.feature_cache.get(key)
+        self.feature_cache.belongs_to(key, which)
+        maps = self.feature_cache.get(key, self.device)
         if maps is None:
             maps = self.backbone(self.network_input(image))
             self.feature_cache.put(key, maps)
@@ -132,7 +98,7 @@ class DeepMatcher(Matcher):
         """Both images' pyramids and the seconds the backbone took."""
         self.check_memory(image0, image1)
         t = time.perf_counter()
-        feats0, feats1 = self.features(image0), self.features(image1)
+        feats0, feats1 = self.features(image0, 0), self.features(image1, 1)
         return feats0, feats1, time.perf_counter() - t
 
     def settings_dict(self) -> dict:  # pragma: no cover - each subclass says what it depends on

@@ -1,0 +1,151 @@
+"""The feature cache: memory budget, spill to disk, maps held in bf16; none of it changes a match."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore, compact
+from e3cm_bench.method import MethodSpec
+from e3cm_bench.runner import SPILL_FOLDER, run_benchmark
+from helpers import assert_same_arrays
+
+MiB = 2**20
+
+
+def pyramid(seed: int, floats: int = MiB // 4) -> list[torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    return [torch.randn(floats // 2, generator=gen), torch.randn(4, floats // 8, generator=gen)]
+
+
+def test_memory_and_disk_stay_within_their_bounds_and_give_back_the_same_maps(tmp_path):
+    spill = SpillStore(tmp_path / "spill", max_mb=3)
+    cache = FeatureCache(2.5, spill)  # two of the 0.75 MiB pyramids below... and a half
+    made = {}
+    for step in range(40):
+        key = f"image{step % 7}"
+        maps = cache.get(key)
+        if maps is None:
+            maps = pyramid(step % 7)
+            cache.put(key, maps)
+        made.setdefault(key, maps)
+        assert all(torch.equal(a, b) for a, b in zip(maps, made[key]))
+        assert cache.bytes <= cache.max_bytes and spill.bytes <= spill.max_bytes
+        assert sum(f.stat().st_size for f in spill.folder.glob("*.pt")) <= spill.max_bytes + 4096 * len(spill.sizes)
+    stats = cache.stats()
+    assert stats["read_from_disk"] > 0 and stats["disk_full"] > 0  # both bounds were reached
+    assert stats["distinct_images"] == 7 and stats["peak_memory_mb"] <= 2.5
+    cache.close()
+    assert not spill.folder.exists()
+
+
+def test_done_with_drops_an_images_maps_from_memory_and_disk(tmp_path):
+    spill = SpillStore(tmp_path / "spill", max_mb=10)
+    cache = FeatureCache(1.0, spill)  # one pyramid in memory, the other on disk
+    cache.pair_files = ("a.jpg", "b.jpg")
+    for which, key in enumerate(("A", "B")):
+        cache.belongs_to(key, which)
+        cache.put(key, pyramid(which))
+    assert "A" in spill and "B" in cache.entries
+    cache.done_with("a.jpg")
+    assert "A" not in spill and not list(spill.folder.glob("*.pt"))
+    cache.done_with("b.jpg")
+    assert not cache.entries and cache.bytes == 0
+    # maps shared by two files (the same content under two names) stay while either has pairs left
+    cache.pair_files = ("c.jpg", "d.jpg")
+    cache.belongs_to("C", 0)
+    cache.belongs_to("C", 1)
+    cache.put("C", pyramid(3))
+    cache.done_with("c.jpg")
+    assert "C" in cache.entries
+    cache.done_with("d.jpg")
+    assert "C" not in cache.entries
+
+
+def test_maps_computed_in_bf16_are_held_in_bf16_exactly_and_others_are_not():
+    gen = torch.Generator().manual_seed(0)
+    from_bf16 = torch.randn(8, 16, 16, generator=gen).to(torch.bfloat16).float()
+    full = torch.randn(8, 16, 16, generator=gen)
+    held = compact([from_bf16, full], torch.bfloat16)
+    assert held[0].dtype == torch.bfloat16 and held[1].dtype == torch.float32
+    cache = FeatureCache(1.0, compact_dtype=torch.bfloat16)
+    cache.put("k", [from_bf16, full])
+    assert cache.bytes == from_bf16.numel() * 2 + full.numel() * 4
+    back = cache.get("k")
+    assert back[0].dtype == torch.float32 and torch.equal(back[0], from_bf16) and torch.equal(back[1], full)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_spilling_to_disk_passes_each_image_once_and_changes_no_match(shared_data, tmp_path, precision):
+    """v_boat's five pairs share image 1; with memory for one pyramid (bf16 maps held in bf16:
+    half the float32 size), the others go to the run folder and come back: 6 passes for 6
+    images, and the matches are byte-identical to those of a run without any reuse. Nothing
+    is left on disk."""
+    options = {} if precision == "fp32" else {"precision": precision}
+    method = MethodSpec.create("direct", "efficientnet_lite0", max_side=320, options=options)
+    hp = get_benchmark("hpatches")
+    root = shared_data / "hpatches-sequences-release"
+    dataset = hp.load_dataset(root, sequences=["v_boat"])
+    one = method.build("cpu").backbone.pyramid_bytes(240, 320) / MiB  # float32 bytes of one pyramid
+    budget = one * (1.2 if precision == "fp32" else 0.6)  # bf16 maps are held in 2 bytes
+    run_benchmark(hp, tmp_path / "spill", method, dataset=dataset, feature_cache_mb=budget)
+    reuse = yaml.safe_load((tmp_path / "spill" / "config.yaml").read_text())["feature_reuse"]
+    assert reuse["backbone_passes"] == 6 == reuse["distinct_images"] and reuse["passes_per_image"] == 1.0
+    assert reuse["read_from_disk"] >= 1 and 0 < reuse["peak_memory_mb"] <= budget
+    assert not (tmp_path / "spill" / SPILL_FOLDER).exists()
+    run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, feature_cache_mb=0)
+    assert_same_arrays(tmp_path / "spill", tmp_path / "plain")
+
+
+PEAK_SCRIPT = """
+import json, resource, sys
+from pathlib import Path
+import cv2, numpy as np
+from rich.console import Console
+from e3cm_bench.cache import MatchCache
+from e3cm_bench.datasets.base import Pair
+from e3cm_bench.method import MethodSpec
+from e3cm_bench.runner import match_stage
+from e3cm_bench.synth.textures import procedural_scene
+
+folder, budget = Path(sys.argv[1]), float(sys.argv[2])
+paths = []
+for i in range(8):
+    path = folder / f"{i}.png"
+    if not path.exists():
+        cv2.imwrite(str(path), procedural_scene((640, 480), seed=i))
+    paths.append(path)
+edges = [(i, (i + 1) % 8) for i in range(8)] + [(i, (i + 3) % 8) for i in range(8)]
+pairs = [Pair(f"{a}-{b}", paths[a], paths[b]) for a, b in edges]
+method = MethodSpec.create("direct", "efficientnet_lite0")
+out = folder / f"run{budget}"
+out.mkdir()
+stats = match_stage(method, pairs, MatchCache(out / "matches.h5"), "cpu", Console(quiet=True), feature_cache_mb=budget, spill_mb=0)
+print(json.dumps({"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "reuse": stats.get("feature_reuse")}))
+"""
+
+
+def test_the_cache_never_holds_more_than_its_budget_peak_rss(tmp_path):
+    """Peak resident memory of the whole match stage, each in a fresh process, on 8 images of
+    640 x 480 and 16 pairs: with a budget of two pyramids the peak stays within the budget
+    (plus a margin for the allocator) of the peak without any cache; with room for all eight
+    it does not, so the measurement sees what a cache holds."""
+    def peak(budget: float) -> dict:
+        done = subprocess.run([sys.executable, "-c", PEAK_SCRIPT, str(tmp_path), str(budget)], capture_output=True,
+                              text=True, check=True)
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    one = MethodSpec.create("direct", "efficientnet_lite0").build("cpu").backbone.pyramid_bytes(480, 640) / MiB
+    margin = 0.75 * one
+    none, two, all_eight = peak(0), peak(2.01 * one), peak(9 * one)
+    assert two["reuse"]["backbone_passes"] > 8  # the budget was binding
+    assert two["reuse"]["peak_memory_mb"] <= 2.01 * one
+    assert two["peak_mb"] <= none["peak_mb"] + 2.01 * one + margin, (none, two)
+    assert all_eight["peak_mb"] > none["peak_mb"] + 2.01 * one + margin, (none, all_eight)
