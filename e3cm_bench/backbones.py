@@ -51,6 +51,12 @@ class BackboneSpec:
     # DFM's stage 1 starts one conv before the deepest tap (VGG19: conv5_2, features[30]): the
     # position of that module inside the last stage, for backbones the DFM release supports.
     stage1_tap: int | None = None
+    # fp32 convolutions in channels_last memory where that is faster (scripts/bench_layout.py,
+    # results/perf/layout_fp32.txt: EfficientNet-Lite0 0.68x the NCHW time at 640x480, 0.72x at
+    # 1200x900; VGG19 0.97x / 1.05x, so it stays NCHW, which reproduces the releases' maps bit
+    # for bit). The rounding differs (Lite0 maps at most 1e-9 apart, VGG19 6e-6); the parity
+    # tests pass with either.
+    fp32_channels_last: bool = False
 
 
 def _tv(name: str, **kwargs) -> Callable[[], nn.Module]:
@@ -179,7 +185,7 @@ SPECS: dict[str, BackboneSpec] = {
             # TF-Lite EfficientNets take (x*255 - 127) / 128.
             "efficientnet_lite0", _build_efficientnet_lite0, _efficientnet_stages, upsample=2,
             mean=(127.0 / 255,) * 3, std=(128.0 / 255,) * 3,
-            taps="blocks 0, 2, 4, 10, 11 (image upsampled 2x)",
+            taps="blocks 0, 2, 4, 10, 11 (image upsampled 2x)", fp32_channels_last=True,
         ),
     ]
 }
@@ -217,7 +223,14 @@ class Backbone(nn.Module):
             "upsample": self.upsample,
             "weights": self.weights_id,
             "precision": self.precision,
+            "memory_format": self.memory_format,
         }
+
+    @property
+    def memory_format(self) -> str:
+        """The convolutions' layout: channels_last under reduced precision and where the spec
+        says it is faster in fp32, else NCHW."""
+        return "channels_last" if self.precision != "fp32" or self.spec.fp32_channels_last else "nchw"
 
     @property
     def deepest_stride(self) -> int:
@@ -256,11 +269,11 @@ class Backbone(nn.Module):
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
         tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
         # Reduced precision runs the convolutions under autocast in channels_last, their fast
-        # layout on CPU and tensor cores; the maps come out float32. fp32 stays in NCHW:
-        # channels_last changes the rounding (VGG19: up to 3e-6), and fp32 reproduces the
-        # reference releases bit for bit (tests/test_parity.py).
+        # layout on CPU and tensor cores; the maps come out float32. fp32 runs in the layout
+        # the spec names (memory_format): NCHW for VGG19, which reproduces the reference
+        # releases bit for bit (tests/test_parity.py).
         reduced = self.precision != "fp32"
-        if reduced:
+        if self.memory_format == "channels_last":
             x = x.contiguous(memory_format=torch.channels_last)
         dtype = torch.bfloat16 if self.precision == "bf16" else torch.float16
         features, extra = [], None

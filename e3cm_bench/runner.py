@@ -34,7 +34,6 @@ from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
 from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
-from .matchers.feature_cache import SpillStore, auto_cache_mb, auto_spill_mb
 from .matches import Matches, MatchesError, check_in_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
@@ -313,6 +312,8 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
     free disk space there, at most 64 GiB). The pairs are matched in `reuse_order`; an
     image's maps are dropped once its last pair is matched.
     """
+    from .matchers.feature_cache import SpillStore, auto_cache_mb, auto_spill_mb  # torch: loaded when matching
+
     budget = auto_cache_mb(device) if feature_cache_mb is None else float(feature_cache_mb)
     spill_root = jobs[0].cache.path.parent / SPILL_FOLDER if jobs else None
     if spill_root is not None:
