@@ -55,8 +55,10 @@ class E3CMSettings:
         similarity with A's pixel at B's pixel and its 4 neighbours (e3cm-plus; off in the
         paper).
     refine: sub-pixel refinement of the final matches on the images (matching/subpixel.py):
-        none (the paper), lk (LK fit kept where forward-backward consistent), lk-strict (and
-        the inconsistent matches dropped); refine_window: its patch side in pixels.
+        none (the paper), lk (LK fit kept where forward-backward consistent), ncc (peak of the
+        zero-mean NCC, invariant to affine brightness changes, kept where the peak is
+        consistent); lk-strict / ncc-strict also drop the inconsistent matches;
+        refine_window: the patch side in pixels (of either fit).
     """
 
     cascade: bool = True

@@ -1,18 +1,28 @@
 """Sub-pixel refinement of final matches on the images themselves (training-free).
 
 Level-0 keypoints of the cascade sit on whole pixels of the level-0 map; this moves each
-match's point in image B to where a Lucas-Kanade fit of the patch around A's point says it
-is, and keeps the move only where it is consistent:
+match's point in image B to where a fit of the patch around A's point says it is, and keeps the
+move only where it is consistent. Two fits (`REFINE_MODES`; "-strict" = drop the inconsistent):
 
-- LK (OpenCV's pyramidal `calcOpticalFlowPyrLK`) starts at the match (initial flow), in a
-  `window` x `window` patch, on one pyramid level above the image;
+`lk` (`refine_lk`): OpenCV's pyramidal Lucas-Kanade (`calcOpticalFlowPyrLK`) started at the
+match (initial flow), in a `window` x `window` patch, on one pyramid level above the image;
 - forward-backward: B's refined point tracked back into A must land within `fb_px` of A's
   point;
 - the move is at most `max_move` pixels (a refinement, never a new match).
+LK assumes brightness constancy: across an illumination change few matches pass its checks.
 
-A match whose fit fails either check keeps its point (`drop=False`) or is dropped
-(`drop=True`: the strict variant). No match is ever added. Arrays in, arrays out; pixel-centre
-coordinates (OpenCV's too). Deterministic: LK has no randomness.
+`ncc` (`refine_ncc`): zero-mean normalised cross-correlation of A's `window` x `window` patch
+(bilinear, at A's possibly sub-pixel point) with B at whole-pixel offsets within +-`radius`
+of B's point, and a 2-D quadratic fitted to the 3 x 3 NCC values around the best offset for
+the sub-pixel peak. Zero-mean NCC is invariant to an affine brightness change (gain and
+offset) of either patch, and nearly so to a smooth monotone one (gamma); kept only where
+the best offset is interior, its NCC >= `min_ncc`, the quadratic is concave, the move is at
+most `max_move` pixels and the result is finite and inside B.
+
+A match whose fit fails its checks keeps its point (`drop=False`) or is dropped
+(`drop=True`: the strict variant). No match is ever added; A's point never moves. Arrays in,
+arrays out; pixel-centre coordinates (OpenCV's too). Deterministic: neither fit has
+randomness.
 """
 
 from __future__ import annotations
@@ -20,7 +30,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-REFINE_MODES = ("none", "lk", "lk-strict")
+REFINE_MODES = ("none", "lk", "lk-strict", "ncc", "ncc-strict")
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -48,6 +58,128 @@ def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: 
     h, w = grey1.shape[:2]
     consistent &= (moved[:, 0] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] >= 0) & (moved[:, 1] <= h - 1)
     refined = np.where(consistent[:, None], moved, kpts1)
+    if drop:
+        keep = consistent
+    return refined.astype(np.float32), keep
+
+
+def _patches(grey: np.ndarray, centres: np.ndarray, side: int) -> np.ndarray:
+    """N x side x side float64 patches of `grey` (H x W float64) centred on `centres` (N x 2,
+    pixel-centre x, y; side odd): bilinear with exact weights, border replicated, i.e.
+    cv2.getRectSubPix's sampling without a per-match call. The patch's samples are whole pixels
+    apart, so one (side + 1)^2 block per match and its fractional offset give all of them."""
+    h, w = grey.shape
+    corner = centres - (side - 1) / 2  # the top-left sample
+    base = np.floor(corner)
+    fx, fy = (corner - base).T[:, :, None, None]  # each N x 1 x 1
+    steps = np.arange(side + 1)
+    xs = np.clip(base[:, 0:1].astype(np.intp) + steps, 0, w - 1)  # N x (side + 1)
+    ys = np.clip(base[:, 1:2].astype(np.intp) + steps, 0, h - 1)
+    block = grey[ys[:, :, None], xs[:, None, :]]
+    rows = block[:, :, :-1] * (1 - fx) + block[:, :, 1:] * fx  # N x (side + 1) x side
+    return rows[:, :-1] * (1 - fy) + rows[:, 1:] * fy
+
+
+def _window_sums(values: np.ndarray, k: int) -> np.ndarray:
+    """N x S x S sums of every k x k window of N x M x M `values` (S = M - k + 1), by an
+    integral image."""
+    n, m = values.shape[:2]
+    integral = np.zeros((n, m + 1, m + 1))
+    integral[:, 1:, 1:] = values.cumsum(axis=1).cumsum(axis=2)
+    return integral[:, k:, k:] - integral[:, :-k, k:] - integral[:, k:, :-k] + integral[:, :-k, :-k]
+
+
+def _ncc_surfaces(template: np.ndarray, search: np.ndarray) -> np.ndarray:
+    """N x S x S zero-mean NCC of each k x k template with every k x k window of its M x M
+    search patch (S = M - k + 1); NaN where the template or the window is flat (NCC undefined)."""
+    n, k = template.shape[:2]
+    t = template - template.mean(axis=(1, 2), keepdims=True)
+    t_norm = np.sqrt((t * t).sum(axis=(1, 2)))
+    windows = np.lib.stride_tricks.sliding_window_view(search, (k, k), axis=(1, 2))  # N x S x S x k x k (a view)
+    # sum(t * window) = sum(t * (window - its mean)) since t sums to 0: the window's mean needs no removal here
+    cross = np.einsum("nij,nabij->nab", t, windows, optimize=True)
+    sums = _window_sums(search, k)
+    w_norm = np.sqrt(np.maximum(_window_sums(search * search, k) - sums * sums / (k * k), 0.0))
+    denom = t_norm[:, None, None] * w_norm
+    # flat: denom is k^2 x the product of the two patches' standard deviations (grey levels);
+    # a product under 1e-9 is zero up to rounding
+    flat = denom <= 1e-9 * (k * k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(flat, np.nan, cross / np.where(flat, 1.0, denom))
+
+
+def _quadratic_fit() -> np.ndarray:
+    """6 x 9 least-squares map from the 3 x 3 values at offsets dx, dy in {-1, 0, 1} (row-major,
+    dy outer) to the coefficients of c0 + gx dx + gy dy + hxx dx^2 + hxy dx dy + hyy dy^2."""
+    dy, dx = np.mgrid[-1:2, -1:2].reshape(2, -1).astype(np.float64)
+    return np.linalg.pinv(np.stack([np.ones(9), dx, dy, dx * dx, dx * dy, dy * dy], axis=1))
+
+
+_QUADRATIC_FIT = _quadratic_fit()
+
+
+def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, window: int = 9,
+               radius: int = 2, max_move: float = 1.5, min_ncc: float = 0.7,
+               drop: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(kpts1 refined, keep): kpts1 moved to the sub-pixel peak of the zero-mean NCC of A's
+    `window` x `window` patch at kpts0 with B around kpts1 (whole-pixel offsets within
+    +-`radius`, then a 2-D quadratic fitted to the 3 x 3 values around the best one) where
+    consistent; keep[i] False only for a match the strict variant drops. kpts0 never moves.
+
+    Consistent: the NCC is defined, the best offset is interior (not on the search border, so
+    the peak lies inside the searched range), its NCC >= `min_ncc`, the quadratic is concave
+    with its peak within the 3 x 3 it was fitted on, the move is at most `max_move` pixels
+    (Euclidean) and the result is finite and inside B.
+
+    min_ncc 0.7: on HPatches with the ground-truth homographies (corners of image 1, starts
+    within about a pixel of the truth) 0.7 is the knee: it keeps 82-92 % of the i_leuven 1-k
+    matches (0.5 keeps 83-92 %, 0.8 only 74-88 %), while of deliberate wrong starts 4-12 px
+    off at most 1 % pass (2-4 % at 0.5). radius 2: the best whole-pixel offset must be
+    interior, so radius 2 allows +-1 pixel plus the sub-pixel part, about max_move's 1.5 px;
+    a larger radius would only add offsets that max_move rejects. window 9: LK's, so that
+    `refine_window` means the same patch side for both (11-15 measured slightly more
+    accurate on the test image, at a coarser footprint).
+    """
+    if not (isinstance(window, (int, np.integer)) and window >= 3 and window % 2):
+        raise ValueError(f"refine_ncc: window must be an odd number of pixels >= 3, got {window!r}")
+    if not (isinstance(radius, (int, np.integer)) and radius >= 1):
+        raise ValueError(f"refine_ncc: radius must be a whole number of pixels >= 1, got {radius!r}")
+    kpts0 = np.asarray(kpts0, np.float32).reshape(-1, 2)
+    kpts1 = np.asarray(kpts1, np.float32).reshape(-1, 2)
+    n = len(kpts0)
+    keep = np.ones(n, bool)
+    if n == 0:
+        return kpts1.copy(), keep
+    grey0, grey1 = _grey(image0).astype(np.float64), _grey(image1).astype(np.float64)
+    p0, p1 = kpts0.astype(np.float64), kpts1.astype(np.float64)
+    finite = np.isfinite(p0).all(axis=1) & np.isfinite(p1).all(axis=1)
+    p0, p1 = np.where(finite[:, None], p0, 0.0), np.where(finite[:, None], p1, 0.0)  # sampled, then rejected
+    ncc = _ncc_surfaces(_patches(grey0, p0, window), _patches(grey1, p1, window + 2 * radius))  # N x side x side
+    side = 2 * radius + 1
+    scores = np.where(np.isnan(ncc), -np.inf, ncc).reshape(n, -1)
+    best = scores.argmax(axis=1)  # the first of equal maxima: deterministic
+    by, bx = np.divmod(best, side)
+    peak = scores[np.arange(n), best]
+    interior = (bx >= 1) & (bx <= side - 2) & (by >= 1) & (by <= side - 2)
+    cy, cx = np.clip(by, 1, side - 2), np.clip(bx, 1, side - 2)  # (clipped only where rejected anyway)
+    around = np.arange(-1, 2)
+    rows, cols = (cy[:, None] + around)[:, :, None], (cx[:, None] + around)[:, None, :]
+    neighbours = ncc[np.arange(n)[:, None, None], rows, cols]  # N x 3 x 3 around the best offset
+    _, gx, gy, hxx, hxy, hyy = _QUADRATIC_FIT @ neighbours.reshape(n, 9).T  # each N; NaN if a value is
+    det = 4 * hxx * hyy - hxy * hxy  # of the Hessian [[2 hxx, hxy], [hxy, 2 hyy]]
+    concave = (hxx < 0) & (det > 0)
+    safe = np.where(concave, det, 1.0)
+    sx = (hxy * gy - 2 * hyy * gx) / safe  # the stationary point: Hessian^-1 (-gradient)
+    sy = (hxy * gx - 2 * hxx * gy) / safe
+    concave &= (np.abs(sx) <= 1) & (np.abs(sy) <= 1)  # a peak outside the fitted 3 x 3 is extrapolated
+    moved = p1 + np.stack([bx - radius + sx, by - radius + sy], axis=1)
+    h, w = grey1.shape
+    with np.errstate(invalid="ignore"):
+        # min_ncc: the default's reason is in the docstring (measured knee on HPatches)
+        consistent = finite & interior & (peak >= min_ncc) & concave & np.isfinite(moved).all(axis=1) \
+            & (np.linalg.norm(moved - p1, axis=1) <= max_move) \
+            & (moved[:, 0] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] >= 0) & (moved[:, 1] <= h - 1)
+    refined = np.where(consistent[:, None], moved.astype(np.float32), kpts1)
     if drop:
         keep = consistent
     return refined.astype(np.float32), keep
