@@ -1,24 +1,28 @@
-"""Pairs per minute over a real pair graph: e3cm-bench's match stage against the release's loop.
+"""Pairs per minute over a real pair graph, measured end to end: e3cm-bench's match stage
+against the E3CM release's per-pair loop.
 
     python scripts/bench_benchmark.py --pairs ../shared/data/yfcc_test_pairs_with_gt.txt \
-        --size 640x480 --window 24 --precision bf16 --compare-release PATH [--cache-mb 2048] [--json]
+        --scenes 1 --size 640x480 --precision fp32 --compare-release PATH [--release-sample 24] [--json]
 
-The pair graph is the real one (YFCC100M: 4000 pairs over 1455 images); the photos are
-replaced by synthetic stand-ins, one procedural scene per image name written as JPEG, so
-decoding is paid as with the real files. VGG19 with random weights (seed 0), the same on
-both sides; random weights cost what ImageNet ones do.
+The block: the first --scenes scenes of the list, whole (YFCC100M: 1000 pairs per scene,
+buckingham_palace first), in the list's order. The photos are replaced by synthetic
+stand-ins, one procedural scene per scene folder seen by each image through its own
+homography, written as JPEG, so decoding is paid as with the real files and matching does
+real work. VGG19 with random weights (seed 0), the same on both sides; random weights cost
+what ImageNet ones do.
 
-Measured, on the first --window pairs in the order the match stage uses (runner.reuse_order):
-  ours: runner.match_stage as `e3cm-bench yfcc` runs it (feature cache, decoding ahead,
-        --precision);
-  release: the E3CM release's per-pair loop from --compare-release PATH on the same pairs
-        (decode both images, match_large_img + refinement_pose_ransac; it reuses nothing, so
-        its cost per pair does not depend on the order).
-Projected over the whole graph: the backbone passes the feature cache needs for all pairs
-(FeatureCache's own policy replayed over the graph with the measured size of one pyramid)
-times the measured seconds per pass, plus the measured seconds per pair after the backbone;
-against the release's measured seconds per pair for every pair. Prints measured figures only;
-`--json` ends with one JSON object.
+  ours: runner.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
+        reuse_order, the feature cache with this machine's default memory and disk budgets,
+        decoding ahead, --precision. Backbone passes and passes per image are its own counts.
+  release: the release's loop (decode both images, match_large_img + refinement_pose_ransac,
+        fp32: it has no other precision) from --compare-release PATH, timed on
+        --release-sample pairs spread evenly over the block, half before ours and half
+        after (load on a shared machine then weighs on both alike); it reuses nothing, so
+        its seconds per pair times the block's pairs is its time for the block.
+
+Prints measured figures only, with the CPU model and its instruction set; `--json` ends with
+one JSON object (pairs, distinct_images, passes, passes_per_image, ours_pairs_per_min,
+release_pairs_per_min, speedup, precision, cpu, cpu_isa, ...).
 """
 
 from __future__ import annotations
@@ -42,9 +46,9 @@ from rich.console import Console
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import load_image
-from e3cm_bench.matchers.deep import FeatureCache
+from e3cm_bench.files import cpu_info
 from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import FEATURE_CACHE_MB, match_stage, reuse_order
+from e3cm_bench.runner import match_stage
 from e3cm_bench.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -82,114 +86,92 @@ def stand_in(name: str, size: tuple[int, int], folder: Path) -> Path:
     return path
 
 
-class _Sized:
-    """Stands in for a pyramid of `nbytes` when replaying the cache policy."""
-
-    def __init__(self, nbytes: int):
-        self.nbytes = nbytes
-
-    def numel(self) -> int:
-        return self.nbytes
-
-    def element_size(self) -> int:
-        return 1
-
-
-def passes_needed(graph: list[tuple[str, str]], pyramid_bytes: int, cache_mb: float) -> int:
-    """Backbone passes FeatureCache needs over the graph in reuse order (every image the same size)."""
-    cache = FeatureCache(cache_mb)
-    pairs = reuse_order([Pair(f"{a} {b}", Path(a), Path(b)) for a, b in graph])
-    for pair in pairs:
-        for image in (str(pair.image0), str(pair.image1)):
-            if cache.get(image) is None:
-                cache.put(image, [_Sized(pyramid_bytes)])
-    return cache.misses
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True, help="a SuperGlue-format pair list (the graph)")
+    parser.add_argument("--scenes", type=int, default=1, help="whole scenes matched, from the top of the list")
     parser.add_argument("--size", default="640x480")
-    parser.add_argument("--window", type=int, default=24, help="pairs actually matched (from the start of the order)")
     parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16", "fp16"))
-    parser.add_argument("--cache-mb", type=float, default=FEATURE_CACHE_MB)
+    parser.add_argument("--cache-mb", type=float, default=None, help="feature cache memory (default: the run's default)")
     parser.add_argument("--compare-release", type=Path, default=None)
+    parser.add_argument("--release-sample", type=int, default=24, help="pairs the release's loop is timed on")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     graph = read_pair_graph(args.pairs)
-    images = {name for pair in graph for name in pair}
-    print(f"pair graph {args.pairs}: {len(graph)} pairs, {len(images)} images; stand-ins {w}x{h}; "
-          f"VGG19 random weights (seed 0); precision {args.precision}; torch threads {torch.get_num_threads()}")
-
+    scenes = list(dict.fromkeys(a.split("/")[0] for a, _ in graph))[: args.scenes]
+    block = [(a, b) for a, b in graph if a.split("/")[0] in scenes]
+    images = {name for pair in block for name in pair}
+    cpu, flags = cpu_info()
+    isa = "+".join(f for f in ("avx512_bf16", "amx_bf16", "avx512f", "avx2") if f in (flags or ())) or "unknown"
+    print(f"block: {', '.join(scenes)} of {args.pairs}: {len(block)} pairs, {len(images)} images; stand-ins {w}x{h}; "
+          f"VGG19 random weights (seed 0); precision {args.precision}; CPU {cpu} ({isa}); torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads")
     work = Path(tempfile.mkdtemp(prefix="bench_benchmark_"))
     try:
-        run(args, graph, images, (w, h), work)
+        result = run(args, block, (w, h), work)
     finally:
-        shutil.rmtree(work, ignore_errors=True)  # the weights and stand-ins (about 0.6 GB)
+        shutil.rmtree(work, ignore_errors=True)  # the weights and stand-ins
+    result.update(pairs_file=str(args.pairs), scenes=scenes, cpu=cpu, cpu_isa=isa, torch=torch.__version__,
+                  threads=torch.get_num_threads())
+    if args.json:
+        print(json.dumps(result))
 
 
-def run(args, graph: list[tuple[str, str]], images: set[str], size: tuple[int, int], work: Path) -> None:
-    w, h = size
+def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -> dict:
     torch.manual_seed(0)
     full = torchvision.models.vgg19(weights=None)
     weights = work / "vgg19_seed0.pth"
     torch.save(full.state_dict(), weights)
-    window = reuse_order([Pair(f"{a} {b}", Path(a), Path(b)) for a, b in graph])[: args.window]
-    pairs = [Pair(p.name, stand_in(str(p.image0), (w, h), work), stand_in(str(p.image1), (w, h), work)) for p in window]
-    n_images = len({p.image0 for p in pairs} | {p.image1 for p in pairs})
+    pairs = [Pair(f"{a} {b}", stand_in(a, size, work), stand_in(b, size, work)) for a, b in block]
+
+    release = None
+    sample = pairs[:: max(1, len(pairs) // max(1, args.release_sample))][: args.release_sample]
+    release_s: list[float] = []
+    if args.compare_release is not None:
+        release = ReleaseRunner(args.compare_release, full.state_dict(), "cpu")
+        warm = cv2.imread(str(sample[0].image0))
+        release.match(warm, warm)
+
+    def time_release(part: list[Pair]) -> None:
+        for pair in part:  # the release's loop: both images decoded and passed for every pair
+            t = time.perf_counter()
+            release.match(cv2.imread(str(pair.image0)), cv2.imread(str(pair.image1)))
+            release_s.append(time.perf_counter() - t)
+
+    if release is not None:
+        time_release(sample[::2])
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
     method = MethodSpec.create("e3cm", "vgg19", str(weights), options=options)
-    matcher = method.build("cpu")
-    image = load_image(pairs[0].image0)
-    matcher.pyramids(image, image)  # warm-up
-    per_pass = []
-    for _ in range(3):
-        t = time.perf_counter()
-        maps = matcher.backbone(matcher.network_input(image))
-        per_pass.append(time.perf_counter() - t)
-    t_pass = statistics.median(per_pass)
-    pyramid_bytes = sum(m.numel() * m.element_size() for m in maps)
-
     quiet = Console(quiet=True)
+    warm = load_image(pairs[0].image0)
+    method.build("cpu").pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)
     t = time.perf_counter()
-    stats = match_stage(method, pairs, MatchCache(work / "ours.h5"), "cpu", quiet, feature_cache_mb=args.cache_mb)
+    stats = match_stage(method, pairs, MatchCache(work / "ours" / "matches.h5"), "cpu", quiet,
+                        feature_cache_mb=args.cache_mb)
     t_ours = time.perf_counter() - t
-    passes = stats["feature_reuse"]["backbone_passes"]
-    t_rest = max(0.0, (t_ours - passes * t_pass) / len(pairs))
+    reuse = stats["feature_reuse"]
     result = {
-        "pairs_file": str(args.pairs), "graph_pairs": len(graph), "graph_images": len(images), "size": args.size,
-        "precision": args.precision, "cache_mb": args.cache_mb, "window_pairs": len(pairs),
-        "window_images": n_images, "window_backbone_passes": passes, "ours_window_s": t_ours,
-        "ours_pairs_per_min": 60 * len(pairs) / t_ours, "backbone_pass_s": t_pass, "after_backbone_s_per_pair": t_rest,
-        "pyramid_mb": pyramid_bytes / 2**20,
+        "size": args.size, "precision": args.precision, "pairs": len(pairs), "distinct_images": reuse["distinct_images"],
+        "passes": reuse["backbone_passes"], "passes_per_image": reuse["passes_per_image"],
+        "read_from_disk": reuse.get("read_from_disk", 0), "cache_mb": reuse["cache_mb"], "spill_mb": reuse["spill_mb"],
+        "peak_cache_mb": reuse["peak_memory_mb"], "ours_s": t_ours, "ours_pairs_per_min": 60 * len(pairs) / t_ours,
     }
-    print(f"ours, window of {len(pairs)} pairs ({n_images} images, {passes} backbone passes): {t_ours:.1f} s, "
-          f"{result['ours_pairs_per_min']:.1f} pairs/min; one pass {t_pass:.2f} s, after the backbone "
-          f"{t_rest:.2f} s per pair; a pyramid is {result['pyramid_mb']:.0f} MiB")
-    full_passes = passes_needed(graph, pyramid_bytes, args.cache_mb)
-    t_full = full_passes * t_pass + len(graph) * t_rest
-    result.update(graph_backbone_passes=full_passes, ours_graph_pairs_per_min=60 * len(graph) / t_full)
-    print(f"ours, whole graph (projected): {full_passes} backbone passes for {len(graph)} pairs "
-          f"(cache {args.cache_mb:.0f} MiB = {int(args.cache_mb * 2**20 // pyramid_bytes)} pyramids), "
-          f"{result['ours_graph_pairs_per_min']:.1f} pairs/min")
-
-    if args.compare_release is not None:
-        release = ReleaseRunner(args.compare_release, full.state_dict(), "cpu")
-        release.match(image, image)  # warm-up
-        t = time.perf_counter()
-        for pair in pairs:  # the release's loop: both images decoded and passed for every pair
-            release.match(cv2.imread(str(pair.image0)), cv2.imread(str(pair.image1)))
-        t_release = time.perf_counter() - t
-        per_pair = t_release / len(pairs)
-        result.update(release_window_s=t_release, release_pairs_per_min=60 / per_pair,
-                      window_speedup=t_release / t_ours, graph_speedup=len(graph) * per_pair / t_full)
-        print(f"release loop, same {len(pairs)} pairs: {t_release:.1f} s, {60 / per_pair:.1f} pairs/min")
-        print(f"ours / release, pairs per minute: window x{result['window_speedup']:.2f}, whole graph (projected) "
-              f"x{result['graph_speedup']:.2f}")
-    if args.json:
-        print(json.dumps(result))
+    print(f"ours: {len(pairs)} pairs in {t_ours:.0f} s = {result['ours_pairs_per_min']:.1f} pairs/min; "
+          f"{result['passes']} backbone passes for {result['distinct_images']} images "
+          f"({result['passes_per_image']:.2f} per image), {result['read_from_disk']} read back from disk; "
+          f"cache {result['cache_mb']} MiB (peak {result['peak_cache_mb']:.0f}), disk {result['spill_mb']} MiB")
+    if release is not None:
+        time_release(sample[1::2])
+        per_pair = statistics.mean(release_s)
+        result.update(release_sample=len(release_s), release_s_per_pair=per_pair, release_pairs_per_min=60 / per_pair,
+                      speedup=(60 * len(pairs) / t_ours) / (60 / per_pair))
+        print(f"release loop: {len(release_s)} of the same pairs, {per_pair:.2f} s per pair (half before ours, half "
+              f"after: {statistics.mean(release_s[: len(sample[::2])]):.2f} / {statistics.mean(release_s[len(sample[::2]):]):.2f})"
+              f" = {60 / per_pair:.1f} pairs/min, so {len(pairs) * per_pair:.0f} s for the block")
+        print(f"ours / release, pairs per minute: x{result['speedup']:.2f}")
+    return result
 
 
 if __name__ == "__main__":
