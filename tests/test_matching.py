@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from e3cm_bench import geometry
-from e3cm_bench.matching.cascade import confidence_scores, epipolar_inliers, estimate_level_fundamental, level0_norms
+from e3cm_bench.matching.cascade import confidence_scores, epipolar_inliers, estimate_level_fundamental
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio
 from e3cm_bench.matching.levels import cell_centres, inside, valid_extent
 from e3cm_bench.matching.pipeline import DEFAULT_SAMPSON_PX, E3CMSettings, match_pyramids
@@ -568,20 +568,3 @@ def test_settings_validation():
         E3CMSettings(sampson_px=(1.0, 2.0, 3.0))
     d = E3CMSettings(ratio=[0.8] * 5).to_dict()
     assert d["ratio"] == [0.8] * 5 and "notes" not in d and d["estimator"] == "top8"
-
-
-@pytest.mark.parametrize("level", [1, 3])
-def test_confidence_from_raw_maps_and_norms_equals_normalised_maps(level):
-    # The pipeline passes raw level-0 maps and their norms (only the pixels read are divided);
-    # the scores must be bit for bit those of normalising the whole maps first.
-    gen = torch.Generator().manual_seed(7)
-    side = 2**level
-    raw0 = torch.randn(24, 6 * side, 9 * side, generator=gen) * 3
-    raw1 = torch.randn(24, 6 * side, 9 * side, generator=gen) * 3
-    cells0 = torch.stack([torch.randint(0, 9, (60,), generator=gen), torch.randint(0, 6, (60,), generator=gen)], 1)
-    cells1 = torch.stack([torch.randint(0, 9, (60,), generator=gen), torch.randint(0, 6, (60,), generator=gen)], 1)
-    norms = (level0_norms(raw0), level0_norms(raw1))
-    for top in (None, 8):
-        whole = confidence_scores(F.normalize(raw0, dim=0), F.normalize(raw1, dim=0), cells0, cells1, level, top=top)
-        read = confidence_scores(raw0, raw1, cells0, cells1, level, top=top, norms=norms)
-        assert torch.equal(whole, read)

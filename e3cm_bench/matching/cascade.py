@@ -18,14 +18,11 @@ def confidence_scores(
     eps: float = 1e-3,
     budget: int = 1 << 25,
     top: int | None = None,
-    norms: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Confidence c (Eq. 3) of matches at `level` from their 2^l x 2^l pixel patches.
 
-    level0_feat*: level-0 maps (C x H x W, one cell per original pixel), L2-normalised along
-    C, or raw with `norms` = (1 x H x W each) the divisors `level0_norms` gives: then only
-    the pixels of the patches read are divided, to the same numbers as normalising the whole
-    maps first (`F.normalize` divides by the same clamped norm). m_ij = 1 when pixel (i, j) of patch A and
+    level0_feat*: L2-normalised level-0 maps (C x H x W, one cell per original pixel; fastest
+    in channels-last memory, see `pixel_major`). m_ij = 1 when pixel (i, j) of patch A and
     pixel (i, j) of patch B are mutual nearest neighbours among the pixels of the two
     patches; d_ij = 1 - cos of those two pixels, floored at eps; c = sum m_ij / d_ij.
     `budget` bounds the similarity block in elements.
@@ -38,22 +35,16 @@ def confidence_scores(
     """
     n, side = len(cells0), 2**level
     p = side * side
-    planes0, planes1 = level0_feat0.flatten(1), level0_feat1.flatten(1)  # C x (H W): views
-    divisors0, divisors1 = (None, None) if norms is None else (norms[0].reshape(-1), norms[1].reshape(-1))
+    pixels0, pixels1 = _pixel_rows(level0_feat0), _pixel_rows(level0_feat1)
     width0, width1 = level0_feat0.shape[2], level0_feat1.shape[2]
     offsets = _patch_offsets(side, cells0.device)
 
-    def patches(planes, divisors, width, cells):  # n x P x C, pixels of each patch in row-major order
+    def patches(pixels, width, cells):  # n x P x C, pixels of each patch in row-major order
         xy = cells[:, None, :] * side + offsets[None]
-        index = (xy[..., 1] * width + xy[..., 0]).reshape(-1)
-        rows = planes.index_select(1, index).t()  # read only the patch pixels, in either layout
-        if divisors is not None:
-            rows = rows / divisors.index_select(0, index)[:, None]
-        return rows.contiguous().reshape(len(cells), p, -1)
+        return pixels.index_select(0, (xy[..., 1] * width + xy[..., 0]).reshape(-1)).reshape(len(cells), p, -1)
 
     def score(rows):
-        return _patch_confidence(patches(planes0, divisors0, width0, cells0[rows]),
-                                 patches(planes1, divisors1, width1, cells1[rows]), eps)
+        return _patch_confidence(patches(pixels0, width0, cells0[rows]), patches(pixels1, width1, cells1[rows]), eps)
 
     scores = torch.full((n,), -torch.inf, dtype=level0_feat0.dtype, device=level0_feat0.device)
     chunk = max(1, budget // (p * p))
@@ -62,8 +53,8 @@ def confidence_scores(
             scores[start : start + chunk] = score(slice(start, start + chunk))
         return scores
     bound = torch.cat([
-        _confidence_bound(patches(planes0, divisors0, width0, cells0[start : start + chunk]),
-                          patches(planes1, divisors1, width1, cells1[start : start + chunk]), side, eps)
+        _confidence_bound(patches(pixels0, width0, cells0[start : start + chunk]),
+                          patches(pixels1, width1, cells1[start : start + chunk]), side, eps)
         for start in range(0, n, chunk)
     ])
     order = torch.argsort(-bound, stable=True)
@@ -77,11 +68,15 @@ def confidence_scores(
     return scores
 
 
-def level0_norms(level0_feat: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """1 x H x W: the divisor of each pixel's C-vector, as `F.normalize(level0_feat, dim=0)`
-    computes it (norm along C, clamped at eps); `confidence_scores` divides the pixels it
-    reads by it instead of normalising the whole map."""
-    return level0_feat.norm(2, 0, keepdim=True).clamp_min(eps)
+def pixel_major(level0_feat: torch.Tensor) -> torch.Tensor:
+    """The same C x H x W values stored channels-last: a pixel's C-vector is one contiguous row."""
+    return level0_feat.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+
+
+def _pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
+    """C x H x W -> (H W) x C rows (a view when the map is channels-last, else a copy)."""
+    c, h, w = level0_feat.shape
+    return level0_feat.permute(1, 2, 0).reshape(h * w, c)
 
 
 def _patch_offsets(side: int, device) -> torch.Tensor:

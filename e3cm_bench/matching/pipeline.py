@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from . import SCORED_ESTIMATORS
-from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, level0_norms
+from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
 from .refine import refine_to_children
@@ -160,14 +160,17 @@ def match_pyramids(
             return valid_extent(size0, level), valid_extent(size1, level)
         return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
 
-    # The deepest level is matched densely, so it is normalised whole. Level 0 is read only in
-    # the patches the confidence score looks at (top8 and PROSAC): its norms are computed once
-    # and only the pixels read are divided by them. The levels between are read only at
-    # children of matches: refine_to_children normalises those as it reads them.
+    # The deepest level is matched densely, so it is normalised whole. Level 0 is read by the
+    # confidence score only (top8 and PROSAC), patch by patch: normalised whole and stored
+    # channels-last for its gathers, and only for those estimators. (Normalising only the
+    # pixels read measured slower: the patches cover most of level 0, overlap across levels,
+    # and gathering from the channel-first map costs more than the copy; docs/speed.md.)
+    # The levels between are read only at children of matches: refine_to_children normalises
+    # those as it reads them.
     t = time.perf_counter()
-    norms = None
+    unit0 = unit1 = None
     if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
-        norms = level0_norms(feats0[0]), level0_norms(feats1[0])
+        unit0, unit1 = pixel_major(F.normalize(feats0[0], dim=0)), pixel_major(F.normalize(feats1[0], dim=0))
     timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -192,8 +195,7 @@ def match_pyramids(
             if settings.estimator in SCORED_ESTIMATORS and len(cells0) >= 8:
                 # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
                 top = 8 if settings.estimator == "top8" else None
-                conf = _np(confidence_scores(feats0[0], feats1[0], cells0, cells1, level, settings.confidence_eps,
-                                                 top=top, norms=norms))
+                conf = _np(confidence_scores(unit0, unit1, cells0, cells1, level, settings.confidence_eps, top=top))
             F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
             fundamentals[level] = F_l
             timings["cascade"] += time.perf_counter() - t
