@@ -58,6 +58,27 @@ def prewarp_refusal(H_BA: np.ndarray, size_b: tuple[int, int]) -> str | None:
     return f"close to the identity (rotation {rotation:.1f} deg, scales {big:.2f} / {small:.2f})"
 
 
+def prewarp_decision(feats0: list, feats1: list, size0: tuple[int, int], size1: tuple[int, int],
+                     settings: E3CMPlusSettings) -> tuple[np.ndarray | None, dict]:
+    """(H_BA or None, info): DFM's stage 0 on the deepest maps, and whether B is warped by it
+    (settings.prewarp true: whenever stage 0 finds H; "auto": where prewarp_refusal says it
+    is worth it). info: the decision ("warped" / "not warped: why"), the stage-0 match and
+    inlier counts, and H's rotation and scales at B's centre (degrees; larger, smaller)."""
+    top = len(feats0) - 1
+    stage0 = stage0_homography(feats0[-1], feats1[-1], top, size0, size1, settings.stage0,
+                               settings.stage0.threshold_px(2**top))
+    H_BA, why = stage0["H_BA"], stage0["failure"]
+    info = {"stage0_matches": stage0["matches"], "stage0_inliers": stage0["inliers"]}
+    if H_BA is not None:
+        rotation, big, small = local_distortion(H_BA, (size1[0] / 2, size1[1] / 2))
+        info.update(rotation_deg=float(rotation), scale_big=float(big), scale_small=float(small))
+        if settings.prewarp == "auto":
+            why = prewarp_refusal(H_BA, size1)
+            H_BA = None if why else H_BA
+    info = {"prewarp": "warped" if H_BA is not None else f"not warped: {why}", **info}
+    return H_BA, info
+
+
 @dataclass
 class E3CMPlusSettings:
     """prewarp (true, false, auto), realign, estimator (one of the cascade's, or auto),
@@ -117,16 +138,8 @@ class E3CMPlusMatcher(DeepMatcher):
         H_BA, info = None, {"prewarp": "off"}
         if s.prewarp:
             t = time.perf_counter()
-            top = len(feats0) - 1
-            stage0 = stage0_homography(feats0[-1], feats1[-1], top, size0, size1, s.stage0,
-                                       s.stage0.threshold_px(2**top))
+            H_BA, info = prewarp_decision(feats0, feats1, size0, size1, s)
             timings["stage0"] = time.perf_counter() - t
-            H_BA, why = stage0["H_BA"], stage0["failure"]
-            if H_BA is not None and s.prewarp == "auto":
-                why = prewarp_refusal(H_BA, size1)
-                H_BA = None if why else H_BA
-            info = {"prewarp": "warped" if H_BA is not None else f"not warped: {why}",
-                    "stage0_matches": stage0["matches"], "stage0_inliers": stage0["inliers"]}
         pipeline = s.pipelines["warped" if H_BA is not None else "direct"]
         out = match_through_warp(image0, image1, feats0, feats1, H_BA, self.features, pipeline)
         if H_BA is not None and s.realign:
