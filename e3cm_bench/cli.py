@@ -481,13 +481,18 @@ def calibrate(
     device: DeviceOpt = "cpu",
     unrectified: Annotated[bool, typer.Option("--unrectified", help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).")] = False,
     overwrite: OverwriteOpt = False,
+    settings: Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.")] = None,
 ) -> None:
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
+    options = parse_settings(settings)
+    given = " ".join(item.strip() for item in settings or [])
     methods = []
     for name in matcher:
-        label = name if backbone == "vgg19" or not get_matcher(name).needs_backbone else f"{name} [{backbone}]"
+        deep = get_matcher(name).needs_backbone
+        label = f"{name} {given}".strip() if deep and given else name
+        label = label if backbone == "vgg19" or not deep else f"{label} [{backbone}]"
         methods.append(MethodSpec.create(name, backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
-                                         label=label))
+                                         label=label, options=options if deep else None))
     run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
                     unrectified=unrectified, overwrite=overwrite, console=console)
 
