@@ -60,6 +60,13 @@ def cpu_info() -> tuple[str | None, set[str] | None]:
     return model, flags
 
 
+def cpu_isa() -> str:
+    """The CPU's instruction sets that decide its speed here, as "avx512_bf16+avx512f+avx2"
+    ("unknown" where /proc/cpuinfo is absent): what the speed tables print beside each figure."""
+    _, flags = cpu_info()
+    return "+".join(f for f in ("avx512_bf16", "amx_bf16", "avx512f", "avx2") if f in (flags or ())) or "unknown"
+
+
 def run_environment() -> dict:
     """What a run's numbers depend on beyond package versions (config.yaml's ``environment``).
 

@@ -46,7 +46,7 @@ from rich.console import Console
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import load_image
-from e3cm_bench.files import cpu_info
+from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import match_stage
 from e3cm_bench.synth.textures import procedural_scene
@@ -102,8 +102,7 @@ def main() -> None:
     scenes = list(dict.fromkeys(a.split("/")[0] for a, _ in graph))[: args.scenes]
     block = [(a, b) for a, b in graph if a.split("/")[0] in scenes]
     images = {name for pair in block for name in pair}
-    cpu, flags = cpu_info()
-    isa = "+".join(f for f in ("avx512_bf16", "amx_bf16", "avx512f", "avx2") if f in (flags or ())) or "unknown"
+    cpu, isa = cpu_info()[0], cpu_isa()
     print(f"block: {', '.join(scenes)} of {args.pairs}: {len(block)} pairs, {len(images)} images; stand-ins {w}x{h}; "
           f"VGG19 random weights (seed 0); precision {args.precision}; CPU {cpu} ({isa}); torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads")

@@ -18,7 +18,7 @@ import time
 import torch
 
 from e3cm_bench.backbones import load_backbone
-from e3cm_bench.files import cpu_info
+from e3cm_bench.files import cpu_info, cpu_isa
 
 
 def main() -> None:
@@ -27,8 +27,7 @@ def main() -> None:
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
-    cpu, flags = cpu_info()
-    isa = "+".join(f for f in ("avx512_bf16", "amx_bf16", "avx512f", "avx2") if f in (flags or ())) or "unknown"
+    cpu, isa = cpu_info()[0], cpu_isa()
     print(f"CPU {cpu} ({isa}); torch {torch.__version__}, {torch.get_num_threads()} threads; fp32; median of {args.repeat}")
     for name in args.backbone or ["vgg19", "efficientnet_lite0"]:
         backbone = load_backbone(name, pretrained=False)

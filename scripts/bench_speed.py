@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import torch
 
+from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.synth.textures import demo_homography, procedural_scene
 
@@ -109,8 +110,9 @@ def main() -> None:
         ours = {f"features.{k}": v for stage in matcher.backbone.stages for k, v in stage.state_dict().items()}
         full.load_state_dict({**full.state_dict(), **ours})
         release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
+    cpu = f"{cpu_info()[0]} ({cpu_isa()})"
     print(f"{spec.describe()}; backbone weights {matcher.backbone.weights_id}; precision {args.precision}; "
-          f"device {args.device}; torch threads {torch.get_num_threads()}")
+          f"device {args.device}; CPU {cpu}; torch threads {torch.get_num_threads()}")
 
     result, per_size = {}, []
     for size in sizes:
@@ -156,7 +158,7 @@ def main() -> None:
     result["peak_rss_mb"] = peak_memory_mb(args.device)
     print(f"peak memory {result['peak_rss_mb']:.0f} MiB")
     if args.json:  # the last size's figures at the top level, every size's under "sizes"
-        print(json.dumps({**result, "sizes": per_size}))
+        print(json.dumps({**result, "cpu": cpu, "sizes": per_size}))
 
 
 if __name__ == "__main__":
