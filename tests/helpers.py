@@ -78,3 +78,15 @@ def assert_same_arrays(folder: Path, reference: Path) -> None:
     assert got.keys() == want.keys() and len(want) > 0
     for name in want:
         assert np.array_equal(got[name], want[name]), name
+
+
+def invoke(*args, **kwargs):
+    """Run the CLI in-process (kwargs: CliRunner.invoke's, e.g. input); print the command and
+    everything it said (pytest shows it on failure)."""
+    from typer.testing import CliRunner
+
+    from e3cm_bench.cli import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args], **kwargs)
+    print(f"$ e3cm-bench {' '.join(str(a) for a in args)}\n{result.output}")
+    return result

@@ -8,22 +8,14 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
 from e3cm_bench.calibration import estimate_extrinsics, extrinsic_errors, vertical_disparity
-from e3cm_bench.cli import app
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.datasets.stereo import load_stereo_sequence
 from e3cm_bench.synth.stereo import rig_extrinsics
-from helpers import one_line_error
+from helpers import invoke, one_line_error
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def rig_matches(R, t, n=2000, noise_px=0.5, outliers=0.0, seed=0):

@@ -10,12 +10,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from typer.testing import CliRunner
 
 from e3cm_bench import check
-from e3cm_bench.cli import app
 from e3cm_bench.files import run_environment
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 VERSIONS = {"python": "3.12.3", "e3cm-bench": "0.1.0", "torch": "2.14.1", "torchvision": "0.29.1", "numpy": "2.4.6",
             "opencv-python-headless": "5.0.0.93", "h5py": "3.16.0", "pandas": "3.1.1"}
@@ -24,12 +22,6 @@ ENVIRONMENT = {"torch": "2.14.1+cu130", "cpu_capability": "AVX512", "threads": 2
 ENVIRONMENT_STRING = ("python=3.12.3; torch=2.14.1+cu130; torchvision=0.29.1; numpy=2.4.6; "
                       "opencv-python-headless=5.0.0.93; cpu=AVX512; threads=2")
 NOTE = "environment differs from the baseline's:"
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def write_run(folder: Path, method: str, h_acc1: float = 0.6, versions: dict | None = VERSIONS,

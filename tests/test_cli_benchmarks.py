@@ -21,13 +21,11 @@ import pandas as pd
 import pytest
 import torch
 import yaml
-from typer.testing import CliRunner
 
 import e3cm_bench.runner as runner_module
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.cli import app
 from e3cm_bench.method import MethodSpec
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
 HPATCHES_PAIR_COLUMNS = ["pair", "sequence", "n_matches", *[f"mma@{t}" for t in range(1, 11)], "h_error"]
@@ -36,13 +34,6 @@ POSE_SUMMARY_COLUMNS = ["n_pairs", "n_matches", "n_failures", "auc@5", "auc@10",
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def invoke(*args) -> object:
-    """Run the CLI in-process; print everything it said (shown by pytest on failure)."""
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(f"$ e3cm-bench {' '.join(str(a) for a in args)}\n{result.output}")
-    return result
 
 
 def ok(*args):

@@ -14,22 +14,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 import e3cm_bench.backbones as backbones_module
 from e3cm_bench import geometry
-from e3cm_bench.cli import app
 from e3cm_bench.datasets.hpatches import read_homography
 from e3cm_bench.synth.textures import demo_pair
-from helpers import flat, one_line_error
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(f"$ e3cm-bench {' '.join(str(a) for a in args)}\n{result.output}")
-    return result
-
-
+from helpers import flat, invoke, one_line_error
 
 
 def load_matches(path: Path) -> dict[str, np.ndarray]:

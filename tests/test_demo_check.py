@@ -9,19 +9,11 @@ import pandas as pd
 import pytest
 import torch
 import yaml
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
 from e3cm_bench.demo import METHODS as DEMO_METHODS
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +150,6 @@ def test_committed_baselines_cover_the_demo():
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
         assert sorted(table["method"]) == sorted(DEMO_METHODS)
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()
-
 
 
 def committed_demo_runs(tmp_path: Path, set_name: str) -> Path:

@@ -14,12 +14,10 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
 from e3cm_bench.datasets.sources import Part, Source
 from e3cm_bench.download import LOCK_FILE, DownloadError, download
-from helpers import one_line_error
+from helpers import invoke, one_line_error
 
 
 def hpatches_zip(shared_data: Path) -> bytes:
@@ -82,12 +80,6 @@ class Server:
 def source(url: str, sha256: str | None = None, name: str = "hp") -> Source:
     return Source(name, "hpatches", "hpatches-sequences-release",
                   (Part("hpatches-sequences-release.zip", url, sha256),), expected={"sequences": 3, "images": 18})
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def test_download_verifies_records_the_hash_and_unpacks(shared_data, tmp_path):

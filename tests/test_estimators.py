@@ -6,21 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
 from e3cm_bench import metrics
 from e3cm_bench.benchmarks import EvalSettings
-from e3cm_bench.cli import app
 from e3cm_bench.estimators import homography, relative_pose
-from helpers import one_line_error, rotation
+from helpers import invoke, one_line_error, rotation
 
 pytest.importorskip("poselib", reason="PoseLib (the poselib extra) is not installed")
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def exact_pair(seed: int = 0):

@@ -7,21 +7,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.experiments import experiment_method, load_experiment
-from helpers import one_line_error
+from helpers import invoke, one_line_error
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PAPER_ROWS = 12  # methods in each of the paper's Tables 1-3
-
-
-def invoke(*args) -> object:
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 @pytest.mark.parametrize("name", ["table1_hpatches", "table2_megadepth", "table3_yfcc", "fig5_backbones"])

@@ -8,18 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from typer.testing import CliRunner
 
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.cli import app
 from e3cm_bench.imported import hloc_pair_key
-from helpers import one_line_error
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
+from helpers import invoke, one_line_error
 
 
 @pytest.fixture(scope="module")

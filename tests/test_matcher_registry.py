@@ -12,27 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.cli import app
 from e3cm_bench.matchers import MatcherEntry, get_matcher, matcher_names, register, registry, unregister
 from e3cm_bench.matches import Matches
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import run_benchmark
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
 PLUGIN_SRC = REPO / "examples" / "plugin" / "src"
 BUILTINS = ("e3cm", "e3cm-ransac", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift")
 PEERS = ("loftr", "superpoint+superglue", "superpoint+lightglue", "disk+lightglue", "aliked+lightglue")
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 # --------------------------------------------------------------------------- the registry

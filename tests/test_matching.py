@@ -11,7 +11,8 @@ import torch
 import torch.nn.functional as F
 
 from e3cm_bench import geometry
-from e3cm_bench.matching.cascade import confidence_scores, epipolar_inliers, estimate_level_fundamental
+from e3cm_bench.matching.cascade import (confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major,
+                                         unit_pixel_major)
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio
 from e3cm_bench.matching.levels import cell_centres, inside, valid_extent
 from e3cm_bench.matching.pipeline import DEFAULT_SAMPSON_PX, E3CMSettings, match_pyramids
@@ -568,3 +569,12 @@ def test_settings_validation():
         E3CMSettings(sampson_px=(1.0, 2.0, 3.0))
     d = E3CMSettings(ratio=[0.8] * 5).to_dict()
     assert d["ratio"] == [0.8] * 5 and "notes" not in d and d["estimator"] == "top8"
+
+
+def test_unit_pixel_major_is_normalise_then_pixel_major_bit_for_bit():
+    gen = torch.Generator().manual_seed(3)
+    for shape in ((64, 37, 53), (24, 16, 16)):
+        raw = torch.randn(*shape, generator=gen) * 5
+        raw[:, 0, 0] = 0  # a zero vector: the clamp
+        got, want = unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))
+        assert torch.equal(got, want) and got.stride() == want.stride()

@@ -9,18 +9,12 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
 from e3cm_bench.metrics import summarize_pose
 from e3cm_bench.runner import match_pair, unrotate_points
-from helpers import one_line_error
+from helpers import invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
-
-
-def invoke(*args):
-    return CliRunner().invoke(app, [str(a) for a in args])
 
 
 # --------------------------------------------------------------------------- rotations

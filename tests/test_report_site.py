@@ -15,16 +15,8 @@ from urllib.parse import unquote, urlparse
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
-from helpers import one_line_error
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
+from helpers import invoke, one_line_error
 
 
 @pytest.fixture(scope="module")

@@ -19,23 +19,15 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from typer.testing import CliRunner
 
 import e3cm_bench.cache as cache_module
 from e3cm_bench.benchmarks import EvalSettings
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.cli import app
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import run_benchmark
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def _default_sigint() -> None:

@@ -21,19 +21,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
 import e3cm_bench.cache as cache_module
 from e3cm_bench.cache import DiskFullError, MatchCache
-from e3cm_bench.cli import app
 from e3cm_bench.matches import Matches
-from helpers import one_line_error
-
-
-def invoke(*args, **kwargs):
-    result = CliRunner().invoke(app, [str(a) for a in args], **kwargs)
-    print(result.output)
-    return result
+from helpers import invoke, one_line_error
 
 
 def cli(*args, timeout: float = 900, **kwargs) -> subprocess.CompletedProcess:

@@ -9,19 +9,11 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from e3cm_bench.cli import app
 from e3cm_bench.shards import parse_shard, shard_slice
-from helpers import flat, one_line_error
+from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
-
-
-def invoke(*args):
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    print(result.output)
-    return result
 
 
 def command(*args) -> list[str]:
