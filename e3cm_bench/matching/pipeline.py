@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from . import SCORED_ESTIMATORS
-from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major
+from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, unit_pixel_major
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
 from .refine import refine_to_children
@@ -170,7 +170,7 @@ def match_pyramids(
     t = time.perf_counter()
     unit0 = unit1 = None
     if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
-        unit0, unit1 = pixel_major(F.normalize(feats0[0], dim=0)), pixel_major(F.normalize(feats1[0], dim=0))
+        unit0, unit1 = unit_pixel_major(feats0[0]), unit_pixel_major(feats1[0])
     timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()
