@@ -185,8 +185,8 @@ def test_calibrate_end_to_end_with_sift(synthetic, tmp_path):
     summary = pd.read_csv(out / "summary.csv")
     assert set(summary["method"]) == {"sift", "direct [efficientnet_lite0]"} and len(summary) == 4
     assert set(pd.read_csv(out / "windows.csv")["method"]) == {"sift", "direct [efficientnet_lite0]"}
-    # --set reaches the deep matchers (sift takes none) and shows in the label
-    refined = invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--matcher", "e3cm-ransac",
+    # --set reaches the deep matchers and shows in the label
+    refined = invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "e3cm-ransac",
                      "--backbone", "efficientnet_lite0", "--max-side", 480, "--frames", 1, "--frames", 5, "--set", "refine=ncc")
     assert refined.exit_code == 0, refined.output
     assert "e3cm-ransac refine=ncc [efficientnet_lite0]" in set(pd.read_csv(out / "summary.csv")["method"])
