@@ -72,8 +72,9 @@ def test_maps_computed_in_bf16_are_held_in_bf16_exactly_and_others_are_not():
     gen = torch.Generator().manual_seed(0)
     from_bf16 = torch.randn(8, 16, 16, generator=gen).to(torch.bfloat16).float()
     full = torch.randn(8, 16, 16, generator=gen)
-    held = compact([from_bf16, full], torch.bfloat16)
-    assert held[0].dtype == torch.bfloat16 and held[1].dtype == torch.float32
+    exact = {}
+    held = compact([from_bf16, full], torch.bfloat16, exact)
+    assert held[0].dtype == torch.bfloat16 and held[1].dtype == torch.float32 and exact == {0: True, 1: False}
     cache = FeatureCache(1.0, compact_dtype=torch.bfloat16)
     cache.put("k", [from_bf16, full])
     assert cache.bytes == from_bf16.numel() * 2 + full.numel() * 4

@@ -60,16 +60,21 @@ def _nbytes(maps: list[torch.Tensor]) -> int:
     return sum(m.numel() * m.element_size() for m in maps)
 
 
-def compact(maps: list[torch.Tensor], dtype: torch.dtype | None) -> list[torch.Tensor]:
+def compact(maps: list[torch.Tensor], dtype: torch.dtype | None, exact: dict[int, bool] | None = None) -> list[torch.Tensor]:
     """Each float32 map in `dtype` where that holds it exactly (maps a reduced-precision
-    network computed, then widened), else as it is."""
+    network computed, then widened), else as it is. exact: level -> whether that level's maps
+    are exact in dtype, filled by checking the first map of each level: a level's maps come
+    out of the same layer in the same precision for every image, so one check tells."""
     if dtype is None:
         return maps
+    exact = {} if exact is None else exact
     out = []
-    for m in maps:
-        if m.dtype == torch.float32:
+    for level, m in enumerate(maps):
+        if m.dtype == torch.float32 and exact.get(level, True):
             narrow = m.to(dtype)
-            if torch.equal(narrow.to(torch.float32), m):
+            if level not in exact:
+                exact[level] = torch.equal(narrow.to(torch.float32), m)
+            if exact[level]:
                 m = narrow
         out.append(m)
     return out
@@ -142,6 +147,7 @@ class FeatureCache:
         self.max_bytes = int(max_mb * 2**20)
         self.spill = spill
         self.compact_dtype = compact_dtype
+        self.exact_levels: dict[int, bool] = {}  # filled by compact
         self.entries: OrderedDict[str, list[torch.Tensor]] = OrderedDict()
         self.bytes = 0
         self.peak_bytes = 0
@@ -176,7 +182,7 @@ class FeatureCache:
 
     def put(self, key: str, maps: list[torch.Tensor]) -> None:
         self.seen.add(key)
-        self._hold(key, compact(maps, self.compact_dtype))
+        self._hold(key, compact(maps, self.compact_dtype, self.exact_levels))
 
     def _hold(self, key: str, maps: list[torch.Tensor]) -> None:
         size = _nbytes(maps)
