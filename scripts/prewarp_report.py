@@ -23,7 +23,7 @@ import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.images import load_image, resize_max_side
-from e3cm_bench.matchers.e3cm_plus import prewarp_decision
+from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, prewarp_decision
 from e3cm_bench.method import MethodSpec
 
 
@@ -41,14 +41,14 @@ def main() -> None:
     config, plus = read_run(args.run_plus)
     _, unwarped = read_run(args.run_unwarped)
     identity = config["identity"]
-    if identity["matcher"] != "e3cm-plus":
+    spec = MethodSpec.create(identity["matcher"], identity["backbone"], identity.get("weights"), max_side=identity.get("max_side"),
+                             resize=identity.get("resize", "shrink"), options=identity.get("settings") or {})
+    matcher = spec.build("cpu")
+    if not isinstance(matcher, E3CMPlusMatcher):
         raise SystemExit(f"{args.run_plus}: an e3cm-plus run is needed, this one is {identity['matcher']}")
     benchmark = get_benchmark(config["benchmark"])
     load = config.get("dataset_load") or {}
     dataset = benchmark.load_dataset(load.get("root", config["dataset"].get("root")), skip_bad=True, **(load.get("options") or {}))
-    spec = MethodSpec.create("e3cm-plus", identity["backbone"], identity.get("weights"), max_side=identity.get("max_side"),
-                             resize=identity.get("resize", "shrink"), options=identity.get("settings") or {})
-    matcher = spec.build("cpu")
     error = "h_error" if "h_error" in plus.columns else "err_pose"
     rows = []
     for pair in dataset:
