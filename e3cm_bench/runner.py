@@ -9,7 +9,6 @@ resumes at the first pair missing from the cache.
 
 from __future__ import annotations
 
-from collections import OrderedDict
 
 import shutil
 import time
@@ -35,6 +34,7 @@ from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
 from .matches import Matches, MatchesError, check_in_image
+from .pair_order import most_alive, reuse_order
 from .method import MethodSpec, identity_changes
 from .report import print_summary
 from .shards import merge_when_complete, shard_dir, shard_slice
@@ -195,77 +195,6 @@ FEATURE_CACHE_MB = None
 SPILL_FOLDER = ".feature-spill"
 
 
-def reuse_order(pairs: list[Pair], resident: int = 16) -> list[Pair]:
-    """Pairs ordered so that each image's pairs come while its maps are held: a greedy walk of
-    the pair graph that keeps an LRU list of the `resident` images the feature cache is
-    expected to hold, and takes next a pair whose two images are held (the most recently used
-    first), else one whose image is held (with the partner that has the most pairs left), else
-    starts at the image with the most pairs left. On the real YFCC100M pair graph (4000 pairs,
-    1455 images), replaying the cache's LRU policy, the backbone passes this order needs are
-    3229 for 16 images held, 2223 for 128 and 1738 for 256, against 4672, 2813 and 1921 in the
-    sorted order used before (`scripts/pair_order.py`). The order changes no result: matches
-    are stored by pair name, and per_pair.csv keeps the pair list's order. Deterministic."""
-    names = [(str(p.image0), str(p.image1)) for p in pairs]
-    incident: dict[str, list[int]] = {}
-    for i, (a, b) in enumerate(names):
-        incident.setdefault(a, []).append(i)
-        if b != a:
-            incident.setdefault(b, []).append(i)
-    left = {image: len(items) for image, items in incident.items()}
-    done = [False] * len(pairs)
-    held: OrderedDict[str, None] = OrderedDict()
-    order: list[int] = []
-
-    def remaining(image: str):
-        return (i for i in incident[image] if not done[i])
-
-    def other(i: int, image: str) -> str:
-        a, b = names[i]
-        return b if a == image else a
-
-    while len(order) < len(pairs):
-        chosen = None
-        recent = list(reversed(held))
-        for image in recent:  # both images held
-            chosen = next((i for i in remaining(image) if other(i, image) in held), None)
-            if chosen is not None:
-                break
-        if chosen is None:  # one image held: the partner with the most pairs left
-            for image in recent:
-                candidates = list(remaining(image))
-                if candidates:
-                    chosen = max(candidates, key=lambda i: (left[other(i, image)], -i))
-                    break
-        if chosen is None:  # a new start: the image with the most pairs left
-            start = max((image for image in incident if left[image]), key=lambda image: (left[image], image))
-            chosen = next(remaining(start))
-        done[chosen] = True
-        order.append(chosen)
-        for image in dict.fromkeys(names[chosen]):
-            left[image] -= 1
-            held[image] = None
-            held.move_to_end(image)
-            if len(held) > max(1, resident):
-                held.popitem(last=False)
-    return [pairs[i] for i in order]
-
-
-def resident_images(matchers: list, feature_cache_mb: float, max_sides: list[int | None]) -> int:
-    """How many images' pyramids the feature cache holds, estimated for 4:3 images at the
-    methods' resize (1600 px where they match at full size); 16 where nothing tells."""
-    sizes = []
-    for matcher, side in zip(matchers, max_sides):
-        backbone = getattr(matcher, "backbone", None)
-        cache = getattr(matcher, "feature_cache", None)
-        if feature_cache_mb and cache is not None and hasattr(backbone, "pyramid_bytes"):
-            side = side or 1600
-            narrow = 2 if cache.compact_dtype is not None else 1  # bf16 / fp16 maps held in 2 bytes
-            sizes.append(backbone.pyramid_bytes(int(side * 3 / 4), side) // narrow)
-    if not sizes:
-        return 16
-    return max(2, int(feature_cache_mb * 2**20 // max(sizes)))
-
-
 @dataclass
 class MatchJob:
     """One method's part of a match stage: the pairs it still has to match and where they go.
@@ -345,14 +274,17 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
     try:
         with progress_bar(console) as progress, ThreadPoolExecutor(max_workers=1) as executor:
             task = progress.add_task(f"matching ({labels})", total=sum(len(job.todo) for job in jobs))
-            # the order keeps the images that memory and disk hold together close to their pairs
-            resident = resident_images(matchers, budget + disk, [job.method.max_side for job in jobs])
-            order = reuse_order(list(pairs.values()), resident)
-            last_use = {file: k for k, pair in enumerate(order) for file in (str(pair.image0), str(pair.image1))}
+            # few images alive at once; the cache is told the order, so it keeps what comes soonest
+            order = reuse_order(list(pairs.values()))
+            alive = most_alive(order)
+            files_in_order = [(str(pair.image0), str(pair.image1)) for pair in order]
+            last_use = {file: k for k, files in enumerate(files_in_order) for file in files}
+            for feature_cache in feature_caches:
+                feature_cache.plan(files_in_order)
             for k, (pair, images) in enumerate(decoded_ahead(order, executor)):
-                files = (str(pair.image0), str(pair.image1))
+                files = files_in_order[k]
                 for feature_cache in feature_caches:
-                    feature_cache.pair_files = files
+                    feature_cache.at(k, files)
                 for i in wanted[pair.name]:
                     _match_one(jobs[i], matchers[i], pair, images)
                     progress.advance(task)
@@ -367,7 +299,8 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
             shutil.rmtree(spill_root, ignore_errors=True)
     for group in groups.values():
         reuse = group["matcher"].feature_cache
-        stats = {"cache_mb": round(budget), "spill_mb": round(disk), **reuse.stats(), "shared_by": group["labels"]}
+        stats = {"cache_mb": round(budget), "spill_mb": round(disk), "images_alive_at_most": alive, **reuse.stats(),
+                 "shared_by": group["labels"]}
         for job, matcher in zip(jobs, matchers):
             if getattr(matcher, "feature_cache", None) is reuse:
                 job.stats["feature_reuse"] = stats
@@ -595,9 +528,13 @@ class _OpenRun:
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before, reuse = config.get("feature_reuse") or {}, dict(reuse)
-            for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full"):
+            for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full",
+                        "dropped_from_disk"):
                 if key in reuse:  # counts of a resumed run add up over its stages
                     reuse[key] += before.get(key, 0)
+            for key in ("images_alive_at_most", "peak_memory_mb", "peak_disk_mb"):
+                if key in reuse:  # highs: the highest stage's
+                    reuse[key] = max(reuse[key], before.get(key, 0))
             if reuse.get("distinct_images"):
                 reuse["passes_per_image"] = round(reuse["backbone_passes"] / reuse["distinct_images"], 4)
             config["feature_reuse"] = reuse

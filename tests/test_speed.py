@@ -128,23 +128,3 @@ def test_a_6000_by_4000_pair_fits_or_names_max_side():
     image = np.zeros((4000, 6000, 3), np.uint8)
     with pytest.raises(MemoryError, match=r"--max-side \d+ would fit"):
         match_pair(matcher, image, image)
-
-
-def test_reuse_order_visits_every_pair_once_and_needs_fewer_passes(shared_data):
-    """On the real YFCC100M pair graph: a permutation of the pairs, the same every time, and
-    fewer backbone passes than the sorted order it replaced, for small and large caches."""
-    import importlib.util
-
-    from e3cm_bench.runner import reuse_order
-
-    spec = importlib.util.spec_from_file_location("pair_order", Path(__file__).resolve().parents[1] / "scripts" / "pair_order.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    lines = (shared_data / "yfcc_test_pairs_with_gt.txt").read_text().splitlines()
-    pairs = [Pair(str(k), Path(line.split()[0]), Path(line.split()[1])) for k, line in enumerate(lines)]
-    for resident in (4, 64):
-        ordered = reuse_order(pairs, resident)
-        assert sorted(int(p.name) for p in ordered) == list(range(len(pairs)))
-        assert [p.name for p in reuse_order(pairs, resident)] == [p.name for p in ordered]
-        before = sorted(pairs, key=lambda p: (min(str(p.image0), str(p.image1)), max(str(p.image0), str(p.image1))))
-        assert script.passes(ordered, resident) < 0.8 * script.passes(before, resident)

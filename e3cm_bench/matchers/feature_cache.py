@@ -1,13 +1,16 @@
 """Feature pyramids kept across the pairs of a run: in memory up to a budget, then on disk.
 
 A benchmark's pairs share images (YFCC100M: 4000 pairs over 1455 images). The match stage
-orders the pairs so that an image's pairs come close together (runner.reuse_order) and
-tells the cache when an image has no pair left (`forget`); the cache keeps the pyramids of
-the images still to be used:
+orders the pairs so that few images are alive at once (pair_order.reuse_order), tells the
+cache that order (`plan`) and, after each pair, which images have no pair left
+(`done_with`); the cache keeps the pyramids of the images still to be used:
 
-- in memory, least recently used out first, up to `max_mb`;
+- in memory up to `max_mb`; when it is full, out goes the pyramid needed again last
+  (Belady's rule: with the order known it needs the fewest passes; least recently used
+  when no order was given);
 - what memory cannot hold goes to a bounded folder on disk (`SpillStore`) and is read back
-  when its image comes again, instead of passing it through the network again;
+  when its image comes again, instead of passing it through the network again; when the
+  disk bound is reached, the pyramid needed last is the one left to be computed again;
 - maps computed in reduced precision are held in that precision (`compact_dtype`), where
   that is exact (checked, map by map), and handed back as float32.
 
@@ -18,7 +21,9 @@ the network computed, so the cache changes no result.
 from __future__ import annotations
 
 import hashlib
+import math
 import shutil
+from bisect import bisect_left
 from collections import OrderedDict
 from pathlib import Path
 
@@ -98,6 +103,7 @@ class SpillStore:
         self.writes = 0
         self.reads = 0
         self.refused = 0
+        self.dropped = 0  # removed to make room for a pyramid needed sooner
 
     def _path(self, key: str) -> Path:
         return self.folder / (hashlib.blake2b(key.encode(), digest_size=16).hexdigest() + ".pt")
@@ -139,9 +145,9 @@ class SpillStore:
 
 
 class FeatureCache:
-    """The feature pyramids of the images of a run, up to a memory budget (least recently used
-    out first, to `spill` when there is one). hits: pyramids served without a backbone pass
-    (from memory or disk); misses: backbone passes."""
+    """The feature pyramids of the images of a run, up to a memory budget (what is needed again
+    last goes out first, to `spill` when there is one; see the module). hits: pyramids served
+    without a backbone pass (from memory or disk); misses: backbone passes."""
 
     def __init__(self, max_mb: float, spill: SpillStore | None = None, compact_dtype: torch.dtype | None = None):
         self.max_bytes = int(max_mb * 2**20)
@@ -159,6 +165,11 @@ class FeatureCache:
         self.pair_files: tuple[str, str] | None = None
         self.keys_of: dict[str, set[str]] = {}
         self.files_of: dict[str, set[str]] = {}
+        # The stage's order (plan): the pairs, by position, each file is in; the position now.
+        self.uses: dict[str, list[int]] | None = None
+        self.position = -1
+        self.claim: int | None = None  # the file of the pair whose maps are asked for (belongs_to)
+        self.served: set[tuple[str, int]] = set()  # (key, file of the pair) handed out for this pair
 
     @staticmethod
     def key(image: np.ndarray, channel_order: str) -> str:
@@ -171,9 +182,11 @@ class FeatureCache:
         if maps is not None:
             self.entries.move_to_end(key)
             self.hits += 1
+            self._serve(key)
             return widen(maps)
         if self.spill is not None and key in self.spill:
             maps = self.spill.read(key, device)
+            self._serve(key)
             self._hold(key, maps)
             self.hits += 1
             return widen(maps)
@@ -182,27 +195,83 @@ class FeatureCache:
 
     def put(self, key: str, maps: list[torch.Tensor]) -> None:
         self.seen.add(key)
+        self._serve(key)
         self._hold(key, compact(maps, self.compact_dtype, self.exact_levels))
+
+    def _serve(self, key: str) -> None:
+        if self.claim is not None:
+            self.served.add((key, self.claim))
+            self.claim = None
+
+    def plan(self, files_in_order: list[tuple[str, str]]) -> None:
+        """The files of each pair the stage will match, in its order: the cache then keeps what
+        is needed soonest. `at` tells it which pair is being matched."""
+        self.uses = {}
+        for k, files in enumerate(files_in_order):
+            for file in dict.fromkeys(files):
+                self.uses.setdefault(file, []).append(k)
+        self.position = -1
+
+    def at(self, position: int, files: tuple[str, str]) -> None:
+        """The pair at `position` of the plan, with these files, is being matched."""
+        self.position, self.pair_files = position, files
+        self.served.clear()
+
+    def next_use(self, key: str) -> float:
+        """The plan's position of the next pair that needs key's maps: the pair being matched
+        while a file of it that key belongs to has not been served yet (both, for a pair of an
+        image with itself), else a later one; inf when none is known."""
+        files = self.files_of.get(key, ())
+        if self.pair_files is not None:
+            for which, file in enumerate(self.pair_files):
+                if file in files and (key, which) not in self.served:
+                    return self.position
+        best = math.inf
+        for file in files:
+            positions = (self.uses or {}).get(file, ())
+            j = bisect_left(positions, self.position + 1)
+            if j < len(positions):
+                best = min(best, positions[j])
+        return best
 
     def _hold(self, key: str, maps: list[torch.Tensor]) -> None:
         size = _nbytes(maps)
         if size > self.max_bytes:
-            if self.spill is not None:
-                self.spill.write(key, maps)
+            self._to_disk(key, maps)
             return
         self.entries[key] = maps
         self.bytes += size
         while self.bytes > self.max_bytes:
-            old_key, old = self.entries.popitem(last=False)
+            # needed again last out (the least recently used among equals: max keeps the first)
+            old_key = next(iter(self.entries)) if self.uses is None else max(self.entries, key=self.next_use)
+            old = self.entries.pop(old_key)
             self.bytes -= _nbytes(old)
-            if self.spill is not None:
-                self.spill.write(old_key, old)
+            self._to_disk(old_key, old)
         self.peak_bytes = max(self.peak_bytes, self.bytes)
+
+    def _to_disk(self, key: str, maps: list[torch.Tensor]) -> None:
+        """Spill key's maps; with a plan, make room by dropping what is needed later than key
+        (it is computed again then), and spill nothing that is not needed again."""
+        if self.spill is None:
+            return
+        if self.uses is not None:
+            need = self.next_use(key)
+            if need == math.inf:
+                return
+            size = _nbytes(maps)
+            while self.spill.bytes + size > self.spill.max_bytes and self.spill.sizes:
+                far = max(self.spill.sizes, key=self.next_use)
+                if self.next_use(far) <= need:
+                    break
+                self.spill.remove(far)
+                self.spill.dropped += 1
+        self.spill.write(key, maps)
 
     def belongs_to(self, key: str, which: int | None) -> None:
         """Record that key holds the maps of file `which` (0 or 1) of the pair being matched."""
         if self.pair_files is None or which is None:
             return
+        self.claim = which
         file = self.pair_files[which]
         self.keys_of.setdefault(file, set()).add(key)
         self.files_of.setdefault(key, set()).add(file)
@@ -231,7 +300,8 @@ class FeatureCache:
                "peak_memory_mb": round(self.peak_bytes / 2**20, 1)}
         if self.spill is not None:
             out.update(read_from_disk=self.spill.reads, written_to_disk=self.spill.writes,
-                       peak_disk_mb=round(self.spill.peak_bytes / 2**20, 1), disk_full=self.spill.refused)
+                       peak_disk_mb=round(self.spill.peak_bytes / 2**20, 1), disk_full=self.spill.refused,
+                       dropped_from_disk=self.spill.dropped)
         return out
 
     def close(self) -> None:
