@@ -122,6 +122,42 @@ def test_a_full_spill_keeps_what_is_needed_sooner(tmp_path):
     assert not spill.folder.exists()
 
 
+def test_products_of_an_images_maps_are_made_once_and_go_first_when_memory_is_short():
+    """derived(): computed once per image while its maps are held, counted in the budget, the
+    first to go when memory is short (the maps stay), and gone with the maps."""
+    cache = FeatureCache(2.5)  # two 1 MiB pyramids, and half a pyramid to spare
+    level0 = pyramid(1)[0]
+    cache.put("a", pyramid(1))
+    calls = []
+
+    def unit():
+        calls.append(1)
+        return torch.nn.functional.normalize(level0, dim=0)
+
+    first = cache.derived("a", "unit:0", unit)
+    assert cache.derived("a", "unit:0", unit) is first and len(calls) == 1 and cache.products_reused == 1
+    assert cache.bytes == 1.5 * MiB  # the pyramid and its 0.5 MiB product
+    cache.put("b", pyramid(2))  # 2.5 MiB: fits with the product
+    assert "a" in cache.products
+    cache.put("c", pyramid(3))  # short: the product goes first, then a pyramid
+    assert not cache.products and len(cache.entries) == 2 and cache.bytes <= cache.max_bytes
+    cache.derived("c", "unit:0", lambda: torch.zeros(MiB // 8))
+    cache.forget("c")
+    assert not cache.products and cache.bytes == MiB
+    # not held in memory: computed each time, kept nowhere
+    assert cache.derived("zz", "unit:0", unit) is not first and len(calls) == 2
+
+
+def test_maps_held_in_bf16_come_back_as_the_float32_maps_without_widening_each_time():
+    gen = torch.Generator().manual_seed(0)
+    maps = [torch.randn(8, 16, 16, generator=gen).to(torch.bfloat16).float() for _ in range(2)]
+    cache = FeatureCache(1.0, compact_dtype=torch.bfloat16)
+    cache.put("k", maps)
+    assert all(m.dtype == torch.bfloat16 for m in cache.entries["k"])
+    got = cache.get("k")
+    assert got is cache.get("k") and all(torch.equal(a, b) and a.dtype == torch.float32 for a, b in zip(got, maps))
+
+
 def test_maps_computed_in_bf16_are_held_in_bf16_exactly_and_others_are_not():
     gen = torch.Generator().manual_seed(0)
     from_bf16 = torch.randn(8, 16, 16, generator=gen).to(torch.bfloat16).float()

@@ -61,7 +61,8 @@ def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_da
     """reproduce's joint stage: e3cm, direct and e3cm-release (one backbone setting) on three
     pairs with four distinct images load the weights once and pass each image through the
     network once between them (4 passes, not 3 x 6), and each method's matches equal those
-    of its own run."""
+    of its own run. The normalised maps e3cm and direct make of an image are made once and
+    shared too (FeatureCache.derived), and change nothing either."""
     import e3cm_bench.backbones as backbones
 
     loads = []
@@ -82,6 +83,7 @@ def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_da
         config = yaml.safe_load((tmp_path / "joint" / method.folder / "config.yaml").read_text())
         assert config["feature_reuse"]["shared_by"] == [m.label for m in methods]
         assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 14
+        assert config["feature_reuse"]["products_reused"] > 0
     for method in [*methods, sift]:
         run_benchmark(hp, tmp_path / "alone" / method.folder, method, dataset=dataset, limit=3, feature_cache_mb=0)
         assert_same_arrays(tmp_path / "joint" / method.folder, tmp_path / "alone" / method.folder)

@@ -34,6 +34,7 @@ class DeepMatcher(Matcher):
         self.name = name
         self.channel_order = channel_order
         self.feature_cache: FeatureCache | None = None
+        self._keys: dict[int, str] = {}  # the cache key of each image of the pair being matched
 
     # Whether match() takes its pyramids from features() (and so from the cache).
     uses_feature_cache = True
@@ -74,12 +75,22 @@ class DeepMatcher(Matcher):
         if self.feature_cache is None:
             return self.backbone(self.network_input(image))
         key = FeatureCache.key(image, self.channel_order)
+        if which is not None:
+            self._keys[which] = key
         self.feature_cache.belongs_to(key, which)
         maps = self.feature_cache.get(key, self.device)
         if maps is None:
             maps = self.backbone(self.network_input(image))
             self.feature_cache.put(key, maps)
         return maps
+
+    def image_product(self, which: int, name: str, compute):
+        """compute(): a product of the maps of image `which` (0 or 1) of the pair whose pyramids
+        were just fetched, kept with them in the feature cache (FeatureCache.derived) so that
+        the image's later pairs reuse it; computed each time without a cache."""
+        if self.feature_cache is None or which not in self._keys:
+            return compute()
+        return self.feature_cache.derived(self._keys[which], name, compute)
 
     def check_memory(self, *images: np.ndarray) -> None:
         """MemoryError, before anything is allocated, when matching these images would need
@@ -98,6 +109,7 @@ class DeepMatcher(Matcher):
         """Both images' pyramids and the seconds the backbone took."""
         self.check_memory(image0, image1)
         t = time.perf_counter()
+        self._keys.clear()
         feats0, feats1 = self.features(image0, 0), self.features(image1, 1)
         return feats0, feats1, time.perf_counter() - t
 

@@ -41,7 +41,7 @@ class E3CMMatcher(DeepMatcher):
         feats0, feats1, t_backbone = self.pyramids(image0, image1)
         size0 = (image0.shape[1], image0.shape[0])
         size1 = (image1.shape[1], image1.shape[0])
-        out = match_pyramids(feats0, feats1, size0, size1, self.settings)
+        out = match_pyramids(feats0, feats1, size0, size1, self.settings, memo=self.image_product)
         info = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}
         info["timings"] = {"backbone": t_backbone, **out["timings"]}
         k0, k1, scores = out["keypoints0"], out["keypoints1"], out["scores"]

@@ -12,7 +12,10 @@ cache that order (`plan`) and, after each pair, which images have no pair left
   when its image comes again, instead of passing it through the network again; when the
   disk bound is reached, the pyramid needed last is the one left to be computed again;
 - maps computed in reduced precision are held in that precision (`compact_dtype`), where
-  that is exact (checked, map by map), and handed back as float32.
+  that is exact (checked, map by map), and handed back as float32;
+- what a matcher computes from one image's maps alone (a level normalised; the float32 copy
+  of maps held in bf16) is kept beside them (`derived`), within the same budget, and is the
+  first thing to go when memory is short: it is made again in a fraction of a pass.
 
 Keyed by the image's content and channel order, and what is handed back is bit for bit what
 the network computed, so the cache changes no result.
@@ -61,7 +64,9 @@ def auto_spill_mb(folder: Path) -> float:
     return float(min(SPILL_CAP_MB, SPILL_SHARE * shutil.disk_usage(folder).free / 2**20))
 
 
-def _nbytes(maps: list[torch.Tensor]) -> int:
+def _nbytes(maps: list[torch.Tensor] | torch.Tensor) -> int:
+    if isinstance(maps, torch.Tensor):
+        maps = [maps]
     return sum(m.numel() * m.element_size() for m in maps)
 
 
@@ -170,6 +175,10 @@ class FeatureCache:
         self.position = -1
         self.claim: int | None = None  # the file of the pair whose maps are asked for (belongs_to)
         self.served: set[tuple[str, int]] = set()  # (key, file of the pair) handed out for this pair
+        # Products of a key's maps (derived), by key and name, and their bytes per key.
+        self.products: dict[str, dict[str, object]] = {}
+        self.product_bytes: dict[str, int] = {}
+        self.products_reused = 0
 
     @staticmethod
     def key(image: np.ndarray, channel_order: str) -> str:
@@ -183,20 +192,63 @@ class FeatureCache:
             self.entries.move_to_end(key)
             self.hits += 1
             self._serve(key)
-            return widen(maps)
+            return self._wide(key, maps)
         if self.spill is not None and key in self.spill:
             maps = self.spill.read(key, device)
             self._serve(key)
             self._hold(key, maps)
             self.hits += 1
-            return widen(maps)
+            return self._wide(key, maps)
         self.misses += 1
         return None
+
+    def _wide(self, key: str, maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """The maps as float32: those held narrow are widened once and the copy kept (derived)."""
+        if all(m.dtype == torch.float32 or not m.is_floating_point() for m in maps):
+            return maps
+        return self.derived(key, "float32", lambda: widen(maps))
+
+    def derived(self, key: str, name: str, compute):
+        """compute(): something made from key's maps alone (e.g. a level normalised), named so
+        that the name says how. Kept beside the maps while they are held in memory, if it fits
+        in the budget once the products of images needed later are dropped (never maps for
+        it); the same object is handed back while it is kept."""
+        held = self.products.get(key)
+        if held is not None and name in held:
+            self.products_reused += 1
+            return held[name]
+        value = compute()
+        if key in self.entries:
+            size = _nbytes(value)
+            need = self.next_use(key) if self.uses is not None else math.inf
+            for other in self._by_distance([k for k in self.products if k != key]):
+                if self.bytes + size <= self.max_bytes or (self.uses is not None and self.next_use(other) <= need):
+                    break
+                self._drop_products(other)
+            if self.bytes + size <= self.max_bytes:
+                self.products.setdefault(key, {})[name] = value
+                self.product_bytes[key] = self.product_bytes.get(key, 0) + size
+                self.bytes += size
+                self.peak_bytes = max(self.peak_bytes, self.bytes)
+        return value
+
+    def _by_distance(self, keys: list[str]) -> list[str]:
+        """Keys, needed again last first (least recently used first without a plan)."""
+        if self.uses is None:
+            return [k for k in self.entries if k in set(keys)]
+        return sorted(keys, key=self.next_use, reverse=True)
+
+    def _drop_products(self, key: str) -> None:
+        self.products.pop(key, None)
+        self.bytes -= self.product_bytes.pop(key, 0)
 
     def put(self, key: str, maps: list[torch.Tensor]) -> None:
         self.seen.add(key)
         self._serve(key)
-        self._hold(key, compact(maps, self.compact_dtype, self.exact_levels))
+        held = compact(maps, self.compact_dtype, self.exact_levels)
+        self._hold(key, held)
+        if held is not maps and any(a is not b for a, b in zip(held, maps)):
+            self.derived(key, "float32", lambda: maps)  # the float32 maps in hand: the widened copy
 
     def _serve(self, key: str) -> None:
         if self.claim is not None:
@@ -241,6 +293,8 @@ class FeatureCache:
             return
         self.entries[key] = maps
         self.bytes += size
+        while self.bytes > self.max_bytes and self.products:  # products go first
+            self._drop_products(self._by_distance(list(self.products))[0])
         while self.bytes > self.max_bytes:
             # needed again last out (the least recently used among equals: max keeps the first)
             old_key = next(iter(self.entries)) if self.uses is None else max(self.entries, key=self.next_use)
@@ -286,6 +340,7 @@ class FeatureCache:
                 self.forget(key)
 
     def forget(self, key: str) -> None:
+        self._drop_products(key)
         maps = self.entries.pop(key, None)
         if maps is not None:
             self.bytes -= _nbytes(maps)
@@ -297,7 +352,7 @@ class FeatureCache:
         distinct = len(self.seen)
         out = {"distinct_images": distinct, "backbone_passes": self.misses, "reused": self.hits,
                "passes_per_image": round(self.misses / distinct, 4) if distinct else 0.0,
-               "peak_memory_mb": round(self.peak_bytes / 2**20, 1)}
+               "peak_memory_mb": round(self.peak_bytes / 2**20, 1), "products_reused": self.products_reused}
         if self.spill is not None:
             out.update(read_from_disk=self.spill.reads, written_to_disk=self.spill.writes,
                        peak_disk_mb=round(self.spill.peak_bytes / 2**20, 1), disk_full=self.spill.refused,
@@ -307,6 +362,8 @@ class FeatureCache:
     def close(self) -> None:
         """Drop every pyramid held (memory and disk)."""
         self.entries.clear()
+        self.products.clear()
+        self.product_bytes.clear()
         self.bytes = 0
         if self.spill is not None:
             self.spill.close()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -144,10 +145,14 @@ def match_pyramids(
     size0: tuple[int, int],
     size1: tuple[int, int],
     settings: E3CMSettings,
+    memo: Callable[[int, str, Callable[[], torch.Tensor]], torch.Tensor] | None = None,
 ) -> dict:
     """Match two feature pyramids (level l: C_l x H_l x W_l, stride 2^l in original pixels).
 
     size0/size1: (width, height) of the original images (the maps may cover padding).
+    memo(side, name, compute): how a product of one image's maps alone is obtained (side 0 or
+    1; the name says what it is); the default computes it. A matcher whose images recur over
+    a run's pairs passes one that keeps them (DeepMatcher.image_product).
     Returns keypoints0/1 (N x 2 float, original pixels), scores (cosine similarity at
     level 0), and diagnostics: per-level counts before/after rejection, the F of each
     level, whether rejection ran, and stage times in seconds.
@@ -167,16 +172,22 @@ def match_pyramids(
     # and gathering from the channel-first map costs more than the copy; docs/speed.md.)
     # The levels between are read only at children of matches: refine_to_children normalises
     # those as it reads them.
+    if memo is None:
+        def memo(side, name, compute):
+            return compute()
+
     t = time.perf_counter()
     unit0 = unit1 = None
     if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
-        unit0, unit1 = unit_pixel_major(feats0[0]), unit_pixel_major(feats1[0])
+        unit0 = memo(0, "unit_pixel_major:0", lambda: unit_pixel_major(feats0[0]))
+        unit1 = memo(1, "unit_pixel_major:0", lambda: unit_pixel_major(feats1[0]))
+    top0 = memo(0, f"normalize:{top}", lambda: F.normalize(feats0[top], dim=0))
+    top1 = memo(1, f"normalize:{top}", lambda: F.normalize(feats1[top], dim=0))
     timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()
     cells0, cells1, dist = match_dense_level(
-        F.normalize(feats0[top], dim=0), F.normalize(feats1[top], dim=0), *extents(top), settings.ratio[top],
-        settings.drop_border, settings.dense_chunk,
+        top0, top1, *extents(top), settings.ratio[top], settings.drop_border, settings.dense_chunk,
     )
     timings["initial"] = time.perf_counter() - t
 
