@@ -217,3 +217,27 @@ def test_ncc_refine_settings_are_validated():
                 {"refine": "ncc", "refine_window": 8}):
         with pytest.raises(ValueError, match="refine"):
             E3CMSettings(**bad)
+
+
+def test_e3cm_plus_takes_the_refine_setting_and_it_only_moves_or_drops_its_matches(shared_data):
+    """e3cm-plus's refine (none by default) is e3cm's: validated the same way, applied to its
+    final matches in the original images: with lk the kept matches are a subset of those
+    without, A's points unmoved, B's moved at most the bound."""
+    from e3cm_bench import build_matcher, match_pair
+    from e3cm_bench.matchers.e3cm_plus import E3CMPlusSettings
+
+    assert E3CMPlusSettings().refine == "none" and E3CMPlusSettings(refine="ncc").refine == "ncc"
+    for bad in ({"refine": "cubic"}, {"refine_window": 8}):
+        with pytest.raises(ValueError, match="refine"):
+            E3CMPlusSettings(**bad)
+    root = shared_data / "hpatches-sequences-release" / "v_boat"
+    a, b = load_image(root / "1.ppm"), load_image(root / "2.ppm")
+    plain = match_pair(build_matcher("e3cm-plus", backbone="efficientnet_lite0"), a, b, max_side=480)
+    refined = match_pair(build_matcher("e3cm-plus", backbone="efficientnet_lite0", settings={"refine": "lk-strict"}),
+                         a, b, max_side=480)
+    assert 0 < len(refined.keypoints0) < len(plain.keypoints0)
+    index = {tuple(p): i for i, p in enumerate(np.round(plain.keypoints0, 3))}
+    rows = [index[tuple(p)] for p in np.round(refined.keypoints0, 3)]
+    moved = np.abs(refined.keypoints1 - plain.keypoints1[rows]).max()
+    assert 0 < moved <= 1.5 * max(b.shape[:2]) / 480 + 1e-3  # max_move (1.5 px) of the matched image, in original pixels
+    assert "refine" in refined.info["timings"]

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..backbones import Backbone
 from ..matching.pipeline import E3CMSettings, match_pyramids
-from ..matching.subpixel import refine_lk, refine_ncc
+from ..matching.subpixel import refine_matches
 from .base import Matches
 from .deep import DeepMatcher
 
@@ -47,9 +47,7 @@ class E3CMMatcher(DeepMatcher):
         k0, k1, scores = out["keypoints0"], out["keypoints1"], out["scores"]
         if self.settings.refine != "none":
             t = time.perf_counter()
-            mode = self.settings.refine  # lk, lk-strict, ncc, ncc-strict (validated by the settings)
-            refine = refine_ncc if mode.startswith("ncc") else refine_lk
-            k1, keep = refine(image0, image1, k0, k1, window=self.settings.refine_window, drop=mode.endswith("-strict"))
+            k1, keep = refine_matches(image0, image1, k0, k1, self.settings.refine, self.settings.refine_window)
             k0, k1, scores = k0[keep], k1[keep], scores[keep]
             info["timings"]["refine"] = time.perf_counter() - t
         return Matches(k0, k1, scores, info)

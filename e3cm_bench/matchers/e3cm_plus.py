@@ -33,6 +33,7 @@ from ..geometry import estimate_homography, local_distortion
 from ..matching import ESTIMATORS
 from ..matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography
 from ..matching.pipeline import E3CMSettings
+from ..matching.subpixel import refine_matches
 from .base import Matches
 from .deep import DeepMatcher
 
@@ -82,7 +83,8 @@ def prewarp_decision(feats0: list, feats1: list, size0: tuple[int, int], size1: 
 @dataclass
 class E3CMPlusSettings:
     """prewarp (true, false, auto), realign, estimator (one of the cascade's, or auto),
-    subpixel: the changes (module docstring). ratio: per level 0..4. sampson_px: rejection
+    subpixel: the changes (module docstring). refine, refine_window: sub-pixel refinement of
+    the final matches on the images, as e3cm's (E3CMSettings; none by default). ratio: per level 0..4. sampson_px: rejection
     thresholds of levels 0..3 (None: the estimator's default). max_per_parent: children kept
     per refined match. min_inliers: fewest stage-0 RANSAC inliers for its homography."""
 
@@ -94,6 +96,8 @@ class E3CMPlusSettings:
     sampson_px: tuple[float, ...] | None = None
     max_per_parent: int = 2
     min_inliers: int = MIN_INLIERS
+    refine: str = "none"
+    refine_window: int = 9
 
     def __post_init__(self) -> None:
         if self.prewarp not in (True, False, "auto"):
@@ -110,6 +114,7 @@ class E3CMPlusSettings:
             for kind in ("warped", "direct")
         }
         self.ratio = self.pipelines["direct"].ratio
+        E3CMSettings(refine=self.refine, refine_window=self.refine_window)  # validates them
         self.stage0 = DFMSettings(ratio=self.ratio, min_inliers=self.min_inliers)
 
     def to_dict(self, deepest_stride: int) -> dict:
@@ -152,6 +157,11 @@ class E3CMPlusMatcher(DeepMatcher):
         steps = out.pop("timings")
         timings["backbone"] += steps.pop("backbone_warped")
         timings.update(steps)
+        if s.refine != "none":  # on the final matches, in the original images
+            t = time.perf_counter()
+            k1, keep = refine_matches(image0, image1, out["keypoints0"], out["keypoints1"], s.refine, s.refine_window)
+            out.update(keypoints0=out["keypoints0"][keep], keypoints1=k1[keep], scores=out["scores"][keep])
+            timings["refine"] = time.perf_counter() - t
         info.update({k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")},
                     estimator=pipeline.estimator, timings=timings)
         return Matches(out["keypoints0"], out["keypoints1"], out["scores"], info)

@@ -183,3 +183,15 @@ def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1:
     if drop:
         keep = consistent
     return refined.astype(np.float32), keep
+
+
+def refine_matches(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, mode: str,
+                   window: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """(B's points, kept mask) after refinement `mode` (REFINE_MODES; "none" moves nothing):
+    the setting of the cascade matchers, one place for e3cm and e3cm-plus."""
+    if mode == "none":
+        return kpts1, np.ones(len(kpts1), bool)
+    if mode not in REFINE_MODES:
+        raise ValueError(f"refine must be one of {', '.join(REFINE_MODES)}, got {mode!r}")
+    refine = refine_ncc if mode.startswith("ncc") else refine_lk
+    return refine(image0, image1, kpts0, kpts1, window=window, drop=mode.endswith("-strict"))
