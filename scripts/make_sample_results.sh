@@ -24,6 +24,7 @@ for table in table1_hpatches table2_kitti table3_scannet; do
   mkdir -p "$dest"
   cp runs/sample/$table/table.csv runs/sample/$table/table.md runs/sample/$table/table_*.png "$dest/"
   for run in runs/sample/$table/*/; do
+    [ -f "$run/summary.csv" ] || continue  # a run folder (not report/)
     name="$(basename "$run")"
     mkdir -p "$dest/$name"
     cp "$run/summary.csv" "$run/config.yaml" "$run/per_pair.csv" "$dest/$name/"
