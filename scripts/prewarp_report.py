@@ -48,7 +48,9 @@ def main() -> None:
         raise SystemExit(f"{args.run_plus}: an e3cm-plus run is needed, this one is {identity['matcher']}")
     benchmark = get_benchmark(config["benchmark"])
     load = config.get("dataset_load") or {}
-    dataset = benchmark.load_dataset(load.get("root", config["dataset"].get("root")), skip_bad=True, **(load.get("options") or {}))
+    # a run given its pairs as a list (the demo) records no dataset_load: its pair file then
+    options = load.get("options") or ({"pairs": config["dataset"]["pairs"]} if config["dataset"].get("pairs") else {})
+    dataset = benchmark.load_dataset(load.get("root", config["dataset"].get("root")), skip_bad=True, **options)
     error = "h_error" if "h_error" in plus.columns else "err_pose"
     rows = []
     for pair in dataset:
