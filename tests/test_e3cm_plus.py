@@ -70,12 +70,16 @@ def test_auto_prewarp_warps_rotations_and_zooms_not_near_similarities():
 
     size = (640, 480)
     assert prewarp_refusal(np.eye(3), size) is not None
-    c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
-    turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    assert prewarp_refusal(turn, size) is None
+    def turn(degrees):
+        c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+    assert prewarp_refusal(turn(20), size) is None
+    assert prewarp_refusal(turn(10), size) is not None  # the demo's turns: the unwarped cascade copes
     assert prewarp_refusal(np.diag([1.6, 1.6, 1.0]), size) is None  # zoom
+    assert prewarp_refusal(np.diag([1.3, 1.3, 1.0]), size) is not None  # the demo scene's 1.26
     assert prewarp_refusal(np.diag([1.1, 0.95, 1.0]), size) is not None  # KITTI-like
-    assert prewarp_refusal(np.diag([1.2, 0.9, 1.0]), size) is None  # stretch 1.33
+    assert prewarp_refusal(np.diag([1.3, 0.8, 1.0]), size) is None  # stretch 1.63
 
 
 @pytest.fixture(scope="module")
