@@ -59,10 +59,10 @@ def native_bf16(device: str) -> bool:
         return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
     if kind != "cpu":
         return False
-    from .files import cpu_info
+    from .files import BF16_FLAGS, cpu_info
 
     flags = cpu_info()[1] or set()
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+    return any(flag in flags for flag in BF16_FLAGS)
 
 
 def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:

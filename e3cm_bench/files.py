@@ -27,7 +27,9 @@ PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headle
 # Environment variables that choose the CPU kernels (oneDNN's convolutions, ATen's vectorised ops),
 # and the CPU flags that decide which kernels the defaults pick.
 ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
-CPU_FLAGS = ("avx512_bf16", "avx512f", "avx2")
+CPU_FLAGS = ("avx512_bf16", "amx_bf16", "avx512f", "avx2")
+# The flags of those with which a CPU computes bf16 natively (oneDNN's bf16 kernels need one).
+BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 CSV_FLOAT_FORMAT = "%.8g"
 
 
@@ -64,7 +66,7 @@ def cpu_isa() -> str:
     """The CPU's instruction sets that decide its speed here, as "avx512_bf16+avx512f+avx2"
     ("unknown" where /proc/cpuinfo is absent): what the speed tables print beside each figure."""
     _, flags = cpu_info()
-    return "+".join(f for f in ("avx512_bf16", "amx_bf16", "avx512f", "avx2") if f in (flags or ())) or "unknown"
+    return "+".join(f for f in CPU_FLAGS if f in (flags or ())) or "unknown"
 
 
 def run_environment() -> dict:
@@ -73,7 +75,7 @@ def run_environment() -> dict:
     torch's version string with its build tag, the CPU capability torch dispatches to
     (``torch.backends.cpu.get_cpu_capability()``: AVX512, AVX2, DEFAULT ...), the environment
     variables that change it (recorded only when set), torch's thread count, the CPU model and
-    whether it has the avx512_bf16 / avx512f / avx2 flags (null where /proc/cpuinfo is absent).
+    whether it has each of CPU_FLAGS (null where /proc/cpuinfo is absent).
     oneDNN picks other convolution kernels on other instruction sets, and those round differently.
     """
     import torch  # lazily: files.py is imported by commands that never need torch

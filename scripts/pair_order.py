@@ -68,8 +68,9 @@ class _CountedSpill(SpillStore):
         self.writes += 1
         return True
 
-    def read(self, key, device):
-        self.remove(key)
+    def read(self, key, device, keep=False):
+        if not keep:
+            self.remove(key)
         self.reads += 1
         return [_Sized()]
 

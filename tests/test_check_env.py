@@ -83,7 +83,7 @@ def test_run_environment_names_what_numbers_depend_on(monkeypatch):
     assert environment["ONEDNN_MAX_CPU_ISA"] == "AVX2" and "ATEN_CPU_CAPABILITY" not in environment
     assert environment["cpu_model"]
     if Path("/proc/cpuinfo").is_file():
-        assert set(environment["cpu_flags"]) == {"avx512_bf16", "avx512f", "avx2"}
+        assert set(environment["cpu_flags"]) == {"avx512_bf16", "amx_bf16", "avx512f", "avx2"}
     yaml.safe_load(yaml.safe_dump(environment))  # plain YAML values
 
 

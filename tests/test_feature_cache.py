@@ -167,7 +167,10 @@ def test_maps_computed_in_bf16_are_held_in_bf16_exactly_and_others_are_not():
     assert held[0].dtype == torch.bfloat16 and held[1].dtype == torch.float32 and exact == {0: True, 1: False}
     cache = FeatureCache(1.0, compact_dtype=torch.bfloat16)
     cache.put("k", [from_bf16, full])
-    assert cache.bytes == from_bf16.numel() * 2 + full.numel() * 4
+    # held: the narrow level in 2 bytes, the other as it is; beside them (a product, the first
+    # to go when memory is short) the float32 level in hand, so that it is not widened again
+    assert sum(m.numel() * m.element_size() for m in cache.entries["k"]) == from_bf16.numel() * 2 + full.numel() * 4
+    assert cache.bytes == from_bf16.numel() * 2 + full.numel() * 4 + from_bf16.numel() * 4
     back = cache.get("k")
     assert back[0].dtype == torch.float32 and torch.equal(back[0], from_bf16) and torch.equal(back[1], full)
 
@@ -190,6 +193,8 @@ def test_spilling_to_disk_passes_each_image_once_and_changes_no_match(shared_dat
     reuse = yaml.safe_load((tmp_path / "spill" / "config.yaml").read_text())["feature_reuse"]
     assert reuse["backbone_passes"] == 6 == reuse["distinct_images"] and reuse["passes_per_image"] == 1.0
     assert reuse["read_from_disk"] == 4 and reuse["peak_memory_mb"] == 0 and reuse["images_alive_at_most"] == 2
+    # written once and read in place (memory cannot hold it); the others have no pair left to wait for
+    assert reuse["written_to_disk"] == 1
     assert not (tmp_path / "spill" / SPILL_FOLDER).exists()
     run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, feature_cache_mb=0)
     assert_same_arrays(tmp_path / "spill", tmp_path / "plain")

@@ -129,11 +129,12 @@ class SpillStore:
         self.writes += 1
         return True
 
-    def read(self, key: str, device: torch.device | str) -> list[torch.Tensor]:
-        """The maps written under key (the file is removed: they go back to memory)."""
+    def read(self, key: str, device: torch.device | str, keep: bool = False) -> list[torch.Tensor]:
+        """The maps written under key; the file is removed (they go back to memory) unless keep."""
         path = self._path(key)
         maps = torch.load(path, map_location=device, weights_only=True)
-        self.remove(key)
+        if not keep:
+            self.remove(key)
         self.reads += 1
         return maps
 
@@ -194,9 +195,11 @@ class FeatureCache:
             self._serve(key)
             return self._wide(key, maps)
         if self.spill is not None and key in self.spill:
-            maps = self.spill.read(key, device)
+            stays = self.spill.sizes[key] > self.max_bytes  # memory cannot hold it: read, not moved
+            maps = self.spill.read(key, device, keep=stays)
             self._serve(key)
-            self._hold(key, maps)
+            if not stays:
+                self._hold(key, maps)
             self.hits += 1
             return self._wide(key, maps)
         self.misses += 1
@@ -219,7 +222,10 @@ class FeatureCache:
             return held[name]
         value = compute()
         if key in self.entries:
-            size = _nbytes(value)
+            # what the product shares with the maps held (the same tensor) costs nothing more
+            held_now = self.entries[key]
+            parts = value if isinstance(value, list) else [value]
+            size = _nbytes([t for t in parts if not any(t is m for m in held_now)])
             need = self.next_use(key) if self.uses is not None else math.inf
             for other in self._by_distance([k for k in self.products if k != key]):
                 if self.bytes + size <= self.max_bytes or (self.uses is not None and self.next_use(other) <= need):
