@@ -9,7 +9,6 @@ resumes at the first pair missing from the cache.
 
 from __future__ import annotations
 
-
 import shutil
 import time
 from contextlib import ExitStack
@@ -34,8 +33,8 @@ from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
 from .matches import Matches, MatchesError, check_in_image
-from .pair_order import most_alive, reuse_order
 from .method import MethodSpec, identity_changes
+from .pair_order import most_alive, reuse_order
 from .report import print_summary
 from .shards import merge_when_complete, shard_dir, shard_slice
 # What match_pair adds to a result's info and the cache keeps next to each pair's matches.
@@ -529,7 +528,7 @@ class _OpenRun:
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before, reuse = config.get("feature_reuse") or {}, dict(reuse)
             for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full",
-                        "dropped_from_disk"):
+                        "dropped_from_disk", "products_reused"):
                 if key in reuse:  # counts of a resumed run add up over its stages
                     reuse[key] += before.get(key, 0)
             for key in ("images_alive_at_most", "peak_memory_mb", "peak_disk_mb"):

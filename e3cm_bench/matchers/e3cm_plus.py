@@ -33,7 +33,7 @@ from ..geometry import estimate_homography, local_distortion
 from ..matching import ESTIMATORS
 from ..matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography
 from ..matching.pipeline import E3CMSettings
-from ..matching.subpixel import refine_matches
+from ..matching.subpixel import check_refine, refine_matches
 from .base import Matches
 from .deep import DeepMatcher
 
@@ -87,9 +87,10 @@ def prewarp_decision(feats0: list, feats1: list, size0: tuple[int, int], size1: 
 class E3CMPlusSettings:
     """prewarp (true, false, auto), realign, estimator (one of the cascade's, or auto),
     subpixel: the changes (module docstring). refine, refine_window: sub-pixel refinement of
-    the final matches on the images, as e3cm's (E3CMSettings; none by default). ratio: per level 0..4. sampson_px: rejection
-    thresholds of levels 0..3 (None: the estimator's default). max_per_parent: children kept
-    per refined match. min_inliers: fewest stage-0 RANSAC inliers for its homography."""
+    the final matches on the images, as e3cm's (E3CMSettings; none by default). ratio: per
+    level 0..4. sampson_px: rejection thresholds of levels 0..3 (None: the estimator's
+    default). max_per_parent: children kept per refined match. min_inliers: fewest stage-0
+    RANSAC inliers for its homography."""
 
     prewarp: bool | str = "auto"
     realign: bool = True
@@ -117,7 +118,7 @@ class E3CMPlusSettings:
             for kind in ("warped", "direct")
         }
         self.ratio = self.pipelines["direct"].ratio
-        E3CMSettings(refine=self.refine, refine_window=self.refine_window)  # validates them
+        check_refine(self.refine, self.refine_window)
         self.stage0 = DFMSettings(ratio=self.ratio, min_inliers=self.min_inliers)
 
     def to_dict(self, deepest_stride: int) -> dict:

@@ -241,7 +241,8 @@ class FeatureCache:
     def _by_distance(self, keys: list[str]) -> list[str]:
         """Keys, needed again last first (least recently used first without a plan)."""
         if self.uses is None:
-            return [k for k in self.entries if k in set(keys)]
+            wanted = set(keys)
+            return [k for k in self.entries if k in wanted]
         return sorted(keys, key=self.next_use, reverse=True)
 
     def _drop_products(self, key: str) -> None:

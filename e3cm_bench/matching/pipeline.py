@@ -80,12 +80,9 @@ class E3CMSettings:
     def __post_init__(self) -> None:
         if self.ratio_at not in ("matched", "own"):
             raise ValueError(f"ratio_at must be 'matched' or 'own', got {self.ratio_at!r}")
-        from .subpixel import REFINE_MODES
+        from .subpixel import check_refine
 
-        if self.refine not in REFINE_MODES:
-            raise ValueError(f"refine must be one of {', '.join(REFINE_MODES)}, got {self.refine!r}")
-        if not (isinstance(self.refine_window, int) and 3 <= self.refine_window <= 31 and self.refine_window % 2):
-            raise ValueError(f"refine_window must be an odd number of pixels from 3 to 31, got {self.refine_window!r}")
+        check_refine(self.refine, self.refine_window)
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose one of {', '.join(ESTIMATORS)}")
         self.ratio = tuple(float(r) for r in self.ratio)

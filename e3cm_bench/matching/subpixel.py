@@ -33,6 +33,15 @@ import numpy as np
 REFINE_MODES = ("none", "lk", "lk-strict", "ncc", "ncc-strict")
 
 
+def check_refine(mode: str, window: int) -> None:
+    """ValueError naming the setting unless `mode` is one of REFINE_MODES and `window` an odd
+    number of pixels from 3 to 31 (the refine / refine_window settings of e3cm and e3cm-plus)."""
+    if mode not in REFINE_MODES:
+        raise ValueError(f"refine must be one of {', '.join(REFINE_MODES)}, got {mode!r}")
+    if not (isinstance(window, int) and 3 <= window <= 31 and window % 2):
+        raise ValueError(f"refine_window must be an odd number of pixels from 3 to 31, got {window!r}")
+
+
 def _grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
 
@@ -189,9 +198,8 @@ def refine_matches(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kp
                    window: int = 9) -> tuple[np.ndarray, np.ndarray]:
     """(B's points, kept mask) after refinement `mode` (REFINE_MODES; "none" moves nothing):
     the setting of the cascade matchers, one place for e3cm and e3cm-plus."""
+    check_refine(mode, window)
     if mode == "none":
         return kpts1, np.ones(len(kpts1), bool)
-    if mode not in REFINE_MODES:
-        raise ValueError(f"refine must be one of {', '.join(REFINE_MODES)}, got {mode!r}")
     refine = refine_ncc if mode.startswith("ncc") else refine_lk
     return refine(image0, image1, kpts0, kpts1, window=window, drop=mode.endswith("-strict"))
