@@ -257,9 +257,22 @@ class Backbone(nn.Module):
         return self.pyramid(image)[0]
 
     @torch.inference_mode()
+    def forward_batch(self, images: torch.Tensor) -> list[list[torch.Tensor]]:
+        """B x 3 x H x W -> each image's L maps, in one pass: those of `forward` image by image
+        to rounding, and often bit for bit (the kernel library picks its algorithm by shape,
+        batch size included; tests/test_backbones.py)."""
+        return self._pyramids(images, None)[0]
+
+    @torch.inference_mode()
     def pyramid(self, image: torch.Tensor, stage1_tap: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
         """The L maps, and with stage1_tap the map DFM's stage 1 starts from (None where the
         backbone has no such tap or fewer than 5 levels are used)."""
+        tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
+        maps, extra = self._pyramids(image[:1], tap)
+        return maps[0], None if extra is None else extra[0]
+
+    def _pyramids(self, image: torch.Tensor, tap: int | None) -> tuple[list[list[torch.Tensor]], list[torch.Tensor] | None]:
+        """Each image's L maps, and each one's map at module `tap` of the last stage (None: none)."""
         h, w = image.shape[-2:]
         s = self.deepest_stride
         x = (image - self.mean) / self.std
@@ -267,7 +280,6 @@ class Backbone(nn.Module):
         x = F.pad(x, (0, (-w) % s, 0, (-h) % s))
         if self.upsample > 1:
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
-        tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
         # Reduced precision runs the convolutions under autocast in channels_last, their fast
         # layout on CPU and tensor cores; the maps come out float32. fp32 runs in the layout
         # the spec names (memory_format): NCHW for VGG19, which reproduces the reference
@@ -283,16 +295,16 @@ class Backbone(nn.Module):
                     for j, module in enumerate(stage):
                         x = module(x)
                         if j == tap:
-                            extra = _map(x)
+                            extra = _maps(x)
                 else:
                     x = stage(x)
-                features.append(_map(x))
-        return features, extra
+                features.append(_maps(x))
+        return [list(maps) for maps in zip(*features)], extra
 
 
-def _map(x: torch.Tensor) -> torch.Tensor:
-    """A stage output as the C x H x W float32 map the matching steps index (C-contiguous)."""
-    return x[0].float().contiguous()
+def _maps(x: torch.Tensor) -> list[torch.Tensor]:
+    """A stage output as each image's C x H x W float32 map the matching steps index (C-contiguous)."""
+    return [x[i].float().contiguous() for i in range(len(x))]
 
 
 def _no_inplace(module: nn.Module) -> None:

@@ -58,6 +58,7 @@ LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs), fp16 (GPUs), or auto: bf16 where the device computes it natively, else fp32 (fp16 on a GPU without bf16).")]
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
+BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", show_default="8 on a GPU, 1 on a CPU", help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the feature cache lacks go through the network with it (for GPUs; needs the cache).")]
 FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
 ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
 
@@ -231,13 +232,14 @@ def _eval_settings(benchmark: str, protocol: str, seed: int, ransac_px: float | 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
          scale: tuple, protocol: str = "default", feature_cache_mb: float | None = FEATURE_CACHE_MB,
-         pose_estimator: str | None = None) -> None:
+         pose_estimator: str | None = None, backbone_batch: int | None = None) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     console.print(preset.line(), markup=False)
     ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
-               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz, feature_cache_mb=feature_cache_mb)
+               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz, feature_cache_mb=feature_cache_mb,
+               backbone_batch=backbone_batch)
     several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
                                             ("--launcher slurm", launcher == "slurm")) if given]
     if len(several) > 1:
@@ -285,6 +287,7 @@ def hpatches(
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
+    backbone_batch: BackboneBatchOpt = None,
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
@@ -295,7 +298,7 @@ def hpatches(
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("hpatches", method, find_root("hpatches", root), out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
 
 
 @app.command()
@@ -307,6 +310,7 @@ def megadepth(
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
+    backbone_batch: BackboneBatchOpt = None,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info; a ROOT in glue-factory's megadepth1500 layout needs none).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -316,7 +320,7 @@ def megadepth(
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("megadepth", method, find_root("megadepth", root), out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
 
 
 @app.command()
@@ -328,6 +332,7 @@ def yfcc(
     estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
     settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
+    backbone_batch: BackboneBatchOpt = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
     shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
@@ -337,7 +342,7 @@ def yfcc(
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("yfcc", method, find_root("yfcc", root), out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
 
 
 @app.command()

@@ -62,9 +62,8 @@ def match_pair(
     """
     image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
     image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
-    upright0, upright1 = np.rot90(image0, rotations[0]), np.rot90(image1, rotations[1])
-    small0, scale0 = resize_max_side(np.ascontiguousarray(upright0), max_side, resize)
-    small1, scale1 = resize_max_side(np.ascontiguousarray(upright1), max_side, resize)
+    small0, scale0 = matcher_input(image0, rotations[0], max_side, resize)
+    small1, scale1 = matcher_input(image1, rotations[1], max_side, resize)
     cv2.setRNGSeed(int(seed))
     t = time.perf_counter()
     m = checked_match(matcher, small0, small1)
@@ -81,6 +80,12 @@ def match_pair(
     keypoints0 = unrotate_points(to_original_pixels(m.keypoints0, scale0), rotations[0], info["size0"])
     keypoints1 = unrotate_points(to_original_pixels(m.keypoints1, scale1), rotations[1], info["size1"])
     return Matches(keypoints0, keypoints1, m.scores, info)
+
+
+def matcher_input(image: np.ndarray, quarter_turns: int, max_side: int | None, resize: str) -> tuple[np.ndarray, float]:
+    """An image as match_pair hands it to the matcher (upright, resized by its longer side),
+    and the scale of that resize."""
+    return resize_max_side(np.ascontiguousarray(np.rot90(image, quarter_turns)), max_side, resize)
 
 
 class MatcherError(ValueError):
@@ -149,18 +154,46 @@ def match_cached_pair(
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
 
 
-def decoded_ahead(pairs: list[Pair], executor: ThreadPoolExecutor):
-    """(pair, future of its two decoded images), the next pair's decoding running in a thread
-    while the current pair is matched (OpenCV decodes with the GIL released). A decoding
-    error is raised by the future's result(), at its own pair."""
+def decoded_ahead(pairs: list[Pair], executor: ThreadPoolExecutor, ahead: int = 1):
+    """(pair, future of its two decoded images, [(pair, future)] of the next `ahead` pairs):
+    the next pairs' decoding runs in a thread while the current pair is matched (OpenCV
+    decodes with the GIL released). A decoding error is raised by the future's result(), at
+    its own pair."""
     def read(pair: Pair) -> tuple[np.ndarray, np.ndarray]:
         return load_image(pair.image0), load_image(pair.image1)
 
-    upcoming = executor.submit(read, pairs[0]) if pairs else None
+    futures = {}
     for i, pair in enumerate(pairs):
-        current = upcoming
-        upcoming = executor.submit(read, pairs[i + 1]) if i + 1 < len(pairs) else None
-        yield pair, current
+        for j in range(i, min(i + 1 + ahead, len(pairs))):
+            if j not in futures:
+                futures[j] = executor.submit(read, pairs[j])
+        yield pair, futures.pop(i), [(pairs[j], futures[j]) for j in range(i + 1, min(i + 1 + ahead, len(pairs)))]
+
+
+def batch_ahead(job: MatchJob, matcher, batch: int, current: tuple[Pair, object], coming: list[tuple[Pair, object]],
+                wanted: dict[str, list[int]], index: int) -> list[int]:
+    """When an image of the current pair is not in the feature cache: pass it through the
+    backbone together with the images of the coming pairs that the cache lacks, `batch` at a
+    time (DeepMatcher.prefetch), as job's method will hand them to the matcher. A pair whose
+    images cannot be decoded is left out here (its error comes at its own pair). Returns the
+    size of each batch run."""
+    if index not in wanted[current[0].name]:
+        return []
+    items = []
+    for pair, images in [current, *coming]:
+        if index not in wanted[pair.name]:
+            continue
+        try:
+            decoded = images.result()
+        except ImageError:
+            continue
+        for file, image, turns in zip((pair.image0, pair.image1), decoded, pair_rotations(pair, job.method)):
+            items.append((str(file), matcher_input(image, turns, job.method.max_side, job.method.resize)[0]))
+        if pair is current[0]:
+            cache = matcher.feature_cache
+            if all(cache.holds(cache.key(image, matcher.channel_order)) for _, image in items):
+                return []
+    return matcher.prefetch(items, batch)
 
 
 # --------------------------------------------------------------------------- progress
@@ -216,17 +249,17 @@ class MatchJob:
 def match_stage(
     method: MethodSpec, todo: list[Pair], cache: MatchCache, device: str, console: Console, on_matcher=None,
     skipped: list[tuple[str, str]] | None = None, feature_cache_mb: float | None = FEATURE_CACHE_MB,
-    spill_mb: float | None = None,
+    spill_mb: float | None = None, backbone_batch: int | None = None,
 ) -> dict:
     """Build the matcher, match the pairs not yet cached, write each to the cache; returns the
-    job's stats (see MatchJob). feature_cache_mb, spill_mb: see match_jobs."""
+    job's stats (see MatchJob). feature_cache_mb, spill_mb, backbone_batch: see match_jobs."""
     job = MatchJob(method, todo, cache, skipped, on_matcher)
-    match_jobs([job], device, console, feature_cache_mb, spill_mb)
+    match_jobs([job], device, console, feature_cache_mb, spill_mb, backbone_batch)
     return job.stats
 
 
 def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cache_mb: float | None = FEATURE_CACHE_MB,
-               spill_mb: float | None = None) -> None:
+               spill_mb: float | None = None, backbone_batch: int | None = None) -> None:
     """Match the pairs of several methods in one pass over the pairs.
 
     Each pair's images are decoded once for all methods, and deep matchers with the same
@@ -238,11 +271,17 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
     (0: no reuse; None: half the memory available now, at most 16 GiB). spill_mb: disk for
     the pyramids memory cannot hold, in the first job's run folder (0: none; None: half the
     free disk space there, at most 64 GiB). The pairs are matched in `reuse_order`; an
-    image's maps are dropped once its last pair is matched.
+    image's maps are dropped once its last pair is matched. backbone_batch: images passed
+    through a shared backbone together when the current pair needs a pass, with the coming
+    pairs' images the cache lacks (batch_ahead; None: 8 on a GPU, 1 on a CPU; needs the cache).
     """
+    from .matchers.deep import auto_backbone_batch
     from .matchers.feature_cache import SpillStore, auto_cache_mb, auto_spill_mb  # torch: loaded when matching
 
     budget = auto_cache_mb(device) if feature_cache_mb is None else float(feature_cache_mb)
+    batch = auto_backbone_batch(device) if backbone_batch is None else int(backbone_batch)
+    if batch < 1:
+        raise ValueError(f"--backbone-batch must be at least 1, got {batch}")
     spill_root = jobs[0].cache.path.parent / SPILL_FOLDER if jobs else None
     if spill_root is not None:
         shutil.rmtree(spill_root, ignore_errors=True)  # what an interrupted stage left
@@ -254,7 +293,8 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
             identity = matcher.feature_identity()
             if identity not in groups:
                 spill = SpillStore(spill_root / str(len(groups)), disk) if disk > 0 else None
-                groups[identity] = {"matcher": matcher, "labels": [], "spill": spill}
+                groups[identity] = {"matcher": matcher, "labels": [], "spill": spill, "lead": len(matchers),
+                                    "batches": []}
             group = groups[identity]
             matcher.share_features_of(group["matcher"], budget, group["spill"])
             group["labels"].append(job.method.label)
@@ -280,10 +320,15 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
             last_use = {file: k for k, files in enumerate(files_in_order) for file in files}
             for feature_cache in feature_caches:
                 feature_cache.plan(files_in_order)
-            for k, (pair, images) in enumerate(decoded_ahead(order, executor)):
+            for k, (pair, images, coming) in enumerate(decoded_ahead(order, executor, ahead=max(1, batch))):
                 files = files_in_order[k]
                 for feature_cache in feature_caches:
                     feature_cache.at(k, files)
+                if batch > 1:
+                    for group in groups.values():
+                        lead = group["lead"]
+                        group["batches"] += batch_ahead(jobs[lead], matchers[lead], batch, (pair, images), coming,
+                                                        wanted, lead)
                 for i in wanted[pair.name]:
                     _match_one(jobs[i], matchers[i], pair, images)
                     progress.advance(task)
@@ -299,7 +344,8 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
     for group in groups.values():
         reuse = group["matcher"].feature_cache
         stats = {"cache_mb": round(budget), "spill_mb": round(disk), "images_alive_at_most": alive, **reuse.stats(),
-                 "shared_by": group["labels"]}
+                 "shared_by": group["labels"], "backbone_batch": batch, "batches_run": len(group["batches"]),
+                 "largest_batch": max(group["batches"], default=0)}
         for job, matcher in zip(jobs, matchers):
             if getattr(matcher, "feature_cache", None) is reuse:
                 job.stats["feature_reuse"] = stats
@@ -390,12 +436,14 @@ def run_benchmark(
     dataset_load: dict | None = None,
     console: Console | None = None,
     feature_cache_mb: float | None = FEATURE_CACHE_MB,
+    backbone_batch: int | None = None,
 ) -> pd.DataFrame:
     """Run (or resume, or only evaluate) one method on one benchmark; returns summary.csv's row.
 
     feature_cache_mb: memory (MiB) for reusing an image's feature maps across the pairs that
     share it (0: off; None: sized from the memory available, see match_jobs; it never changes
-    a result).
+    a result). backbone_batch: images per backbone pass (None: 8 on a GPU, 1 on a CPU; see
+    match_jobs).
     The pairs come from `dataset`, or from the benchmark's dataset at `root` with
     `dataset_options`. `method` may be None only with eval_only (the folder's own is used).
     shard=(K, N): only the K-th of N slices of the pairs, as a run in OUT/shards/K-of-N/;
@@ -436,7 +484,7 @@ def run_benchmark(
     else:
         run_dir = out
     summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
-                            console, shard, load, feature_cache_mb)
+                            console, shard, load, feature_cache_mb, backbone_batch)
     if shard is not None and merge_when_complete(out, console):
         return pd.read_csv(out / "summary.csv")
     return pd.DataFrame([summary])
@@ -454,6 +502,7 @@ def run_methods(
     device: str = "cpu",
     console: Console | None = None,
     feature_cache_mb: float | None = FEATURE_CACHE_MB,
+    backbone_batch: int | None = None,
 ) -> list[dict]:
     """Run (or resume) several methods on the same pairs, each into its own folder (OUT, METHOD).
 
@@ -470,13 +519,14 @@ def run_methods(
     console.print(f"{benchmark.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")
                   + f"; {len(runs)} methods matched together", markup=False)
     return _run_folders(benchmark, runs, dataset, ev or EvalSettings(), limit, False, False, viz, device, console,
-                        None, dataset_load, feature_cache_mb)
+                        None, dataset_load, feature_cache_mb, backbone_batch)
 
 
 def _run_folders(
     benchmark: Benchmark, runs: list[tuple[Path, MethodSpec | None]], dataset: PairList, ev: EvalSettings,
     limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str, console: Console,
     shard: tuple[int, int] | None = None, load: dict | None = None, feature_cache_mb: float | None = FEATURE_CACHE_MB,
+    backbone_batch: int | None = None,
 ) -> list[dict]:
     """Lock every folder, open each run, match what they still need in one stage, then
     evaluate and report each."""
@@ -491,7 +541,7 @@ def _run_folders(
         matching = [run for run in opened if run.todo]
         if matching:
             jobs = [run.job() for run in matching]
-            match_jobs(jobs, device, console, feature_cache_mb)
+            match_jobs(jobs, device, console, feature_cache_mb, backbone_batch=backbone_batch)
             for run, job in zip(matching, jobs):
                 run.add_stats(job.stats)
         return [_finish_run(run, viz, console) for run in opened]
@@ -528,10 +578,10 @@ class _OpenRun:
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before, reuse = config.get("feature_reuse") or {}, dict(reuse)
             for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full",
-                        "dropped_from_disk", "products_reused"):
+                        "dropped_from_disk", "products_reused", "batches_run"):
                 if key in reuse:  # counts of a resumed run add up over its stages
                     reuse[key] += before.get(key, 0)
-            for key in ("images_alive_at_most", "peak_memory_mb", "peak_disk_mb"):
+            for key in ("images_alive_at_most", "peak_memory_mb", "peak_disk_mb", "largest_batch"):
                 if key in reuse:  # highs: the highest stage's
                     reuse[key] = max(reuse[key], before.get(key, 0))
             if reuse.get("distinct_images"):

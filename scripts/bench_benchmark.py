@@ -3,6 +3,7 @@ against the E3CM release's per-pair loop.
 
     python scripts/bench_benchmark.py --pairs ../shared/data/yfcc_test_pairs_with_gt.txt \
         --scenes 1 --size 640x480 --precision fp32 --compare-release PATH [--release-sample 24] [--json]
+        [--device cuda --backbone-batch 8]
 
 The block: the first --scenes scenes of the list, whole (YFCC100M: 1000 pairs per scene,
 buckingham_palace first), in the list's order. The photos are replaced by synthetic
@@ -13,14 +14,16 @@ what ImageNet ones do.
 
   ours: runner.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
         reuse_order, the feature cache with this machine's default memory and disk budgets,
-        decoding ahead, --precision. Backbone passes and passes per image are its own counts.
+        decoding ahead, --precision, --device, --backbone-batch (default: the run's, 8 on a
+        GPU and 1 on a CPU). Backbone passes and passes per image are its own counts.
   release: the release's loop (decode both images, match_large_img + refinement_pose_ransac,
         fp32: it has no other precision) from --compare-release PATH, timed on
         --release-sample pairs spread evenly over the block, half before ours and half
         after (load on a shared machine then weighs on both alike); it reuses nothing, so
         its seconds per pair times the block's pairs is its time for the block.
 
-Prints measured figures only, with the CPU model and its instruction set; `--json` ends with
+Prints measured figures only, with the CPU model and its instruction set (and the GPU's name
+with --device cuda); `--json` ends with
 one JSON object (pairs, distinct_images, passes, passes_per_image, ours_pairs_per_min,
 release_pairs_per_min, speedup, precision, cpu, cpu_isa, ...).
 """
@@ -96,6 +99,8 @@ def main() -> None:
     parser.add_argument("--compare-release", type=Path, default=None)
     parser.add_argument("--release-sample", type=int, default=24, help="pairs the release's loop is timed on")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--backbone-batch", type=int, default=None, help="images per backbone pass (default: the run's)")
     args = parser.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     graph = read_pair_graph(args.pairs)
@@ -105,16 +110,22 @@ def main() -> None:
     cpu, isa = cpu_info()[0], cpu_isa()
     print(f"block: {', '.join(scenes)} of {args.pairs}: {len(block)} pairs, {len(images)} images; stand-ins {w}x{h}; "
           f"VGG19 random weights (seed 0); precision {args.precision}; CPU {cpu} ({isa}); torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads")
+          f"{torch.get_num_threads()} threads" + (f"; device {args.device}: {gpu_name(args.device)}"
+                                                  if args.device != "cpu" else ""))
     work = Path(tempfile.mkdtemp(prefix="bench_benchmark_"))
     try:
         result = run(args, block, (w, h), work)
     finally:
         shutil.rmtree(work, ignore_errors=True)  # the weights and stand-ins
     result.update(pairs_file=str(args.pairs), scenes=scenes, cpu=cpu, cpu_isa=isa, torch=torch.__version__,
-                  threads=torch.get_num_threads())
+                  threads=torch.get_num_threads(), device=args.device,
+                  gpu=gpu_name(args.device) if args.device != "cpu" else None)
     if args.json:
         print(json.dumps(result))
+
+
+def gpu_name(device: str) -> str:
+    return torch.cuda.get_device_name(torch.device(device)) if torch.device(device).type == "cuda" else device
 
 
 def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -> dict:
@@ -128,7 +139,7 @@ def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -
     sample = pairs[:: max(1, len(pairs) // max(1, args.release_sample))][: args.release_sample]
     release_s: list[float] = []
     if args.compare_release is not None:
-        release = ReleaseRunner(args.compare_release, full.state_dict(), "cpu")
+        release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
         warm = cv2.imread(str(sample[0].image0))
         release.match(warm, warm)
 
@@ -145,17 +156,18 @@ def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -
     method = MethodSpec.create("e3cm", "vgg19", str(weights), options=options)
     quiet = Console(quiet=True)
     warm = load_image(pairs[0].image0)
-    method.build("cpu").pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)
+    method.build(args.device).pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)
     t = time.perf_counter()
-    stats = match_stage(method, pairs, MatchCache(work / "ours" / "matches.h5"), "cpu", quiet,
-                        feature_cache_mb=args.cache_mb)
+    stats = match_stage(method, pairs, MatchCache(work / "ours" / "matches.h5"), args.device, quiet,
+                        feature_cache_mb=args.cache_mb, backbone_batch=args.backbone_batch)
     t_ours = time.perf_counter() - t
     reuse = stats["feature_reuse"]
     result = {
         "size": args.size, "precision": args.precision, "pairs": len(pairs), "distinct_images": reuse["distinct_images"],
         "passes": reuse["backbone_passes"], "passes_per_image": reuse["passes_per_image"],
         "read_from_disk": reuse.get("read_from_disk", 0), "cache_mb": reuse["cache_mb"], "spill_mb": reuse["spill_mb"],
-        "peak_cache_mb": reuse["peak_memory_mb"], "ours_s": t_ours, "ours_pairs_per_min": 60 * len(pairs) / t_ours,
+        "peak_cache_mb": reuse["peak_memory_mb"], "backbone_batch": reuse["backbone_batch"],
+        "batches_run": reuse["batches_run"], "ours_s": t_ours, "ours_pairs_per_min": 60 * len(pairs) / t_ours,
     }
     print(f"ours: {len(pairs)} pairs in {t_ours:.0f} s = {result['ours_pairs_per_min']:.1f} pairs/min; "
           f"{result['passes']} backbone passes for {result['distinct_images']} images "

@@ -47,6 +47,26 @@ def test_every_backbone_gives_five_levels(name, image):
         assert all(bool((f < 0).any()) for f in feats)
 
 
+@pytest.mark.parametrize("name,precision", [("vgg19", "fp32"), ("efficientnet_lite0", "fp32"), ("efficientnet_lite0", "bf16")])
+def test_a_batch_of_images_gives_each_the_maps_of_its_own_pass(name, precision):
+    """forward_batch (the match stage's batches ahead, --backbone-batch): each image's maps
+    are those of a pass of that image alone, to rounding. Not always bit for bit: the kernel
+    library picks its algorithm by shape (on this project's CPU, identical at this size and at
+    240x320 and 640x480, 1e-6 apart for VGG19 at 64x48)."""
+    torch.manual_seed(0)
+    bb = load_backbone(name, pretrained=False, precision=precision)
+    images = torch.rand(3, 3, H, W, generator=torch.Generator().manual_seed(2))
+    batched = bb.forward_batch(images)
+    assert len(batched) == 3
+    for i, maps in enumerate(batched):
+        alone = bb(images[i:i + 1])
+        assert [tuple(m.shape) for m in maps] == [tuple(m.shape) for m in alone]
+        assert all(m.dtype == torch.float32 and m.is_contiguous() for m in maps)
+        for a, b in zip(maps, alone):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+    assert not torch.equal(batched[0][4], batched[1][4])  # each image its own maps
+
+
 def test_num_levels_truncates_the_network(image):
     full = load_backbone("efficientnet_lite0")
     three = load_backbone("efficientnet_lite0", num_levels=3)

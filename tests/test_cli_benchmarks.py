@@ -492,3 +492,9 @@ def test_a_folder_from_an_older_version_is_not_resumed(hpatches_run, hpatches_ro
     line = one_line_error(invoke(*hpatches_args(hpatches_root, out)))
     assert "older e3cm-bench" in line and "--overwrite" in line
     assert invoke(*hpatches_args(hpatches_root, out, "--eval-only")).exit_code == 0
+
+
+def test_a_backbone_batch_below_one_is_a_one_line_error(hpatches_root, tmp_path):
+    line = one_line_error(invoke("hpatches", "--root", hpatches_root, "--out", tmp_path / "o", "--matcher", "sift",
+                                 "--sequences", "v_boat", "--limit", "1", "--backbone-batch", "0"))
+    assert "--backbone-batch must be at least 1, got 0" in line

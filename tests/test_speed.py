@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import csv
+import subprocess
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -28,9 +31,10 @@ def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(b"\xff\xd8\xff not a whole jpeg")
     pairs = [Pair("a", paths[0], paths[1]), Pair("b", paths[1], bad), Pair("c", paths[2], paths[0])]
-    seen = []
+    seen, ahead = [], []
     with ThreadPoolExecutor(max_workers=1) as executor:
-        for pair, images in decoded_ahead(pairs, executor):
+        for pair, images, coming in decoded_ahead(pairs, executor, ahead=2):
+            ahead.append([p.name for p, _ in coming])
             if pair.name == "b":
                 with pytest.raises(ImageError, match="bad.jpg"):
                     images.result()
@@ -38,6 +42,7 @@ def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path
             image0, image1 = images.result()
             seen.append((pair.name, image0.shape[0], image1.shape[0]))
     assert seen == [("a", 8, 9), ("c", 10, 8)]
+    assert ahead == [["b", "c"], ["c"], []]  # the coming pairs, decoding while the current one is matched
 
 
 def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
@@ -130,3 +135,18 @@ def test_a_6000_by_4000_pair_fits_or_names_max_side():
     image = np.zeros((4000, 6000, 3), np.uint8)
     with pytest.raises(MemoryError, match=r"--max-side \d+ would fit"):
         match_pair(matcher, image, image)
+
+
+def test_bench_batch_prints_and_writes_its_figures(tmp_path: Path):
+    """scripts/bench_batch.py on a tiny case: one row per backbone, size and precision, with
+    the two ways' maps within rounding of each other."""
+    out = tmp_path / "batch.csv"
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_batch.py"
+    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--size", "64x48",
+                          "--batch", "2", "--images", "3", "--repeat", "1", "--csv", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "efficientnet_lite0 64x48 fp32: one by one" in run.stdout
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == 1 and rows[0]["batch"] == "2" and float(rows[0]["largest difference"]) < 1e-4
+    assert float(rows[0]["one by one s/image"]) > 0 and float(rows[0]["batched s/image"]) > 0

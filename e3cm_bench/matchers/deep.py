@@ -84,6 +84,42 @@ class DeepMatcher(Matcher):
             self.feature_cache.put(key, maps)
         return maps
 
+    def prefetch(self, images: list[tuple[str, np.ndarray]], batch: int) -> list[int]:
+        """Pass the images (file, image as match() will be given it) that the feature cache
+        lacks through the backbone up to `batch` at a time, those of one size together, into
+        the cache for their files. A batch is halved while the device's free memory is short
+        of it (check_memory). Returns the size of each batch run."""
+        cache = self.feature_cache
+        if cache is None:
+            return []
+        todo: dict[str, tuple[str, np.ndarray]] = {}
+        for file, image in images:
+            key = FeatureCache.key(image, self.channel_order)
+            if key not in todo and not cache.holds(key):
+                todo[key] = (file, image)
+        by_size: dict[tuple, list[tuple[str, str, np.ndarray]]] = {}
+        for key, (file, image) in todo.items():
+            by_size.setdefault(image.shape, []).append((key, file, image))
+        sizes = []
+        for items in by_size.values():
+            while items:
+                n = min(batch, len(items))
+                while n > 1 and not self._fits(items[:n]):
+                    n //= 2
+                chunk, items = items[:n], items[n:]
+                stacked = torch.cat([self.network_input(image) for _, _, image in chunk])
+                for (key, file, _), maps in zip(chunk, self.backbone.forward_batch(stacked)):
+                    cache.add_ahead(key, maps, file)
+                sizes.append(n)
+        return sizes
+
+    def _fits(self, images: list[tuple[str, str, np.ndarray]]) -> bool:
+        try:
+            self.check_memory(*[image for _, _, image in images])
+        except MemoryError:
+            return False
+        return True
+
     def image_product(self, which: int, name: str, compute):
         """compute(): a product of the maps of image `which` (0 or 1) of the pair whose pyramids
         were just fetched, kept with them in the feature cache (FeatureCache.derived) so that
@@ -119,6 +155,15 @@ class DeepMatcher(Matcher):
     def config(self) -> dict:
         return {"matcher": self.name, **self.backbone.describe(), "channel_order": self.channel_order,
                 **self.settings_dict()}
+
+
+# Backbone passes batched ahead of their pairs (--backbone-batch; match_jobs): on a GPU, where
+# one image does not fill the device; on a CPU a pass already keeps every core busy.
+GPU_BATCH = 8
+
+
+def auto_backbone_batch(device: torch.device | str) -> int:
+    return GPU_BATCH if torch.device(device).type == "cuda" else 1
 
 
 def available_memory(device: torch.device) -> int | None:

@@ -333,9 +333,24 @@ class FeatureCache:
         if self.pair_files is None or which is None:
             return
         self.claim = which
-        file = self.pair_files[which]
+        self._belongs(key, self.pair_files[which])
+
+    def _belongs(self, key: str, file: str) -> None:
         self.keys_of.setdefault(file, set()).add(key)
         self.files_of.setdefault(key, set()).add(file)
+
+    def holds(self, key: str) -> bool:
+        """Whether key's maps are in memory or on disk."""
+        return key in self.entries or (self.spill is not None and key in self.spill)
+
+    def add_ahead(self, key: str, maps: list[torch.Tensor], file: str) -> None:
+        """Maps computed ahead of their pair (a batch of backbone passes) for `file` of a later
+        pair of the plan: held as `put` holds them, counted as a backbone pass."""
+        self.misses += 1
+        self.seen.add(key)
+        self._belongs(key, file)
+        held = compact(maps, self.compact_dtype, self.exact_levels)
+        self._hold(key, held)
 
     def done_with(self, file: str) -> None:
         """The file has no pair left: the maps that belong to it alone leave memory and disk."""
