@@ -424,3 +424,25 @@ def test_two_runs_with_the_same_seed_give_identical_csvs(interrupt_args, tmp_pat
                            capture_output=True, text=True, timeout=600)
     assert again.returncode == 0
     same_csvs(tmp_path / "again", reference)
+
+
+def test_an_undecodable_image_ahead_of_a_batch_is_met_at_its_own_pair(hpatches_copy, tmp_path, monkeypatch):
+    """--backbone-batch decodes the coming pairs to batch their images: a pair whose image
+    cannot be decoded is left out of the batch, and its error (or, with --skip-bad, its
+    skipping) comes at its own pair, as without batching."""
+    import e3cm_bench.images as images_module
+
+    real = images_module.image_file_problem
+    bad = hpatches_copy / "v_boat" / "4.ppm"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20 + b"IEND\xaeB`\x82")
+    monkeypatch.setattr(images_module, "image_file_problem", lambda p: None if Path(p) == bad else real(p))
+    args = ["hpatches", "--root", hpatches_copy, "--matcher", "direct", "--backbone", "efficientnet_lite0",
+            "--max-side", 160, "--sequences", "v_boat", "--backbone-batch", 4]
+    result = invoke(*args, "--out", tmp_path / "a")
+    assert result.exit_code == 2 and "v_boat/1-4" in result.stderr and "kept" in result.stderr
+    result = invoke(*args, "--out", tmp_path / "b", "--skip-bad")
+    assert result.exit_code == 0 and "1 pair(s) skipped" in flat(result.output)
+    assert list(pd.read_csv(tmp_path / "b" / "skipped.csv")["pair"]) == ["v_boat/1-4"]
+    assert pd.read_csv(tmp_path / "b" / "summary.csv")["n_pairs"].item() == 4
+    reuse = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["feature_reuse"]
+    assert reuse["largest_batch"] == 4 and reuse["backbone_passes"] == reuse["distinct_images"] == 5
