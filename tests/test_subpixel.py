@@ -10,7 +10,8 @@ import pytest
 from e3cm_bench.geometry import warp_points
 from e3cm_bench.images import load_image
 from e3cm_bench.matching.pipeline import E3CMSettings
-from e3cm_bench.matching.subpixel import REFINE_MODES, refine_lk, refine_ncc
+from e3cm_bench.matching.subpixel import (ADAPTIVE_MIN_PASS, REFINE_MODES, local_contrast, refine_lk, refine_lk_auto,
+                                          refine_matches, refine_ncc)
 
 
 @pytest.fixture(scope="module")
@@ -210,8 +211,8 @@ def test_ncc_moves_are_bounded_nothing_is_added_and_it_is_deterministic(boat):
 
 
 def test_ncc_refine_settings_are_validated():
-    assert REFINE_MODES == ("none", "lk", "lk-strict", "ncc", "ncc-strict")
-    for mode in ("ncc", "ncc-strict"):
+    assert REFINE_MODES == ("none", "lk", "lk-strict", "lk-auto", "ncc", "ncc-strict")
+    for mode in ("ncc", "ncc-strict", "lk-auto"):
         assert E3CMSettings(refine=mode, refine_window=11).refine == mode
     for bad in ({"refine": "NCC"}, {"refine": "ncc-loose"}, {"refine": "zncc"},
                 {"refine": "ncc", "refine_window": 8}):
@@ -220,19 +221,24 @@ def test_ncc_refine_settings_are_validated():
 
 
 def test_e3cm_plus_takes_the_refine_setting_and_it_only_moves_or_drops_its_matches(shared_data):
-    """e3cm-plus's refine (none by default) is e3cm's: validated the same way, applied to its
-    final matches in the original images: with lk the kept matches are a subset of those
-    without, A's points unmoved, B's moved at most the bound."""
+    """e3cm-plus's refine (lk-auto by default, recorded in its identity) is e3cm's: validated
+    the same way, applied to its final matches in the original images: with lk-strict the
+    kept matches are a subset of those without refinement, A's points unmoved, B's moved at
+    most the bound."""
     from e3cm_bench import build_matcher, match_pair
     from e3cm_bench.matchers.e3cm_plus import E3CMPlusSettings
 
-    assert E3CMPlusSettings().refine == "none" and E3CMPlusSettings(refine="ncc").refine == "ncc"
+    from e3cm_bench.method import MethodSpec
+
+    assert E3CMPlusSettings().refine == "lk-auto" and E3CMPlusSettings(refine="ncc").refine == "ncc"
+    assert MethodSpec.create("e3cm-plus", "efficientnet_lite0").identity()["settings"] == {"refine": "lk-auto"}
     for bad in ({"refine": "cubic"}, {"refine_window": 8}):
         with pytest.raises(ValueError, match="refine"):
             E3CMPlusSettings(**bad)
     root = shared_data / "hpatches-sequences-release" / "v_boat"
     a, b = load_image(root / "1.ppm"), load_image(root / "2.ppm")
-    plain = match_pair(build_matcher("e3cm-plus", backbone="efficientnet_lite0"), a, b, max_side=480)
+    plain = match_pair(build_matcher("e3cm-plus", backbone="efficientnet_lite0", settings={"refine": "none"}), a, b,
+                       max_side=480)
     refined = match_pair(build_matcher("e3cm-plus", backbone="efficientnet_lite0", settings={"refine": "lk-strict"}),
                          a, b, max_side=480)
     assert 0 < len(refined.keypoints0) < len(plain.keypoints0)
@@ -241,3 +247,69 @@ def test_e3cm_plus_takes_the_refine_setting_and_it_only_moves_or_drops_its_match
     moved = np.abs(refined.keypoints1 - plain.keypoints1[rows]).max()
     assert 0 < moved <= 1.5 * max(b.shape[:2]) / 480 + 1e-3  # max_move (1.5 px) of the matched image, in original pixels
     assert "refine" in refined.info["timings"]
+
+
+# --- refine=lk-auto: strict where LK fits the pair (grey levels, else local contrast), else lenient ---
+
+@pytest.mark.parametrize("change", ["none", *BRIGHTNESS])
+@pytest.mark.parametrize("shift", [(0.37, -0.61), (0.1, 0.45)])
+def test_lk_on_local_contrast_recovers_a_shift_across_a_brightness_change(boat, shift, change):
+    """LK on the images' local contrast (refine_lk(normalise=True), lk-auto's second try): a
+    sub-pixel shift is recovered with or without a brightness change of B (median error
+    below 0.1 px; measured 0.039-0.040 without a change and under the affine one, 0.058-0.059
+    gamma 0.5, 0.072 gamma 2), and every match passes (LK on grey levels: above 0.25 px and
+    at most 85 % pass, the ncc test above)."""
+    k0 = np.round(corners(boat)).astype(np.float32)
+    truth = k0 + np.float32(shift)
+    start = np.round(truth)
+    changed = shifted_by(boat, shift) if change == "none" else BRIGHTNESS[change](shifted_by(boat, shift))
+    refined, keep = refine_lk(boat, changed, k0, start, drop=True, normalise=True)
+    error = np.median(np.linalg.norm(refined - truth, axis=1))
+    print(f"{change} {shift}: LK on local contrast {error:.3f} px, passes {keep.mean():.3f}")
+    assert error < 0.1 and keep.all()
+
+
+def test_local_contrast_is_unchanged_by_an_affine_brightness_change(boat):
+    """0.6 B + 40: the local contrast moves by rounding only (measured: median 0, 99th
+    percentile 5 of 255 levels, i.e. 0.125 local standard deviations)."""
+    a = local_contrast(boat).astype(int)
+    b = local_contrast(BRIGHTNESS["affine"](boat)).astype(int)
+    difference = np.abs(a - b)[(a > 10) & (a < 245)]
+    assert np.median(difference) <= 1 and np.percentile(difference, 99) <= 8
+
+
+def test_lk_auto_is_strict_where_lk_fits_the_pair_and_lenient_where_it_does_not(boat):
+    """- A shift with 20 % of the starts moved 5 px off (wrong matches): LK on the grey levels
+      fits (80 % pass), so the failing ones are dropped: every wrong one, no right one.
+    - A shift under a strong illumination change (0.3 B + 100, or 0.15 B): no match passes
+      on the grey levels, all on the local contrast, which is used: 0.04 px.
+    - A 45-degree turn: LK, which does not turn its patch, passes 4.5 % of the right matches
+      on either (measured; 84 % at 20 degrees, 28 % at 30), under ADAPTIVE_MIN_PASS: nothing
+      is dropped (lk-strict drops 95 %) and only the matches that pass move, at most 1.5 px."""
+    k0 = np.round(corners(boat)).astype(np.float32)
+    shift = (0.37, -0.61)
+    truth = k0 + np.float32(shift)
+    start = np.round(truth)
+    rng = np.random.default_rng(0)
+    wrong = rng.random(len(k0)) < 0.2
+    off = start.copy()
+    off[wrong] += rng.choice([-1, 1], (wrong.sum(), 2)).astype(np.float32) * np.float32([4, 3])
+    refined, keep, used = refine_lk_auto(boat, shifted_by(boat, shift), k0, off)
+    assert used == "grey" and not keep[wrong].any() and keep[~wrong].all()
+    assert np.median(np.linalg.norm(refined[keep] - truth[keep], axis=1)) < 0.06
+    plain = shifted_by(boat, shift).astype(np.float64)
+    for dim in (0.3 * plain + 100, 0.15 * plain):
+        refined, keep, used = refine_lk_auto(boat, dim.astype(np.uint8), k0, start)
+        assert used == "contrast" and keep.all() and np.median(np.linalg.norm(refined - truth, axis=1)) < 0.06
+    h, w = boat.shape[:2]
+    R = cv2.getRotationMatrix2D((w / 2, h / 2), 45, 1.0)
+    turned = cv2.warpAffine(boat, R, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    t = (np.c_[k0, np.ones(len(k0))] @ R.T).astype(np.float32)
+    inside = (t[:, 0] > 10) & (t[:, 0] < w - 10) & (t[:, 1] > 10) & (t[:, 1] < h - 10)
+    k0, start = k0[inside], np.round(t[inside])
+    moved_by_lk, passing = refine_lk(boat, turned, k0, start, drop=True)
+    assert passing.mean() < ADAPTIVE_MIN_PASS
+    refined, keep = refine_matches(boat, turned, k0, start, "lk-auto")
+    assert keep.all() and np.array_equal(refined, moved_by_lk)
+    assert not ((refined != start).any(axis=1) & ~passing).any() and np.abs(refined - start).max() <= 1.5
+    assert refine_matches(boat, turned, k0, start, "lk-strict")[1].mean() < 0.1

@@ -41,9 +41,11 @@ BUILTIN = (
         E3CMReleaseSettings, needs_backbone=True, is_random=lambda s: s.cascade, shorthands=("ratio",),
         paper_row="E3CM", paper_setting=_release_as_published),
     MatcherEntry(
-        "e3cm-plus", "our variant: stage-0 prewarp, robust cascade, realignment, optional sub-pixel",
+        "e3cm-plus", "our variant: stage-0 prewarp, robust cascade, realignment, sub-pixel refinement (lk-auto)",
         lambda s, net, channel_order: E3CMPlusMatcher(net, s, channel_order=channel_order),
-        E3CMPlusSettings, needs_backbone=True, is_random=always, shorthands=("ratio",)),
+        E3CMPlusSettings, needs_backbone=True, is_random=always, shorthands=("ratio",),
+        # recorded: its runs from before refinement was on (settings {}) are not resumed as these
+        recorded={"refine": "lk-auto"}),
     MatcherEntry(
         "direct", "ablation: E3CM without the cascade (mutual NN + ratio + refinement)",
         _direct, DirectSettings, needs_backbone=True, shorthands=("ratio",)),

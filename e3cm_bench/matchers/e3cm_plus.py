@@ -18,6 +18,11 @@ rejecting the next level's outliers. What changed, where measurements on the cho
   by RANSAC elsewhere ("auto"), instead of an exact 8-point fit to 8 cell centres.
 - subpixel (off by default; it cost KITTI 8 points of AUC@5): each B keypoint moved to the
   peak of a parabola fitted to the level-0 similarity.
+- refine (lk-auto by default): the final matches refined on the images (matching/subpixel.py,
+  `refine_lk_auto`): Lucas-Kanade from each match, the matches that fail its checks dropped
+  where LK fits the pair (on the grey levels, or on the local contrast across an illumination
+  change), kept where it does not (a large turn or zoom). On the choosing sets it lifted
+  HPatches h_acc@1 from 0.40 to 0.53 (3 and 5 px unchanged) and KITTI AUC@5 from 61.2 to 69.7.
 Each is a setting (`--set prewarp=false`, ...), so the ablation runs from the CLI.
 """
 
@@ -87,7 +92,7 @@ def prewarp_decision(feats0: list, feats1: list, size0: tuple[int, int], size1: 
 class E3CMPlusSettings:
     """prewarp (true, false, auto), realign, estimator (one of the cascade's, or auto),
     subpixel: the changes (module docstring). refine, refine_window: sub-pixel refinement of
-    the final matches on the images, as e3cm's (E3CMSettings; none by default). ratio: per
+    the final matches on the images, as e3cm's (E3CMSettings), lk-auto by default (none in e3cm). ratio: per
     level 0..4. sampson_px: rejection thresholds of levels 0..3 (None: the estimator's
     default). max_per_parent: children kept per refined match. min_inliers: fewest stage-0
     RANSAC inliers for its homography."""
@@ -100,7 +105,7 @@ class E3CMPlusSettings:
     sampson_px: tuple[float, ...] | None = None
     max_per_parent: int = 2
     min_inliers: int = MIN_INLIERS
-    refine: str = "none"
+    refine: str = "lk-auto"
     refine_window: int = 9
 
     def __post_init__(self) -> None:

@@ -58,7 +58,9 @@ class E3CMSettings:
     refine: sub-pixel refinement of the final matches on the images (matching/subpixel.py):
         none (the paper), lk (LK fit kept where forward-backward consistent), ncc (peak of the
         zero-mean NCC, invariant to affine brightness changes, kept where the peak is
-        consistent); lk-strict / ncc-strict also drop the inconsistent matches;
+        consistent); lk-strict / ncc-strict also drop the inconsistent matches; lk-auto: drops
+        the inconsistent matches only where LK fits the pair (on the grey levels, or on the
+        local contrast across an illumination change), else as lk;
         refine_window: the patch side in pixels (of either fit).
     """
 
