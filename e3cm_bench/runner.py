@@ -188,11 +188,10 @@ def batch_ahead(job: MatchJob, matcher, batch: int, current: tuple[Pair, object]
         except ImageError:
             continue
         for file, image, turns in zip((pair.image0, pair.image1), decoded, pair_rotations(pair, job.method)):
-            items.append((str(file), matcher_input(image, turns, job.method.max_side, job.method.resize)[0]))
-        if pair is current[0]:
-            cache = matcher.feature_cache
-            if all(cache.holds(cache.key(image, matcher.channel_order)) for _, image in items):
-                return []
+            small = matcher_input(image, turns, job.method.max_side, job.method.resize)[0]
+            items.append((matcher.image_key(small), str(file), small))
+        if pair is current[0] and all(matcher.feature_cache.holds(key) for key, _, _ in items):
+            return []
     return matcher.prefetch(items, batch)
 
 
@@ -320,7 +319,7 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
             last_use = {file: k for k, files in enumerate(files_in_order) for file in files}
             for feature_cache in feature_caches:
                 feature_cache.plan(files_in_order)
-            for k, (pair, images, coming) in enumerate(decoded_ahead(order, executor, ahead=max(1, batch))):
+            for k, (pair, images, coming) in enumerate(decoded_ahead(order, executor, ahead=batch)):
                 files = files_in_order[k]
                 for feature_cache in feature_caches:
                     feature_cache.at(k, files)

@@ -74,7 +74,7 @@ class DeepMatcher(Matcher):
         the maps belong to, and drops them once that file has no pair left)."""
         if self.feature_cache is None:
             return self.backbone(self.network_input(image))
-        key = FeatureCache.key(image, self.channel_order)
+        key = self.image_key(image)
         if which is not None:
             self._keys[which] = key
         self.feature_cache.belongs_to(key, which)
@@ -84,22 +84,25 @@ class DeepMatcher(Matcher):
             self.feature_cache.put(key, maps)
         return maps
 
-    def prefetch(self, images: list[tuple[str, np.ndarray]], batch: int) -> list[int]:
-        """Pass the images (file, image as match() will be given it) that the feature cache
-        lacks through the backbone up to `batch` at a time, those of one size together, into
-        the cache for their files. A batch is halved while the device's free memory is short
-        of it (check_memory). Returns the size of each batch run."""
+    def image_key(self, image: np.ndarray) -> str:
+        """The feature cache's key of an image as match() is given it."""
+        return FeatureCache.key(image, self.channel_order)
+
+    def prefetch(self, images: list[tuple[str, str, np.ndarray]], batch: int) -> list[int]:
+        """Pass the images (image_key, file, image as match() will be given it) that the
+        feature cache lacks through the backbone up to `batch` at a time, those of one size
+        together, into the cache for their files. A batch is halved while the device's free
+        memory is short of it (check_memory). Returns the size of each batch run."""
         cache = self.feature_cache
         if cache is None:
             return []
-        todo: dict[str, tuple[str, np.ndarray]] = {}
-        for file, image in images:
-            key = FeatureCache.key(image, self.channel_order)
-            if key not in todo and not cache.holds(key):
-                todo[key] = (file, image)
+        todo: dict[str, tuple[str, str, np.ndarray]] = {}
+        for item in images:
+            if item[0] not in todo and not cache.holds(item[0]):
+                todo[item[0]] = item
         by_size: dict[tuple, list[tuple[str, str, np.ndarray]]] = {}
-        for key, (file, image) in todo.items():
-            by_size.setdefault(image.shape, []).append((key, file, image))
+        for item in todo.values():
+            by_size.setdefault(item[2].shape, []).append(item)
         sizes = []
         for items in by_size.values():
             while items:
