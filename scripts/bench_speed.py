@@ -98,6 +98,7 @@ def main() -> None:
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
     spec = MethodSpec.create(args.matcher, args.backbone, args.weights, options=options)
+    torch.manual_seed(0)  # random weights are the same draw on every run (matches, and so the cascade's work, depend on them)
     matcher = spec.build(args.device, pretrained=not args.random_weights)
     release = None
     if args.compare_release is not None:

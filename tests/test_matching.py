@@ -578,3 +578,28 @@ def test_unit_pixel_major_is_normalise_then_pixel_major_bit_for_bit():
         raw[:, 0, 0] = 0  # a zero vector: the clamp
         got, want = unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))
         assert torch.equal(got, want) and got.stride() == want.stride()
+
+
+def test_unit_pixel_major_banded_norm_is_torchs_norm_bit_for_bit(monkeypatch):
+    from e3cm_bench.matching import cascade
+
+    gen = torch.Generator().manual_seed(5)
+    # Sizes around the band height and torch's parallel grain; a channels-last map takes
+    # torch's norm (its own reduction order differs).
+    for shape in ((64, 37, 53), (64, 120, 160), (16, 33, 17), (128, 7, 300)):
+        raw = torch.randn(*shape, generator=gen).relu_() * 7
+        raw[:, 1, 2] = 0
+        assert cascade._row_block_norm_exact(raw), shape
+        assert torch.equal(cascade._channel_norm_by_rows(raw), raw.norm(2, 0, keepdim=True)), shape
+        assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))), shape
+    last = pixel_major(torch.randn(64, 20, 30, generator=gen))
+    assert not cascade._row_block_norm_exact(last)
+    assert torch.equal(unit_pixel_major(last), pixel_major(F.normalize(last, dim=0)))
+    assert not cascade._row_block_norm_exact(torch.randn(64, 20, 30, dtype=torch.float64))
+
+    # Where the banded sum would not give torch's bits, the probe says so and torch's norm is used.
+    monkeypatch.setattr(cascade, "_norm_checked", {})
+    monkeypatch.setattr(cascade, "_channel_norm_by_rows", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
+    raw = torch.randn(64, 37, 53, generator=gen).relu_()
+    assert not cascade._row_block_norm_exact(raw)
+    assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0)))

@@ -1,0 +1,87 @@
+"""The work after the backbone with matching/cascade.py as it is against an earlier revision's, side by side.
+
+    python scripts/bench_cascade_ab.py --against REV [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 3]
+
+`e3cm` (top-8) on VGG19 with random weights (seed 0) and bench_speed's synthetic pair. The
+backbone runs once per size; then match_pyramids runs on the same pyramids, alternating
+between the cascade module of revision REV (read with `git show`) and the current one. For
+each it prints the median time after the backbone, over the backbone's own time, with the
+stages; and whether both gave the same matches bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.matching import cascade, pipeline
+from e3cm_bench.method import MethodSpec
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_speed import synthetic_pair  # noqa: E402
+
+
+def cascade_of(rev: str) -> dict:
+    root = Path(__file__).resolve().parents[1]
+    source = subprocess.run(["git", "-C", str(root), "show", f"{rev}:e3cm_bench/matching/cascade.py"],
+                            capture_output=True, text=True, check=True).stdout
+    namespace = dict(cascade.__dict__)
+    exec(compile(source, f"{rev}:cascade.py", "exec"), namespace)
+    return namespace
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--against", required=True, help="a git revision")
+    parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16"))
+    parser.add_argument("--size", action="append", default=None)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    earlier = cascade_of(args.against)
+    ways = {args.against: earlier, "current": cascade.__dict__}
+    torch.manual_seed(0)
+    options = {} if args.precision == "fp32" else {"precision": args.precision}
+    matcher = MethodSpec.create("e3cm", "vgg19", None, options=options).build("cpu", pretrained=False)
+    print(f"CPU {cpu_info()[0]} ({cpu_isa()}); torch {torch.__version__}, {torch.get_num_threads()} threads; "
+          f"e3cm, VGG19 (random weights, seed 0), {args.precision}; median of {args.repeat}")
+    for size in args.size or ["640x480", "1200x900"]:
+        w, h = (int(v) for v in size.split("x"))
+        image0, image1 = synthetic_pair(w, h)
+        backbone = []
+        for _ in range(2):
+            t = time.perf_counter()
+            feats0, feats1, _ = matcher.pyramids(image0, image1)
+            backbone.append(time.perf_counter() - t)
+        timings = {name: [] for name in ways}
+        outputs = {}
+        for _ in range(args.repeat + 1):  # the first round warms up
+            for name, module in ways.items():
+                pipeline.confidence_scores = module["confidence_scores"]
+                pipeline.unit_pixel_major = module["unit_pixel_major"]
+                outputs[name] = pipeline.match_pyramids(feats0, feats1, (w, h), (w, h), matcher.settings)
+                timings[name].append(outputs[name]["timings"])
+        pipeline.confidence_scores, pipeline.unit_pixel_major = cascade.confidence_scores, cascade.unit_pixel_major
+        same = all(torch.equal(torch.as_tensor(outputs[args.against][k]), torch.as_tensor(outputs["current"][k]))
+                   for k in ("keypoints0", "keypoints1", "scores"))
+        seconds = min(backbone)
+        print(f"{size}: backbone {seconds:.2f} s (2 images, best of 2); {len(outputs['current']['keypoints0'])} matches; "
+              f"the same bit for bit: {same}")
+        for name, runs in timings.items():
+            runs = runs[1:]
+            stage = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+            after = statistics.median(sum(r.values()) for r in runs)
+            refine = sum(v for k, v in stage.items() if k.startswith("refine"))
+            print(f"  {name}: after the backbone {after:.3f} s = {after / seconds:.2f} of the backbone; normalise "
+                  f"{stage['normalise']:.3f}, initial {stage['initial']:.3f}, cascade {stage['cascade']:.3f}, "
+                  f"refinement {refine:.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
