@@ -1,13 +1,13 @@
-"""Level 0 normalised for the confidence score: torch's norm against the banded sum, side by side.
+"""Channel norms of a feature map: torch's norm against the banded sum (matching/norms.py), side by side.
 
     python scripts/bench_norm.py [--size 640x480 --size 1200x900] [--channels 64] [--repeat 5]
 
-`unit_pixel_major` (matching/cascade.py) is what the top-8 and PROSAC cascades pay per
-image before their confidence score. It computes the channel norm either with torch's
-`Tensor.norm` (the fallback) or with `_channel_norm_by_rows` (the default where it gives
-torch's bits). For each size, the two alternate on the same random map (ReLU'd, as a
-backbone's map is); medians, their ratio, and whether the outputs are equal bit for bit are
-printed.
+The top-8 and PROSAC cascades normalise level 0 whole for their confidence score
+(`unit_pixel_major`); the deepest level and the children read by refinement are normalised
+too. `norms.channel_norm` computes the norm with `norms.banded_norm` where that gives torch's
+bits, else with torch's `Tensor.norm`. For each size, the two alternate on the same random
+map (ReLU'd, as a backbone's map is); medians, their ratio, and whether the outputs are
+equal bit for bit are printed.
 """
 
 from __future__ import annotations
@@ -19,15 +19,11 @@ import time
 import torch
 
 from e3cm_bench.files import cpu_info, cpu_isa
-from e3cm_bench.matching import cascade
+from e3cm_bench.matching import norms
 
 
 def torch_norm(feat: torch.Tensor) -> torch.Tensor:
-    return feat.norm(2, 0, keepdim=True).clamp_min(1e-12)
-
-
-def banded_norm(feat: torch.Tensor) -> torch.Tensor:
-    return cascade._channel_norm_by_rows(feat).clamp_min_(1e-12)
+    return feat.norm(2, 0, keepdim=True)
 
 
 def main() -> None:
@@ -41,7 +37,7 @@ def main() -> None:
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         feat = torch.randn(args.channels, h, w, generator=torch.Generator().manual_seed(0)).relu_()
-        ways = {"torch norm": torch_norm, "banded": banded_norm}
+        ways = {"torch norm": torch_norm, "banded": norms.banded_norm}
         seconds = {k: [] for k in ways}
         norms = {k: [] for k in ways}
         for _ in range(args.repeat + 1):  # the first round warms up (and runs the bit check)
@@ -52,7 +48,7 @@ def main() -> None:
         old, new = (statistics.median(seconds[k][1:]) for k in ways)
         same = torch.equal(norms["torch norm"], norms["banded"])
         print(f"{size}: torch norm {old * 1000:.1f} ms, banded {new * 1000:.1f} ms, banded / torch {new / old:.2f}; "
-              f"bit for bit equal: {same}; fast path taken: {cascade._row_block_norm_exact(feat)}", flush=True)
+              f"bit for bit equal: {same}; fast path taken: {norms.banded_is_exact(feat)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -580,26 +580,43 @@ def test_unit_pixel_major_is_normalise_then_pixel_major_bit_for_bit():
         assert torch.equal(got, want) and got.stride() == want.stride()
 
 
-def test_unit_pixel_major_banded_norm_is_torchs_norm_bit_for_bit(monkeypatch):
-    from e3cm_bench.matching import cascade
+def test_channel_norm_is_torchs_norm_bit_for_bit(monkeypatch):
+    from e3cm_bench.matching import norms
 
     gen = torch.Generator().manual_seed(5)
-    # Sizes around the band height and torch's parallel grain; a channels-last map takes
-    # torch's norm (its own reduction order differs).
-    for shape in ((64, 37, 53), (64, 120, 160), (16, 33, 17), (128, 7, 300)):
+    # Sizes around the band and torch's parallel grain, and a gather's C x N x 4; a
+    # channels-last map, a float64 one and a small one take torch's norm.
+    for shape in ((64, 37, 153), (64, 120, 160), (16, 33, 517), (128, 7, 700), (512, 3001, 4)):
         raw = torch.randn(*shape, generator=gen).relu_() * 7
         raw[:, 1, 2] = 0
-        assert cascade._row_block_norm_exact(raw), shape
-        assert torch.equal(cascade._channel_norm_by_rows(raw), raw.norm(2, 0, keepdim=True)), shape
+        assert norms.banded_is_exact(raw), shape
+        assert torch.equal(norms.banded_norm(raw), raw.norm(2, 0, keepdim=True)), shape
+        assert torch.equal(norms.normalize_channels(raw), F.normalize(raw, dim=0)), shape
         assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))), shape
-    last = pixel_major(torch.randn(64, 20, 30, generator=gen))
-    assert not cascade._row_block_norm_exact(last)
-    assert torch.equal(unit_pixel_major(last), pixel_major(F.normalize(last, dim=0)))
-    assert not cascade._row_block_norm_exact(torch.randn(64, 20, 30, dtype=torch.float64))
+    for other in (pixel_major(torch.randn(64, 80, 90, generator=gen)), torch.randn(64, 80, 90, dtype=torch.float64),
+                  torch.randn(64, 20, 30, generator=gen)):
+        assert not norms.banded_is_exact(other)
+        assert torch.equal(norms.normalize_channels(other), F.normalize(other, dim=0))
 
     # Where the banded sum would not give torch's bits, the probe says so and torch's norm is used.
-    monkeypatch.setattr(cascade, "_norm_checked", {})
-    monkeypatch.setattr(cascade, "_channel_norm_by_rows", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
-    raw = torch.randn(64, 37, 53, generator=gen).relu_()
-    assert not cascade._row_block_norm_exact(raw)
+    monkeypatch.setattr(norms, "_checked", {})
+    monkeypatch.setattr(norms, "banded_norm", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
+    raw = torch.randn(64, 37, 153, generator=gen).relu_()
+    assert not norms.banded_is_exact(raw)
     assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0)))
+
+
+def test_mutual_diagonal_is_argmax_both_ways_ties_included():
+    from e3cm_bench.matching.cascade import _mutual_diagonal
+
+    gen = torch.Generator().manual_seed(11)
+    for p in (1, 4, 16, 64):
+        # Values on a coarse grid, so that rows and columns often hold equal maxima.
+        sim = (torch.rand(40, p, p, generator=gen) * 6).round() / 6
+        sim[:5] = torch.rand(5, p, p, generator=gen)  # and some patches without ties
+        index = torch.arange(p)
+        want = (sim.argmax(dim=2) == index) & (sim.argmax(dim=1) == index)
+        got = _mutual_diagonal(sim.clone())
+        assert torch.equal(got, want), p
+        if p > 1:
+            assert want.any() and (~want).any()

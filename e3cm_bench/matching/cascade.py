@@ -7,6 +7,7 @@ import torch
 
 from .. import geometry
 from . import ESTIMATORS
+from .norms import channel_norm
 
 
 def confidence_scores(
@@ -81,52 +82,10 @@ def unit_pixel_major(level0_feat: torch.Tensor) -> torch.Tensor:
     1e-12, and the same division), with the division writing the channels-last copy directly:
     one pass over the map fewer."""
     c, h, w = level0_feat.shape
-    if _row_block_norm_exact(level0_feat):
-        norm = _channel_norm_by_rows(level0_feat).clamp_min_(1e-12)
-    else:
-        norm = level0_feat.norm(2, 0, keepdim=True).clamp_min(1e-12)
+    norm = channel_norm(level0_feat).clamp_min_(1e-12)
     out = torch.empty(h, w, c, dtype=level0_feat.dtype, device=level0_feat.device)
     torch.div(level0_feat.permute(1, 2, 0), norm.permute(1, 2, 0), out=out)
     return out.permute(2, 0, 1)
-
-
-# torch's CPU norm over the outer dimension of a contiguous C x H x W map adds the squares of
-# each pixel's channels one after the other in float32 (a scalar loop per pixel), then takes
-# the correctly rounded square root. _channel_norm_by_rows adds them in that order, a band of
-# rows at a time (which stays in cache) and whole bands vectorised: 3-4x faster at 640x480.
-# The order is torch's choice, not a promise, so the fast path is taken only after it has given
-# torch's own norm bit for bit on a probe map of the same kind (checked once per process and
-# kind); otherwise torch's norm is used.
-_NORM_ROWS = 16
-_norm_checked: dict[tuple, bool] = {}
-
-
-def _channel_norm_by_rows(feat: torch.Tensor) -> torch.Tensor:
-    """1 x H x W: the L2 norm over channels, squares summed channel by channel in order."""
-    c, h, w = feat.shape
-    acc = torch.empty(h, w, dtype=feat.dtype, device=feat.device)
-    for r in range(0, h, _NORM_ROWS):
-        band = feat[:, r : r + _NORM_ROWS]
-        squares = band * band
-        sums = acc[r : r + _NORM_ROWS]
-        sums.copy_(squares[0])
-        for k in range(1, c):
-            sums.add_(squares[k])
-    # The square root in float64 rounded to float32 is the correctly rounded float32 root
-    # (torch's vectorised float32 sqrt is not, on some CPUs).
-    return acc.double().sqrt_().to(feat.dtype)[None]
-
-
-def _row_block_norm_exact(feat: torch.Tensor) -> bool:
-    if feat.device.type != "cpu" or feat.dtype != torch.float32 or not feat.is_contiguous() or feat.dim() != 3:
-        return False
-    key = (feat.shape[0], torch.get_num_threads())
-    if key not in _norm_checked:
-        gen = torch.Generator().manual_seed(0)
-        # Two probe sizes: one below torch's parallel grain and one above it.
-        probes = [torch.randn(feat.shape[0], h, 37, generator=gen).relu_() * 3 for h in (5, 1 + 40000 // (37 * feat.shape[0]))]
-        _norm_checked[key] = all(torch.equal(_channel_norm_by_rows(p), p.norm(2, 0, keepdim=True)) for p in probes)
-    return _norm_checked[key]
 
 
 def _pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
@@ -144,10 +103,31 @@ def _patch_offsets(side: int, device) -> torch.Tensor:
 def _patch_confidence(a: torch.Tensor, b: torch.Tensor, eps: float) -> torch.Tensor:
     """c of n patch pairs (n x P x C each)."""
     sim = a @ b.transpose(1, 2)  # n x P x P
-    diag = torch.arange(sim.shape[1], device=sim.device)
-    mutual = (sim.argmax(dim=2) == diag) & (sim.argmax(dim=1) == diag)
     d = (1 - sim.diagonal(dim1=1, dim2=2)).clamp_min(eps)
-    return (mutual.to(d.dtype) / d).sum(1)
+    return (_mutual_diagonal(sim).to(d.dtype) / d).sum(1)
+
+
+def _mutual_diagonal(sim: torch.Tensor) -> torch.Tensor:
+    """n x P: sim.argmax(2) == i and sim.argmax(1) == i for each diagonal entry i, exactly.
+
+    argmax is slow on the CPU; a maximum is not. Entry i is the argmax of its row when it
+    beats every other entry of the row, and not when another beats it. Where another equals
+    it, argmax's rule (the first of equals) decides, so patches with such a tie take argmax.
+    sim is modified (its diagonal is set to -inf).
+    """
+    diag = sim.diagonal(dim1=1, dim2=2)
+    own = diag.clone()
+    diag.fill_(-torch.inf)
+    row_other, col_other = sim.amax(dim=2), sim.amax(dim=1)
+    mutual = (own > row_other) & (own > col_other)
+    tied = ((own == row_other) | (own == col_other)).any(1)
+    if tied.any():
+        rows = tied.nonzero().flatten()
+        sub = sim[rows]
+        sub.diagonal(dim1=1, dim2=2).copy_(own[rows])
+        index = torch.arange(sim.shape[1], device=sim.device)
+        mutual[rows] = (sub.argmax(dim=2) == index) & (sub.argmax(dim=1) == index)
+    return mutual
 
 
 # Elements of one operand of the bound's products in one block (8 MiB in float32).

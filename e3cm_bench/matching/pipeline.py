@@ -22,6 +22,7 @@ from . import SCORED_ESTIMATORS
 from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, unit_pixel_major
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
+from .norms import normalize_channels
 from .refine import refine_to_children
 
 
@@ -180,8 +181,8 @@ def match_pyramids(
     if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
         unit0 = memo(0, "unit_pixel_major:0", lambda: unit_pixel_major(feats0[0]))
         unit1 = memo(1, "unit_pixel_major:0", lambda: unit_pixel_major(feats1[0]))
-    top0 = memo(0, f"normalize:{top}", lambda: F.normalize(feats0[top], dim=0))
-    top1 = memo(1, f"normalize:{top}", lambda: F.normalize(feats1[top], dim=0))
+    top0 = memo(0, f"normalize:{top}", lambda: normalize_channels(feats0[top]))
+    top1 = memo(1, f"normalize:{top}", lambda: normalize_channels(feats1[top]))
     timings["normalise"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -1,40 +1,52 @@
-"""The work after the backbone with matching/cascade.py as it is against an earlier revision's, side by side.
+"""The work after the backbone as the code is now against an earlier revision's, side by side.
 
-    python scripts/bench_cascade_ab.py --against REV [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 3]
+    python scripts/bench_matching_ab.py --against REV [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 3]
 
 `e3cm` (top-8) on VGG19 with random weights (seed 0) and bench_speed's synthetic pair. The
 backbone runs once per size; then match_pyramids runs on the same pyramids, alternating
-between the cascade module of revision REV (read with `git show`) and the current one. For
-each it prints the median time after the backbone, over the backbone's own time, with the
-stages; and whether both gave the same matches bit for bit.
+between the matching package of revision REV (e3cm_bench/matching and geometry.py, read with
+`git archive` into a temporary folder and imported under another name) and the current one.
+For each it prints the median time after the backbone, over the backbone's own time, with
+the stages; and whether both gave the same matches bit for bit.
 """
 
 from __future__ import annotations
 
 import argparse
+import atexit
+import importlib
+import shutil
+import io
 import statistics
 import subprocess
 import sys
+import tarfile
+import tempfile
 import time
 from pathlib import Path
 
 import torch
 
 from e3cm_bench.files import cpu_info, cpu_isa
-from e3cm_bench.matching import cascade, pipeline
+from e3cm_bench.matching import pipeline
 from e3cm_bench.method import MethodSpec
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_speed import synthetic_pair  # noqa: E402
 
 
-def cascade_of(rev: str) -> dict:
+def pipeline_of(rev: str, folder: Path):
+    """REV's matching/pipeline.py, imported as e3cm_bench_rev.matching.pipeline from `folder`."""
     root = Path(__file__).resolve().parents[1]
-    source = subprocess.run(["git", "-C", str(root), "show", f"{rev}:e3cm_bench/matching/cascade.py"],
-                            capture_output=True, text=True, check=True).stdout
-    namespace = dict(cascade.__dict__)
-    exec(compile(source, f"{rev}:cascade.py", "exec"), namespace)
-    return namespace
+    archive = subprocess.run(["git", "-C", str(root), "archive", rev, "e3cm_bench/matching", "e3cm_bench/geometry.py"],
+                             capture_output=True, check=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(folder, filter="data")
+    package = folder / "e3cm_bench_rev"
+    (folder / "e3cm_bench").rename(package)
+    (package / "__init__.py").write_text("")
+    sys.path.insert(0, str(folder))
+    return importlib.import_module("e3cm_bench_rev.matching.pipeline")
 
 
 def main() -> None:
@@ -44,8 +56,10 @@ def main() -> None:
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
-    earlier = cascade_of(args.against)
-    ways = {args.against: earlier, "current": cascade.__dict__}
+    folder = Path(tempfile.mkdtemp())
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    earlier = pipeline_of(args.against, folder)
+    ways = {args.against: earlier, "current": pipeline}
     torch.manual_seed(0)
     options = {} if args.precision == "fp32" else {"precision": args.precision}
     matcher = MethodSpec.create("e3cm", "vgg19", None, options=options).build("cpu", pretrained=False)
@@ -63,11 +77,8 @@ def main() -> None:
         outputs = {}
         for _ in range(args.repeat + 1):  # the first round warms up
             for name, module in ways.items():
-                pipeline.confidence_scores = module["confidence_scores"]
-                pipeline.unit_pixel_major = module["unit_pixel_major"]
-                outputs[name] = pipeline.match_pyramids(feats0, feats1, (w, h), (w, h), matcher.settings)
+                outputs[name] = module.match_pyramids(feats0, feats1, (w, h), (w, h), matcher.settings)
                 timings[name].append(outputs[name]["timings"])
-        pipeline.confidence_scores, pipeline.unit_pixel_major = cascade.confidence_scores, cascade.unit_pixel_major
         same = all(torch.equal(torch.as_tensor(outputs[args.against][k]), torch.as_tensor(outputs["current"][k]))
                    for k in ("keypoints0", "keypoints1", "scores"))
         seconds = min(backbone)
