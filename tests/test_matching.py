@@ -620,3 +620,14 @@ def test_mutual_diagonal_is_argmax_both_ways_ties_included():
         assert torch.equal(got, want), p
         if p > 1:
             assert want.any() and (~want).any()
+
+
+def test_refine_gather_is_advanced_indexing_on_both_layouts():
+    from e3cm_bench.matching.refine import _gather
+
+    gen = torch.Generator().manual_seed(2)
+    x = torch.randn(1, 24, 50, 70, generator=gen)
+    kids = torch.stack([torch.randint(0, 70, (300, 4), generator=gen), torch.randint(0, 50, (300, 4), generator=gen)], -1)
+    for feat in (x[0], x.contiguous(memory_format=torch.channels_last)[0]):
+        got = _gather(feat, kids)
+        assert got.is_contiguous() and torch.equal(got, feat[:, kids[..., 1], kids[..., 0]])

@@ -83,11 +83,17 @@ def refine_to_children(
 
 
 def _gather(feat: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """C x N x 4: feat[:, cells[..., 1], cells[..., 0]], by index_select on the flattened map
-    (the same values; 5-6x faster than advanced indexing on the CPU)."""
+    """C x N x 4, contiguous: feat[:, cells[..., 1], cells[..., 0]], by index_select on the
+    flattened map (the same values; 5-6x faster than advanced indexing on the CPU). A
+    channels-last map is read by pixel rows, without copying the map."""
     c, _, w = feat.shape
     index = (cells[..., 1] * w + cells[..., 0]).reshape(-1)
-    return feat.reshape(c, -1).index_select(1, index).reshape(c, *cells.shape[:-1])
+    rows = feat.permute(1, 2, 0)
+    if not feat.is_contiguous() and rows.is_contiguous():
+        picked = rows.reshape(-1, c).index_select(0, index).T.contiguous()
+    else:
+        picked = feat.reshape(c, -1).index_select(1, index)
+    return picked.reshape(c, *cells.shape[:-1])
 
 
 def _unique_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
