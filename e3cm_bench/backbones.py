@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .files import file_sha256
-from .matchers.base import PRECISIONS
+from .matchers.base import MEMORY_FORMATS, PRECISIONS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -53,9 +53,10 @@ class BackboneSpec:
     stage1_tap: int | None = None
     # fp32 convolutions in channels_last memory where that is faster (scripts/bench_layout.py,
     # results/perf/layout_fp32.txt: EfficientNet-Lite0 0.68x the NCHW time at 640x480, 0.72x at
-    # 1200x900; VGG19 0.97x / 1.05x, so it stays NCHW, which reproduces the releases' maps bit
-    # for bit). The rounding differs (Lite0 maps at most 1e-9 apart, VGG19 6e-6); the parity
-    # tests pass with either.
+    # 1200x900; VGG19 0.92x and 0.77x once its maps were copied out of channels_last in bands,
+    # channel_first_float). The rounding differs (Lite0 maps at most 1e-9 apart, VGG19 5e-6);
+    # the parity tests pass with either. `memory_format=nchw` gives VGG19 the releases' maps
+    # bit for bit.
     fp32_channels_last: bool = False
 
 
@@ -157,6 +158,7 @@ SPECS: dict[str, BackboneSpec] = {
             weights_enum="VGG19_Weights.IMAGENET1K_V1",
             taps="conv1_2, conv2_2, conv3_2, conv4_2, conv5_3 (pre-ReLU)",
             stage1_tap=8,  # features[22:33][8] = features[30] = conv5_2
+            fp32_channels_last=True,
         ),
         BackboneSpec(
             "densenet161", _tv("densenet161"), _densenet_stages, upsample=2,
@@ -200,11 +202,14 @@ class Backbone(nn.Module):
     """
 
     def __init__(self, spec: BackboneSpec, stages: list[nn.Module], num_levels: int, weights_id: str,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", memory_format: str = "auto"):
         super().__init__()
         if precision not in PRECISIONS:
             raise BackboneError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        if memory_format not in MEMORY_FORMATS:
+            raise BackboneError(f"memory_format must be one of {', '.join(MEMORY_FORMATS)}, got {memory_format!r}")
         self.precision = precision
+        self.layout = memory_format
         self.name = spec.name
         self.spec = spec
         self.num_levels = num_levels
@@ -228,8 +233,10 @@ class Backbone(nn.Module):
 
     @property
     def memory_format(self) -> str:
-        """The convolutions' layout: channels_last under reduced precision and where the spec
-        says it is faster in fp32, else NCHW."""
+        """The convolutions' layout: as set, or (auto) channels_last under reduced precision and
+        where the spec says it is faster in fp32, else NCHW."""
+        if self.layout != "auto":
+            return self.layout
         return "channels_last" if self.precision != "fp32" or self.spec.fp32_channels_last else "nchw"
 
     @property
@@ -282,8 +289,9 @@ class Backbone(nn.Module):
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
         # Reduced precision runs the convolutions under autocast in channels_last, their fast
         # layout on CPU and tensor cores; the maps come out float32. fp32 runs in the layout
-        # the spec names (memory_format): NCHW for VGG19, which reproduces the reference
-        # releases bit for bit (tests/test_parity.py).
+        # the spec names (memory_format): channels_last for VGG19 and Lite0, where it is faster;
+        # memory_format=nchw gives VGG19 the reference releases' maps bit for bit (the parity
+        # tests pass with either, tests/test_parity.py).
         reduced = self.precision != "fp32"
         if self.memory_format == "channels_last":
             x = x.contiguous(memory_format=torch.channels_last)
@@ -304,7 +312,32 @@ class Backbone(nn.Module):
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:
     """A stage output as each image's C x H x W float32 map the matching steps index (C-contiguous)."""
-    return [x[i].float().contiguous() for i in range(len(x))]
+    return [channel_first_float(x[i]) for i in range(len(x))]
+
+
+# Elements of one band of rows in channel_first_float: a few hundred KiB to 1 MiB, which
+# the caches hold (256K elements measured best or within 10% of it at every level of VGG19
+# and Lite0; scripts/bench_maps_copy.py). Maps of at most 4 bands are copied whole.
+COPY_BAND = 1 << 18
+
+
+def channel_first_float(x: torch.Tensor) -> torch.Tensor:
+    """x (C x H x W) as a C-contiguous float32 map: x.float().contiguous(), the same values.
+
+    A channels-last map (what the convolutions give under channels_last) is copied a band of
+    rows at a time: torch's copy between the two layouts reads one side with a stride of C
+    elements, and on a map larger than the CPU's caches that took 2.5-4x as long as copying
+    bands the caches hold (VGG19 bf16 at 1200x900: 1.0 s of each image's pass went to it).
+    The copy and the widening from bf16 or fp16 are exact, so the map is the same bit for bit.
+    """
+    if x.is_contiguous() or x.device.type != "cpu" or x.dim() != 3 or x.numel() <= 4 * COPY_BAND:
+        return x.float().contiguous()  # a small map (Lite0's deepest levels) gains nothing from bands
+    c, h, w = x.shape
+    out = torch.empty(c, h, w, dtype=torch.float32)
+    rows = max(1, COPY_BAND // max(1, c * w))
+    for start in range(0, h, rows):
+        out[:, start : start + rows].copy_(x[:, start : start + rows])
+    return out
 
 
 def _no_inplace(module: nn.Module) -> None:
@@ -372,6 +405,7 @@ def load_backbone(
     num_levels: int = MAX_LEVELS,
     device: str | torch.device = "cpu",
     precision: str = "fp32",
+    memory_format: str = "auto",
 ) -> Backbone:
     """Build a backbone by name.
 
@@ -398,5 +432,5 @@ def load_backbone(
             raise BackboneError(f"{path}: does not fit backbone {name} ({first})") from exc
         weights_id = f"{path} sha256:{file_sha256(path)[:16]}"
     _no_inplace(model)
-    backbone = Backbone(spec, spec.stages(model), num_levels, weights_id, precision)
+    backbone = Backbone(spec, spec.stages(model), num_levels, weights_id, precision, memory_format)
     return backbone.eval().to(device)

@@ -67,6 +67,54 @@ def test_a_batch_of_images_gives_each_the_maps_of_its_own_pass(name, precision):
     assert not torch.equal(batched[0][4], batched[1][4])  # each image its own maps
 
 
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32])
+def test_channel_first_float_is_the_plain_copy_bit_for_bit(dtype, monkeypatch):
+    """The banded copy of a channels-last map gives x.float().contiguous() exactly: every
+    band, the last one short (37 rows in bands of 3), and the widening from 2 bytes."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 24, 37, 53, generator=gen).to(dtype).contiguous(memory_format=torch.channels_last)[0]
+    assert not x.is_contiguous()
+    monkeypatch.setattr(backbones, "COPY_BAND", 3 * 24 * 53)  # 12 bands of 3 rows and 1 of 1
+    got = backbones.channel_first_float(x)
+    assert got.dtype == torch.float32 and got.is_contiguous()
+    assert torch.equal(got, x.float().contiguous())
+    # A map already C-contiguous is widened as before (no copy where it is float32 already).
+    flat = torch.randn(8, 5, 7, generator=gen)
+    assert backbones.channel_first_float(flat) is flat
+
+
+@pytest.mark.parametrize("name,precision", [("vgg19", "bf16"), ("efficientnet_lite0", "fp32")])
+def test_channels_last_passes_give_c_contiguous_maps_equal_to_the_plain_copy(name, precision, image, monkeypatch):
+    """The maps of a channels_last pass (VGG19 in bf16, Lite0 in fp32) are those of the plain
+    copy bit for bit, C-contiguous float32, as the matching steps index them."""
+    torch.manual_seed(0)
+    bb = load_backbone(name, pretrained=False, precision=precision)
+    assert bb.memory_format == "channels_last"
+    banded = bb(image)
+    monkeypatch.setattr(backbones, "_maps", lambda x: [x[i].float().contiguous() for i in range(len(x))])
+    plain = bb(image)
+    for a, b in zip(banded, plain):
+        assert a.dtype == torch.float32 and a.is_contiguous()
+        assert torch.equal(a, b)
+
+
+def test_memory_format_setting(image):
+    """VGG19's fp32 passes run channels_last by default (faster once its maps are copied out in
+    bands); memory_format=nchw runs them as the releases do. The maps agree to rounding."""
+    torch.manual_seed(0)
+    default = load_backbone("vgg19", pretrained=False)
+    nchw = load_backbone("vgg19", pretrained=False, memory_format="nchw")
+    nchw.load_state_dict(default.state_dict())
+    assert default.memory_format == "channels_last" and nchw.memory_format == "nchw"
+    assert default.describe()["memory_format"] == "channels_last"
+    for a, b in zip(default(image), nchw(image)):
+        assert a.is_contiguous() and b.is_contiguous()
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+    assert load_backbone("vgg19", pretrained=False, precision="bf16", memory_format="nchw").memory_format == "nchw"
+    with pytest.raises(BackboneError, match="memory_format must be one of auto, nchw, channels_last"):
+        load_backbone("vgg19", pretrained=False, memory_format="nhwc")
+
+
 def test_num_levels_truncates_the_network(image):
     full = load_backbone("efficientnet_lite0")
     three = load_backbone("efficientnet_lite0", num_levels=3)

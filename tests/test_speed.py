@@ -150,3 +150,17 @@ def test_bench_batch_prints_and_writes_its_figures(tmp_path: Path):
     rows = list(csv.DictReader(out.open()))
     assert len(rows) == 1 and rows[0]["batch"] == "2" and float(rows[0]["largest difference"]) < 1e-4
     assert float(rows[0]["one by one s/image"]) > 0 and float(rows[0]["batched s/image"]) > 0
+
+
+def test_bench_maps_copy_prints_equal_copies_per_level():
+    """scripts/bench_maps_copy.py on a small case whose level 0 (16 x 240 x 320, over 1M
+    elements) takes the banded copy: a line per level, each copy equal to torch's bit for bit,
+    and the whole pass timed both ways."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_maps_copy.py"
+    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--precision", "bf16",
+                          "--size", "320x240", "--repeat", "1"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    levels = [line for line in run.stdout.splitlines() if " level " in line]
+    assert len(levels) == 5 and all(line.endswith("bit for bit equal: True") for line in levels), run.stdout
+    assert "level 0 (16, 240, 320) bfloat16" in levels[0]
+    assert "whole pass of one image: plain copy" in run.stdout

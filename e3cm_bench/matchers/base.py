@@ -18,6 +18,7 @@ from ..matches import Matches
 # AVX-512 BF16 / AMX and recent GPUs, fp16 on GPUs: autocast).
 CHANNEL_ORDERS = ("rgb", "bgr")
 PRECISIONS = ("fp32", "bf16", "fp16")
+MEMORY_FORMATS = ("auto", "nchw", "channels_last")
 
 
 class Matcher:
@@ -50,6 +51,10 @@ class BackboneSettings:
     num_levels: int = 5
     channel_order: str = "rgb"
     precision: str = "fp32"
+    # The convolutions' memory layout: auto = channels_last where measured faster (every
+    # backbone in bf16 / fp16; VGG19 and Lite0 in fp32), else nchw. nchw gives VGG19 the
+    # releases' maps bit for bit; channels_last rounds differently (maps 5e-6 apart).
+    memory_format: str = "auto"
 
     def __post_init__(self) -> None:
         levels = self.num_levels
@@ -59,6 +64,8 @@ class BackboneSettings:
             raise ValueError(f"channel_order must be rgb or bgr, got {self.channel_order!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be fp32, bf16 or fp16, got {self.precision!r}")
+        if self.memory_format not in MEMORY_FORMATS:
+            raise ValueError(f"memory_format must be auto, nchw or channels_last, got {self.memory_format!r}")
 
 
 BACKBONE_SETTINGS = tuple(f.name for f in dataclasses.fields(BackboneSettings))

@@ -132,11 +132,13 @@ def build_matcher(
 
     net_settings = BackboneSettings(**net_settings)
     check_device(device)
-    key = (backbone, str(weights), pretrained, device, net_settings.num_levels, net_settings.precision)
+    key = (backbone, str(weights), pretrained, device, net_settings.num_levels, net_settings.precision,
+           net_settings.memory_format)
     net = None if loaded is None else loaded.get(key)
     if net is None:
         net = load_backbone(backbone, weights=weights, pretrained=pretrained, device=device,
-                            num_levels=net_settings.num_levels, precision=net_settings.precision)
+                            num_levels=net_settings.num_levels, precision=net_settings.precision,
+                            memory_format=net_settings.memory_format)
         if loaded is not None:
             loaded[key] = net
     return entry.build(instance, net=net, channel_order=net_settings.channel_order)
