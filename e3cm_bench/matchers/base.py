@@ -53,7 +53,7 @@ class BackboneSettings:
     precision: str = "fp32"
     # The convolutions' memory layout: auto = channels_last where measured faster (every
     # backbone in bf16 / fp16; VGG19 and Lite0 in fp32), else nchw. nchw gives VGG19 the
-    # releases' maps bit for bit; channels_last rounds differently (maps 5e-6 apart).
+    # releases' maps bit for bit; channels_last rounds differently (maps up to 6e-6 apart).
     memory_format: str = "auto"
 
     def __post_init__(self) -> None:
