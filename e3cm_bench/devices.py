@@ -32,12 +32,14 @@ def is_out_of_memory(error: BaseException) -> bool:
 
 
 def available_host_memory() -> int | None:
-    """Bytes of host memory available for new allocations (Linux MemAvailable); None where it cannot be read."""
+    """Bytes of host memory available for new allocations: Linux's MemAvailable, plus what this
+    process's malloc holds free for reuse where keep_freed_memory keeps it; None where
+    MemAvailable cannot be read."""
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    return int(line.split()[1]) * 1024 + kept_free_bytes()
     except OSError:
         pass
     return None
@@ -80,3 +82,73 @@ def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:
         return "bf16", (f"this CPU has no native bf16 (AVX-512 BF16 or AMX): bf16 will be emulated, measured "
                         f"{EMULATED_BF16_SLOWDOWN:.1f}x slower than fp32 on such a CPU; --precision fp32 or auto is faster here")
     return precision, None
+
+
+# glibc's mallopt parameters (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+ALLOCATOR_VARIABLE = "E3CM_BENCH_ALLOCATOR"
+_allocator: str | None = None
+
+
+def keep_freed_memory() -> str:
+    """Have glibc's malloc keep freed memory for the next allocation instead of giving it back to
+    the system; returns what the process's allocator does now (config.yaml's
+    ``environment.allocator``).
+
+    torch's CPU tensors come from malloc, and glibc serves each block above its mmap threshold
+    (at most 32 MiB: a feature map, a convolution's output) with a fresh mmap and unmaps it
+    when freed: the next pass touches new pages, and the kernel zeroes each one on a page
+    fault. On this project's machine that was up to a quarter of a VGG19 pass
+    (scripts/bench_allocator.py, docs/speed.md). With mmap off (M_MMAP_MAX 0) and the heap
+    never trimmed, the pages of one pass serve the next. The values computed are the same (a
+    test compares the matches); the process keeps its peak memory until it exits.
+    Idempotent; E3CM_BENCH_ALLOCATOR=system leaves the allocator as it is; a C library other
+    than glibc is left as it is.
+    """
+    global _allocator
+    if _allocator is not None:
+        return _allocator
+    import ctypes
+    import os
+    import platform
+
+    if os.environ.get(ALLOCATOR_VARIABLE, "").strip().lower() == "system":
+        _allocator = f"system ({ALLOCATOR_VARIABLE}=system)"
+        return _allocator
+    libc_name, _ = platform.libc_ver()
+    if libc_name != "glibc":
+        _allocator = f"system ({libc_name or 'not glibc'})"
+        return _allocator
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        kept = libc.mallopt(_M_MMAP_MAX, 0) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1
+    except (OSError, AttributeError):
+        kept = False
+    _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim)" if kept else "system (mallopt failed)"
+    return _allocator
+
+
+def allocator() -> str:
+    """What keep_freed_memory made of this process's allocator ("system" if it was not called)."""
+    return _allocator or "system"
+
+
+def kept_free_bytes() -> int:
+    """Bytes this process's malloc holds free for reuse (glibc's mallinfo2 fordblks) where
+    keep_freed_memory keeps them, else 0: memory the system no longer counts as available
+    although the next tensors take it first."""
+    if not (_allocator or "").startswith("glibc"):
+        return 0
+    import ctypes
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in
+                    ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                     "keepcost")]
+
+    try:
+        mallinfo2 = ctypes.CDLL("libc.so.6").mallinfo2  # glibc 2.33 and later
+    except (OSError, AttributeError):
+        return 0
+    mallinfo2.restype = MallInfo2
+    return int(mallinfo2().fordblks)

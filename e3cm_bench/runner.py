@@ -27,7 +27,7 @@ from rich.text import Text
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import BLOCK_PAIRS, MatchCache
 from .datasets.base import Pair, PairList
-from .devices import check_device, is_out_of_memory
+from .devices import allocator, check_device, is_out_of_memory, keep_freed_memory
 from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
 from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
@@ -531,6 +531,7 @@ def _run_folders(
     evaluate and report each."""
     if viz < 0:
         raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
+    keep_freed_memory()  # a run's passes reuse the pages of the one before (docs/speed.md); recorded in config.yaml
     with ExitStack() as locks:
         opened = []
         for out, method in runs:
@@ -635,7 +636,7 @@ def _open_run(
         # Where the numbers were made (this stage's, like versions); neither is part of the
         # identity that decides whether a folder may be resumed (_previous_config).
         "versions": package_versions(),
-        "environment": run_environment(),
+        "environment": {**run_environment(), "allocator": allocator()},
         "timing": (previous or {}).get("timing", {}),
     }
     if (previous or {}).get("feature_reuse"):  # counts of earlier stages; add_stats adds this one's

@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import resource
 import shutil
 import statistics
 import sys
@@ -49,6 +50,7 @@ from rich.console import Console
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import load_image
+from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import match_stage
@@ -101,7 +103,11 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--backbone-batch", type=int, default=None, help="images per backbone pass (default: the run's)")
+    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
+                        help="keep: glibc keeps freed memory for reuse, as `e3cm-bench yfcc` does "
+                             "(devices.keep_freed_memory); system: the C library's default")
     args = parser.parse_args()
+    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
     w, h = (int(v) for v in args.size.split("x"))
     graph = read_pair_graph(args.pairs)
     scenes = list(dict.fromkeys(a.split("/")[0] for a, _ in graph))[: args.scenes]
@@ -110,14 +116,15 @@ def main() -> None:
     cpu, isa = cpu_info()[0], cpu_isa()
     print(f"block: {', '.join(scenes)} of {args.pairs}: {len(block)} pairs, {len(images)} images; stand-ins {w}x{h}; "
           f"VGG19 random weights (seed 0); precision {args.precision}; CPU {cpu} ({isa}); torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads" + (f"; device {args.device}: {gpu_name(args.device)}"
+          f"{torch.get_num_threads()} threads; allocator {allocator}" + (f"; device {args.device}: {gpu_name(args.device)}"
                                                   if args.device != "cpu" else ""))
     work = Path(tempfile.mkdtemp(prefix="bench_benchmark_"))
     try:
         result = run(args, block, (w, h), work)
     finally:
         shutil.rmtree(work, ignore_errors=True)  # the weights and stand-ins
-    result.update(pairs_file=str(args.pairs), scenes=scenes, cpu=cpu, cpu_isa=isa, torch=torch.__version__,
+    result.update(pairs_file=str(args.pairs), scenes=scenes, cpu=cpu, cpu_isa=isa, torch=torch.__version__, allocator=allocator,
+                  peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   threads=torch.get_num_threads(), device=args.device,
                   gpu=gpu_name(args.device) if args.device != "cpu" else None)
     if args.json:

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 
+from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import pipeline
 from e3cm_bench.method import MethodSpec
@@ -55,7 +56,10 @@ def main() -> None:
     parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16"))
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
+                        help="keep: freed memory kept for reuse, as in a run (devices.keep_freed_memory)")
     args = parser.parse_args()
+    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
     folder = Path(tempfile.mkdtemp())
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
     earlier = pipeline_of(args.against, folder)
@@ -64,7 +68,7 @@ def main() -> None:
     options = {} if args.precision == "fp32" else {"precision": args.precision}
     matcher = MethodSpec.create("e3cm", "vgg19", None, options=options).build("cpu", pretrained=False)
     print(f"CPU {cpu_info()[0]} ({cpu_isa()}); torch {torch.__version__}, {torch.get_num_threads()} threads; "
-          f"e3cm, VGG19 (random weights, seed 0), {args.precision}; median of {args.repeat}")
+          f"e3cm, VGG19 (random weights, seed 0), {args.precision}; median of {args.repeat}; allocator {allocator}")
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         image0, image1 = synthetic_pair(w, h)

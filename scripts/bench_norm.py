@@ -18,6 +18,7 @@ import time
 
 import torch
 
+from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
 
@@ -31,9 +32,12 @@ def main() -> None:
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--channels", type=int, default=64, help="64: VGG19's level 0")
     parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
+                        help="keep: freed memory kept for reuse, as in a run (devices.keep_freed_memory)")
     args = parser.parse_args()
+    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
     print(f"CPU {cpu_info()[0]} ({cpu_isa()}); torch {torch.__version__}, {torch.get_num_threads()} threads; "
-          f"{args.channels} channels, fp32; median of {args.repeat}")
+          f"{args.channels} channels, fp32; median of {args.repeat}; allocator {allocator}")
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         feat = torch.randn(args.channels, h, w, generator=torch.Generator().manual_seed(0)).relu_()

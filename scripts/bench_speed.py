@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import torch
 
+from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.synth.textures import demo_homography, procedural_scene
@@ -93,7 +94,11 @@ def main() -> None:
     parser.add_argument("--weights", default=None)
     parser.add_argument("--compare-release", type=Path, default=None)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
+                        help="keep: glibc keeps freed memory for reuse, as a benchmark run does "
+                             "(devices.keep_freed_memory); system: the C library's default")
     args = parser.parse_args()
+    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
     sizes = args.size or ["640x480", "1200x900"]
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
@@ -113,7 +118,7 @@ def main() -> None:
         release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
     cpu = f"{cpu_info()[0]} ({cpu_isa()})"
     print(f"{spec.describe()}; backbone weights {matcher.backbone.weights_id}; precision {args.precision}; "
-          f"device {args.device}; CPU {cpu}; torch threads {torch.get_num_threads()}")
+          f"device {args.device}; CPU {cpu}; torch threads {torch.get_num_threads()}; allocator {allocator}")
 
     result, per_size = {}, []
     for size in sizes:
@@ -143,7 +148,7 @@ def main() -> None:
             "size": size, "matcher": args.matcher, "backbone": args.backbone, "matches": len(m),
             "backbone_s": statistics.median(backbones), "total_s": statistics.median(totals),
             "stages_s": {k: statistics.median(v) for k, v in stages.items()},
-            "device": args.device, "precision": args.precision,
+            "device": args.device, "precision": args.precision, "allocator": allocator,
         }
         result["overhead_ratio"] = result["total_s"] / result["backbone_s"]
         line = (f"{args.matcher} {size}: {len(m)} matches; total {result['total_s']:.2f} s, backbone alone "

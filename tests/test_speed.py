@@ -54,6 +54,10 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     run_benchmark(hp, tmp_path / "reuse", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3)
     config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
     assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
+    import platform
+
+    if platform.libc_ver()[0] == "glibc":  # a run keeps freed memory for its next pass, and says so
+        assert config["environment"]["allocator"] == "glibc, freed memory kept (M_MMAP_MAX=0, no trim)"
 
     run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
                   feature_cache_mb=0)
@@ -164,3 +168,89 @@ def test_bench_maps_copy_prints_equal_copies_per_level():
     assert len(levels) == 5 and all(line.endswith("bit for bit equal: True") for line in levels), run.stdout
     assert "level 0 (16, 240, 320) bfloat16" in levels[0]
     assert "whole pass of one image: plain copy" in run.stdout
+
+
+def test_bench_norm_prints_equal_norms():
+    """scripts/bench_norm.py on a small map (the banded path taken): equal bit for bit, and the
+    allocator it ran with named."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_norm.py"
+    run = subprocess.run([sys.executable, str(script), "--size", "320x240", "--repeat", "1"], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert "; allocator glibc, freed memory kept" in lines[0] or "; allocator system" in lines[0]
+    assert lines[1].startswith("320x240: torch norm") and "bit for bit equal: True; fast path taken: True" in lines[1]
+
+
+ALLOCATOR_SCRIPT = r"""
+import cv2, hashlib, json, torch
+from e3cm_bench import devices
+from e3cm_bench.method import MethodSpec
+from e3cm_bench.synth.textures import demo_homography, procedural_scene
+
+torch.manual_seed(0)
+matcher = MethodSpec.create("e3cm", "vgg19").build("cpu", pretrained=False)
+image0 = procedural_scene((320, 240))
+image1 = cv2.warpPerspective(image0, demo_homography((320, 240)), (320, 240), borderMode=cv2.BORDER_REFLECT)
+
+def digest():
+    m = matcher.match(image0, image1)
+    return len(m), hashlib.sha256(m.keypoints0.tobytes() + m.keypoints1.tobytes() + m.scores.tobytes()).hexdigest()
+
+before = [digest(), digest()]
+allocator = devices.keep_freed_memory()
+after = [digest(), digest()]  # the second pass of each reuses the pages the first freed
+block = torch.ones(50_000_000)  # 200 MB, freed: kept for reuse, and counted as available
+del block
+print(json.dumps({"allocator": allocator, "again": devices.keep_freed_memory(), "before": before, "after": after,
+                  "kept_free": devices.kept_free_bytes()}))
+"""
+
+
+def run_allocator_script(env: dict | None = None) -> dict:
+    import json
+    import os
+
+    done = subprocess.run([sys.executable, "-c", ALLOCATOR_SCRIPT], capture_output=True, text=True, check=True,
+                          env={**os.environ, **(env or {})})
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_keeping_freed_memory_changes_no_match():
+    """glibc keeping freed memory (devices.keep_freed_memory, which every run turns on) gives the
+    same matches to the bit as the system's allocator (VGG19, random weights, in a fresh process)."""
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("keep_freed_memory tunes glibc's malloc only; this C library is left as it is")
+    out = run_allocator_script({"E3CM_BENCH_ALLOCATOR": ""})
+    assert out["allocator"].startswith("glibc, freed memory kept") and out["again"] == out["allocator"]
+    assert out["before"][0][0] > 100  # a real set of matches
+    assert out["before"][0] == out["before"][1] == out["after"][0] == out["after"][1]
+    assert out["kept_free"] >= 200_000_000  # what available_host_memory adds to MemAvailable
+
+
+def test_keeping_freed_memory_can_be_turned_off():
+    out = run_allocator_script({"E3CM_BENCH_ALLOCATOR": "system"})
+    assert out["allocator"] == "system (E3CM_BENCH_ALLOCATOR=system)"
+    assert out["before"] == out["after"] and out["kept_free"] == 0
+
+
+def test_bench_allocator_alternates_and_matches_equal(tmp_path):
+    """scripts/bench_allocator.py on a small pair: both settings timed in one process, the
+    matches equal bit for bit, and a CSV row per size."""
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("bench_allocator.py compares glibc's settings")
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_allocator.py"
+    table = tmp_path / "allocator.csv"
+    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--precision", "fp32",
+                          "--size", "160x120", "--repeat", "1", "--csv", str(table)], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    line = next(line for line in run.stdout.splitlines() if line.startswith("160x120:"))
+    assert "pair default" in line and "keep / default" in line and line.endswith("bit for bit equal: True")
+    rows = list(csv.reader(table.open()))
+    assert rows[0][:2] == ["backbone, precision", "size"] and rows[1][:2] == ["efficientnet_lite0, fp32", "160x120"]
+    assert rows[1][8] == "yes"
