@@ -610,10 +610,12 @@ def test_mutual_diagonal_is_argmax_both_ways_ties_included():
     from e3cm_bench.matching.cascade import _mutual_diagonal
 
     gen = torch.Generator().manual_seed(11)
-    for p in (1, 4, 16, 64):
-        # Values on a coarse grid, so that rows and columns often hold equal maxima.
+    for p in (1, 2, 4, 16, 64, 256):
+        # Values on a coarse grid, so that rows and columns often hold equal maxima (on the
+        # coarsest, most entries equal the maximum of their row), and some patches without ties.
         sim = (torch.rand(40, p, p, generator=gen) * 6).round() / 6
-        sim[:5] = torch.rand(5, p, p, generator=gen)  # and some patches without ties
+        sim[20:30] = (torch.rand(10, p, p, generator=gen) * 1.2).round()
+        sim[:5] = torch.rand(5, p, p, generator=gen)
         index = torch.arange(p)
         want = (sim.argmax(dim=2) == index) & (sim.argmax(dim=1) == index)
         got = _mutual_diagonal(sim.clone())

@@ -112,8 +112,10 @@ def _mutual_diagonal(sim: torch.Tensor) -> torch.Tensor:
 
     argmax is slow on the CPU; a maximum is not. Entry i is the argmax of its row when it
     beats every other entry of the row, and not when another beats it. Where another equals
-    it, argmax's rule (the first of equals) decides, so patches with such a tie take argmax.
-    sim is modified (its diagonal is set to -inf).
+    it, argmax's rule (the first of equals) decides: entry i is the argmax when it beats every
+    entry before it and is at least every entry after it. Patches with such a tie take those
+    two maxima per row and per column, from the parts of the matrix below and above the
+    diagonal. sim is modified (its diagonal is set to -inf).
     """
     diag = sim.diagonal(dim1=1, dim2=2)
     own = diag.clone()
@@ -123,10 +125,16 @@ def _mutual_diagonal(sim: torch.Tensor) -> torch.Tensor:
     tied = ((own == row_other) | (own == col_other)).any(1)
     if tied.any():
         rows = tied.nonzero().flatten()
-        sub = sim[rows]
-        sub.diagonal(dim1=1, dim2=2).copy_(own[rows])
-        index = torch.arange(sim.shape[1], device=sim.device)
-        mutual[rows] = (sub.argmax(dim=2) == index) & (sub.argmax(dim=1) == index)
+        below = sim[rows]  # a copy (diagonal -inf), made the part below the diagonal next
+        upper = torch.ones(sim.shape[1], sim.shape[1], dtype=torch.bool, device=sim.device).triu_(1)
+        above = below.masked_fill(upper.T, -torch.inf)  # entries (r, c) with c > r
+        below.masked_fill_(upper, -torch.inf)  # entries (r, c) with c < r
+        o = own[rows]
+        # Row i: the entries before i lie below the diagonal, those after it above.
+        # Column i: the entries before i (rows r < i) lie above it, those after it below.
+        row_first = (o > below.amax(dim=2)) & (o >= above.amax(dim=2))
+        col_first = (o > above.amax(dim=1)) & (o >= below.amax(dim=1))
+        mutual[rows] = row_first & col_first
     return mutual
 
 
