@@ -21,6 +21,7 @@ from .cache import MatchCache
 from .calibration import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
 from .datasets.base import Pair
 from .datasets.stereo import StereoSequence, load_stereo_sequence
+from .devices import allocator, keep_freed_memory
 from .files import FolderLock, load_yaml, package_versions, read_csv, save_yaml, write_csv, yaml_plain
 from .images import load_image
 from .method import MethodSpec, identity_changes
@@ -97,6 +98,7 @@ def run_calibration(
     sequence = load_stereo_sequence(root, unrectified)
     if max(settings.frames) > len(sequence):
         raise ValueError(f"{sequence.root}: {len(sequence)} frames, fewer than a window of {max(settings.frames)}")
+    keep_freed_memory()  # as every benchmark run does (runner._run_folders; docs/speed.md)
     height, width = load_image(sequence.left[0]).shape[:2]
     pairs = [Pair(f"{i:06d}", left, right) for i, (left, right) in enumerate(zip(sequence.left, sequence.right))]
     out = Path(out)
@@ -119,7 +121,7 @@ def run_calibration(
         with FolderLock(run_dir):
             config = {"command": "calibrate", "method": method.label, "identity": method.identity(),
                       "sequence": sequence.describe(), "calibration": asdict(settings), "device": device,
-                      "versions": package_versions()}
+                      "versions": package_versions(), "allocator": allocator()}
             path = run_dir / CONFIG_FILE
             if path.is_file() and not overwrite:
                 before = load_yaml(path)

@@ -3,7 +3,7 @@ against the E3CM release's per-pair loop.
 
     python scripts/bench_benchmark.py --pairs ../shared/data/yfcc_test_pairs_with_gt.txt \
         --scenes 1 --size 640x480 --precision fp32 --compare-release PATH [--release-sample 24] [--json]
-        [--device cuda --backbone-batch 8]
+        [--device cuda --backbone-batch 8] [--allocator keep|system]
 
 The block: the first --scenes scenes of the list, whole (YFCC100M: 1000 pairs per scene,
 buckingham_palace first), in the list's order. The photos are replaced by synthetic
@@ -25,7 +25,9 @@ what ImageNet ones do.
 Prints measured figures only, with the CPU model and its instruction set (and the GPU's name
 with --device cuda); `--json` ends with
 one JSON object (pairs, distinct_images, passes, passes_per_image, ours_pairs_per_min,
-release_pairs_per_min, speedup, precision, cpu, cpu_isa, ...).
+release_pairs_per_min, speedup, precision, cpu, cpu_isa, allocator, peak_rss_mb, ...).
+`--allocator keep` (the default) keeps freed memory for reuse as `e3cm-bench yfcc` does
+(devices.keep_freed_memory), for the release's loop in the same process too.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
     python scripts/bench_speed.py --backbone vgg19 --size 1200x900 --repeat 2 --precision fp32 \
         [--matcher e3cm] [--random-weights | --weights FILE] [--device cpu] [--json] \
-        [--compare-release PATH]
+        [--compare-release PATH] [--allocator keep|system]
 
 Each size is matched once to warm up, then `--repeat` times; medians are reported. Random
 weights cost the same as ImageNet ones (only the match counts differ). With
@@ -11,7 +11,9 @@ the release's `match_large_img` + `refinement_pose_ransac` runs on the same imag
 same weights, alternating with ours in this process. `--json` ends the output with one JSON
 object: backbone_s, total_s, overhead_ratio (total_s / backbone_s), release_s, peak_rss_mb,
 device, precision and the stage medians of the last size, and the same for every size under
-"sizes" (peak_rss_mb is the process's peak over all sizes).
+"sizes" (peak_rss_mb is the process's peak over all sizes). `--allocator keep` (the default)
+keeps freed memory for reuse as a run does (devices.keep_freed_memory; the release, in the
+same process, runs under it too); `system` leaves the C library's default.
 """
 
 from __future__ import annotations
