@@ -1,6 +1,12 @@
-"""Where a model runs: checking a --device, and telling an allocator's failure from a bug."""
+"""Where a model runs: checking a --device, telling an allocator's failure from a bug, the
+precision a device computes natively, and glibc keeping freed memory for the next pass."""
 
 from __future__ import annotations
+
+import ctypes
+import functools
+import os
+import platform
 
 
 def check_device(device: str) -> str:
@@ -87,7 +93,24 @@ def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:
 # glibc's mallopt parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
 ALLOCATOR_VARIABLE = "E3CM_BENCH_ALLOCATOR"
-_allocator: str | None = None
+_allocator: str | None = None  # what keep_freed_memory found or made; None until it is called
+_kept = False  # whether glibc now keeps freed memory
+
+
+class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (2.33 and later)
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
+@functools.lru_cache(maxsize=1)
+def _glibc() -> ctypes.CDLL | None:
+    """The C library when it is glibc (the one this process runs on), else None."""
+    if platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
 
 
 def keep_freed_memory() -> str:
@@ -105,26 +128,21 @@ def keep_freed_memory() -> str:
     Idempotent; E3CM_BENCH_ALLOCATOR=system leaves the allocator as it is; a C library other
     than glibc is left as it is.
     """
-    global _allocator
+    global _allocator, _kept
     if _allocator is not None:
         return _allocator
-    import ctypes
-    import os
-    import platform
-
     if os.environ.get(ALLOCATOR_VARIABLE, "").strip().lower() == "system":
         _allocator = f"system ({ALLOCATOR_VARIABLE}=system)"
-        return _allocator
-    libc_name, _ = platform.libc_ver()
-    if libc_name != "glibc":
-        _allocator = f"system ({libc_name or 'not glibc'})"
-        return _allocator
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        kept = libc.mallopt(_M_MMAP_MAX, 0) == 1 and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1
-    except (OSError, AttributeError):
-        kept = False
-    _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim)" if kept else "system (mallopt failed)"
+    elif platform.libc_ver()[0] != "glibc":
+        _allocator = f"system ({platform.libc_ver()[0] or 'not glibc'})"
+    else:
+        libc = _glibc()
+        try:
+            _kept = (libc is not None and libc.mallopt(_M_MMAP_MAX, 0) == 1
+                     and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1)
+        except AttributeError:
+            _kept = False
+        _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim)" if _kept else "system (mallopt failed)"
     return _allocator
 
 
@@ -137,18 +155,8 @@ def kept_free_bytes() -> int:
     """Bytes this process's malloc holds free for reuse (glibc's mallinfo2 fordblks) where
     keep_freed_memory keeps them, else 0: memory the system no longer counts as available
     although the next tensors take it first."""
-    if not (_allocator or "").startswith("glibc"):
+    mallinfo2 = getattr(_glibc(), "mallinfo2", None) if _kept else None  # glibc 2.33 and later
+    if mallinfo2 is None:
         return 0
-    import ctypes
-
-    class MallInfo2(ctypes.Structure):
-        _fields_ = [(name, ctypes.c_size_t) for name in
-                    ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
-                     "keepcost")]
-
-    try:
-        mallinfo2 = ctypes.CDLL("libc.so.6").mallinfo2  # glibc 2.33 and later
-    except (OSError, AttributeError):
-        return 0
-    mallinfo2.restype = MallInfo2
+    mallinfo2.restype = _MallInfo2
     return int(mallinfo2().fordblks)

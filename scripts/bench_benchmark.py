@@ -52,14 +52,13 @@ from rich.console import Console
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import load_image
-from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import match_stage
 from e3cm_bench.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import ReleaseRunner  # noqa: E402 - the release loader lives with the per-pair benchmark
+from bench_speed import ReleaseRunner, add_allocator_option, use_allocator  # noqa: E402 - the release loader lives with the per-pair benchmark
 
 
 def read_pair_graph(path: Path) -> list[tuple[str, str]]:
@@ -105,11 +104,9 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--backbone-batch", type=int, default=None, help="images per backbone pass (default: the run's)")
-    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
-                        help="keep: glibc keeps freed memory for reuse, as `e3cm-bench yfcc` does "
-                             "(devices.keep_freed_memory); system: the C library's default")
+    add_allocator_option(parser)
     args = parser.parse_args()
-    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
+    allocator = use_allocator(args.allocator)
     w, h = (int(v) for v in args.size.split("x"))
     graph = read_pair_graph(args.pairs)
     scenes = list(dict.fromkeys(a.split("/")[0] for a, _ in graph))[: args.scenes]

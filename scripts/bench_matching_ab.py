@@ -27,13 +27,12 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import pipeline
 from e3cm_bench.method import MethodSpec
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_speed import synthetic_pair  # noqa: E402
+from bench_speed import add_allocator_option, synthetic_pair, use_allocator  # noqa: E402
 
 
 def pipeline_of(rev: str, folder: Path):
@@ -56,10 +55,9 @@ def main() -> None:
     parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16"))
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
-                        help="keep: freed memory kept for reuse, as in a run (devices.keep_freed_memory)")
+    add_allocator_option(parser)
     args = parser.parse_args()
-    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
+    allocator = use_allocator(args.allocator)
     folder = Path(tempfile.mkdtemp())
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
     earlier = pipeline_of(args.against, folder)

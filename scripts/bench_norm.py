@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from e3cm_bench.devices import keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_speed import add_allocator_option, use_allocator  # noqa: E402 - the speed scripts' --allocator
 
 
 def torch_norm(feat: torch.Tensor) -> torch.Tensor:
@@ -32,10 +36,9 @@ def main() -> None:
     parser.add_argument("--size", action="append", default=None)
     parser.add_argument("--channels", type=int, default=64, help="64: VGG19's level 0")
     parser.add_argument("--repeat", type=int, default=5)
-    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
-                        help="keep: freed memory kept for reuse, as in a run (devices.keep_freed_memory)")
+    add_allocator_option(parser)
     args = parser.parse_args()
-    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
+    allocator = use_allocator(args.allocator)
     print(f"CPU {cpu_info()[0]} ({cpu_isa()}); torch {torch.__version__}, {torch.get_num_threads()} threads; "
           f"{args.channels} channels, fp32; median of {args.repeat}; allocator {allocator}")
     for size in args.size or ["640x480", "1200x900"]:

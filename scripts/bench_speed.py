@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import torch
 
-from e3cm_bench.devices import keep_freed_memory
+from e3cm_bench.devices import allocator, keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.synth.textures import demo_homography, procedural_scene
@@ -40,6 +40,18 @@ def synthetic_pair(w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
     image0 = procedural_scene((w, h))
     image1 = cv2.warpPerspective(image0, demo_homography((w, h)), (w, h), borderMode=cv2.BORDER_REFLECT)
     return image0, image1
+
+
+def add_allocator_option(parser: argparse.ArgumentParser) -> None:
+    """--allocator keep|system, shared by the speed scripts."""
+    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
+                        help="keep: glibc keeps freed memory for reuse, as a run does (devices.keep_freed_memory); "
+                             "system: the C library's default")
+
+
+def use_allocator(choice: str) -> str:
+    """Apply --allocator; returns what the process's allocator does (printed beside the figures)."""
+    return keep_freed_memory() if choice == "keep" else allocator()
 
 
 def peak_memory_mb(device: str) -> float:
@@ -96,11 +108,9 @@ def main() -> None:
     parser.add_argument("--weights", default=None)
     parser.add_argument("--compare-release", type=Path, default=None)
     parser.add_argument("--json", action="store_true")
-    parser.add_argument("--allocator", default="keep", choices=("keep", "system"),
-                        help="keep: glibc keeps freed memory for reuse, as a benchmark run does "
-                             "(devices.keep_freed_memory); system: the C library's default")
+    add_allocator_option(parser)
     args = parser.parse_args()
-    allocator = keep_freed_memory() if args.allocator == "keep" else "system"
+    allocator_used = use_allocator(args.allocator)
     sizes = args.size or ["640x480", "1200x900"]
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
@@ -120,7 +130,7 @@ def main() -> None:
         release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
     cpu = f"{cpu_info()[0]} ({cpu_isa()})"
     print(f"{spec.describe()}; backbone weights {matcher.backbone.weights_id}; precision {args.precision}; "
-          f"device {args.device}; CPU {cpu}; torch threads {torch.get_num_threads()}; allocator {allocator}")
+          f"device {args.device}; CPU {cpu}; torch threads {torch.get_num_threads()}; allocator {allocator_used}")
 
     result, per_size = {}, []
     for size in sizes:
@@ -150,7 +160,7 @@ def main() -> None:
             "size": size, "matcher": args.matcher, "backbone": args.backbone, "matches": len(m),
             "backbone_s": statistics.median(backbones), "total_s": statistics.median(totals),
             "stages_s": {k: statistics.median(v) for k, v in stages.items()},
-            "device": args.device, "precision": args.precision, "allocator": allocator,
+            "device": args.device, "precision": args.precision, "allocator": allocator_used,
         }
         result["overhead_ratio"] = result["total_s"] / result["backbone_s"]
         line = (f"{args.matcher} {size}: {len(m)} matches; total {result['total_s']:.2f} s, backbone alone "

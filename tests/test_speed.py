@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import csv
+import json
+import os
+import platform
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -19,6 +22,8 @@ from e3cm_bench.images import ImageError
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import decoded_ahead, run_benchmark, run_methods
 from helpers import assert_same_arrays
+
+GLIBC = platform.libc_ver()[0] == "glibc"  # keep_freed_memory tunes glibc's malloc only
 
 
 def test_decoded_ahead_yields_each_pairs_images_and_its_own_error(tmp_path: Path):
@@ -54,9 +59,7 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     run_benchmark(hp, tmp_path / "reuse", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3)
     config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
     assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
-    import platform
-
-    if platform.libc_ver()[0] == "glibc":  # a run keeps freed memory for its next pass, and says so
+    if GLIBC:  # a run keeps freed memory for its next pass, and says so
         assert config["environment"]["allocator"] == "glibc, freed memory kept (M_MMAP_MAX=0, no trim)"
 
     run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
@@ -208,9 +211,6 @@ print(json.dumps({"allocator": allocator, "again": devices.keep_freed_memory(), 
 
 
 def run_allocator_script(env: dict | None = None) -> dict:
-    import json
-    import os
-
     done = subprocess.run([sys.executable, "-c", ALLOCATOR_SCRIPT], capture_output=True, text=True, check=True,
                           env={**os.environ, **(env or {})})
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -219,9 +219,7 @@ def run_allocator_script(env: dict | None = None) -> dict:
 def test_keeping_freed_memory_changes_no_match():
     """glibc keeping freed memory (devices.keep_freed_memory, which every run turns on) gives the
     same matches to the bit as the system's allocator (VGG19, random weights, in a fresh process)."""
-    import platform
-
-    if platform.libc_ver()[0] != "glibc":
+    if not GLIBC:
         pytest.skip("keep_freed_memory tunes glibc's malloc only; this C library is left as it is")
     out = run_allocator_script({"E3CM_BENCH_ALLOCATOR": ""})
     assert out["allocator"].startswith("glibc, freed memory kept") and out["again"] == out["allocator"]
@@ -239,9 +237,7 @@ def test_keeping_freed_memory_can_be_turned_off():
 def test_bench_allocator_alternates_and_matches_equal(tmp_path):
     """scripts/bench_allocator.py on a small pair: both settings timed in one process, the
     matches equal bit for bit, and a CSV row per size."""
-    import platform
-
-    if platform.libc_ver()[0] != "glibc":
+    if not GLIBC:
         pytest.skip("bench_allocator.py compares glibc's settings")
     script = Path(__file__).resolve().parents[1] / "scripts" / "bench_allocator.py"
     table = tmp_path / "allocator.csv"
