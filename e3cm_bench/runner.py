@@ -409,6 +409,23 @@ def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark,
     return previous
 
 
+# Settings a matcher resolves when it is built, not in the identity: `auto` there may resolve
+# otherwise in another version (VGG19's fp32 layout became channels_last), and the maps with it.
+RESOLVED_AT_BUILD = ("memory_format",)
+
+
+def _check_resolved(before: dict | None, now: dict, path: Path) -> None:
+    """Refuse to resume a folder whose matches were made with a setting that resolved otherwise
+    (recorded in its config.yaml `matcher`; records without it are not checked)."""
+    changed = [f"{key} {before[key]} -> {now[key]}" for key in RESOLVED_AT_BUILD
+               if before and key in before and key in now and before[key] != now[key]]
+    if changed:
+        raise ValueError(
+            f"{path}: the matches in this folder were made with the backbone run otherwise ({', '.join(changed)}; "
+            "the maps round differently); pass --overwrite to replace them or choose another --out"
+        )
+
+
 def _clear(out: Path) -> None:
     MatchCache(out / CACHE_FILE).clear()
     for name in (CONFIG_FILE, "per_pair.csv", "summary.csv", "skipped.csv"):
@@ -566,7 +583,10 @@ class _OpenRun:
         def record_matcher(matcher: Matcher) -> None:
             # what the matcher says of itself (a plugin's object may have no config())
             describe = getattr(matcher, "config", None)
-            self.config["matcher"] = describe() if callable(describe) else {"matcher": getattr(matcher, "name", type(matcher).__name__)}
+            now = describe() if callable(describe) else {"matcher": getattr(matcher, "name", type(matcher).__name__)}
+            if len(self.todo) < len(self.pairs):  # resuming: the folder holds matches already
+                _check_resolved(self.config.get("matcher"), now, self.out / CONFIG_FILE)
+            self.config["matcher"] = now
             save_yaml(self.config, self.out / CONFIG_FILE)
 
         return MatchJob(self.method, self.todo, self.cache, self.skipped if self.skip_bad else None, record_matcher)

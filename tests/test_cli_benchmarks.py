@@ -482,6 +482,27 @@ def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp
     assert_same_results(out, kitti_reference)
 
 
+def test_a_folder_whose_layout_resolved_otherwise_is_not_resumed(megadepth_root, kitti_npz, tmp_path):
+    """memory_format auto is resolved when the backbone is built (not in the identity): a folder
+    whose recorded layout differs from today's resolution is refused, its matches kept; a
+    record that names no layout (before the setting existed) resumes."""
+    out = tmp_path / "run"
+    ok(*kitti_args(megadepth_root, kitti_npz, out, 2))
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["matcher"]["memory_format"] == "channels_last"  # Lite0's fp32 default
+    config["matcher"]["memory_format"] = "nchw"  # as if made where auto meant nchw
+    (out / "config.yaml").write_text(yaml.safe_dump(config))
+    line = one_line_error(invoke(*kitti_args(megadepth_root, kitti_npz, out, 4)))
+    assert "config.yaml" in line and "memory_format nchw -> channels_last" in line and "--overwrite" in line
+    assert len(MatchCache(out / "matches.h5").names()) == 2
+    assert yaml.safe_load((out / "config.yaml").read_text())["matcher"]["memory_format"] == "nchw"
+
+    del config["matcher"]["memory_format"]
+    (out / "config.yaml").write_text(yaml.safe_dump(config))
+    ok(*kitti_args(megadepth_root, kitti_npz, out, 4))
+    assert len(MatchCache(out / "matches.h5").names()) == 4
+
+
 def test_a_folder_from_an_older_version_is_not_resumed(hpatches_run, hpatches_root, tmp_path):
     _, source = hpatches_run
     out = tmp_path / "run"
