@@ -58,6 +58,14 @@ def test_demo_pair(tmp_path, monkeypatch):
     assert accuracy > 70
     times = re.search(r"time per stage \(s\): (.*)", text)
     assert times, text
+    # The command keeps freed memory for its second pass, as a run does, and says so.
+    import os
+    import platform
+
+    if platform.libc_ver()[0] == "glibc" and os.environ.get("E3CM_BENCH_ALLOCATOR") != "system":
+        assert "allocator: glibc, freed memory kept" in text, text
+    else:
+        assert "allocator: system" in text, text
     stages = times.group(1)
     for stage in ("model load", "backbone", "initial", "refine", "cascade"):
         assert re.search(rf"{stage}\S* \d+\.\d{{3}}", stages), (stage, stages)
