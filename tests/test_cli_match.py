@@ -6,6 +6,8 @@ Measured numbers (torch 2.15 CPU, opencv 5.0) are noted next to their margins.
 
 from __future__ import annotations
 
+import os
+import platform
 import re
 import subprocess
 import sys
@@ -59,9 +61,6 @@ def test_demo_pair(tmp_path, monkeypatch):
     times = re.search(r"time per stage \(s\): (.*)", text)
     assert times, text
     # The command keeps freed memory for its second pass, as a run does, and says so.
-    import os
-    import platform
-
     if platform.libc_ver()[0] == "glibc" and os.environ.get("E3CM_BENCH_ALLOCATOR") != "system":
         assert "allocator: glibc, freed memory kept" in text, text
     else:
