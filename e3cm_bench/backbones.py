@@ -216,6 +216,8 @@ class Backbone(nn.Module):
         self.upsample = spec.upsample
         self.weights_id = weights_id
         self.stages = nn.ModuleList(stages[:num_levels])
+        if precision != "fp32":
+            cast_weights(self.stages, REDUCED_DTYPES[precision])
         self.register_buffer("mean", torch.tensor(spec.mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(spec.std).view(1, 3, 1, 1), persistent=False)
 
@@ -288,14 +290,15 @@ class Backbone(nn.Module):
         if self.upsample > 1:
             x = F.interpolate(x, scale_factor=self.upsample, mode="bilinear", align_corners=False)
         # Reduced precision runs the convolutions under autocast in channels_last, their fast
-        # layout on CPU and tensor cores; the maps come out float32. fp32 runs in the layout
-        # the spec names (memory_format): channels_last for VGG19 and Lite0, where it is faster;
+        # layout on CPU and tensor cores, on weights stored in that precision (cast_weights);
+        # the maps come out float32. fp32 runs in the layout the spec names (memory_format):
+        # channels_last for VGG19 and Lite0, where it is faster;
         # memory_format=nchw gives VGG19 the reference releases' maps bit for bit (the parity
         # tests pass with either, tests/test_parity.py).
         reduced = self.precision != "fp32"
         if self.memory_format == "channels_last":
             x = x.contiguous(memory_format=torch.channels_last)
-        dtype = torch.bfloat16 if self.precision == "bf16" else torch.float16
+        dtype = REDUCED_DTYPES.get(self.precision)
         features, extra = [], None
         with torch.autocast(x.device.type, dtype=dtype, enabled=reduced):
             for i, stage in enumerate(self.stages):
@@ -308,6 +311,27 @@ class Backbone(nn.Module):
                     x = stage(x)
                 features.append(_maps(x))
         return [list(maps) for maps in zip(*features)], extra
+
+
+REDUCED_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def cast_weights(module: nn.Module, dtype: torch.dtype) -> int:
+    """Store the weights and biases of the convolutions (and linear layers) in `dtype`, once.
+
+    Autocast casts them to that dtype at every call, and the cast of a tensor already in it
+    is the tensor itself, so the passes compute the same bits; a VGG19 pass no longer reads
+    and converts its 18M float32 weights (scripts/bench_weight_cast.py), and they take half
+    the memory. Normalisation layers keep float32 parameters, as autocast leaves
+    them. Returns the number of values cast."""
+    n = 0
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            for param in (m.weight, m.bias):
+                if param is not None and param.dtype != dtype:
+                    param.data = param.data.to(dtype)
+                    n += param.numel()
+    return n
 
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import torch
 
+from e3cm_bench.backbones import load_backbone
 from e3cm_bench.devices import allocator, keep_freed_memory
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
@@ -125,7 +126,11 @@ def main() -> None:
         import torchvision
 
         full = torchvision.models.vgg19(weights=None)
-        ours = {f"features.{k}": v for stage in matcher.backbone.stages for k, v in stage.state_dict().items()}
+        stages = matcher.backbone.stages
+        if args.precision != "fp32":  # its weights are stored in that precision: take the float32 ones
+            torch.manual_seed(0)
+            stages = load_backbone(args.backbone, args.weights, pretrained=not args.random_weights).stages
+        ours = {f"features.{k}": v for stage in stages for k, v in stage.state_dict().items()}
         full.load_state_dict({**full.state_dict(), **ours})
         release = ReleaseRunner(args.compare_release, full.state_dict(), args.device)
     cpu = f"{cpu_info()[0]} ({cpu_isa()})"

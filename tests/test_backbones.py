@@ -83,6 +83,26 @@ def test_channel_first_float_is_the_plain_copy_bit_for_bit(dtype, monkeypatch):
     assert backbones.channel_first_float(flat) is flat
 
 
+@pytest.mark.parametrize("name,precision", [("vgg19", "bf16"), ("efficientnet_lite0", "bf16"),
+                                            ("efficientnet_lite0", "fp16")])
+def test_weights_cast_once_give_the_maps_of_casting_them_at_each_pass(name, precision, image, monkeypatch):
+    """A reduced-precision backbone stores its convolutions' weights in that precision when it
+    is built (normalisation layers stay float32); its maps are those of leaving them float32
+    for autocast to cast at every pass, bit for bit."""
+    dtype = backbones.REDUCED_DTYPES[precision]
+    torch.manual_seed(0)
+    once = load_backbone(name, pretrained=False, precision=precision)
+    monkeypatch.setattr(backbones, "cast_weights", lambda module, to: 0)
+    torch.manual_seed(0)
+    each = load_backbone(name, pretrained=False, precision=precision)
+    convs = [m for m in once.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert convs and all(m.weight.dtype == dtype for m in convs)
+    assert all(p.dtype == torch.float32 for m in once.modules() if isinstance(m, torch.nn.BatchNorm2d)
+               for p in m.parameters())
+    assert all(p.dtype == torch.float32 for p in each.parameters())
+    assert all(torch.equal(a, b) for a, b in zip(once(image), each(image)))
+
+
 @pytest.mark.parametrize("name,precision", [("vgg19", "bf16"), ("efficientnet_lite0", "fp32")])
 def test_channels_last_passes_give_c_contiguous_maps_equal_to_the_plain_copy(name, precision, image, monkeypatch):
     """The maps of a channels_last pass (VGG19 in bf16, Lite0 in fp32) are those of the plain

@@ -173,6 +173,17 @@ def test_bench_maps_copy_prints_equal_copies_per_level():
     assert "whole pass of one image: plain copy" in run.stdout
 
 
+def test_bench_weight_cast_prints_equal_maps():
+    """scripts/bench_weight_cast.py on a small case: the weights cast once give the maps of
+    casting them at every pass, bit for bit."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_weight_cast.py"
+    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--size", "128x96",
+                          "--repeat", "1"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    line = run.stdout.splitlines()[1]
+    assert line.startswith("efficientnet_lite0 bf16 128x96 (") and line.endswith("bit for bit equal: True"), run.stdout
+
+
 def test_bench_norm_prints_equal_norms():
     """scripts/bench_norm.py on a small map (the banded path taken): equal bit for bit, and the
     allocator it ran with named."""
