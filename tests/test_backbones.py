@@ -8,6 +8,7 @@ import math
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -116,6 +117,40 @@ def test_channels_last_passes_give_c_contiguous_maps_equal_to_the_plain_copy(nam
     for a, b in zip(banded, plain):
         assert a.dtype == torch.float32 and a.is_contiguous()
         assert torch.equal(a, b)
+
+
+def test_channels_last_strides_are_those_of_a_fresh_channels_last_tensor():
+    """backbones.channels_last: an image made from an H x W x 3 array (batch stride 3), which
+    torch's layout guess takes for NCHW, is copied to the strides of a fresh channels_last
+    tensor; a tensor that has them already is handed back as it is."""
+    from e3cm_bench.matchers.deep import image_to_tensor
+
+    array = (np.arange(16 * 32 * 3) % 251).astype(np.uint8).reshape(16, 32, 3)
+    odd = image_to_tensor(array, "cpu")
+    assert odd.is_contiguous(memory_format=torch.channels_last) and odd.stride(0) == 3
+    assert odd.contiguous(memory_format=torch.channels_last).stride(0) == 3  # why that is not enough
+    fixed = backbones.channels_last(odd)
+    assert fixed.stride() == (3 * 16 * 32, 1, 32 * 3, 3) and torch.equal(fixed, odd)
+    assert backbones.channels_last(fixed) is fixed
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_an_unpadded_image_made_from_an_array_runs_in_channels_last(precision):
+    """VGG19 on an image that needs no padding (64 x 48), made as the matchers make it
+    (image_to_tensor): its convolutions run in channels_last (their outputs are
+    channels-last), as the layout setting says."""
+    from e3cm_bench.matchers.deep import image_to_tensor
+
+    torch.manual_seed(0)
+    bb = load_backbone("vgg19", pretrained=False, precision=precision, num_levels=2)
+    assert bb.memory_format == "channels_last"
+    outputs = []
+    hook = bb.stages[0][0].register_forward_hook(lambda module, args, out: outputs.append(out))
+    try:
+        bb(image_to_tensor(np.full((48, 64, 3), 128, np.uint8), "cpu"))
+    finally:
+        hook.remove()
+    assert outputs[0].is_contiguous(memory_format=torch.channels_last) and not outputs[0].is_contiguous()
 
 
 def test_memory_format_setting(image):
