@@ -14,14 +14,20 @@ whole passes of one image with the plain copy and with the banded one, alternati
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
 from e3cm_bench import backbones
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_speed import alternate  # noqa: E402 - the speed scripts' side-by-side timing
 
 
 def plain(x: torch.Tensor) -> torch.Tensor:
@@ -65,14 +71,9 @@ def main() -> None:
                     backbones._maps = banded_maps
                 total = {"plain": 0.0, "banded": 0.0}
                 for level, x in enumerate(outputs):
-                    seconds = {"plain": [], "banded": []}
-                    copies = {}
-                    for _ in range(args.repeat + 1):  # the first round warms up
-                        for way, copy in (("plain", plain), ("banded", backbones.channel_first_float)):
-                            t = time.perf_counter()
-                            copies[way] = copy(x)
-                            seconds[way].append(time.perf_counter() - t)
-                    old, new = median_ms(seconds["plain"][1:]), median_ms(seconds["banded"][1:])
+                    medians, copies = alternate({"plain": functools.partial(plain, x),
+                                                 "banded": functools.partial(backbones.channel_first_float, x)}, args.repeat)
+                    old, new = 1000 * medians["plain"], 1000 * medians["banded"]
                     total["plain"] += old
                     total["banded"] += new
                     print(f"{name} {precision} {size} level {level} {tuple(x.shape)} {str(x.dtype)[6:]}: "

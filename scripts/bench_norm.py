@@ -13,9 +13,7 @@ equal bit for bit are printed.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -24,7 +22,7 @@ from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import add_allocator_option, use_allocator  # noqa: E402 - the speed scripts' --allocator
+from bench_speed import add_allocator_option, alternate, use_allocator  # noqa: E402 - the speed scripts' helpers
 
 
 def torch_norm(feat: torch.Tensor) -> torch.Tensor:
@@ -44,15 +42,9 @@ def main() -> None:
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         feat = torch.randn(args.channels, h, w, generator=torch.Generator().manual_seed(0)).relu_()
-        ways = {"torch norm": torch_norm, "banded": norms.banded_norm}
-        seconds = {k: [] for k in ways}
-        outputs = {}
-        for _ in range(args.repeat + 1):  # the first round warms up (and runs the bit check)
-            for name, norm in ways.items():
-                t = time.perf_counter()
-                outputs[name] = norm(feat)
-                seconds[name].append(time.perf_counter() - t)
-        old, new = (statistics.median(seconds[k][1:]) for k in ways)
+        medians, outputs = alternate({"torch norm": lambda: torch_norm(feat), "banded": lambda: norms.banded_norm(feat)},
+                                     args.repeat)
+        old, new = medians["torch norm"], medians["banded"]
         same = torch.equal(outputs["torch norm"], outputs["banded"])
         print(f"{size}: torch norm {old * 1000:.1f} ms, banded {new * 1000:.1f} ms, banded / torch {new / old:.2f}; "
               f"bit for bit equal: {same}; fast path taken: {norms.banded_is_exact(feat)}", flush=True)

@@ -55,6 +55,19 @@ def use_allocator(choice: str) -> str:
     return keep_freed_memory() if choice == "keep" else allocator()
 
 
+def alternate(ways: dict, repeat: int) -> tuple[dict[str, float], dict]:
+    """Call each of `ways` (name -> function of nothing) in turn, repeat + 1 rounds, the first
+    a warm-up: each way's median seconds over the later rounds, and its last output."""
+    seconds: dict[str, list[float]] = {name: [] for name in ways}
+    outputs = {}
+    for _ in range(repeat + 1):
+        for name, run in ways.items():
+            t = time.perf_counter()
+            outputs[name] = run()
+            seconds[name].append(time.perf_counter() - t)
+    return {name: statistics.median(times[1:]) for name, times in seconds.items()}, outputs
+
+
 def peak_memory_mb(device: str) -> float:
     if device.startswith("cuda"):
         return torch.cuda.max_memory_allocated() / 2**20

@@ -14,9 +14,8 @@ the maps are equal bit for bit.
 from __future__ import annotations
 
 import argparse
-import statistics
+import functools
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -26,14 +25,14 @@ from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matchers.deep import image_to_tensor
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_speed import add_allocator_option, synthetic_pair, use_allocator  # noqa: E402
+from bench_speed import add_allocator_option, alternate, synthetic_pair, use_allocator  # noqa: E402
 
 
 def build(name: str, precision: str, cast: bool) -> backbones.Backbone:
     torch.manual_seed(0)  # the same random draw for both
     real = backbones.cast_weights
     if not cast:
-        backbones.cast_weights = lambda module, dtype: 0
+        backbones.cast_weights = lambda module, dtype: None
     try:
         return backbones.load_backbone(name, pretrained=False, precision=precision)
     finally:
@@ -59,14 +58,9 @@ def main() -> None:
             for size in args.size or ["640x480", "1200x900"]:
                 w, h = (int(v) for v in size.split("x"))
                 image = image_to_tensor(synthetic_pair(w, h)[0], "cpu")
-                seconds = {way: [] for way in ways}
-                maps = {}
-                for _ in range(args.repeat + 1):  # the first round warms up
-                    for way, backbone in ways.items():
-                        t = time.perf_counter()
-                        maps[way] = backbone(image)
-                        seconds[way].append(time.perf_counter() - t)
-                each, once = (1000 * statistics.median(seconds[way][1:]) for way in ways)
+                medians, maps = alternate({way: functools.partial(backbone, image) for way, backbone in ways.items()},
+                                          args.repeat)
+                each, once = (1000 * medians[way] for way in ways)
                 same = all(torch.equal(a, b) for a, b in zip(maps["each pass"], maps["once"]))
                 print(f"{name} {precision} {size} ({cast / 1e6:.1f}M values cast): cast at each pass {each:.0f} ms, "
                       f"once {once:.0f} ms, once / each {once / each:.3f}; bit for bit equal: {same}", flush=True)
