@@ -332,22 +332,18 @@ def channels_last(x: torch.Tensor) -> torch.Tensor:
     return torch.empty_like(x, memory_format=torch.channels_last).copy_(x)
 
 
-def cast_weights(module: nn.Module, dtype: torch.dtype) -> int:
+def cast_weights(module: nn.Module, dtype: torch.dtype) -> None:
     """Store the weights and biases of the convolutions (and linear layers) in `dtype`, once.
 
     Autocast casts them to that dtype at every call, and the cast of a tensor already in it
     is the tensor itself, so the passes compute the same bits; a VGG19 pass no longer reads
     and converts its 18M float32 weights (scripts/bench_weight_cast.py), and they take half
-    the memory. Normalisation layers keep float32 parameters, as autocast leaves
-    them. Returns the number of values cast."""
-    n = 0
+    the memory. Normalisation layers keep float32 parameters, as autocast leaves them."""
     for m in module.modules():
         if isinstance(m, (nn.Conv2d, nn.Linear)):
             for param in (m.weight, m.bias):
                 if param is not None and param.dtype != dtype:
                     param.data = param.data.to(dtype)
-                    n += param.numel()
-    return n
 
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:

@@ -93,7 +93,7 @@ def test_weights_cast_once_give_the_maps_of_casting_them_at_each_pass(name, prec
     dtype = backbones.REDUCED_DTYPES[precision]
     torch.manual_seed(0)
     once = load_backbone(name, pretrained=False, precision=precision)
-    monkeypatch.setattr(backbones, "cast_weights", lambda module, to: 0)
+    monkeypatch.setattr(backbones, "cast_weights", lambda module, to: None)
     torch.manual_seed(0)
     each = load_backbone(name, pretrained=False, precision=precision)
     convs = [m for m in once.modules() if isinstance(m, torch.nn.Conv2d)]
