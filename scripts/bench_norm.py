@@ -1,10 +1,10 @@
-"""Channel norms of a feature map: torch's norm against the banded sum (matching/norms.py), side by side.
+"""Channel norms of a feature map: torch's norm against the ordered sum (matching/norms.py), side by side.
 
     python scripts/bench_norm.py [--size 640x480 --size 1200x900] [--channels 64] [--repeat 5]
 
 The top-8 and PROSAC cascades normalise level 0 whole for their confidence score
 (`unit_pixel_major`); the deepest level and the children read by refinement are normalised
-too. `norms.channel_norm` computes the norm with `norms.banded_norm` where that gives torch's
+too. `norms.channel_norm` computes the norm with `norms.ordered_norm` where that gives torch's
 bits, else with torch's `Tensor.norm`. For each size, the two alternate on the same random
 map (ReLU'd, as a backbone's map is); medians, their ratio, and whether the outputs are
 equal bit for bit are printed.
@@ -42,12 +42,12 @@ def main() -> None:
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         feat = torch.randn(args.channels, h, w, generator=torch.Generator().manual_seed(0)).relu_()
-        medians, outputs = alternate({"torch norm": lambda: torch_norm(feat), "banded": lambda: norms.banded_norm(feat)},
+        medians, outputs = alternate({"torch norm": lambda: torch_norm(feat), "ordered": lambda: norms.ordered_norm(feat)},
                                      args.repeat)
-        old, new = medians["torch norm"], medians["banded"]
-        same = torch.equal(outputs["torch norm"], outputs["banded"])
-        print(f"{size}: torch norm {old * 1000:.1f} ms, banded {new * 1000:.1f} ms, banded / torch {new / old:.2f}; "
-              f"bit for bit equal: {same}; fast path taken: {norms.banded_is_exact(feat)}", flush=True)
+        old, new = medians["torch norm"], medians["ordered"]
+        same = torch.equal(outputs["torch norm"], outputs["ordered"])
+        print(f"{size}: torch norm {old * 1000:.1f} ms, ordered {new * 1000:.1f} ms, ordered / torch {new / old:.2f}; "
+              f"bit for bit equal: {same}; fast path taken: {norms.ordered_is_exact(feat)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -584,25 +584,25 @@ def test_channel_norm_is_torchs_norm_bit_for_bit(monkeypatch):
     from e3cm_bench.matching import norms
 
     gen = torch.Generator().manual_seed(5)
-    # Sizes around the band and torch's parallel grain, and a gather's C x N x 4; a
-    # channels-last map, a float64 one and a small one take torch's norm.
+    # Sizes around torch's parallel grain, and a gather's C x N x 4; a channels-last map, a
+    # float64 one and a small one take torch's norm.
     for shape in ((64, 37, 153), (64, 120, 160), (16, 33, 517), (128, 7, 700), (512, 3001, 4)):
         raw = torch.randn(*shape, generator=gen).relu_() * 7
         raw[:, 1, 2] = 0
-        assert norms.banded_is_exact(raw), shape
-        assert torch.equal(norms.banded_norm(raw), raw.norm(2, 0, keepdim=True)), shape
+        assert norms.ordered_is_exact(raw), shape
+        assert torch.equal(norms.ordered_norm(raw), raw.norm(2, 0, keepdim=True)), shape
         assert torch.equal(norms.normalize_channels(raw), F.normalize(raw, dim=0)), shape
         assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))), shape
     for other in (pixel_major(torch.randn(64, 80, 90, generator=gen)), torch.randn(64, 80, 90, dtype=torch.float64),
                   torch.randn(64, 20, 30, generator=gen)):
-        assert not norms.banded_is_exact(other)
+        assert not norms.ordered_is_exact(other)
         assert torch.equal(norms.normalize_channels(other), F.normalize(other, dim=0))
 
-    # Where the banded sum would not give torch's bits, the probe says so and torch's norm is used.
+    # Where the ordered sum would not give torch's bits, the probe says so and torch's norm is used.
     monkeypatch.setattr(norms, "_checked", {})
-    monkeypatch.setattr(norms, "banded_norm", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
+    monkeypatch.setattr(norms, "ordered_norm", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
     raw = torch.randn(64, 37, 153, generator=gen).relu_()
-    assert not norms.banded_is_exact(raw)
+    assert not norms.ordered_is_exact(raw)
     assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0)))
 
 
