@@ -633,3 +633,24 @@ def test_refine_gather_is_advanced_indexing_on_both_layouts():
     for feat in (x[0], x.contiguous(memory_format=torch.channels_last)[0]):
         got = _gather(feat, kids)
         assert got.is_contiguous() and torch.equal(got, feat[:, kids[..., 1], kids[..., 0]])
+
+
+def test_first_of_each_is_that_of_torch_unique_over_rows():
+    from e3cm_bench.matching.refine import first_of_each, row_keys
+
+    def reference(rows):
+        uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)
+        first = torch.full((len(uniq),), len(rows), dtype=torch.long)
+        return first.scatter_reduce_(0, inverse, torch.arange(len(rows)), reduce="amin")
+
+    gen = torch.Generator().manual_seed(11)
+    cases = [torch.randint(0, 5, (300, 4), generator=gen),  # many repeats
+             torch.randint(-40, 1600, (5000, 4), generator=gen),  # negative cells, level-0 ranges
+             torch.randint(0, 7, (50, 2), generator=gen).repeat(3, 1),
+             torch.tensor([[3, 1]]),
+             torch.tensor([[0, 2**40], [2**40, 0], [0, 2**40]])]  # a span past 2^62: torch.unique itself
+    for rows in cases:
+        assert torch.equal(first_of_each(rows), reference(rows)), rows.shape
+    assert row_keys(cases[-1]) is None and row_keys(cases[0].float()) is None
+    rows = cases[1].tolist()  # the keys sort as the rows do, lexicographically
+    assert torch.argsort(row_keys(cases[1]), stable=True).tolist() == sorted(range(len(rows)), key=lambda i: rows[i])

@@ -106,6 +106,28 @@ def first_of_each(rows: torch.Tensor) -> torch.Tensor:
     """Index of the first occurrence of each distinct row, in sorted row order (torch.unique's)."""
     if len(rows) == 0:
         return torch.zeros(0, dtype=torch.long, device=rows.device)
-    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    keys = row_keys(rows)
+    # torch.unique over rows (dim=0) compares them one pair at a time on the CPU: 26 ms for
+    # 40,000 rows of 4 cells, a tenth of a pair's refinement at 1200x900. One integer per row
+    # sorts the same way and takes a fraction of that.
+    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True) if keys is None else torch.unique(keys, return_inverse=True)
     first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
     return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
+
+
+def row_keys(rows: torch.Tensor) -> torch.Tensor | None:
+    """One int64 per row of an N x k integer tensor, in the rows' lexicographic order (equal
+    rows, equal keys): each column minus its least value, as the digits of a number whose
+    k-th digit runs to that column's range. None where the rows are not integers or the
+    number could pass 2^62."""
+    if rows.is_floating_point() or rows.is_complex() or rows.dim() != 2:
+        return None
+    low = rows.amin(0)
+    spans = (rows.amax(0) - low + 1).tolist()
+    if any(span <= 0 for span in spans) or torch.tensor(spans, dtype=torch.float64).prod() >= 2.0**62:
+        return None
+    digits = (rows - low).long()
+    keys = digits[:, 0].clone()
+    for col in range(1, rows.shape[1]):
+        keys.mul_(spans[col]).add_(digits[:, col])
+    return keys
