@@ -246,7 +246,8 @@ class Backbone(nn.Module):
         return 2 ** (self.num_levels - 1)
 
     # Peak memory of matching a pair, in multiples of its two pyramids: the activations
-    # alive during a pass, the pyramids themselves and the matcher's normalised copies.
+    # alive during a pass, the pyramids themselves and what the matcher keeps beside them
+    # (normalised levels, level-0 pixel rows).
     # Measured: VGG19 fp32 on a 1600 x 1200 pair peaked at 5.5 GB RSS (weights included)
     # with 1.9 GB of pyramids (docs/speed.md "Speed").
     PEAK_PER_PYRAMID = 3.0
@@ -273,15 +274,27 @@ class Backbone(nn.Module):
         return self._pyramids(images, None)[0]
 
     @torch.inference_mode()
+    def forward_with_rows(self, images: torch.Tensor) -> tuple[list[list[torch.Tensor]], list[torch.Tensor | None]]:
+        """forward_batch(images), and each image's level 0 as (H W) x C pixel rows as the
+        convolutions wrote them: under channels_last a pixel's channels are already one row, in
+        the precision the backbone computes (bf16 rows widen to the float32 map exactly); no
+        copy for one image. None in NCHW. The confidence score reads level 0 by pixels
+        (matching/cascade.py): these rows spare it a transposed copy of the map."""
+        maps, _, rows = self._pyramids(images, None, rows=True)
+        return maps, rows
+
+    @torch.inference_mode()
     def pyramid(self, image: torch.Tensor, stage1_tap: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
         """The L maps, and with stage1_tap the map DFM's stage 1 starts from (None where the
         backbone has no such tap or fewer than 5 levels are used)."""
         tap = self.spec.stage1_tap if stage1_tap and self.num_levels == MAX_LEVELS else None
-        maps, extra = self._pyramids(image[:1], tap)
+        maps, extra, _ = self._pyramids(image[:1], tap)
         return maps[0], None if extra is None else extra[0]
 
-    def _pyramids(self, image: torch.Tensor, tap: int | None) -> tuple[list[list[torch.Tensor]], list[torch.Tensor] | None]:
-        """Each image's L maps, and each one's map at module `tap` of the last stage (None: none)."""
+    def _pyramids(self, image: torch.Tensor, tap: int | None, rows: bool = False) -> tuple[
+            list[list[torch.Tensor]], list[torch.Tensor] | None, list[torch.Tensor | None] | None]:
+        """Each image's L maps, each one's map at module `tap` of the last stage (None: none),
+        and with `rows` each one's level-0 pixel rows (forward_with_rows; else None)."""
         h, w = image.shape[-2:]
         s = self.deepest_stride
         x = (image - self.mean) / self.std
@@ -299,7 +312,7 @@ class Backbone(nn.Module):
         if self.memory_format == "channels_last":
             x = channels_last(x)
         dtype = REDUCED_DTYPES.get(self.precision)
-        features, extra = [], None
+        features, extra, level0_rows = [], None, None
         with torch.autocast(x.device.type, dtype=dtype, enabled=reduced):
             for i, stage in enumerate(self.stages):
                 if tap is not None and i == len(self.stages) - 1:
@@ -310,7 +323,9 @@ class Backbone(nn.Module):
                 else:
                     x = stage(x)
                 features.append(_maps(x))
-        return [list(maps) for maps in zip(*features)], extra
+                if i == 0 and rows:
+                    level0_rows = pixel_rows(x)
+        return [list(maps) for maps in zip(*features)], extra, level0_rows
 
 
 REDUCED_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
@@ -344,6 +359,17 @@ def cast_weights(module: nn.Module, dtype: torch.dtype) -> None:
             for param in (m.weight, m.bias):
                 if param is not None and param.dtype != dtype:
                     param.data = param.data.to(dtype)
+
+
+def pixel_rows(x: torch.Tensor) -> list[torch.Tensor | None]:
+    """Each image of a stage output (N x C x H x W) as (H W) x C rows where it is channels-last
+    (views for one image; copies for a batch, so that one image's rows do not hold the
+    batch's output), else None."""
+    n, c = x.shape[:2]
+    if x.stride(1) != 1 or not x[0].permute(1, 2, 0).is_contiguous():
+        return [None] * n
+    return [x[i].permute(1, 2, 0).reshape(-1, c) if n == 1 else x[i].permute(1, 2, 0).reshape(-1, c).clone()
+            for i in range(n)]
 
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:

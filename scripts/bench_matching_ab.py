@@ -6,6 +6,9 @@
 backbone runs once per size; then match_pyramids runs on the same pyramids, alternating
 between the matching package of revision REV (e3cm_bench/matching and geometry.py, read with
 `git archive` into a temporary folder and imported under another name) and the current one.
+Both get the matcher's memo (DeepMatcher.image_product, without a feature cache): what a
+revision asks of it by name is computed, except the level-0 pixel rows the backbone's pass
+kept, which the current code reads instead of a normalised copy of level 0.
 For each it prints the median time after the backbone, over the backbone's own time, with
 the stages; and whether both gave the same matches bit for bit.
 """
@@ -79,7 +82,8 @@ def main() -> None:
         outputs = {}
         for _ in range(args.repeat + 1):  # the first round warms up
             for name, module in ways.items():
-                outputs[name] = module.match_pyramids(feats0, feats1, (w, h), (w, h), matcher.settings)
+                outputs[name] = module.match_pyramids(feats0, feats1, (w, h), (w, h), matcher.settings,
+                                                      memo=matcher.image_product)
                 timings[name].append(outputs[name]["timings"])
         same = all(torch.equal(torch.as_tensor(outputs[args.against][k]), torch.as_tensor(outputs["current"][k]))
                    for k in ("keypoints0", "keypoints1", "scores"))

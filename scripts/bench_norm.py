@@ -2,9 +2,9 @@
 
     python scripts/bench_norm.py [--size 640x480 --size 1200x900] [--channels 64] [--repeat 5]
 
-The top-8 and PROSAC cascades normalise level 0 whole for their confidence score
-(`unit_pixel_major`); the deepest level and the children read by refinement are normalised
-too. `norms.channel_norm` computes the norm with `norms.ordered_norm` where that gives torch's
+The top-8 and PROSAC cascades take the channel norms of level 0 whole for their confidence
+score (`cascade.pixel_norms`); the deepest level and the children read by refinement are
+normalised too. `norms.channel_norm` computes the norm with `norms.ordered_norm` where that gives torch's
 bits, else with torch's `Tensor.norm`. For each size, the two alternate on the same random
 map (ReLU'd, as a backbone's map is); medians, their ratio, and whether the outputs are
 equal bit for bit are printed.

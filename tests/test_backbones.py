@@ -320,3 +320,28 @@ def test_torchvision_weights_download_then_cache(tmp_path, monkeypatch):
     expected_path = empty_home / "hub" / "checkpoints" / filename
     assert_one_line(err, str(expected_path), "--weights", name, url)
     assert not expected_path.exists()
+
+
+@pytest.mark.parametrize("name,precision", [("vgg19", "bf16"), ("vgg19", "fp32"), ("efficientnet_lite0", "fp16")])
+def test_level0_rows_are_the_pass_own_channels_last_pixels(name, precision):
+    """forward_with_rows: each image's level 0 as (H W) x C rows, in the precision the
+    convolutions computed, widening to its float32 map exactly; each holding its own image's
+    rows only (a batch's are copied out of its output); none where the pass ran in NCHW."""
+    torch.manual_seed(0)
+    bb = load_backbone(name, pretrained=False, precision=precision)
+    assert bb.memory_format == "channels_last"
+    images = torch.rand(2, 3, H, W, generator=torch.Generator().manual_seed(4))
+    for batch in (images[:1], images):
+        maps_of, rows_of = bb.forward_with_rows(batch)
+        assert len(maps_of) == len(rows_of) == len(batch)
+        for maps, rows in zip(maps_of, rows_of):
+            c, h, w = maps[0].shape
+            assert rows.shape == (h * w, c) and rows.is_contiguous()
+            assert rows.dtype == (torch.float32 if precision == "fp32" else backbones.REDUCED_DTYPES[precision])
+            assert torch.equal(rows.float(), maps[0].permute(1, 2, 0).reshape(-1, c))
+            # Its storage holds this image's rows alone, not the batch's output.
+            assert rows.untyped_storage().nbytes() == rows.numel() * rows.element_size()
+        assert all(torch.equal(a, b) for a, b in zip(maps_of[0], bb(batch[:1])))
+    nchw = load_backbone(name, pretrained=False, precision="fp32", memory_format="nchw")
+    maps_of, rows_of = nchw.forward_with_rows(images[:1])
+    assert rows_of == [None] and len(maps_of[0]) == 5

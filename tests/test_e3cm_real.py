@@ -47,6 +47,11 @@ class RecordingBackbone:
         self.features.append(feats)
         return feats
 
+    def forward_with_rows(self, images: torch.Tensor):  # the pass e3cm asks for (level-0 rows kept)
+        maps_of, rows_of = self.backbone.forward_with_rows(images)
+        self.features.extend(maps_of)
+        return maps_of, rows_of
+
     def __getattr__(self, name: str):  # everything else (memory estimate, settings) from the backbone
         return getattr(self.backbone, name)
 

@@ -308,3 +308,28 @@ def test_the_cache_never_holds_more_than_its_budget_peak_rss(tmp_path):
     assert two["reuse"]["peak_memory_mb"] <= 2.01 * one
     assert two["peak_mb"] <= none["peak_mb"] + 2.01 * one + margin, (none, two)
     assert all_eight["peak_mb"] > none["peak_mb"] + 2.01 * one + margin, (none, all_eight)
+
+
+def test_level0_rows_of_a_pass_are_kept_with_its_maps_and_change_no_match(shared_data, monkeypatch):
+    """e3cm (top-8) reads level 0 by pixels: a bf16 backbone's own channels-last rows are kept
+    beside the image's maps in the cache (in bf16) and read by its later pairs, and the
+    matches are bit for bit those of rows copied out of the float32 map."""
+    folder = shared_data / "hpatches-sequences-release" / "v_boat"
+    images = [matcher_input(load_image(folder / f"{k}.ppm"), 0, 320, "shrink")[0] for k in (1, 2, 3)]
+    method = MethodSpec.create("e3cm", "efficientnet_lite0", max_side=320, options={"precision": "bf16"})
+    torch.manual_seed(0)
+    cached = method.build("cpu", pretrained=False)
+    torch.manual_seed(0)
+    copied = method.build("cpu", pretrained=False)
+    assert cached.wants_pixel_rows
+    monkeypatch.setattr(copied, "wants_pixel_rows", False)  # the rows are copied from the float32 map
+    cached.reuse_features(1024)
+    for second in (1, 2):
+        got, want = cached.match(images[0], images[second]), copied.match(images[0], images[second])
+        assert got.info["counts_after"][4] >= 8  # the confidence score ran
+        for a, b in ((got.keypoints0, want.keypoints0), (got.keypoints1, want.keypoints1), (got.scores, want.scores)):
+            assert a.tobytes() == b.tobytes()
+        rows = cached.feature_cache.products[cached.image_key(images[0])]["pixel_rows:0"]
+        assert rows.dtype == torch.bfloat16
+        if second == 2:  # image 0 came from the cache: its rows too, not a copy of its map
+            assert cached.image_product(0, "pixel_rows:0", lambda: pytest.fail("rows copied again")) is rows

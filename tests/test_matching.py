@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 
 from e3cm_bench import geometry
-from e3cm_bench.matching.cascade import (confidence_scores, epipolar_inliers, estimate_level_fundamental, pixel_major,
-                                         unit_pixel_major)
+from e3cm_bench.matching.cascade import (UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
+                                         pixel_norms, pixel_rows)
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio
 from e3cm_bench.matching.levels import cell_centres, inside, valid_extent
 from e3cm_bench.matching.pipeline import DEFAULT_SAMPSON_PX, E3CMSettings, match_pyramids
@@ -84,15 +84,15 @@ def test_confidence_level1_by_hand():
         fb[:, k // 2, 2 + k % 2] = fa[:, 2 + k // 2, k % 2]
     cells0 = torch.tensor([[1, 0], [0, 1]])
     cells1 = torch.tensor([[0, 1], [1, 0]])
-    c = confidence_scores(fa, fb, cells0, cells1, level=1)
+    c = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), cells0, cells1, level=1)
     np.testing.assert_allclose(c.numpy(), [30.0, 4000.0], rtol=1e-9)
-    c = confidence_scores(fa, fb, cells0, cells1, level=1, eps=1e-2)
+    c = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), cells0, cells1, level=1, eps=1e-2)
     np.testing.assert_allclose(c.numpy(), [30.0, 400.0], rtol=1e-9)
     # Matches are scored independently: order and chunking (tiny budget) do not matter.
-    c = confidence_scores(fa, fb, cells0.flip(0), cells1.flip(0), level=1, budget=1)
+    c = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), cells0.flip(0), cells1.flip(0), level=1, budget=1)
     np.testing.assert_allclose(c.numpy(), [4000.0, 30.0], rtol=1e-9)
     # float32 maps give the same numbers to float precision.
-    c32 = confidence_scores(fa.float(), fb.float(), cells0, cells1, level=1)
+    c32 = confidence_scores(UnitPixels.of(fa.float()), UnitPixels.of(fb.float()), cells0, cells1, level=1)
     np.testing.assert_allclose(c32.numpy(), [30.0, 4000.0], rtol=1e-4)
 
 
@@ -111,10 +111,10 @@ def test_confidence_level2_by_hand():
     for k in range(16):  # A: cell (1, 1) = pixels 4..7; B: cell (0, 1) = x 0..3, y 4..7
         fa[:, 4 + k // 4, 4 + k % 4] = A[k]
         fb[:, 4 + k // 4, k % 4] = B[k]
-    c = confidence_scores(fa, fb, torch.tensor([[1, 1]]), torch.tensor([[0, 1]]), level=2)
+    c = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), torch.tensor([[1, 1]]), torch.tensor([[0, 1]]), level=2)
     np.testing.assert_allclose(c.numpy(), [80.0], rtol=1e-9)
     fb[:, 4 + 5 // 4, 5 % 4] = unit_rows([0.28 if i == 5 else 0.96 if i == 9 else 0.0 for i in range(16)])
-    c = confidence_scores(fa, fb, torch.tensor([[1, 1]]), torch.tensor([[0, 1]]), level=2)
+    c = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), torch.tensor([[1, 1]]), torch.tensor([[0, 1]]), level=2)
     np.testing.assert_allclose(c.numpy(), [70.0], rtol=1e-9)
 
 
@@ -139,8 +139,8 @@ def test_confidence_top_k_is_exact_and_skips_most_matches(level):
     wrong1 = torch.stack([torch.randint(0, cells_w, (150,), generator=gen), torch.randint(0, cells_h, (150,), generator=gen)], 1)
     perm = torch.randperm(len(true0) + 150, generator=gen)
     cells0, cells1 = torch.cat([true0, wrong0])[perm], torch.cat([true1, wrong1])[perm]
-    full = confidence_scores(fa, fb, cells0, cells1, level)
-    top = confidence_scores(fa, fb, cells0, cells1, level, top=8)
+    full = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), cells0, cells1, level)
+    top = confidence_scores(UnitPixels.of(fa), UnitPixels.of(fb), cells0, cells1, level, top=8)
     want = np.argsort(-full.numpy(), kind="stable")[:8]
     got = np.argsort(-top.numpy(), kind="stable")[:8]
     np.testing.assert_array_equal(got, want)
@@ -571,13 +571,27 @@ def test_settings_validation():
     assert d["ratio"] == [0.8] * 5 and "notes" not in d and d["estimator"] == "top8"
 
 
-def test_unit_pixel_major_is_normalise_then_pixel_major_bit_for_bit():
+def pixel_major(feat):
+    """The same C x H x W values stored channels-last."""
+    return feat.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+
+
+def test_unit_pixels_gather_the_rows_of_the_normalised_map_bit_for_bit():
     gen = torch.Generator().manual_seed(3)
-    for shape in ((64, 37, 53), (24, 16, 16)):
-        raw = torch.randn(*shape, generator=gen) * 5
+    for shape in ((64, 37, 53), (24, 16, 16), (64, 70, 90)):
+        raw = torch.randn(*shape, generator=gen).relu_() * 5
         raw[:, 0, 0] = 0  # a zero vector: the clamp
-        got, want = unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))
-        assert torch.equal(got, want) and got.stride() == want.stride()
+        want = F.normalize(raw, dim=0).permute(1, 2, 0).reshape(-1, shape[0])
+        index = torch.randint(0, shape[1] * shape[2], (500,), generator=gen)
+        index[:2] = 0
+        assert torch.equal(UnitPixels.of(raw).gather(index), want[index]), shape
+        # Rows kept in bf16 (a bf16 backbone's own output) widen to the same map exactly.
+        narrow = raw.bfloat16()
+        rows = pixel_rows(pixel_major(narrow))
+        assert rows.dtype == torch.bfloat16 and rows.is_contiguous()
+        unit = UnitPixels.of(narrow.float(), rows=rows)
+        assert torch.equal(unit.gather(index), F.normalize(narrow.float(), dim=0).permute(1, 2, 0).reshape(-1, shape[0])[index])
+        assert torch.equal(pixel_norms(raw), raw.norm(2, 0).clamp_min(1e-12).reshape(-1))
 
 
 def test_channel_norm_is_torchs_norm_bit_for_bit(monkeypatch):
@@ -592,7 +606,6 @@ def test_channel_norm_is_torchs_norm_bit_for_bit(monkeypatch):
         assert norms.ordered_is_exact(raw), shape
         assert torch.equal(norms.ordered_norm(raw), raw.norm(2, 0, keepdim=True)), shape
         assert torch.equal(norms.normalize_channels(raw), F.normalize(raw, dim=0)), shape
-        assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0))), shape
     for other in (pixel_major(torch.randn(64, 80, 90, generator=gen)), torch.randn(64, 80, 90, dtype=torch.float64),
                   torch.randn(64, 20, 30, generator=gen)):
         assert not norms.ordered_is_exact(other)
@@ -603,7 +616,7 @@ def test_channel_norm_is_torchs_norm_bit_for_bit(monkeypatch):
     monkeypatch.setattr(norms, "ordered_norm", lambda feat: feat.double().norm(2, 0, keepdim=True).float() * (1 + 1e-6))
     raw = torch.randn(64, 37, 153, generator=gen).relu_()
     assert not norms.ordered_is_exact(raw)
-    assert torch.equal(unit_pixel_major(raw), pixel_major(F.normalize(raw, dim=0)))
+    assert torch.equal(pixel_norms(raw), raw.norm(2, 0).clamp_min(1e-12).reshape(-1))
 
 
 def test_mutual_diagonal_is_argmax_both_ways_ties_included():

@@ -35,9 +35,14 @@ class DeepMatcher(Matcher):
         self.channel_order = channel_order
         self.feature_cache: FeatureCache | None = None
         self._keys: dict[int, str] = {}  # the cache key of each image of the pair being matched
+        self._rows: dict[int, torch.Tensor] = {}  # level-0 pixel rows of the pair's images, from their passes
 
     # Whether match() takes its pyramids from features() (and so from the cache).
     uses_feature_cache = True
+    # Whether match() reads level 0 by pixels (image_product "pixel_rows:0"): the backbone's
+    # own channels-last rows are then kept with the maps (Backbone.forward_with_rows).
+    wants_pixel_rows = False
+    PIXEL_ROWS = "pixel_rows:0"
 
     def reuse_features(self, max_mb: float, spill: SpillStore | None = None) -> None:
         """Keep the pyramids of recent images (up to max_mb MiB, then in `spill` on disk) for
@@ -72,16 +77,30 @@ class DeepMatcher(Matcher):
         """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l. which: 0 or 1, the
         image's place in the pair the match stage is matching (the cache learns which file
         the maps belong to, and drops them once that file has no pair left)."""
+        if which is not None:
+            self._rows.pop(which, None)  # rows of an earlier image in that place
         if self.feature_cache is None:
-            return self.backbone(self.network_input(image))
+            return self._pass(image, which)
         key = self.image_key(image)
         if which is not None:
             self._keys[which] = key
         self.feature_cache.belongs_to(key, which)
         maps = self.feature_cache.get(key, self.device)
         if maps is None:
-            maps = self.backbone(self.network_input(image))
+            maps = self._pass(image, which)
             self.feature_cache.put(key, maps)
+            if which in self._rows:
+                self.feature_cache.derived(key, self.PIXEL_ROWS, lambda: self._rows[which])
+        return maps
+
+    def _pass(self, image: np.ndarray, which: int | None) -> list[torch.Tensor]:
+        """The image's pyramid from the backbone; its level-0 pixel rows are kept for the
+        pair's image `which` where match() reads them and the backbone has them."""
+        if not self.wants_pixel_rows:
+            return self.backbone(self.network_input(image))
+        (maps,), (rows,) = self.backbone.forward_with_rows(self.network_input(image))
+        if rows is not None and which is not None:
+            self._rows[which] = rows
         return maps
 
     def image_key(self, image: np.ndarray) -> str:
@@ -111,8 +130,14 @@ class DeepMatcher(Matcher):
                     n //= 2
                 chunk, items = items[:n], items[n:]
                 stacked = torch.cat([self.network_input(image) for _, _, image in chunk])
-                for (key, file, _), maps in zip(chunk, self.backbone.forward_batch(stacked)):
+                if self.wants_pixel_rows:
+                    maps_of, rows_of = self.backbone.forward_with_rows(stacked)
+                else:
+                    maps_of, rows_of = self.backbone.forward_batch(stacked), [None] * n
+                for (key, file, _), maps, rows in zip(chunk, maps_of, rows_of):
                     cache.add_ahead(key, maps, file)
+                    if rows is not None:
+                        cache.derived(key, self.PIXEL_ROWS, lambda rows=rows: rows)
                 sizes.append(n)
         return sizes
 
@@ -126,7 +151,10 @@ class DeepMatcher(Matcher):
     def image_product(self, which: int, name: str, compute):
         """compute(): a product of the maps of image `which` (0 or 1) of the pair whose pyramids
         were just fetched, kept with them in the feature cache (FeatureCache.derived) so that
-        the image's later pairs reuse it; computed each time without a cache."""
+        the image's later pairs reuse it; computed each time without a cache. The level-0
+        pixel rows of an image passed through the backbone for this pair are those of the pass."""
+        if name == self.PIXEL_ROWS and which in self._rows:
+            return self._rows[which]
         if self.feature_cache is None or which not in self._keys:
             return compute()
         return self.feature_cache.derived(self._keys[which], name, compute)
@@ -149,6 +177,7 @@ class DeepMatcher(Matcher):
         self.check_memory(image0, image1)
         t = time.perf_counter()
         self._keys.clear()
+        self._rows.clear()
         feats0, feats1 = self.features(image0, 0), self.features(image1, 1)
         return feats0, feats1, time.perf_counter() - t
 

@@ -14,8 +14,9 @@ cache that order (`plan`) and, after each pair, which images have no pair left
 - maps computed in reduced precision are held in that precision (`compact_dtype`), where
   that is exact (checked, map by map), and handed back as float32;
 - what a matcher computes from one image's maps alone (a level normalised; the float32 copy
-  of maps held in bf16) is kept beside them (`derived`), within the same budget, and is the
-  first thing to go when memory is short: it is made again in a fraction of a pass.
+  of maps held in bf16), or keeps from its pass (level 0's channels-last rows), is kept
+  beside them (`derived`), within the same budget, and is the first thing to go when
+  memory is short: it is made again from the maps in a fraction of a pass.
 
 Keyed by the image's content and channel order, and what is handed back is bit for bit what
 the network computed, so the cache changes no result.

@@ -10,9 +10,48 @@ from . import ESTIMATORS
 from .norms import channel_norm
 
 
+class UnitPixels:
+    """Level 0 read by pixels and L2-normalised as read: `rows` ((H W) x C, a map's pixels;
+    any float dtype that widens to the float32 map exactly, such as a bf16 backbone's own
+    channels-last output) divided by `norms` ((H W), the pixels' channel norms clamped at
+    1e-12) as they are gathered. A gathered row is bit for bit that pixel of
+    F.normalize(map, dim=0): the same division of the same two numbers. The confidence score
+    reads most of level 0 patch by patch; dividing what it gathers, in cache, replaced writing
+    a normalised copy of the whole map (docs/speed.md)."""
+
+    def __init__(self, rows: torch.Tensor, norms: torch.Tensor, width: int):
+        self.rows, self.norms, self.width = rows, norms, width
+
+    @classmethod
+    def of(cls, level0_feat: torch.Tensor, rows: torch.Tensor | None = None, norms: torch.Tensor | None = None) -> "UnitPixels":
+        """level0_feat: C x H x W; rows / norms: those of it where already in hand (pixel_rows, pixel_norms)."""
+        return cls(pixel_rows(level0_feat) if rows is None else rows,
+                   pixel_norms(level0_feat) if norms is None else norms, level0_feat.shape[2])
+
+    @property
+    def channels(self) -> int:
+        return self.rows.shape[1]
+
+    def gather(self, index: torch.Tensor) -> torch.Tensor:
+        """len(index) x C: the normalised pixels at flat positions `index` (y W + x)."""
+        # bf16 rows over float32 norms: the division widens them as it reads them (exactly).
+        return torch.div(self.rows.index_select(0, index), self.norms.index_select(0, index)[:, None])
+
+
+def pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
+    """C x H x W -> (H W) x C rows (a view when the map is channels-last, else a copy)."""
+    c = level0_feat.shape[0]
+    return level0_feat.permute(1, 2, 0).reshape(-1, c)
+
+
+def pixel_norms(level0_feat: torch.Tensor) -> torch.Tensor:
+    """(H W): each pixel's channel norm as F.normalize takes it (torch's norm, clamped at 1e-12)."""
+    return channel_norm(level0_feat).clamp_min_(1e-12).reshape(-1)
+
+
 def confidence_scores(
-    level0_feat0: torch.Tensor,
-    level0_feat1: torch.Tensor,
+    unit0: UnitPixels,
+    unit1: UnitPixels,
     cells0: torch.Tensor,
     cells1: torch.Tensor,
     level: int,
@@ -22,11 +61,10 @@ def confidence_scores(
 ) -> torch.Tensor:
     """Confidence c (Eq. 3) of matches at `level` from their 2^l x 2^l pixel patches.
 
-    level0_feat*: L2-normalised level-0 maps (C x H x W, one cell per original pixel; fastest
-    in channels-last memory, see `pixel_major`). m_ij = 1 when pixel (i, j) of patch A and
-    pixel (i, j) of patch B are mutual nearest neighbours among the pixels of the two
-    patches; d_ij = 1 - cos of those two pixels, floored at eps; c = sum m_ij / d_ij.
-    `budget` bounds the similarity block in elements.
+    unit0 / unit1: the two images' level 0 (one cell per original pixel), read L2-normalised.
+    m_ij = 1 when pixel (i, j) of patch A and pixel (i, j) of patch B are mutual nearest
+    neighbours among the pixels of the two patches; d_ij = 1 - cos of those two pixels,
+    floored at eps; c = sum m_ij / d_ij. `budget` bounds the similarity block in elements.
 
     top: only the `top` most confident matches are wanted (the paper's top-8). Each match's
     c is at most a bound that costs 5 P dot products instead of P^2 (`_confidence_bound`);
@@ -36,18 +74,16 @@ def confidence_scores(
     """
     n, side = len(cells0), 2**level
     p = side * side
-    pixels0, pixels1 = _pixel_rows(level0_feat0), _pixel_rows(level0_feat1)
-    width0, width1 = level0_feat0.shape[2], level0_feat1.shape[2]
     offsets = _patch_offsets(side, cells0.device)
 
-    def patches(pixels, width, cells):  # n x P x C, pixels of each patch in row-major order
+    def patches(unit, cells):  # n x P x C, pixels of each patch in row-major order
         xy = cells[:, None, :] * side + offsets[None]
-        return pixels.index_select(0, (xy[..., 1] * width + xy[..., 0]).reshape(-1)).reshape(len(cells), p, -1)
+        return unit.gather((xy[..., 1] * unit.width + xy[..., 0]).reshape(-1)).reshape(len(cells), p, -1)
 
     def score(rows):
-        return _patch_confidence(patches(pixels0, width0, cells0[rows]), patches(pixels1, width1, cells1[rows]), eps)
+        return _patch_confidence(patches(unit0, cells0[rows]), patches(unit1, cells1[rows]), eps)
 
-    scores = torch.full((n,), -torch.inf, dtype=level0_feat0.dtype, device=level0_feat0.device)
+    scores = torch.full((n,), -torch.inf, dtype=unit0.norms.dtype, device=unit0.norms.device)
     chunk = max(1, budget // (p * p))
     if top is None or n <= top:
         for start in range(0, n, chunk):
@@ -55,10 +91,10 @@ def confidence_scores(
         return scores
     # The bound's temporaries are n x P x C: blocks of them small enough to stay in cache
     # (at level 4, P = 256, C = 64: blocks of 128 matches took 0.4-0.6x the time of blocks of 512).
-    block = max(1, _BOUND_BLOCK // (p * pixels0.shape[1]))
+    block = max(1, _BOUND_BLOCK // (p * unit0.channels))
     bound = torch.cat([
-        _confidence_bound(patches(pixels0, width0, cells0[start : start + block]),
-                          patches(pixels1, width1, cells1[start : start + block]), side, eps)
+        _confidence_bound(patches(unit0, cells0[start : start + block]),
+                          patches(unit1, cells1[start : start + block]), side, eps)
         for start in range(0, n, block)
     ])
     order = torch.argsort(-bound, stable=True)
@@ -70,28 +106,6 @@ def confidence_scores(
         rows = order[start : start + chunk]
         scores[rows] = score(rows)
     return scores
-
-
-def pixel_major(level0_feat: torch.Tensor) -> torch.Tensor:
-    """The same C x H x W values stored channels-last: a pixel's C-vector is one contiguous row."""
-    return level0_feat.permute(1, 2, 0).contiguous().permute(2, 0, 1)
-
-
-def unit_pixel_major(level0_feat: torch.Tensor) -> torch.Tensor:
-    """pixel_major(F.normalize(level0_feat, dim=0)), bit for bit (the same norm, clamped at
-    1e-12, and the same division), with the division writing the channels-last copy directly:
-    one pass over the map fewer."""
-    c, h, w = level0_feat.shape
-    norm = channel_norm(level0_feat).clamp_min_(1e-12)
-    out = torch.empty(h, w, c, dtype=level0_feat.dtype, device=level0_feat.device)
-    torch.div(level0_feat.permute(1, 2, 0), norm.permute(1, 2, 0), out=out)
-    return out.permute(2, 0, 1)
-
-
-def _pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
-    """C x H x W -> (H W) x C rows (a view when the map is channels-last, else a copy)."""
-    c, h, w = level0_feat.shape
-    return level0_feat.permute(1, 2, 0).reshape(h * w, c)
 
 
 def _patch_offsets(side: int, device) -> torch.Tensor:

@@ -19,7 +19,8 @@ import torch
 import torch.nn.functional as F
 
 from . import SCORED_ESTIMATORS
-from .cascade import ESTIMATORS, confidence_scores, epipolar_inliers, estimate_level_fundamental, unit_pixel_major
+from .cascade import (ESTIMATORS, UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
+                      pixel_norms, pixel_rows)
 from .dense import match_dense_level
 from .levels import cell_centres, valid_extent
 from .norms import normalize_channels
@@ -166,21 +167,24 @@ def match_pyramids(
         return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
 
     # The deepest level is matched densely, so it is normalised whole. Level 0 is read by the
-    # confidence score only (top8 and PROSAC), patch by patch: normalised whole and stored
-    # channels-last for its gathers, and only for those estimators. (Normalising only the
-    # pixels read measured slower: the patches cover most of level 0, overlap across levels,
-    # and gathering from the channel-first map costs more than the copy; docs/speed.md.)
-    # The levels between are read only at children of matches: refine_to_children normalises
-    # those as it reads them.
+    # confidence score only (top8 and PROSAC), patch by patch, as pixel rows divided by their
+    # norms as they are gathered (UnitPixels): the rows are the backbone's own channels-last
+    # output where the matcher kept it (memo "pixel_rows:0"), else a copy; only the norms
+    # are computed from the whole map. The levels between are read only at children of
+    # matches: refine_to_children normalises those as it reads them.
     if memo is None:
         def memo(side, name, compute):
             return compute()
 
     t = time.perf_counter()
     unit0 = unit1 = None
+
+    def level0_pixels(side: int, feat: torch.Tensor) -> UnitPixels:
+        return UnitPixels.of(feat, memo(side, "pixel_rows:0", lambda: pixel_rows(feat)),
+                             memo(side, "pixel_norms:0", lambda: pixel_norms(feat)))
+
     if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
-        unit0 = memo(0, "unit_pixel_major:0", lambda: unit_pixel_major(feats0[0]))
-        unit1 = memo(1, "unit_pixel_major:0", lambda: unit_pixel_major(feats1[0]))
+        unit0, unit1 = level0_pixels(0, feats0[0]), level0_pixels(1, feats1[0])
     top0 = memo(0, f"normalize:{top}", lambda: normalize_channels(feats0[top]))
     top1 = memo(1, f"normalize:{top}", lambda: normalize_channels(feats1[top]))
     timings["normalise"] = time.perf_counter() - t
