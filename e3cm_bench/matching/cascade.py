@@ -34,7 +34,7 @@ class UnitPixels:
 
     def gather(self, index: torch.Tensor) -> torch.Tensor:
         """len(index) x C: the normalised pixels at flat positions `index` (y W + x)."""
-        # bf16 rows over float32 norms: the division widens them as it reads them (exactly).
+        # bf16 rows over float32 norms: torch widens them to float32 (exactly) and divides.
         return torch.div(self.rows.index_select(0, index), self.norms.index_select(0, index)[:, None])
 
 
