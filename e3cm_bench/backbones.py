@@ -368,8 +368,8 @@ def pixel_rows(x: torch.Tensor) -> list[torch.Tensor | None]:
     n, c = x.shape[:2]
     if x.stride(1) != 1 or not x[0].permute(1, 2, 0).is_contiguous():
         return [None] * n
-    return [x[i].permute(1, 2, 0).reshape(-1, c) if n == 1 else x[i].permute(1, 2, 0).reshape(-1, c).clone()
-            for i in range(n)]
+    rows = [x[i].permute(1, 2, 0).reshape(-1, c) for i in range(n)]
+    return rows if n == 1 else [r.clone() for r in rows]
 
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:

@@ -177,7 +177,6 @@ class DeepMatcher(Matcher):
         self.check_memory(image0, image1)
         t = time.perf_counter()
         self._keys.clear()
-        self._rows.clear()
         feats0, feats1 = self.features(image0, 0), self.features(image1, 1)
         return feats0, feats1, time.perf_counter() - t
 

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..backbones import Backbone
-from ..matching import SCORED_ESTIMATORS
 from ..matching.pipeline import E3CMSettings, match_pyramids
 from ..matching.subpixel import refine_matches
 from .base import Matches
@@ -36,7 +35,7 @@ class E3CMMatcher(DeepMatcher):
         super().__init__(backbone, name or ("e3cm" if settings.cascade else "direct"), channel_order)
         self.settings = settings
         # The top-8 and PROSAC cascades read level 0 by pixels (matching/cascade.py UnitPixels).
-        self.wants_pixel_rows = settings.cascade and settings.estimator in SCORED_ESTIMATORS
+        self.wants_pixel_rows = settings.reads_level0
         # The releases' handling (valid_cells_only false) keeps points of padding cells.
         self.keypoints_in_image = bool(settings.valid_cells_only)
 

@@ -96,6 +96,12 @@ class E3CMSettings:
         if len(self.ratio) < 5 or len(self.sampson_px) < 4:
             raise ValueError("ratio needs 5 values (levels 0..4) and sampson_px 4 (levels 0..3)")
 
+    @property
+    def reads_level0(self) -> bool:
+        """Whether the cascade scores matches by their level-0 patches (top8, PROSAC): the
+        only step that reads level 0 beyond the children of matches."""
+        return self.cascade and self.estimator in SCORED_ESTIMATORS
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["ratio"] = list(self.ratio)
@@ -183,7 +189,7 @@ def match_pyramids(
         return UnitPixels.of(feat, memo(side, "pixel_rows:0", lambda: pixel_rows(feat)),
                              memo(side, "pixel_norms:0", lambda: pixel_norms(feat)))
 
-    if settings.cascade and settings.estimator in SCORED_ESTIMATORS:
+    if settings.reads_level0:
         unit0, unit1 = level0_pixels(0, feats0[0]), level0_pixels(1, feats1[0])
     top0 = memo(0, f"normalize:{top}", lambda: normalize_channels(feats0[top]))
     top1 = memo(1, f"normalize:{top}", lambda: normalize_channels(feats1[top]))

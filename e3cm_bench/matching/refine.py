@@ -107,9 +107,9 @@ def first_of_each(rows: torch.Tensor) -> torch.Tensor:
     if len(rows) == 0:
         return torch.zeros(0, dtype=torch.long, device=rows.device)
     keys = row_keys(rows)
-    # torch.unique over rows (dim=0) compares them one pair at a time on the CPU: 26 ms for
-    # 40,000 rows of 4 cells, a tenth of a pair's refinement at 1200x900. One integer per row
-    # sorts the same way and takes a fraction of that.
+    # torch.unique over rows (dim=0) compares them one pair at a time on the CPU: 26 ms a call,
+    # about 100 ms of a 1200x900 pair, in a profile; 46 ms for 40,000 random rows of 4 cells,
+    # where one integer per row, which sorts the same way, took 3.4 ms (Intel Xeon, avx512f).
     uniq, inverse = torch.unique(rows, dim=0, return_inverse=True) if keys is None else torch.unique(keys, return_inverse=True)
     first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
     return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
@@ -124,7 +124,7 @@ def row_keys(rows: torch.Tensor) -> torch.Tensor | None:
         return None
     low = rows.amin(0)
     spans = (rows.amax(0) - low + 1).tolist()
-    if any(span <= 0 for span in spans) or torch.tensor(spans, dtype=torch.float64).prod() >= 2.0**62:
+    if torch.tensor(spans, dtype=torch.float64).prod() >= 2.0**62:
         return None
     digits = (rows - low).long()
     keys = digits[:, 0].clone()
