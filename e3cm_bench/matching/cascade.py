@@ -34,8 +34,12 @@ class UnitPixels:
 
     def gather(self, index: torch.Tensor) -> torch.Tensor:
         """len(index) x C: the normalised pixels at flat positions `index` (y W + x)."""
-        # bf16 rows over float32 norms: torch widens them to float32 (exactly) and divides.
-        return torch.div(self.rows.index_select(0, index), self.norms.index_select(0, index)[:, None])
+        rows = self.rows.index_select(0, index)
+        # bf16 rows widen to float32 exactly, so widening them first and dividing in place
+        # gives the bits of dividing the bf16 rows by the float32 norms, in 0.84x the time
+        # (scripts/bench_gather.py, 474 patches of 16 x 16).
+        rows = rows.to(self.norms.dtype)
+        return rows.div_(self.norms.index_select(0, index)[:, None])
 
 
 def pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
@@ -99,12 +103,22 @@ def confidence_scores(
     ])
     order = torch.argsort(-bound, stable=True)
     bound = bound[order]
-    chunk = min(chunk, 64)  # small steps: most matches are ruled out after the first few
-    for start in range(0, n, chunk):
-        if start >= top and bound[start] < scores.topk(top).values[-1]:
+    # The `top` highest bounds are scored first; their lowest score is the first threshold.
+    # Then, in bound order, only matches whose bound reaches the top-th score found so far:
+    # the others cannot enter the top (nor tie with it). Steps of at most 64 matches keep
+    # the threshold fresh: they start at `top` matches and double up to 64 where a score
+    # costs most (level 4, P = 256), up to 1024 elsewhere.
+    scores[order[:top]] = score(order[:top])
+    start, step, most = top, top, min(chunk, 64 if p >= 256 else 1024)
+    while start < n:
+        step = min(step, most)
+        count = int((bound[start : start + step] >= scores.topk(top).values[-1]).sum())
+        if count:
+            rows = order[start : start + count]
+            scores[rows] = score(rows)
+        if count < step:
             break
-        rows = order[start : start + chunk]
-        scores[rows] = score(rows)
+        start, step = start + step, 2 * step
     return scores
 
 
@@ -126,29 +140,22 @@ def _mutual_diagonal(sim: torch.Tensor) -> torch.Tensor:
 
     argmax is slow on the CPU; a maximum is not. Entry i is the argmax of its row when it
     beats every other entry of the row, and not when another beats it. Where another equals
-    it, argmax's rule (the first of equals) decides: entry i is the argmax when it beats every
-    entry before it and is at least every entry after it. Patches with such a tie take those
-    two maxima per row and per column, from the parts of the matrix below and above the
-    diagonal. sim is modified (its diagonal is set to -inf).
+    it, argmax's rule (the first of equals) decides: entry i is the argmax when no entry
+    before it is equal. Only those tied entries' rows (and columns) are read again, a row
+    of P values each. sim is modified (its diagonal is set to -inf).
     """
     diag = sim.diagonal(dim1=1, dim2=2)
     own = diag.clone()
     diag.fill_(-torch.inf)
     row_other, col_other = sim.amax(dim=2), sim.amax(dim=1)
-    mutual = (own > row_other) & (own > col_other)
-    tied = ((own == row_other) | (own == col_other)).any(1)
-    if tied.any():
-        rows = tied.nonzero().flatten()
-        below = sim[rows]  # a copy (diagonal -inf), made the part below the diagonal next
-        upper = torch.ones(sim.shape[1], sim.shape[1], dtype=torch.bool, device=sim.device).triu_(1)
-        above = below.masked_fill(upper.T, -torch.inf)  # entries (r, c) with c > r
-        below.masked_fill_(upper, -torch.inf)  # entries (r, c) with c < r
-        o = own[rows]
-        # Row i: the entries before i lie below the diagonal, those after it above.
-        # Column i: the entries before i (rows r < i) lie above it, those after it below.
-        row_first = (o > below.amax(dim=2)) & (o >= above.amax(dim=2))
-        col_first = (o > above.amax(dim=1)) & (o >= below.amax(dim=1))
-        mutual[rows] = row_first & col_first
+    mutual = (own >= row_other) & (own >= col_other)
+    for along_rows, other in ((True, row_other), (False, col_other)):
+        patch, i = (mutual & (own == other)).nonzero(as_tuple=True)
+        if len(patch):
+            # The tied entry's row (sim[patch, i, :]) or column (sim[patch, :, i]).
+            line = sim[patch, i] if along_rows else sim[patch, :, i]
+            before = torch.arange(sim.shape[1], device=sim.device)[None] < i[:, None]
+            mutual[patch, i] = ~((line == own[patch, i][:, None]) & before).any(1)
     return mutual
 
 
