@@ -22,7 +22,7 @@ import torch
 from e3cm_bench.files import cpu_info, cpu_isa
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import add_allocator_option, alternate, use_allocator  # noqa: E402 - the speed scripts' helpers
+from bench_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
 
 
 def mixed(rows: torch.Tensor, norms: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -54,10 +54,7 @@ def main() -> None:
                              torch.randint(0, h // 16, (args.patches,), generator=gen)], 1)
         ys, xs = torch.meshgrid(torch.arange(16), torch.arange(16), indexing="ij")
         index = ((cells[:, 1, None] * 16 + ys.reshape(1, -1)) * w + cells[:, 0, None] * 16 + xs.reshape(1, -1)).reshape(-1)
-        medians, outputs = alternate({"mixed": lambda: mixed(rows, norms, index),
-                                      "widened": lambda: widened(rows, norms, index)}, args.repeat)
-        old, new = medians["mixed"], medians["widened"]
-        same = torch.equal(outputs["mixed"], outputs["widened"])
+        old, new, same = before_after(lambda: mixed(rows, norms, index), lambda: widened(rows, norms, index), args.repeat)
         print(f"{size}: bf16 / float32 {old * 1000:.2f} ms, widened then divided {new * 1000:.2f} ms, "
               f"ratio {new / old:.2f}; bit for bit equal: {same}", flush=True)
 

@@ -22,7 +22,7 @@ from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import add_allocator_option, alternate, use_allocator  # noqa: E402 - the speed scripts' helpers
+from bench_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
 
 
 def torch_norm(feat: torch.Tensor) -> torch.Tensor:
@@ -42,10 +42,7 @@ def main() -> None:
     for size in args.size or ["640x480", "1200x900"]:
         w, h = (int(v) for v in size.split("x"))
         feat = torch.randn(args.channels, h, w, generator=torch.Generator().manual_seed(0)).relu_()
-        medians, outputs = alternate({"torch norm": lambda: torch_norm(feat), "ordered": lambda: norms.ordered_norm(feat)},
-                                     args.repeat)
-        old, new = medians["torch norm"], medians["ordered"]
-        same = torch.equal(outputs["torch norm"], outputs["ordered"])
+        old, new, same = before_after(lambda: torch_norm(feat), lambda: norms.ordered_norm(feat), args.repeat)
         print(f"{size}: torch norm {old * 1000:.1f} ms, ordered {new * 1000:.1f} ms, ordered / torch {new / old:.2f}; "
               f"bit for bit equal: {same}; fast path taken: {norms.ordered_is_exact(feat)}", flush=True)
 

@@ -68,6 +68,13 @@ def alternate(ways: dict, repeat: int) -> tuple[dict[str, float], dict]:
     return {name: statistics.median(times[1:]) for name, times in seconds.items()}, outputs
 
 
+def before_after(before, after, repeat: int) -> tuple[float, float, bool]:
+    """Alternate two ways of computing one tensor (functions of nothing): the median seconds
+    of each and whether their outputs are equal bit for bit."""
+    medians, outputs = alternate({"before": before, "after": after}, repeat)
+    return medians["before"], medians["after"], torch.equal(outputs["before"], outputs["after"])
+
+
 def peak_memory_mb(device: str) -> float:
     if device.startswith("cuda"):
         return torch.cuda.max_memory_allocated() / 2**20

@@ -196,6 +196,18 @@ def test_bench_norm_prints_equal_norms():
     assert lines[1].startswith("320x240: torch norm") and "bit for bit equal: True; fast path taken: True" in lines[1]
 
 
+
+def test_bench_gather_prints_equal_gathers():
+    """scripts/bench_gather.py on a small map: bf16 rows widened before they are divided give
+    the bits of dividing them by the float32 norms directly (cascade.UnitPixels.gather)."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_gather.py"
+    run = subprocess.run([sys.executable, str(script), "--size", "320x240", "--patches", "60", "--repeat", "1"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert "60 patches of 16 x 16 pixels" in lines[0]
+    assert lines[1].startswith("320x240: bf16 / float32") and lines[1].endswith("bit for bit equal: True"), run.stdout
+
 ALLOCATOR_SCRIPT = r"""
 import cv2, hashlib, json, torch
 from e3cm_bench import devices
