@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.matching.cascade import UnitPixels
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
@@ -28,11 +29,6 @@ from bench_speed import add_allocator_option, before_after, use_allocator  # noq
 def mixed(rows: torch.Tensor, norms: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """bf16 rows divided by float32 norms: torch widens element by element as it divides."""
     return torch.div(rows.index_select(0, index), norms.index_select(0, index)[:, None])
-
-
-def widened(rows: torch.Tensor, norms: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Widen to float32 (exact), then divide in place: what UnitPixels.gather does."""
-    return rows.index_select(0, index).to(norms.dtype).div_(norms.index_select(0, index)[:, None])
 
 
 def main() -> None:
@@ -52,9 +48,9 @@ def main() -> None:
         norms = rows.float().norm(dim=1).clamp_min_(1e-12)
         cells = torch.stack([torch.randint(0, w // 16, (args.patches,), generator=gen),
                              torch.randint(0, h // 16, (args.patches,), generator=gen)], 1)
-        ys, xs = torch.meshgrid(torch.arange(16), torch.arange(16), indexing="ij")
-        index = ((cells[:, 1, None] * 16 + ys.reshape(1, -1)) * w + cells[:, 0, None] * 16 + xs.reshape(1, -1)).reshape(-1)
-        old, new, same = before_after(lambda: mixed(rows, norms, index), lambda: widened(rows, norms, index), args.repeat)
+        unit = UnitPixels(rows, norms, w)  # widens before it divides, in place
+        index = unit.patch_index(cells, 16)
+        old, new, same = before_after(lambda: mixed(rows, norms, index), lambda: unit.gather(index), args.repeat)
         print(f"{size}: bf16 / float32 {old * 1000:.2f} ms, widened then divided {new * 1000:.2f} ms, "
               f"ratio {new / old:.2f}; bit for bit equal: {same}", flush=True)
 

@@ -196,7 +196,6 @@ def test_bench_norm_prints_equal_norms():
     assert lines[1].startswith("320x240: torch norm") and "bit for bit equal: True; fast path taken: True" in lines[1]
 
 
-
 def test_bench_gather_prints_equal_gathers():
     """scripts/bench_gather.py on a small map: bf16 rows widened before they are divided give
     the bits of dividing them by the float32 norms directly (cascade.UnitPixels.gather)."""
@@ -207,6 +206,7 @@ def test_bench_gather_prints_equal_gathers():
     lines = run.stdout.splitlines()
     assert "60 patches of 16 x 16 pixels" in lines[0]
     assert lines[1].startswith("320x240: bf16 / float32") and lines[1].endswith("bit for bit equal: True"), run.stdout
+
 
 ALLOCATOR_SCRIPT = r"""
 import cv2, hashlib, json, torch

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -36,10 +38,20 @@ class UnitPixels:
         """len(index) x C: the normalised pixels at flat positions `index` (y W + x)."""
         rows = self.rows.index_select(0, index)
         # bf16 rows widen to float32 exactly, so widening them first and dividing in place
-        # gives the bits of dividing the bf16 rows by the float32 norms, in 0.84x the time
+        # gives the bits of dividing the bf16 rows by the float32 norms, in 0.76-0.87x the time
         # (scripts/bench_gather.py, 474 patches of 16 x 16).
         rows = rows.to(self.norms.dtype)
         return rows.div_(self.norms.index_select(0, index)[:, None])
+
+    def patch_index(self, cells: torch.Tensor, side: int) -> torch.Tensor:
+        """(n P): flat positions of the pixels of the side x side patches at `cells` (n x 2
+        cells (x, y) of a level of stride `side`), each patch's in row-major order."""
+        xy = cells[:, None, :] * side + _patch_offsets(side, cells.device)[None]
+        return (xy[..., 1] * self.width + xy[..., 0]).reshape(-1)
+
+    def patches(self, cells: torch.Tensor, side: int) -> torch.Tensor:
+        """n x P x C: the normalised pixels of the patches at `cells`."""
+        return self.gather(self.patch_index(cells, side)).reshape(len(cells), side * side, -1)
 
 
 def pixel_rows(level0_feat: torch.Tensor) -> torch.Tensor:
@@ -72,20 +84,15 @@ def confidence_scores(
 
     top: only the `top` most confident matches are wanted (the paper's top-8). Each match's
     c is at most a bound that costs 5 P dot products instead of P^2 (`_confidence_bound`);
-    matches are scored in decreasing bound order until the next bound falls below the
-    top-th score found, and the rest are left at -inf. The top matches and their scores are
-    exactly those of the full computation.
+    only matches whose bound reaches the top-th score found so far are scored, in decreasing
+    bound order, and the rest are left at -inf. The top matches and their scores are exactly
+    those of the full computation.
     """
     n, side = len(cells0), 2**level
     p = side * side
-    offsets = _patch_offsets(side, cells0.device)
-
-    def patches(unit, cells):  # n x P x C, pixels of each patch in row-major order
-        xy = cells[:, None, :] * side + offsets[None]
-        return unit.gather((xy[..., 1] * unit.width + xy[..., 0]).reshape(-1)).reshape(len(cells), p, -1)
 
     def score(rows):
-        return _patch_confidence(patches(unit0, cells0[rows]), patches(unit1, cells1[rows]), eps)
+        return _patch_confidence(unit0.patches(cells0[rows], side), unit1.patches(cells1[rows], side), eps)
 
     scores = torch.full((n,), -torch.inf, dtype=unit0.norms.dtype, device=unit0.norms.device)
     chunk = max(1, budget // (p * p))
@@ -97,31 +104,32 @@ def confidence_scores(
     # (at level 4, P = 256, C = 64: blocks of 128 matches took 0.4-0.6x the time of blocks of 512).
     block = max(1, _BOUND_BLOCK // (p * unit0.channels))
     bound = torch.cat([
-        _confidence_bound(patches(unit0, cells0[start : start + block]),
-                          patches(unit1, cells1[start : start + block]), side, eps)
+        _confidence_bound(unit0.patches(cells0[start : start + block], side),
+                          unit1.patches(cells1[start : start + block], side), side, eps)
         for start in range(0, n, block)
     ])
     order = torch.argsort(-bound, stable=True)
     bound = bound[order]
     # The `top` highest bounds are scored first; their lowest score is the first threshold.
     # Then, in bound order, only matches whose bound reaches the top-th score found so far:
-    # the others cannot enter the top (nor tie with it). Steps of at most 64 matches keep
-    # the threshold fresh: they start at `top` matches and double up to 64 where a score
-    # costs most (level 4, P = 256), up to 1024 elsewhere.
+    # the others cannot enter the top (nor tie with it). The steps start at `top` matches
+    # and double, so that the threshold stays fresh, up to 64 matches where a score costs
+    # most (level 4, P = 256) and 1024 elsewhere.
     scores[order[:top]] = score(order[:top])
-    start, step, most = top, top, min(chunk, 64 if p >= 256 else 1024)
+    most = min(chunk, 64 if p >= 256 else 1024)
+    start, step = top, min(top, most)
     while start < n:
-        step = min(step, most)
         count = int((bound[start : start + step] >= scores.topk(top).values[-1]).sum())
         if count:
             rows = order[start : start + count]
             scores[rows] = score(rows)
         if count < step:
             break
-        start, step = start + step, 2 * step
+        start, step = start + step, min(2 * step, most)
     return scores
 
 
+@functools.lru_cache(maxsize=None)
 def _patch_offsets(side: int, device) -> torch.Tensor:
     """P x 2 pixel offsets (x, y) inside a side x side patch, row-major."""
     ys, xs = torch.meshgrid(torch.arange(side, device=device), torch.arange(side, device=device), indexing="ij")
