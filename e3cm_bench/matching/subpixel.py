@@ -10,6 +10,9 @@ match (initial flow), in a `window` x `window` patch, on one pyramid level above
   point;
 - the move is at most `max_move` pixels (a refinement, never a new match).
 LK assumes brightness constancy: across an illumination change few matches pass its checks.
+OpenCV's LK takes two images of one size only: images that differ are padded right and bottom
+to their common size (`common_size`), which moves no coordinate; a refined point must still
+lie inside B's own extent.
 
 `lk-auto` (`refine_lk_auto`): strict where LK fits the pair, lenient where it does not. LK
 fits a pair when at least `ADAPTIVE_MIN_PASS` of its matches pass the checks: then those that
@@ -63,6 +66,26 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
 
 
+def common_size(grey0: np.ndarray, grey1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both images as they are where their sizes agree; else each padded on the right and at
+    the bottom to the larger width and height, by mirroring without repeating the edge
+    (BORDER_REFLECT_101). OpenCV's LK asserts that its two pyramids have one size level by
+    level. Padding right and bottom leaves every pixel, so every coordinate, where it was; and
+    OpenCV builds each pyramid over a BORDER_REFLECT_101 border of its own, so within an
+    image's own extent its pyramid levels are what they were unpadded (pyrDown reads the
+    same mirrored pixels). Only a window reaching past the smaller image's edge sees
+    different gradients there: mirrored content where unpadded it sees none."""
+    (h0, w0), (h1, w1) = grey0.shape[:2], grey1.shape[:2]
+    if (h0, w0) == (h1, w1):
+        return grey0, grey1
+    h, w = max(h0, h1), max(w0, w1)
+
+    def pad(grey: np.ndarray) -> np.ndarray:
+        return cv2.copyMakeBorder(grey, 0, h - grey.shape[0], 0, w - grey.shape[1], cv2.BORDER_REFLECT_101)
+
+    return pad(grey0), pad(grey1)
+
+
 def local_contrast(image: np.ndarray, sigma: float = CONTRAST_SIGMA) -> np.ndarray:
     """The grey image's local contrast as uint8 (LK's input type): (grey - local mean) / local
     standard deviation, both Gaussian-weighted with `sigma` px, mapped to 128 + 40 x that and
@@ -87,6 +110,8 @@ def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: 
     if len(kpts0) == 0:
         return kpts1.copy(), keep
     grey0, grey1 = (local_contrast(image0), local_contrast(image1)) if normalise else (_grey(image0), _grey(image1))
+    h, w = grey1.shape[:2]  # B's own extent, which a refined point must stay in
+    grey0, grey1 = common_size(grey0, grey1)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
     options = dict(winSize=(window, window), maxLevel=1, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     moved, status, _ = cv2.calcOpticalFlowPyrLK(grey0, grey1, kpts0.reshape(-1, 1, 2), kpts1.reshape(-1, 1, 2).copy(), **options)
@@ -95,7 +120,6 @@ def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: 
     consistent = (status.ravel() == 1) & (status_back.ravel() == 1) \
         & (np.linalg.norm(back - kpts0, axis=1) <= fb_px) \
         & (np.abs(moved - kpts1).max(axis=1) <= max_move) & np.isfinite(moved).all(axis=1)
-    h, w = grey1.shape[:2]
     consistent &= (moved[:, 0] >= 0) & (moved[:, 0] <= w - 1) & (moved[:, 1] >= 0) & (moved[:, 1] <= h - 1)
     refined = np.where(consistent[:, None], moved, kpts1)
     if drop:
