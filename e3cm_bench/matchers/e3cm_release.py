@@ -64,6 +64,8 @@ class E3CMReleaseMatcher(DeepMatcher):
             x0, x1 = out["points0"], out["points1"]
             info["cascade_counts"] = {top - i: n for i, n in out["counts"].items()}
             info["cascade_fallback"] = out["fallback"]
+            # By level: skipped (fewer than 8 matches), no F, or OpenCV's stacked 7-point solutions.
+            info["cascade_notes"] = {top - i: note for i, note in out["notes"].items()}
             timings["cascade"] = time.perf_counter() - t
         info["timings"] = timings
         return Matches(x0, x1, level0_cosine(feats0[0], feats1[0], x0, x1), info)

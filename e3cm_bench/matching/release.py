@@ -18,7 +18,10 @@ reproduce the releases' outputs on its four pairs. What each step keeps from the
 - the E3CM release's cascade: RANSAC F (1 px, 0.99) on all deepest matches, each next level's
   uncascaded list filtered by |x_B^T F x_A| < 0.01 (F as OpenCV returns it, F[2,2] = 1), a
   new RANSAC F on the survivors; nothing passing keeps all; fewer than 8 matches or no F
-  returns the unfiltered finest list. Rejections never feed back into refinement.
+  returns the unfiltered finest list. Rejections never feed back into refinement. A level
+  with fewer than 8 matches is skipped and the F before it filters the next level; 7
+  survivors give OpenCV's stacked 7-point solutions, of which the first filters the next
+  level (`release_fundamental_solutions`).
 
 Cells are N x 2 int64 (x, y) tensors; point lists are N x 2 float64 arrays in pixels,
 (c + 0.5) 2^l - 0.5 at level l (pixel-centre convention).
@@ -177,18 +180,21 @@ class ReleaseCascade:
     confidence: float = 0.99
 
 
-def release_fundamental(x0: np.ndarray, x1: np.ndarray, cascade: ReleaseCascade) -> np.ndarray | None:
-    """cv2.findFundamentalMat(FM_RANSAC) as the release calls it; None where OpenCV finds
-    none or refuses the input (the release would stop there; here the fallback applies)."""
+def release_fundamental_solutions(x0: np.ndarray, x1: np.ndarray, cascade: ReleaseCascade) -> np.ndarray | None:
+    """cv2.findFundamentalMat(FM_RANSAC) as the release calls it, its output as OpenCV gives it:
+    3 x 3, or 3k x 3 (k = 2, 3) for exactly 7 matches, where OpenCV runs its 7-point algorithm
+    alone and stacks every real solution. None where OpenCV finds none (fewer than 7
+    matches, or no solution) or refuses the input (the release would stop there; here the
+    fallback applies)."""
     try:
         F, _ = cv2.findFundamentalMat(
             np.ascontiguousarray(x0), np.ascontiguousarray(x1), cv2.FM_RANSAC, cascade.ransac_px, cascade.confidence
         )
     except cv2.error:
         return None
-    if F is None or F.shape[1] != 3 or F.shape[0] < 3:
+    if F is None or F.ndim != 2 or F.shape[1] != 3 or F.shape[0] < 3 or F.shape[0] % 3:
         return None
-    return F[:3]
+    return F
 
 
 def algebraic_residual(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
@@ -210,16 +216,32 @@ def release_cascade(
     points0: list[np.ndarray], points1: list[np.ndarray], cascade: ReleaseCascade = ReleaseCascade()
 ) -> dict:
     """The release's cascade over per-level point lists (deepest first) -> the finest level's
-    survivors, with each level's survivors, count and F and which fallback (if any) decided
-    the result."""
+    survivors, with each list's survivors, count and F (the 3 x 3 it filters with), the number
+    of solutions OpenCV stacked where it gave several, a note per list where the release
+    departs from "filter, then fit", and which fallback (if any) decided the result. Keys
+    are list indices (0 = deepest)."""
     finest = len(points0) - 1
-    out = {"counts": {}, "survivors": {}, "fundamentals": {}, "fallback": None}
+    out = {"counts": {}, "survivors": {}, "fundamentals": {}, "solutions": {}, "notes": {}, "fallback": None}
     if len(points0[0]) < 8:
         out["fallback"] = "fewer than 8 deepest matches: unfiltered finest level"
+        out["notes"][0] = f"{len(points0[0])} matches, fewer than 8: no F"
         out["points0"], out["points1"] = points0[finest], points1[finest]
         return out
-    F = release_fundamental(points0[0], points1[0], cascade)
-    out["fundamentals"][0] = F
+
+    def fit(i: int, x0: np.ndarray, x1: np.ndarray) -> np.ndarray | None:
+        stacked = release_fundamental_solutions(x0, x1, cascade)
+        # The release's outlier_rejection cuts any F that is not 3 x 3 to its first three
+        # rows: of OpenCV's stacked 7-point solutions, the first filters the next list.
+        out["fundamentals"][i] = None if stacked is None else stacked[:3]
+        if stacked is None:
+            out["notes"][i] = f"no F from {len(x0)} matches"
+        elif len(stacked) > 3:
+            out["solutions"][i] = len(stacked) // 3
+            out["notes"][i] = (f"{len(x0)} matches: OpenCV's 7-point algorithm stacked {len(stacked) // 3} solutions;"
+                               " the release uses the first")
+        return out["fundamentals"][i]
+
+    F = fit(0, points0[0], points1[0])
     x0, x1 = points0[finest], points1[finest]
     for i in range(1, finest + 1):
         if F is None:
@@ -228,16 +250,19 @@ def release_cascade(
             continue
         x0, x1 = points0[i], points1[i]
         if len(x0) < 8:
+            # The release skips this list (were it the last, its result is the unfiltered
+            # finest list) and keeps the F it had: that F filters the next list.
             x0, x1 = points0[finest], points1[finest]
             out["fallback"] = f"fewer than 8 matches at list {i}: unfiltered finest level"
+            out["notes"][i] = (f"{len(points0[i])} matches, fewer than 8: not filtered, no F"
+                               + ("" if i == finest else "; the last F filters the next level"))
             continue
         passed = np.abs(algebraic_residual(F, x0, x1)) < cascade.residual
         if passed.any():
             x0, x1 = x0[passed], x1[passed]
         out["counts"][i] = len(x0)
         out["survivors"][i] = (x0, x1)
-        F = release_fundamental(x0, x1, cascade)
-        out["fundamentals"][i] = F
+        F = fit(i, x0, x1)
         out["fallback"] = None
     out["points0"], out["points1"] = x0, x1
     return out
