@@ -1,11 +1,12 @@
 """Parity with the reference implementations' outputs, robust to the rounding of features.
 
 A reference file (layout of ../shared/parity: `r09_L{l}_A/B`, `r095_L{l}_A/B`, `r095_casc*`,
-`r095_F{l}`, `dfm_A/B`, `dfm_Hinit`) holds what the E3CM release and the DFM release
-output on one pair. Rounding of the CNN features moves with the CPU's kernels and the torch
-build (measured on VGG19: 3e-7 .. 5.3e-6 of each map's norm between AVX-512, AVX2 and ATen's
-default kernels; tests/test_parity.py, docs/methods.md "Parity"), and a match whose ratio or
-similarity margin sits below that can flip. So parity is proved in two ways:
+`r095_F{l}` (3x3, or OpenCV's stacked 7-point solutions, 6x3 / 9x3), `dfm_A/B`, `dfm_Hinit`)
+holds what the E3CM release and the DFM release output on one pair. Rounding of the CNN
+features moves with the CPU's kernels and the torch build (measured on VGG19: 3e-7 .. 5.3e-6
+of each map's norm between AVX-512, AVX2 and ATen's default kernels; tests/test_parity.py,
+docs/methods.md "Parity"), and a match whose ratio or similarity margin sits below that can
+flip. So parity is proved in two ways:
 
 - **stage by stage on the reference's own inputs**: each refinement from the reference's
   parent list, the released cascade from the reference's per-level lists (exactly), DFM's
@@ -22,6 +23,7 @@ Pure functions: maps, cells and point lists in, comparisons out (no file is read
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -195,12 +197,74 @@ def release_cascade_from_reference(ref: dict, tag: str, levels: int = 5) -> tupl
     return checks, out
 
 
+# A reference F is what OpenCV's findFundamentalMat returned: 3 x 3, or, from exactly 7
+# matches, every real solution of its 7-point algorithm stacked (6 x 3 or 9 x 3), of which
+# the release used the first (matching/release.py).
+F_ROWS = (3, 6, 9)
+
+
+def _shape(array: np.ndarray) -> str:
+    return "x".join(str(n) for n in array.shape) or "scalar"
+
+
+def reference_fundamental(ref: dict, key: str) -> np.ndarray:
+    """The F the release used at `key`: the first 3 rows of what the file holds. A ValueError
+    naming the key and its shape where that is not 3 x 3, 6 x 3 or 9 x 3."""
+    F = np.asarray(ref[key])
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] not in F_ROWS:
+        raise ValueError(f"{key}: shape {_shape(F)}, not a fundamental matrix (3x3) nor OpenCV's stacked "
+                         f"7-point solutions (6x3, 9x3)")
+    return F[:3]
+
+
+def check_reference(ref: dict) -> None:
+    """A ValueError, one line naming the key and its shape, for the first array of `ref` that
+    the checks could not read: an F (`{tag}_F{l}`) other than 3x3 / 6x3 / 9x3, a homography
+    (`*_Hinit`, `dfm_H`) other than 3x3, a point list (`*_A`, `*_B`) other than N x 2 or of
+    another length than its partner. Keys the checks do not read are left alone."""
+    for key in sorted(ref):
+        value = np.asarray(ref[key])
+        if re.fullmatch(rf"({'|'.join(TAGS)})_F\d+", key):
+            reference_fundamental(ref, key)
+        elif key.endswith("_Hinit") or key == "dfm_H":
+            if value.shape != (3, 3):
+                raise ValueError(f"{key}: shape {_shape(value)}, not a homography (3x3)")
+        elif key.endswith(("_A", "_B")):
+            if value.ndim != 2 or value.shape[1] != 2:
+                raise ValueError(f"{key}: shape {_shape(value)}, not a point list (N x 2)")
+            partner = key[:-1] + ("B" if key.endswith("_A") else "A")
+            if partner in ref and len(np.asarray(ref[partner])) != len(value):
+                rows = len(np.asarray(ref[partner]))
+                raise ValueError(f"{key}: shape {_shape(value)}, but {partner} has {rows} rows")
+
+
 def fundamental_differences(out: dict, ref: dict, tag: str, levels: int = 5) -> dict[int, float]:
     """Largest |F_ours - F_ref| per level where the file holds the reference's F (a level
-    whose RANSAC found none has no F on either side: its key is absent from the file)."""
+    whose RANSAC found none has no F on either side: its key is absent from the file). A
+    reference F of OpenCV's stacked 7-point solutions is compared by its first solution,
+    the one the release used; one of a shape nobody returns raises a ValueError naming it."""
     top = levels - 1
-    return {top - i: float(np.abs(F - ref[f"{tag}_F{top - i}"]).max())
+    return {top - i: float(np.abs(F - reference_fundamental(ref, f"{tag}_F{top - i}")).max())
             for i, F in out["fundamentals"].items() if F is not None and f"{tag}_F{top - i}" in ref}
+
+
+F_RTOL = 1e-9  # the same OpenCV call on the same list: the same F up to rounding, relative to its largest entry
+
+
+def fundamental_mismatches(out: dict, ref: dict, tag: str, levels: int = 5) -> list[str]:
+    """Where our F (the cascade run on the reference's lists) is not the reference's: an F on
+    one side only (a different cascade), or one further than F_RTOL of the reference's
+    largest entry from the solution the release used. Empty when every F agrees."""
+    top = levels - 1
+    differences = fundamental_differences(out, ref, tag, levels)
+    problems = []
+    for i, F in out["fundamentals"].items():
+        key = f"{tag}_F{top - i}"
+        if (F is None) != (key not in ref):
+            problems.append(f"{key}: {'the reference' if F is None else 'ours'} only")
+        elif F is not None and differences[top - i] > F_RTOL * np.abs(reference_fundamental(ref, key)).max():
+            problems.append(f"{key}: max |F - F_ref| = {differences[top - i]:.3g}")
+    return problems
 
 
 # --------------------------------------------------------------------------- the DFM release
@@ -256,5 +320,6 @@ def dfm_stage1(pyramid: Callable[[np.ndarray], tuple[list[torch.Tensor], torch.T
 __all__ = [
     "ListParity", "ROUNDING_SCALE", "N_PERTURBATIONS", "TAGS", "compare", "perturb", "under_perturbation", "to_cells",
     "release_lists", "release_levels_end_to_end", "release_levels_by_stage", "release_cascade_from_reference",
-    "fundamental_differences", "dfm_stage0", "dfm_stage1",
+    "fundamental_differences", "reference_fundamental", "check_reference", "F_ROWS",
+    "F_RTOL", "fundamental_mismatches", "dfm_stage0", "dfm_stage1",
 ]
