@@ -287,3 +287,33 @@ def test_parity_script_on_a_reference_file(seed0_weights, tmp_path):
     failed = subprocess.run([*command, str(bad), *images], capture_output=True, text=True, timeout=900)
     print(failed.stdout)
     assert failed.returncode == 1 and "failed:" in failed.stdout and "r09_L2" in failed.stdout.splitlines()[-1]
+
+
+@pytest.mark.parametrize("name, stacked_level", (("graf12_640_c160x224", 2), ("graf12_640_c128x256", 3)))
+def test_parity_script_on_a_reference_with_a_stacked_F(seed0_weights, tmp_path, name, stacked_level):
+    """A level that keeps exactly 7 matches holds OpenCV's 7-point solutions stacked as a 9x3
+    F (tests/data/parity: the E3CM release run on crops of graf12_640; see
+    tests/test_release_small_levels.py): the script compares ours with the first solution,
+    the one the release used, and every list passes."""
+    import subprocess
+    import sys
+
+    data = REPO_ROOT / "tests" / "data" / "parity"
+    pair = json.loads((data / "manifest.json").read_text())["pairs"][name]
+    y0, x0, h, w = pair["crop_y0_x0_h_w"]
+    images = []
+    for side in "AB":
+        path = tmp_path / f"{side}.png"
+        cv2.imwrite(str(path), cv2.imread(str(PARITY / f"{pair['source']}_{side}.png"))[y0:y0 + h, x0:x0 + w])
+        images.append(str(path))
+    run = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "parity.py"), str(data / f"{name}.npz"), *images,
+                          "--weights", str(seed0_weights), "--perturbations", "2"],
+                         capture_output=True, text=True, timeout=900)
+    print(run.stdout)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert [line for line in run.stdout.splitlines() if "stacked" in line] == [
+        f"r095 F{stacked_level} from reference lists: max |F - F_ref| = 0"
+        " (the first of 3 stacked solutions, as the release)"]
+    assert f"r095 cascade L{stacked_level} survivors: reference 7, ours 7, identical 7" in run.stdout
+    last = run.stdout.splitlines()[-1]
+    assert last.endswith("lists at parity") and last.split()[0] == last.split()[2], last
