@@ -14,6 +14,7 @@ from .cache import MatchCache, check_free_space
 from .datasets.base import Pair
 from .files import write_csv
 from .images import load_image
+from .intervals import summary_intervals
 from .viz import draw_matches, save_image
 
 CONFIG_FILE = "config.yaml"
@@ -23,9 +24,15 @@ CACHE_FILE = "matches.h5"
 def evaluate_stage(
     benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
 ) -> tuple[pd.DataFrame, dict]:
-    """Every pair's row from its cached matches and ground truth, and the summary of the rows."""
+    """Every pair's row from its cached matches and ground truth, and the summary of the rows.
+
+    The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
+    ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
+    """
     rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
-    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), benchmark.summarize(rows, ev)
+    summary = benchmark.summarize(rows, ev)
+    summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
+    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), summary
 
 
 def write_reports(

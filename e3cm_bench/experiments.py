@@ -197,6 +197,9 @@ def write_table(
 
     compare=False drops the measured - paper difference columns: on data other than the
     paper's full benchmark (e.g. the shared samples) the differences mean nothing.
+    Every measured number carries its bootstrap interval (``<col>_lo``, ``<col>_hi`` in the CSV;
+    ``0.73 [0.47, 0.93]`` in the Markdown and on the terminal); a difference whose paper number
+    lies outside that interval says so.
     paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
     """
     console = console or Console()
@@ -209,7 +212,7 @@ def write_table(
             console.print(f"[yellow]note[/]: {candidate} not found; the table has no paper reference rows")
     table = report.paper_table(runs, benchmark, reference)
     if not compare:
-        table = table.drop(columns=[c for c in table.columns if c.startswith("d_")])
+        table = report.without_comparison(table)
     csv_path, md_path = report.write_paper_table(table, out_path)
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
     # markup=False: labels such as 'e3cm [efficientnet_lite0]' are text, not rich style tags.

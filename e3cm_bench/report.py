@@ -18,10 +18,13 @@ from rich.markup import escape
 from rich.table import Table
 
 from .benchmarks import Benchmark, get_benchmark
+from . import intervals
 from .files import load_yaml, read_csv, write_atomically, write_csv
-from .formats import format_number
+from .formats import format_interval, format_number
 
 REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"  # results/paper/: the paper's numbers
+# A table's column naming the metrics whose paper number lies outside the measured interval.
+OUTSIDE = "outside_ci"
 
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
@@ -97,6 +100,33 @@ def paper_row_of(run: Run) -> str | None:
     return entry.paper_row
 
 
+def eval_settings_of(run: Run):
+    """The EvalSettings a run was evaluated with (its config.yaml's evaluation block; defaults for
+    fields it lacks); None when the block cannot be read as settings."""
+    from .benchmarks import EvalSettings
+
+    block = dict(run.config.get("evaluation") or {})
+    fields = {k: v for k, v in block.items() if k in EvalSettings.__dataclass_fields__}
+    if isinstance(fields.get("precision_thresholds"), list):
+        fields["precision_thresholds"] = tuple(fields["precision_thresholds"])
+    try:
+        return EvalSettings(**fields)
+    except (TypeError, ValueError):
+        return None
+
+
+def run_intervals(run: Run) -> dict:
+    """The run's intervals: those of its summary.csv; for a run written before intervals, those
+    recomputed from its per_pair.csv when its pairs reproduce its summary (intervals.recompute);
+    else none ({}), and its tables show the numbers alone."""
+    if intervals.has_intervals(run.summary):
+        return run.summary
+    ev = eval_settings_of(run)
+    if ev is None or run.per_pair.empty:
+        return {}
+    return intervals.recompute(run.benchmark, run.summary, run.per_pair, ev) or {}
+
+
 def protocol_of(run: Run) -> tuple[str, bool]:
     """The run's evaluation protocol and whether it is a standard one."""
     from .benchmarks.protocols import PROTOCOLS
@@ -115,8 +145,13 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
     Keys with ``_i`` / ``_v`` counterparts (HPatches splits) share a row, with the
     overall value and the illumination / viewpoint values side by side.
     """
+    bounds = summary
+    summary = {key: value for key, value in summary.items() if not intervals.is_interval_key(key)}
     split_bases = {key[:-2] for key in summary if key.endswith(("_i", "_v")) and key[:-2] in summary}
     table = Table(title=escape(title))  # a label like 'dfm [efficientnet_lite0]' is text, not markup
+    if intervals.has_intervals(bounds):
+        table.caption = (f"[lo, hi]: {float(bounds.get('confidence', 0.95)):.0%} bootstrap interval over the pairs "
+                         f"({bounds.get('bootstrap_samples', '?')} resamples, seed {bounds.get('bootstrap_seed', '?')})")
     table.add_column("metric")
     if split_bases:
         for header in ("overall", "illumination", "viewpoint"):
@@ -126,7 +161,10 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
 
     def cell(key: str, value) -> str:
         # Fractions need four decimals to be told apart; counts, degrees and percents two.
-        return format_number(value, key, fraction_decimals=4)
+        interval = intervals.interval_of(bounds, key)
+        if interval is None:
+            return format_number(value, key, fraction_decimals=4)
+        return format_interval(value, *interval, key, fraction_decimals=4)
 
     for key, value in summary.items():
         if key[:-2] in split_bases and key.endswith(("_i", "_v")):
@@ -134,7 +172,7 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
         cells = [key, cell(key, value)]
         if split_bases:
             if key in split_bases:
-                cells += [cell(key, summary[f"{key}_i"]), cell(key, summary[f"{key}_v"])]
+                cells += [cell(f"{key}_i", summary[f"{key}_i"]), cell(f"{key}_v", summary[f"{key}_v"])]
             else:
                 cells += ["", ""]
         table.add_row(*cells)
@@ -166,6 +204,9 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
     extras (``n_pairs``; HPatches also ``mma@3``), ``vs_paper`` (the paper row a measured
     row is to be compared with, `paper_row_of`), ``protocol``, then ``d_<metric>`` =
     measured - that paper row. A run under a non-standard protocol is marked "(non-standard)".
+    Then the intervals: ``outside_ci`` (the metrics whose paper number lies outside the measured
+    interval, comma-separated), ``<col>_lo`` and ``<col>_hi`` for every measured column but the
+    counts (NaN where the run has none, `run_intervals`), and their ``confidence``.
     """
     benchmark = get_benchmark(benchmark)
     for run in runs:
@@ -181,6 +222,8 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
             paper_rows.append({"method": row["method"], "source": "paper", **{m: float(row[m]) for m in table_metrics}})
     paper_by_key = {method_key(row["method"]): row for row in paper_rows}
 
+    # Every measured number but the counts carries its interval: the summary column it comes from.
+    sources = {**table_metrics, **{extra: extra for extra in extras if not extra.startswith(intervals.COUNTS)}}
     measured_rows = []
     for run in runs:
         protocol, standard = protocol_of(run)
@@ -194,21 +237,67 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
         row["protocol"] = protocol
         for metric in table_metrics:
             row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
+        bounds = run_intervals(run)
+        outside = []
+        for column, summary_column in sources.items():
+            interval = intervals.interval_of(bounds, summary_column)
+            row[intervals.lo_key(column)], row[intervals.hi_key(column)] = interval or (np.nan, np.nan)
+            paper_value = reference_row.get(column) if reference_row is not None else None
+            if interval is not None and paper_value is not None and not interval[0] <= paper_value <= interval[1]:
+                outside.append(column)
+        row[OUTSIDE] = ", ".join(outside)
+        row["confidence"] = float(bounds["confidence"]) if bounds else np.nan
         measured_rows.append(row)
 
-    columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics)]
+    columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics),
+               OUTSIDE, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
+
+
+def without_comparison(table: pd.DataFrame, vs_paper: bool = False) -> pd.DataFrame:
+    """The table without its measured - paper columns (and `vs_paper` too if asked)."""
+    drop = [c for c in table.columns if c.startswith("d_") or c == OUTSIDE or (vs_paper and c == "vs_paper")]
+    return table.drop(columns=drop)
+
+
+def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list[bool]]:
+    """The table as people read it: each number with its interval in one cell ("0.73 [0.47, 0.93]"),
+    each difference from a paper number outside the measured interval marked so; the interval
+    columns themselves folded away. Returns (columns, rows of text, which columns are numeric)."""
+    columns = [str(c) for c in table.columns]
+    folded = {c for c in columns if intervals.lo_key(c) in columns and intervals.hi_key(c) in columns}
+    hidden = {key for c in folded for key in (intervals.lo_key(c), intervals.hi_key(c))}
+    hidden |= {c for c in (OUTSIDE, "confidence") if c in columns}
+    shown = [c for c in columns if c not in hidden]
+    body = []
+    for record in table.to_dict("records"):
+        listed = record.get(OUTSIDE)
+        outside = {m.strip() for m in listed.split(",")} if isinstance(listed, str) else set()
+        cells = []
+        for c in shown:
+            value = record[c]
+            if c in folded:
+                text = format_interval(value, record[intervals.lo_key(c)], record[intervals.hi_key(c)], c)
+            else:
+                text = format_number(value, c)
+            if c.startswith("d_") and c[2:] in outside:
+                confidence = record.get("confidence")
+                level = f"{float(confidence):.0%} " if isinstance(confidence, float) and confidence == confidence else ""
+                text += f" (outside {level}CI)"
+            cells.append(text)
+        body.append(cells)
+    numeric = [pd.api.types.is_numeric_dtype(table[c]) for c in shown]
+    return shown, body, numeric
 
 
 def table_to_markdown(df: pd.DataFrame) -> str:
     """A pipe table (pandas' to_markdown needs ``tabulate``, which we do not depend on).
 
     Numbers get two decimals (fractions and percents alike), differences a sign,
-    counts none, missing values '-'; text columns are left-aligned, numbers right.
+    counts none, missing values '-'; text columns are left-aligned, numbers right. A column
+    with ``<col>_lo`` and ``<col>_hi`` beside it shows them in its cells (`display_cells`).
     """
-    columns = [str(c) for c in df.columns]
-    body = [[format_number(value, column) for column, value in zip(columns, row)] for row in df.itertuples(index=False)]
-    numeric = [pd.api.types.is_numeric_dtype(df[c]) for c in df.columns]
+    columns, body, numeric = display_cells(df)
     widths = [max([len(column), 3, *(len(row[i]) for row in body)]) for i, column in enumerate(columns)]
 
     def line(cells: Sequence[str]) -> str:

@@ -53,6 +53,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
         "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5",
+        "outside_ci", *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3") for b in ("lo", "hi")), "confidence",
     ]
     assert (table["source"] == "paper").sum() == PAPER_ROWS
     measured = table[table["source"] == "measured"].set_index("method")
@@ -67,7 +68,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     assert (tmp_path / "t1_mma.png").stat().st_size > 0
 
     assert invoke("table", sift, direct, "--out", tmp_path / "t2", "--no-compare").exit_code == 0
-    assert not any(c.startswith("d_") for c in pd.read_csv(tmp_path / "t2.csv").columns)
+    assert not any(c.startswith("d_") or c == "outside_ci" for c in pd.read_csv(tmp_path / "t2.csv").columns)
 
 
 def test_table_refuses_mixed_benchmarks(two_runs, tmp_path, shared_data):

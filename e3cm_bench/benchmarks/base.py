@@ -6,7 +6,7 @@ runner and the reports ask it, never a benchmark name, what to do.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -101,6 +101,16 @@ class Benchmark:
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:  # pragma: no cover
         raise NotImplementedError
+
+    def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
+        """`summarize` of rows picked by index: f(idx) == summarize([rows[i] for i in idx], ev).
+
+        The bootstrap calls it once per resample; a subclass may read the rows into arrays once
+        and summarise each resample from those (the caller checks that f(range(n)) gives the
+        summary itself before trusting it). This default builds the rows of each resample.
+        """
+        rows = list(rows)
+        return lambda idx: self.summarize([rows[i] for i in idx], ev)
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:  # pragma: no cover
         """Which matches the ground truth calls right (green in --viz drawings)."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,6 +43,31 @@ class HomographyBenchmark(Benchmark):
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         return metrics.summarize_hpatches(rows)
 
+    def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
+        # metrics.summarize_hpatches on arrays read once: the same keys in the same order and the
+        # same float64 means over the same values in the same order, so equal bit for bit.
+        rows = list(rows)
+        n_matches = _column(rows, "n_matches")
+        mma = {t: _column(rows, f"mma@{t}") for t in metrics.MMA_THRESHOLDS}
+        h_error = _column(rows, "h_error")
+        splits = {s: np.array([str(r["sequence"]).startswith(f"{s}_") for r in rows], dtype=bool) for s in ("i", "v")}
+
+        def block(idx: np.ndarray, suffix: str) -> dict:
+            out = {f"n_pairs{suffix}": int(idx.size), f"n_matches{suffix}": _mean(n_matches[idx])}
+            out.update({f"mma@{t}{suffix}": _mean(mma[t][idx]) for t in metrics.MMA_THRESHOLDS})
+            return out
+
+        def summarize(idx: Sequence[int]) -> dict:
+            idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+            summary = block(idx, "")
+            for split, mask in splits.items():
+                summary.update(block(idx[mask[idx]], f"_{split}"))
+            for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS:
+                summary[f"h_acc@{t}"] = _mean((h_error[idx] <= t).astype(np.float64))
+            return summary
+
+        return summarize
+
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         err = np.linalg.norm(warp_points(pair.H, matches.keypoints0) - matches.keypoints1, axis=1)
         return err <= ev.correct_px
@@ -57,6 +82,15 @@ class HomographyBenchmark(Benchmark):
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
         path = stem.with_name(stem.stem + "_mma.png")
         return [plots.plot_mma_curves({label: summary for label, (summary, _) in runs.items()}, path)]
+
+
+def _column(rows: Sequence[Mapping], key: str) -> np.ndarray:
+    return np.asarray([r[key] for r in rows], dtype=np.float64)
+
+
+def _mean(values: np.ndarray) -> float:
+    """metrics' mean of a summary: float64 np.mean, NaN for no values."""
+    return float(np.mean(values)) if values.size else float("nan")
 
 
 HPATCHES = HomographyBenchmark(

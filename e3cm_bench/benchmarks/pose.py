@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,6 +63,33 @@ class PoseBenchmark(Benchmark):
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         return metrics.summarize_pose(rows, ev.precision_thresholds, ev.drop_failures)
+
+    def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
+        # metrics.summarize_pose on arrays read once: the same keys in the same order, the same
+        # float64 means over the same values in the same order and the same pose_auc, so equal
+        # bit for bit.
+        rows = list(rows)
+        n_matches = np.asarray([r["n_matches"] for r in rows], dtype=np.float64)
+        errors = np.asarray([r["err_pose"] for r in rows], dtype=np.float64)
+        finite = np.isfinite(errors)
+        keys = [metrics.precision_key(t) for t in ev.precision_thresholds]
+        precision = {key: np.asarray([r[key] for r in rows], dtype=np.float64) for key in keys}
+
+        def mean(values: np.ndarray) -> float:
+            return float(np.mean(values)) if values.size else float("nan")
+
+        def summarize(idx: Sequence[int]) -> dict:
+            idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+            summary = {"n_pairs": int(idx.size), "n_matches": mean(n_matches[idx]),
+                       "n_failures": int(np.count_nonzero(~finite[idx]))}
+            chosen = errors[idx[finite[idx]]] if ev.drop_failures else errors[idx]
+            for threshold, auc in zip(metrics.POSE_AUC_THRESHOLDS, metrics.pose_auc(chosen, metrics.POSE_AUC_THRESHOLDS)):
+                summary[f"auc@{threshold}"] = auc
+            for key in keys:
+                summary[key] = 100.0 * mean(precision[key][idx])
+            return summary
+
+        return summarize
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)
