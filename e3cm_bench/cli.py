@@ -374,6 +374,30 @@ def report(
     write_report(list(run_dirs), out, console=console, compare=compare)
 
 
+@app.command("compare")
+@friendly_errors
+def compare_command(
+    run_a: Annotated[Path, typer.Argument(help="Run folder A (config.yaml, summary.csv, per_pair.csv).")],
+    run_b: Annotated[Path, typer.Argument(help="Run folder B, of the same benchmark.")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for compare.csv and compare.md.")] = None,
+    mma: Annotated[Optional[str], typer.Option("--mma", help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")] = None,
+    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of each test; intervals at 1 - alpha.")] = 0.05,
+) -> None:
+    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric the mean
+    difference B - A with its paired-bootstrap interval, a paired test (Wilcoxon or sign;
+    McNemar for pass/fail) and a verdict."""
+    from .compare_runs import compare_runs, parse_mma, print_comparison, write_comparison
+    from .report import load_run
+
+    first, second = load_run(run_a), load_run(run_b)
+    columns = set(first.per_pair.columns) & set(second.per_pair.columns)
+    comparison = compare_runs(first, second, mma=parse_mma(mma, sorted(columns)), alpha=alpha)
+    print_comparison(comparison, console)
+    if out is not None:
+        csv_path, md_path = write_comparison(comparison, out)
+        console.print(f"compare: {csv_path}, {md_path}", markup=False)
+
+
 @app.command()
 @friendly_errors
 def reproduce(

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 from rich.console import Console
 
-from .report import REPO_RESULTS, Run, load_run, paper_table
+from .report import REPO_RESULTS, Run, display_cells, load_run, paper_table, without_comparison
 
 N_WORST = 8          # pairs drawn because most methods fail there
 N_SAMPLE = 8         # pairs drawn as an even sample of the rest
@@ -75,18 +75,19 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
         reference = candidate if candidate.is_file() else None
     table = paper_table(runs, benchmark, reference)
     if not compare:
-        table = table.drop(columns=[c for c in table.columns if c.startswith("d_") or c == "vs_paper"])
+        table = without_comparison(table, vs_paper=True)
+    notes: list[str] = []
+    comparison = _comparison(runs, notes)
     plots = [p.relative_to(out).as_posix() for p in
              benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, out / "img" / "comparison")]
     run_links = [_copy_run(run, out / "runs" / f"{k:02d}") for k, run in enumerate(runs, start=1)]
     pairs = _pair_rows(runs)
     chosen = _choose_pairs(pairs, runs)
-    notes: list[str] = []
     drawings = _draw(runs, chosen, out, notes)
     for name in chosen:
         _write_pair_page(out, name, runs, pairs, drawings)
     index = out / "index.html"
-    index.write_text(_index_page(benchmark.name, runs, table, plots, run_links, pairs, set(chosen), notes))
+    index.write_text(_index_page(benchmark.name, runs, table, plots, run_links, pairs, set(chosen), notes, comparison))
     console.print(f"report: {index} ({len(runs)} runs, {len(pairs)} pairs, {len(chosen)} pair pages, "
                   f"{sum(len(v) for v in drawings.values())} drawings)", markup=False)
     for note in notes:
@@ -95,6 +96,19 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
 
 
 # --------------------------------------------------------------------------- data
+
+
+def _comparison(runs: list[Run], notes: list[str]):
+    """The paired comparison of exactly two runs (compare_runs), or None; why not, in the notes."""
+    from .compare_runs import compare_runs
+
+    if len(runs) != 2:
+        return None
+    try:
+        return compare_runs(runs[0], runs[1])
+    except ValueError as error:
+        notes.append(f"no paired comparison: {error}")
+        return None
 
 
 def _copy_run(run: Run, folder: Path) -> dict:
@@ -220,15 +234,18 @@ def _page(title: str, body: str, script: str = "") -> str:
 
 
 def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: list[str], run_links: list[dict],
-                pairs: pd.DataFrame, chosen: set[str], notes: list[str]) -> str:
-    head = "".join(f"<th class=\"{'t' if c in ('method', 'source', 'vs_paper', 'protocol') else ''}\">{html.escape(c)}</th>"
-                   for c in table.columns)
+                pairs: pd.DataFrame, chosen: set[str], notes: list[str], comparison=None) -> str:
+    # The table as the Markdown shows it: each number with its interval, differences flagged.
+    text_columns = ("method", "source", "vs_paper", "protocol")
+    shown, body, _ = display_cells(table)
+    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\">{html.escape(c)}</th>" for c in shown)
     rows = []
-    for _, row in table.iterrows():
-        cells = "".join(f"<td class=\"t\">{html.escape(str(row[c]) if row[c] == row[c] else '')}</td>"
-                        if c in ("method", "source", "vs_paper", "protocol") else f"<td>{_number(row[c], c)}</td>"
-                        for c in table.columns)
-        rows.append(f"<tr class=\"{row['source']}\">{cells}</tr>")
+    for source, cells_text in zip(table["source"], body):
+        cells = "".join(f"<td class=\"t\">{html.escape('' if text == '-' else text)}</td>" if c in text_columns
+                        else f"<td>{html.escape(text)}</td>" for c, text in zip(shown, cells_text))
+        rows.append(f"<tr class=\"{html.escape(str(source))}\">{cells}</tr>")
+    intervals_note = ("[lo, hi]: the bootstrap interval over the pairs (95% unless the run recorded another), "
+                      "where the run has one; \"outside CI\": the paper's number lies outside it.")
     run_items = []
     for k, (run, links) in enumerate(zip(runs, run_links), start=1):
         items = " · ".join(f"<a href=\"{html.escape(path)}\">{html.escape(name)}</a>" for name, path in links.items())
@@ -254,6 +271,8 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
 {''.join(f'<p class="muted">note: {html.escape(n)}</p>' for n in notes)}
 <h2>Table</h2>
 <table id="summary"><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>
+<p class="muted">{html.escape(intervals_note)}</p>
+{_comparison_section(comparison)}
 <h2>Plots</h2>
 <div class="plots">{''.join(f'<img src="{html.escape(p)}" alt="{html.escape(p)}">' for p in plots)}</div>
 <h2>Runs</h2>
@@ -269,6 +288,21 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
 <script type="application/json" id="pair-data">{payload}</script>
 """
     return _page(f"e3cm-bench report: {benchmark}", body, SCRIPT)
+
+
+def _comparison_section(comparison) -> str:
+    """The two runs compared pair by pair: the table `e3cm-bench compare` prints."""
+    if comparison is None:
+        return ""
+    header, body = comparison.display()
+    head = "".join(f"<th class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
+    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(cell)}</td>"
+                                    for k, cell in enumerate(row)) + "</tr>" for row in body)
+    return (f"<h2>Paired comparison</h2>\n<p>{html.escape(comparison.heading())}</p>\n"
+            f"<table id=\"comparison\"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>\n"
+            f"<p class=\"muted\">B - A: the mean difference over the pairs where both values are finite, with its "
+            f"paired-bootstrap interval ({comparison.n_samples} resamples, seed {comparison.seed}); p: Wilcoxon or sign "
+            f"test on the values, exact McNemar on pass/fail (e3cm-bench compare).</p>")
 
 
 def _json_value(value):

@@ -85,7 +85,9 @@ def test_the_numbers_are_the_runs_own(site, demo):
     for label in ("sift", "e3cm-release"):
         summary = pd.read_csv(demo / "hpatches" / label / "summary.csv").iloc[0]
         row = cells[cells.index(label):cells.index(label) + 8]
-        assert row[2:5] == [f"{summary[m]:.2f}" for m in ("h_acc@1", "h_acc@3", "h_acc@5")], row
+        # each number with its bootstrap interval from the run's own summary.csv
+        assert row[2:5] == [f"{summary[m]:.2f} [{summary[m + '_lo']:.2f}, {summary[m + '_hi']:.2f}]"
+                            for m in ("h_acc@1", "h_acc@3", "h_acc@5")], row
     data = json.loads(re.search(r'<script type="application/json" id="pair-data">(.*?)</script>', index.read_text(), re.S).group(1))
     assert data["methods"] == ["sift", "e3cm-release"]
     for k, label in enumerate(data["methods"]):
@@ -99,6 +101,22 @@ def test_the_numbers_are_the_runs_own(site, demo):
                 value = row[column]
                 assert (cell[column] == "inf") if np.isinf(value) else cell[column] == pytest.approx(value, abs=0)
             assert cell["fail"] == (not value <= 3.0)
+
+
+def test_two_runs_get_the_paired_comparison(site, demo):
+    """Given exactly two runs of one benchmark, the page holds the table `e3cm-bench compare` prints."""
+    from e3cm_bench.compare_runs import compare_runs
+    from e3cm_bench.report import load_run
+
+    text = (site / "index.html").read_text()
+    assert "<h2>Paired comparison</h2>" in text and 'id="comparison"' in text
+    parser = Links()
+    parser.feed(text.split('id="comparison"')[1].split("</table>")[0])
+    expected = compare_runs(load_run(demo / "hpatches" / "sift"), load_run(demo / "hpatches" / "e3cm-release"))
+    _, body = expected.display()
+    assert [row[0] for row in body] == ["mma@3", "h_error", "h_acc@1", "h_acc@3", "h_acc@5"]
+    assert parser.cells == [cell for row in body for cell in row]
+    assert all(row[-1] in ("A better", "B better") or row[-1].startswith("no difference detectable") for row in body)
 
 
 def test_runs_of_different_benchmarks_are_refused(demo, tmp_path):

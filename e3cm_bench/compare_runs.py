@@ -1,0 +1,223 @@
+"""Two runs of one benchmark compared pair by pair: `e3cm-bench compare RUN_A RUN_B` and the
+report page's comparison section.
+
+Only the pairs both runs hold take part (matched by per_pair.csv's ``pair`` column), so each
+pair is its own control: per metric, the mean difference B - A with its paired-bootstrap
+interval, a paired test (Wilcoxon or sign on values, exact McNemar on pass/fail) and a verdict,
+all from `stats.compare_paired`. Which per-pair values are compared, and which way is better,
+is said once here per kind of benchmark (`paired_metrics`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from . import metrics, stats
+from .benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
+from .files import write_atomically, write_csv
+from .formats import format_interval, format_number
+from .report import Run
+
+HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
+POSE_ERROR_THRESHOLDS = metrics.POSE_AUC_THRESHOLDS  # degrees: err_pose < t, the AUC's thresholds
+
+
+@dataclass(frozen=True)
+class PairedMetric:
+    """One per-pair value to compare: its name, how it is read from per_pair.csv, which way is better."""
+
+    name: str
+    values: Callable[[pd.DataFrame], np.ndarray]
+    higher_is_better: bool
+    binary: bool = False
+
+
+@dataclass
+class Comparison:
+    """The result of comparing run A with run B on the pairs both hold."""
+
+    label_a: str
+    label_b: str
+    benchmark: str
+    n_a: int
+    n_b: int
+    n_common: int
+    results: list[stats.PairedResult]
+    metrics: list[PairedMetric]
+    confidence: float
+    n_samples: int
+    seed: int
+
+    def table(self) -> pd.DataFrame:
+        """compare.csv: one row per metric; d_mean = mean(B - A) over the pairs finite in both."""
+        rows = []
+        for metric, r in zip(self.metrics, self.results):
+            rows.append({
+                "metric": r.metric, "better": "higher" if metric.higher_is_better else "lower", "n": r.n,
+                "mean_a": r.mean_a, "mean_b": r.mean_b, "d_mean": r.mean_diff, "d_mean_lo": r.lo, "d_mean_hi": r.hi,
+                "test": r.test, "p_value": r.p_value, "verdict": r.verdict,
+                "confidence": self.confidence, "bootstrap_samples": self.n_samples, "bootstrap_seed": self.seed,
+            })
+        return pd.DataFrame(rows)
+
+    def display(self) -> tuple[list[str], list[list[str]]]:
+        """The table as people read it (terminal, Markdown, report page): header and text rows."""
+        header = ["metric", "better", "n", f"A: {self.label_a}", f"B: {self.label_b}",
+                  f"B - A [{self.confidence:.0%} CI]", "test", "p", "verdict"]
+        body = []
+        for row in self.table().to_dict("records"):
+            body.append([row["metric"], row["better"], str(row["n"]), _value(row["mean_a"]), _value(row["mean_b"]),
+                         format_interval(row["d_mean"], row["d_mean_lo"], row["d_mean_hi"], "d_mean", decimals=3,
+                                         fraction_decimals=3),
+                         row["test"], f"{row['p_value']:.3g}", row["verdict"]])
+        return header, body
+
+    def heading(self) -> str:
+        return (f"{self.benchmark}: A = {self.label_a} ({self.n_a} pairs), B = {self.label_b} ({self.n_b} pairs); "
+                f"{self.n_common} pairs in both are compared")
+
+
+def _value(value: float) -> str:
+    return format_number(value, "", decimals=3, fraction_decimals=3)
+
+
+def _column(name: str, failure_is_inf: bool = False) -> Callable[[pd.DataFrame], np.ndarray]:
+    def read(per_pair: pd.DataFrame) -> np.ndarray:
+        values = pd.to_numeric(per_pair[name], errors="coerce").to_numpy(dtype=np.float64)
+        if failure_is_inf:  # an error the run could not compute is a failure: worse than any value
+            values = np.where(np.isnan(values), np.inf, values)
+        return values
+    return read
+
+
+def _passes(name: str, threshold: float, inclusive: bool) -> Callable[[pd.DataFrame], np.ndarray]:
+    error = _column(name, failure_is_inf=True)
+
+    def read(per_pair: pd.DataFrame) -> np.ndarray:
+        values = error(per_pair)
+        return ((values <= threshold) if inclusive else (values < threshold)).astype(np.float64)
+    return read
+
+
+def parse_mma(option: str | None, available: Sequence[str] = ()) -> tuple[int, ...]:
+    """--mma: "3" (default), "1,3,5", or "all" (every mma@k column the runs hold)."""
+    if option is None or option == "":
+        return HOMOGRAPHY_MMA_DEFAULT
+    if option.strip().lower() == "all":
+        return tuple(t for t in metrics.MMA_THRESHOLDS if f"mma@{t}" in available) or tuple(metrics.MMA_THRESHOLDS)
+    try:
+        chosen = tuple(int(part) for part in option.split(",") if part.strip())
+    except ValueError:
+        raise ValueError(f"--mma {option!r}: give thresholds in pixels such as 3 or 1,3,5, or 'all'") from None
+    unknown = [t for t in chosen if t not in metrics.MMA_THRESHOLDS]
+    if unknown or not chosen:
+        raise ValueError(f"--mma {option!r}: thresholds must be among {', '.join(map(str, metrics.MMA_THRESHOLDS))}")
+    return chosen
+
+
+def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEFAULT) -> list[PairedMetric]:
+    """The per-pair values compared for a benchmark, in the order they are shown.
+
+    Homography: mma@k (each k of `mma`), h_error (lower is better; no estimate = +inf), and
+    whether h_error <= t for t = 1, 3, 5 px (each pair's part of h_acc@t; McNemar).
+    Pose: err_pose (lower is better; no pose = +inf), whether err_pose < t for t = 5, 10, 20
+    degrees (the AUC's thresholds; McNemar), and the table's precision column.
+    """
+    if isinstance(benchmark, HomographyBenchmark):
+        return [
+            *(PairedMetric(f"mma@{t}", _column(f"mma@{t}"), higher_is_better=True) for t in mma),
+            PairedMetric("h_error", _column("h_error", failure_is_inf=True), higher_is_better=False),
+            *(PairedMetric(f"h_acc@{t}", _passes("h_error", t, inclusive=True), higher_is_better=True, binary=True)
+              for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS),
+        ]
+    if isinstance(benchmark, PoseBenchmark):
+        precision = benchmark.table_metrics.get("P", metrics.precision_key(metrics.PRECISION_THRESHOLDS[0]))
+        return [
+            PairedMetric("err_pose", _column("err_pose", failure_is_inf=True), higher_is_better=False),
+            *(PairedMetric(f"err_pose<{t}", _passes("err_pose", t, inclusive=False), higher_is_better=True, binary=True)
+              for t in POSE_ERROR_THRESHOLDS),
+            PairedMetric(precision, _column(precision), higher_is_better=True),
+        ]
+    raise ValueError(f"compare: no per-pair metrics are defined for the {benchmark.name} benchmark")
+
+
+def _pairs(run: Run) -> pd.DataFrame:
+    per_pair = run.per_pair
+    if per_pair.empty or "pair" not in per_pair.columns:
+        raise ValueError(f"{run.dir / 'per_pair.csv'}: missing, empty or without a 'pair' column; compare reads each run's pairs from it")
+    duplicated = per_pair["pair"][per_pair["pair"].duplicated()]
+    if len(duplicated):
+        raise ValueError(f"{run.dir / 'per_pair.csv'}: pair {duplicated.iloc[0]!r} appears more than once")
+    return per_pair.set_index("pair")
+
+
+def compare_runs(
+    run_a: Run, run_b: Run, mma: Sequence[int] = HOMOGRAPHY_MMA_DEFAULT, alpha: float = 1.0 - stats.CONFIDENCE,
+    n_samples: int = stats.BOOTSTRAP_SAMPLES, seed: int = stats.BOOTSTRAP_SEED,
+) -> Comparison:
+    """Compare run A with run B on the pairs both hold (in A's order); ValueError in one line when
+    they are of different benchmarks, lack per-pair rows or share no pair."""
+    if run_a.benchmark.name != run_b.benchmark.name:
+        raise ValueError(f"compare: {run_a.dir} is a {run_a.benchmark.name} run and {run_b.dir} a "
+                         f"{run_b.benchmark.name} run; compare two runs of one benchmark")
+    a, b = _pairs(run_a), _pairs(run_b)
+    common = [name for name in a.index if name in set(b.index)]
+    if not common:
+        raise ValueError(f"compare: {run_a.dir} and {run_b.dir} have no pair in common")
+    a, b = a.loc[common], b.loc[common]
+    chosen = paired_metrics(run_a.benchmark, mma)
+    results = []
+    for metric in chosen:
+        try:
+            values_a, values_b = metric.values(a), metric.values(b)
+        except KeyError as missing:
+            raise ValueError(f"compare: {metric.name} needs per_pair.csv column {missing} in both runs") from None
+        results.append(stats.compare_paired(values_a, values_b, metric.name, higher_is_better=metric.higher_is_better,
+                                            binary=metric.binary, alpha=alpha, n_samples=n_samples, seed=seed))
+    label_a, label_b = run_a.label, run_b.label
+    if label_a == label_b:  # two folders of one method: name them by folder instead
+        named = (run_a.dir.name, run_b.dir.name)
+        label_a, label_b = named if named[0] != named[1] else (str(run_a.dir), str(run_b.dir))
+    return Comparison(label_a, label_b, run_a.benchmark.name, len(run_a.per_pair), len(run_b.per_pair),
+                      len(common), results, chosen, 1.0 - alpha, n_samples, seed)
+
+
+def print_comparison(comparison: Comparison, console: Console | None = None) -> None:
+    header, body = comparison.display()
+    table = Table(title=escape(comparison.heading()))
+    for k, column in enumerate(header):
+        table.add_column(escape(column), justify="left" if k in (0, 1, 6, 8) else "right")
+    for row in body:
+        table.add_row(*(escape(cell) for cell in row))
+    table.caption = (f"B - A: mean over the pairs where both values are finite, with its paired-bootstrap interval "
+                     f"({comparison.n_samples} resamples, seed {comparison.seed}); p: the paired test")
+    (console or Console()).print(table)
+
+
+def to_markdown(comparison: Comparison) -> str:
+    header, body = comparison.display()
+    widths = [max(len(h), *(len(row[k]) for row in body)) for k, h in enumerate(header)]
+    right = {2, 3, 4, 5, 7}
+
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(c.rjust(w) if k in right else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths))) + " |"
+
+    rule = "| " + " | ".join("-" * (w - 1) + ":" if k in right else "-" * w for k, w in enumerate(widths)) + " |"
+    return f"{comparison.heading()}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)]) + "\n"
+
+
+def write_comparison(comparison: Comparison, out: Path) -> tuple[Path, Path]:
+    """OUT/compare.csv and OUT/compare.md."""
+    out = Path(out)
+    csv_path = write_csv(comparison.table(), out / "compare.csv")
+    text = to_markdown(comparison)
+    md_path = write_atomically(out / "compare.md", lambda tmp: tmp.write_text(text))
+    return csv_path, md_path
