@@ -54,16 +54,19 @@ def render(call: str, root: Path, page: str) -> str:
 
 
 def csv_table(root: Path, path: str, columns=None, where: str | None = None, rename: dict | None = None,
-              decimals=None, pivot: dict | None = None, page: str = "") -> str:
+              decimals=None, pivot: dict | None = None, page: str = "", intervals: bool = True) -> str:
     """A Markdown table of the CSV at root/path: rows filtered by `where` (a pandas query),
     optionally pivoted, the `columns` in order, renamed, numbers rounded to `decimals`
-    (one number, or per column). A missing file or column fails the build, naming both."""
+    (one number, or per column). A missing file or column fails the build, naming both.
+    A shown column with ``<col>_lo`` and ``<col>_hi`` in the CSV (a bootstrap interval) shows
+    them in its cells, ``0.73 [0.53, 0.93]``, rounded as the number; intervals=False: the number alone."""
     import pandas as pd
 
     file = root / path
     if not file.is_file():
         raise ValueError(f"{page}: csv_table: {path} not found")
     table = pd.read_csv(file)
+    bounds = table.copy()
     if where:
         table = table.query(where)
     if pivot:
@@ -87,9 +90,18 @@ def csv_table(root: Path, path: str, columns=None, where: str | None = None, ren
             return str(int(value))
         return str(value).replace("|", "\\|")
 
+    def with_interval(index, value, column) -> str:
+        text = cell(value, column)
+        if not intervals or pivot or f"{column}_lo" not in bounds.columns or f"{column}_hi" not in bounds.columns:
+            return text
+        lo, hi = bounds.at[index, f"{column}_lo"], bounds.at[index, f"{column}_hi"]
+        if text == "" or lo != lo or hi != hi:
+            return text
+        return f"{text} [{cell(float(lo), column)}, {cell(float(hi), column)}]"
+
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" if n else "---" for n in numeric) + "|"]
-    for _, row in table.iterrows():
-        lines.append("| " + " | ".join(cell(row[c], c) for c in table.columns) + " |")
+    for index, row in table.iterrows():
+        lines.append("| " + " | ".join(with_interval(index, row[c], c) for c in table.columns) + " |")
     return "\n".join(lines) + f"\n\n<small>Rendered at build time from `{path}`.</small>\n"
 
 

@@ -30,4 +30,7 @@ for table in table1_hpatches table2_kitti table3_scannet; do
     cp "$run/summary.csv" "$run/config.yaml" "$run/per_pair.csv" "$dest/$name/"
   done
 done
+# one paired comparison of two of the runs (docs/results.md, Intervals and paired comparisons)
+e3cm-bench compare results/sample/table1_hpatches/sift results/sample/table1_hpatches/e3cm-plus_efficientnet_lite0 \
+  --out results/sample/compare/table1_hpatches_sift_vs_e3cm-plus
 echo "results/sample/ regenerated"
