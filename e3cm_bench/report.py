@@ -150,8 +150,12 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
     split_bases = {key[:-2] for key in summary if key.endswith(("_i", "_v")) and key[:-2] in summary}
     table = Table(title=escape(title))  # a label like 'dfm [efficientnet_lite0]' is text, not markup
     if intervals.has_intervals(bounds):
-        table.caption = (f"[lo, hi]: {float(bounds.get('confidence', 0.95)):.0%} bootstrap interval over the pairs "
-                         f"({bounds.get('bootstrap_samples', '?')} resamples, seed {bounds.get('bootstrap_seed', '?')})")
+        # a summary read back from summary.csv holds these settings as floats
+        samples, seed = (bounds.get(k) for k in ("bootstrap_samples", "bootstrap_seed"))
+        table.caption = escape(
+            f"[lo, hi]: {float(bounds.get('confidence', 0.95)):.0%} bootstrap interval over the pairs "
+            f"({int(samples) if samples == samples and samples is not None else '?'} resamples, "
+            f"seed {int(seed) if seed == seed and seed is not None else '?'})")
     table.add_column("metric")
     if split_bases:
         for header in ("overall", "illumination", "viewpoint"):
