@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .perturb import perturb_map
 from .files import file_sha256
 from .matchers.base import MEMORY_FORMATS, PRECISIONS
 
@@ -322,6 +323,7 @@ class Backbone(nn.Module):
                             extra = _maps(x)
                 else:
                     x = stage(x)
+                x = perturb_map(x)  # the identity outside a noise-ensemble draw (perturb.py)
                 features.append(_maps(x))
                 if i == 0 and rows:
                     level0_rows = pixel_rows(x)

@@ -11,6 +11,12 @@ baseline's ``environment`` column records, per row, the versions and CPU setting
 it was written from (`environment_string`), and a check names what differs from them
 (`environment_notes`): information, never a failure.
 
+With a noise ensemble beside the baseline (``<baseline>.noise.csv``, written by
+``check --update --ensemble K``), the gate is the noise model instead (`noise_gate`): each
+metric is flagged only where its change lies outside what a rerun on another CPU gives, at
+a stated false-alarm rate, and the pairs that moved are named, each against its own noise.
+The tolerances below then apply only to runs the ensemble does not hold.
+
 Tolerances: a ``--tolerance`` on the command line (``METHOD:METRIC=T`` for one method,
 ``METRIC=T`` for all) > the most specific row of a ``--tolerances`` file (columns benchmark,
 method, metric, tolerance; ``*`` = any) > DEFAULT_TOLERANCES. See `Tolerances`.
@@ -18,6 +24,7 @@ method, metric, tolerance; ``*`` = any) > DEFAULT_TOLERANCES. See `Tolerances`.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -26,8 +33,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from . import noise_gate
+from .ensemble import eval_settings_of, noise_path, read_noise
 from .files import read_csv, write_atomically, write_csv
 from .formats import format_number
+from .stats.noise import CHECK_ALPHA, metric_alpha
 from .report import Run, load_run
 
 # Tolerances (absolute, in the metric's own unit: fractions for HPatches, percent for pose),
@@ -49,7 +59,8 @@ DEFAULT_TOLERANCES = {
 }
 KEYS = ("benchmark", "method")
 ENVIRONMENT_COLUMN = "environment"  # not a metric: where the row's numbers were made
-NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN)
+IDENTITY_COLUMN = "identity"  # not a metric: what made the matches (config.yaml identity, as JSON)
+NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN, IDENTITY_COLUMN)
 # What the environment string records, in its order: the packages the numbers depend on, then
 # the CPU settings (config.yaml's environment; the ISA variables only where they were set).
 ENVIRONMENT_PACKAGES = ("python", "torch", "torchvision", "numpy", "opencv-python-headless")
@@ -84,8 +95,18 @@ def find_runs(paths: list[Path]) -> list[Run]:
 
 
 def write_baseline(runs: list[Run], path: Path) -> Path:
+    """The aggregate baseline (one row per run) and, beside it, the per-pair one."""
+    seen: dict[tuple[str, str], Path] = {}
+    for run in runs:
+        key = (run.benchmark.name, run.label)
+        if key in seen:
+            raise ValueError(f"{run.dir}: {key[1]} on {key[0]} is also the label of {seen[key]}; "
+                             "a baseline holds one run per label")
+        seen[key] = run.dir
     rows = [{"benchmark": run.benchmark.name, "method": run.label, **baseline_metrics(run),
-             ENVIRONMENT_COLUMN: environment_string(run.config)} for run in runs]
+             ENVIRONMENT_COLUMN: environment_string(run.config),
+             IDENTITY_COLUMN: json.dumps(run.config.get("identity") or {}, sort_keys=True)} for run in runs]
+    noise_gate.write_pair_baseline(runs, noise_gate.pairs_path(path))
     return write_csv(pd.DataFrame(rows), path)
 
 
@@ -328,6 +349,12 @@ def read_baseline(path: Path) -> pd.DataFrame:
     missing_columns = [c for c in KEYS if c not in baseline.columns]
     if missing_columns:
         raise ValueError(f"{path}: missing column(s) {', '.join(missing_columns)}")
+    # A repeated row would let the last one win, and a fall could pass as a rise.
+    repeated = baseline.duplicated(list(KEYS))
+    if repeated.any():
+        row = baseline[repeated].iloc[0]
+        raise ValueError(f"{path}: {row['method']} on {row['benchmark']} has more than one row "
+                         f"(line {int(repeated.to_numpy().nonzero()[0][0]) + 2})")
     return baseline
 
 
@@ -338,11 +365,13 @@ def _baseline_value(value, path: Path, key: tuple[str, str], metric: str) -> flo
         raise ValueError(f"{path}: {metric} of {key[1]} on {key[0]} is {value!r}, not a number") from None
 
 
-def compare(runs: list[Run], baseline_path: Path,
-            tolerances: Tolerances | Mapping[str, float]) -> tuple[list[Finding], list[str]]:
+def compare(runs: list[Run], baseline_path: Path, tolerances: Tolerances | Mapping[str, float],
+            checked_runs: Sequence[tuple[str, str]] | None = None) -> tuple[list[Finding], list[str]]:
     """Each baseline metric of each run, and the problems that are no metric (runs missing).
 
     ``tolerances``: a `Tolerances`, or a plain ``metric -> tolerance`` mapping (parse_tolerances).
+    ``checked_runs``: (benchmark, label) of every run of the check, where some were gated by the
+    noise model instead: a baseline row is missing only if none of them is its run.
     """
     if not isinstance(tolerances, Tolerances):
         tolerances = Tolerances(defaults=dict(tolerances))
@@ -382,8 +411,9 @@ def compare(runs: list[Run], baseline_path: Path,
             findings.append(Finding(key[0], key[1], metric, value, float(measured.get(metric, np.nan)), tolerance))
         if not checked:
             raise ValueError(f"{baseline_path}: no metric of {key[1]} on {key[0]} has a value to check against")
+    present = seen | set(checked_runs or ())
     for key in rows:
-        if key not in seen:
+        if key not in present:
             problems.append(f"{baseline_path}: {key[1]} on {key[0]} has no run among those checked")
     return findings, problems
 
@@ -415,3 +445,73 @@ def write_summary(text: str, path: Path) -> None:
     """Append (GitHub's step summary file is shared by the steps of a job)."""
     previous = Path(path).read_text() if Path(path).is_file() else ""
     write_atomically(path, lambda tmp: tmp.write_text(previous + text))
+
+
+# --------------------------------------------------------------------------- the noise model
+
+
+def has_noise_model(baseline_path: Path) -> bool:
+    return noise_path(baseline_path).is_file()
+
+
+def gate(runs: list[Run], baseline_path: Path, check_alpha: float = CHECK_ALPHA
+         ) -> tuple[list[noise_gate.RunVerdict], list[Run], float]:
+    """Each run that the baseline's noise ensemble holds, against it (noise_gate.gate_run);
+    returns the verdicts, the runs the ensemble lacks (checked by tolerances instead), and
+    the false-alarm rate of each metric (check_alpha over every metric gated)."""
+    baseline = read_baseline(baseline_path)
+    rows = {(str(r["benchmark"]), str(r["method"])): r for _, r in baseline.iterrows()}
+    metrics = [c for c in baseline.columns if c not in NOT_METRICS]
+    models = noise_gate.run_models(noise_gate.read_pair_baseline(noise_gate.pairs_path(baseline_path)),
+                                   read_noise(noise_path(baseline_path)))
+    gated = [run for run in runs if (run.benchmark.name, run.label) in models and (run.benchmark.name, run.label) in rows]
+    others = [run for run in runs if run not in gated]
+    plans = []
+    for run in gated:
+        row = rows[(run.benchmark.name, run.label)]
+        measured = baseline_metrics(run)
+        values = {m: _baseline_value(row[m], baseline_path, (run.benchmark.name, run.label), m) for m in metrics
+                  if m in measured and not (pd.isna(row[m]) and np.isnan(measured[m]))}
+        plans.append((run, values, measured))
+    alpha = metric_alpha(sum(len(values) for _, values, _ in plans), check_alpha)
+    verdicts = [noise_gate.gate_run(run, models[(run.benchmark.name, run.label)], values, measured, alpha,
+                                    eval_settings_of(run.config)) for run, values, measured in plans]
+    return verdicts, others, alpha
+
+
+def verdict_lines(verdict: noise_gate.RunVerdict, max_pairs: int = 5) -> list[tuple[str, str]]:
+    """(status, line) for each flagged metric of a run, then its pairs that moved."""
+    lines = []
+    for g in verdict.gates:
+        if g.status != "ok":
+            lines.append((g.status, f"{verdict.method} on {verdict.benchmark}: {g.metric} {g.baseline:.4g} -> "
+                                    f"{g.measured:.4g} (noise {g.expected:.4g}, band {g.low:.4g}..{g.high:.4g}; "
+                                    f"p={g.p_value:.2g} < {g.alpha:.2g})"))
+    outside = [m for m in verdict.moves if not m.inside]
+    moved = sorted({m.pair for m in verdict.moves})
+    if moved:
+        text = (f"{verdict.method} on {verdict.benchmark}: {len(moved)} of {verdict.n_pairs} pairs moved, "
+                f"{len({m.pair for m in outside})} outside their own noise ({verdict.draws} draws)")
+        for m in sorted(outside, key=lambda m: -abs(m.delta) if np.isfinite(m.delta) else -np.inf)[:max_pairs]:
+            text += f"; {m.pair} {m.column} {m.baseline:.4g} -> {m.measured:.4g} (noise {m.low:.4g}..{m.high:.4g})"
+        lines.append(("moved", text))
+    return lines
+
+
+def gate_markdown(verdicts: list[noise_gate.RunVerdict], alpha: float, check_alpha: float, baseline_path: Path) -> str:
+    """The noise gate's Markdown report: every metric, its noise band and p-value."""
+    marks = {"ok": "ok", "regression": "**regression**", "improvement": "improved"}
+    lines = [f"### e3cm-bench check against `{baseline_path}` (noise model)", "",
+             f"False-alarm rate {check_alpha:g} per check, {alpha:.2g} per metric "
+             f"({sum(len(v.gates) for v in verdicts)} metrics).", "",
+             "| benchmark | method | metric | baseline | measured | noise mean | band | p | status |",
+             "|---|---|---|---:|---:|---:|---|---:|---|"]
+    for v in verdicts:
+        for g in v.gates:
+            lines.append(f"| {v.benchmark} | {v.method} | {g.metric} | {g.baseline:.4g} | {g.measured:.4g} | "
+                         f"{g.expected:.4g} | {g.low:.4g}..{g.high:.4g} | {g.p_value:.2g} | {marks[g.status]} |")
+    for v in verdicts:
+        for status, line in verdict_lines(v):
+            if status == "moved":
+                lines.append(f"- {line}")
+    return "\n".join(lines) + "\n"

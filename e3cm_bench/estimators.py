@@ -1,6 +1,12 @@
 """The robust estimators of the evaluation, behind one function each: OpenCV (the default,
 as SuperGlue's and LoFTR's evaluations) or PoseLib (glue-factory's MegaDepth-1500 default).
-Which one is an evaluation setting (EvalSettings.estimator): --eval-only may change it."""
+Which one is an evaluation setting (EvalSettings.estimator): --eval-only may change it.
+
+Seeds: PoseLib takes its seed. OpenCV's RANSAC ignores cv2.setRNGSeed and draws its samples
+from a fixed sequence of indices, so there a seed acts through the order of the
+correspondences (`seeded_order`): seed 0 keeps the matcher's order (every committed number
+was made so), seed s > 0 shuffles them with numpy's default_rng(s). Either way, repeats with
+other seeds (--repeats) see other samples, as reruns of a randomised RANSAC would."""
 
 from __future__ import annotations
 
@@ -27,6 +33,11 @@ def check_estimator(name: str) -> str:
     return name
 
 
+def seeded_order(n: int, seed: int) -> np.ndarray | None:
+    """The order OpenCV's RANSAC sees n correspondences in for this seed; None = as given."""
+    return None if int(seed) == 0 else np.random.default_rng(int(seed)).permutation(n)
+
+
 def _camera(K: np.ndarray, size: tuple[int, int] | None) -> dict:
     K = np.asarray(K, dtype=np.float64)
     w, h = size if size is not None else (int(round(2 * K[0, 2])), int(round(2 * K[1, 2])))
@@ -42,7 +53,15 @@ def relative_pose(
     poselib: its LO-RANSAC with threshold_px as max_epipolar_error (pixels) and bundle
     refinement, seeded with `seed`."""
     if estimator == "opencv":
-        return geometry.estimate_relative_pose(kpts0, kpts1, K0, K1, threshold_px, confidence)
+        order = seeded_order(len(kpts0), seed)
+        if order is None:
+            return geometry.estimate_relative_pose(kpts0, kpts1, K0, K1, threshold_px, confidence)
+        found = geometry.estimate_relative_pose(kpts0[order], kpts1[order], K0, K1, threshold_px, confidence)
+        if found is None:
+            return None
+        inliers = np.zeros(len(order), bool)
+        inliers[order] = found[2]
+        return found[0], found[1], inliers
     if len(kpts0) < 5:
         return None
     poselib = _poselib()
@@ -62,6 +81,9 @@ def homography(
 ) -> np.ndarray | None:
     """H mapping image-0 pixels to image-1 pixels, or None (OpenCV's RANSAC or PoseLib's)."""
     if estimator == "opencv":
+        order = seeded_order(len(x0), seed)
+        if order is not None:
+            x0, x1 = x0[order], x1[order]
         return geometry.estimate_homography(x0, x1, threshold_px, max_iters, confidence)
     if len(x0) < 4:
         return None

@@ -4,7 +4,10 @@ and imported matches; it never matches."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 import pandas as pd
 from rich.console import Console
@@ -14,7 +17,7 @@ from .cache import MatchCache, check_free_space
 from .datasets.base import Pair
 from .files import write_csv
 from .images import load_image
-from .intervals import summary_intervals
+from .intervals import metric_keys, summary_intervals
 from .viz import draw_matches, save_image
 
 CONFIG_FILE = "config.yaml"
@@ -31,8 +34,37 @@ def evaluate_stage(
     """
     rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
     summary = benchmark.summarize(rows, ev)
-    summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
+    if ev.repeats > 1:
+        summary = repeated_summary(benchmark, pairs, cache, ev, rows)
+    else:
+        summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
     return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), summary
+
+
+def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
+                     first: list[dict]) -> dict:
+    """--repeats K: the summary of each of K evaluations (seeds ev.seed + r; the first is
+    `first`, the run's own), their mean as the run's numbers, each metric's standard deviation
+    over the repeats (``<metric>_sd``), and the bootstrap interval over pairs of that mean.
+    per_pair.csv keeps the first repeat's rows."""
+    repeats = [first] + [[benchmark.evaluate_pair(pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
+                          for pair in pairs] for r in range(1, ev.repeats)]
+    each = [benchmark.summarize(rows, ev) for rows in repeats]
+    keys = metric_keys(each[0])
+    summary = dict(each[0])
+    for key in keys:
+        values = np.array([s[key] for s in each], float)
+        summary[key] = float(np.mean(values))
+        summary[f"{key}_sd"] = float(np.std(values, ddof=1))
+    summary["repeats"] = ev.repeats
+    indexed = [benchmark.indexed_summary(rows, ev) for rows in repeats]
+
+    def mean_over_repeats(idx) -> dict:
+        picked = [f(idx) for f in indexed]
+        return {key: float(np.mean([p[key] for p in picked])) for key in keys}
+
+    summary.update(summary_intervals(benchmark, first, ev, summary=summary, indexed=mean_over_repeats))
+    return summary
 
 
 def write_reports(

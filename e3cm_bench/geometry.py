@@ -5,13 +5,16 @@ coordinates (the centre of the top-left pixel is (0, 0)). Fundamental and essent
 matrices follow OpenCV's convention: ``x1^T F x0 = 0`` for a point x0 of image 0
 and its match x1 in image 1. Estimation is delegated to OpenCV; this module only
 adds the conventions, the failure handling and the distances OpenCV lacks in
-vectorised form.
+vectorised form. Every estimator's points pass through perturb.perturb_correspondences, the
+identity except in a draw of the regression gate's noise ensemble.
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from .perturb import perturb_correspondences
 
 
 def to_homogeneous(points: np.ndarray) -> np.ndarray:
@@ -41,6 +44,7 @@ def estimate_fundamental(
     Sampson threshold in pixels), 'prosac' (PROSAC: the points must come best first) or
     'magsac' (OpenCV's USAC MAGSAC++, locally optimised; the threshold bounds its noise scale).
     """
+    x0, x1, _ = perturb_correspondences(x0, x1, keep_order=method == "prosac")
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     x1 = np.ascontiguousarray(x1, dtype=np.float64)
     if len(x0) < 8:
@@ -130,6 +134,7 @@ def estimate_relative_pose(
         return None
     K0 = np.asarray(K0, dtype=np.float64)
     K1 = np.asarray(K1, dtype=np.float64)
+    kpts0, kpts1, order = perturb_correspondences(kpts0, kpts1)
     x0 = normalize_keypoints(kpts0, K0)
     x1 = normalize_keypoints(kpts1, K1)
     norm_threshold = threshold_px / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
@@ -146,6 +151,10 @@ def estimate_relative_pose(
         if count > best_count:
             best_count = count
             best = (R, t[:, 0], mask.ravel() > 0)
+    if best is not None and order is not None:
+        inliers = np.zeros_like(best[2])
+        inliers[order] = best[2]
+        best = (best[0], best[1], inliers)
     return best
 
 
@@ -179,6 +188,7 @@ def estimate_homography(
     """RANSAC homography mapping image-0 pixels to image-1 pixels, or None."""
     if len(x0) < 4:
         return None
+    x0, x1, _ = perturb_correspondences(x0, x1)
     H, _ = cv2.findHomography(
         np.ascontiguousarray(x0, dtype=np.float64),
         np.ascontiguousarray(x1, dtype=np.float64),

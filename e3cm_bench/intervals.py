@@ -12,7 +12,7 @@ Counts (``n_pairs*``, ``n_failures``, ``n_skipped``) get no interval: they are f
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from .benchmarks import Benchmark, EvalSettings
 
 LO, HI = "_lo", "_hi"
 SETTINGS = ("bootstrap_samples", "bootstrap_seed", "confidence")
+SD, REPEATS = "_sd", "repeats"  # --repeats: a metric's spread over the repeats, and their number
 COUNTS = ("n_pairs", "n_failures", "n_skipped")  # prefixes: n_pairs_i, n_pairs_v too
 
 
@@ -33,8 +34,9 @@ def hi_key(key: str) -> str:
 
 
 def is_interval_key(key: str) -> bool:
-    """A column that belongs to an interval (a bound, or a bootstrap setting), not a metric."""
-    return key.endswith((LO, HI)) or key in SETTINGS
+    """A column that belongs to an interval (a bound, a bootstrap setting, a spread over
+    --repeats, their number), not a metric."""
+    return key.endswith((LO, HI, SD)) or key in SETTINGS or key == REPEATS
 
 
 def metric_keys(summary: Mapping) -> list[str]:
@@ -65,20 +67,23 @@ def _same_summary(a: Mapping, b: Mapping) -> bool:
 def summary_intervals(
     benchmark: Benchmark, rows: Sequence[Mapping], ev: EvalSettings, summary: Mapping | None = None,
     n_samples: int = stats.BOOTSTRAP_SAMPLES, seed: int = stats.BOOTSTRAP_SEED, confidence: float = stats.CONFIDENCE,
+    indexed: Callable[[Sequence[int]], Mapping] | None = None,
 ) -> dict:
     """``{m_lo, m_hi for every metric m} + the bootstrap settings`` for the per-pair `rows` of a run.
 
     Each resample draws len(rows) pairs with replacement and summarises them as the run's own
     summary is made (`benchmark.summarize`), through the benchmark's array form of it
     (`Benchmark.indexed_summary`) when that reproduces `summary` exactly, else row by row.
+    indexed: the summary of the rows picked by index, where it is not the benchmark's own (the
+    mean over repeats of the estimation, evaluate.py).
     """
     rows = list(rows)
     point = dict(summary) if summary is not None else benchmark.summarize(rows, ev)
     keys = metric_keys(point)
     out: dict = {}
     if rows and keys:
-        fast = benchmark.indexed_summary(rows, ev)
-        if not _same_summary(fast(range(len(rows))), benchmark.summarize(rows, ev)):
+        fast = indexed or benchmark.indexed_summary(rows, ev)
+        if indexed is None and not _same_summary(fast(range(len(rows))), benchmark.summarize(rows, ev)):
             fast = Benchmark.indexed_summary(benchmark, rows, ev)  # the row-by-row default
         bounds = stats.bootstrap_interval(list(range(len(rows))), fast, n_samples=n_samples, confidence=confidence,
                                           seed=seed, keys=keys)

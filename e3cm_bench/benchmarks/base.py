@@ -40,11 +40,17 @@ class EvalSettings:
     drop_failures: bool = False  # pose pairs without an estimate leave the AUC (protocol e3cm-release)
     # The robust estimator of the evaluation's H and relative pose: opencv or poselib (estimators.py).
     estimator: str = "opencv"
+    # --repeats K: the estimation rerun K times with seeds seed, seed+1, ... (no rematching); the
+    # summary is the mean over the repeats with each metric's spread (evaluate.py), as RoMa (5)
+    # and the Image Matching Challenge code (3) report it.
+    repeats: int = 1
 
     def __post_init__(self) -> None:
         from ..estimators import check_estimator
 
         check_estimator(self.estimator)
+        if int(self.repeats) < 1:
+            raise ValueError(f"--repeats must be at least 1, got {self.repeats}")
 
 
 @dataclass(frozen=True)
@@ -71,6 +77,9 @@ class Benchmark:
     # column and threshold above which a pair counts as failed (a NaN or inf value fails too).
     report_columns: tuple[str, ...] = ("n_matches",)
     failure: tuple[str, float] | None = None
+    # Summary metrics that are the fraction of pairs whose per_pair column is <= a threshold:
+    # metric -> (column, threshold). The regression gate's noise model counts them exactly.
+    count_metrics: Mapping[str, tuple[str, float]] = field(default_factory=dict)
 
     def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
         unknown = set(options) - set(self.dataset_options)

@@ -27,6 +27,9 @@ class HomographyBenchmark(Benchmark):
     table_extras: tuple[str, ...] = ("n_pairs", "mma@3")
     report_columns: tuple[str, ...] = ("n_matches", "mma@3", "h_error")
     failure: tuple[str, float] | None = ("h_error", 3.0)  # the h_acc@3 miss
+    count_metrics: Mapping[str, tuple[str, float]] = field(
+        default_factory=lambda: {f"h_acc@{t}": ("h_error", float(t)) for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS}
+    )
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return metrics.HPATCHES_PAIR_COLUMNS

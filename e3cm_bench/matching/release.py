@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from ..geometry import warp_points
+from ..perturb import perturb_correspondences
 from .dense import top2_both_ways
 from .refine import first_of_each
 
@@ -186,6 +187,7 @@ def release_fundamental_solutions(x0: np.ndarray, x1: np.ndarray, cascade: Relea
     alone and stacks every real solution. None where OpenCV finds none (fewer than 7
     matches, or no solution) or refuses the input (the release would stop there; here the
     fallback applies)."""
+    x0, x1, _ = perturb_correspondences(x0, x1)  # the identity but in a noise-ensemble draw
     try:
         F, _ = cv2.findFundamentalMat(
             np.ascontiguousarray(x0), np.ascontiguousarray(x1), cv2.FM_RANSAC, cascade.ransac_px, cascade.confidence
@@ -297,8 +299,9 @@ def dfm_release_stage0(top0: torch.Tensor, top1: torch.Tensor, level: int, setti
     cells0, cells1 = release_dense(top0, top1, settings.stage0_ratio)
     H = None
     if len(cells0) >= 4:
+        x1, x0, _ = perturb_correspondences(level_points(cells1, level), level_points(cells0, level))
         H, _ = cv2.findHomography(
-            level_points(cells1, level), level_points(cells0, level), cv2.RANSAC,
+            x1, x0, cv2.RANSAC,
             settings.homography_threshold_px, maxIters=5000, confidence=0.9999,
         )
     return (np.eye(3) if H is None else H), len(cells0)

@@ -1,0 +1,112 @@
+"""The regression gate's noise ensemble: a baseline's runs rerun under perturbations at the
+scale of another CPU's rounding (perturb.py), each pair's values kept per draw.
+
+`check --update --ensemble K` calls `build_ensemble`; the draws go to a work folder (each
+draw a normal run folder, so an interrupted build resumes draw by draw) and their per-pair
+values to ``<baseline>.noise.csv`` beside the baseline, which is all `check` reads later.
+Draw d: the features and the estimators' points perturbed with seed d, and the evaluation's
+RANSAC seeded with d (estimators.seeded_order), so each draw also sees other RANSAC samples.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import fields
+from pathlib import Path
+
+import pandas as pd
+from rich.console import Console
+
+from .benchmarks import EvalSettings, get_benchmark
+from .files import read_csv, write_csv
+from .method import MethodSpec
+from .perturb import Perturbation, perturbed
+
+NOISE_SUFFIX = ".noise.csv"
+DRAW_COLUMNS = ("benchmark", "method", "pair", "draw")
+
+
+def noise_path(baseline: Path) -> Path:
+    """Where a baseline's ensemble lives: ``demo_hpatches.csv`` -> ``demo_hpatches.noise.csv``."""
+    baseline = Path(baseline)
+    return baseline.with_name(baseline.stem + NOISE_SUFFIX)
+
+
+def method_of(config: dict, where: Path) -> MethodSpec:
+    """The run's MethodSpec from its config.yaml identity. Only built-in matchers: rerunning
+    reads no code that a run folder names (a plugin's run is checked without an ensemble)."""
+    identity = dict(config.get("identity") or {})
+    if not identity or identity.get("plugin"):
+        raise ValueError(f"{where}: the ensemble reruns built-in matchers only (no identity, or a plugin's)")
+    settings = identity.pop("settings", None) or {}
+    identity["settings"] = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in settings.items()))
+    known = set(MethodSpec.__dataclass_fields__) - {"label", "plugin"}
+    return MethodSpec(**{k: v for k, v in identity.items() if k in known}, label=str(config.get("method") or ""))
+
+
+def eval_settings_of(config: dict, seed: int | None = None) -> EvalSettings:
+    """The run's evaluation settings (config.yaml `evaluation`), with another RANSAC seed if given."""
+    recorded = config.get("evaluation") or {}
+    names = {f.name for f in fields(EvalSettings)}
+    values = {k: (tuple(v) if isinstance(v, list) else v) for k, v in recorded.items() if k in names}
+    if seed is not None:
+        values["seed"] = int(seed)
+    return EvalSettings(**values)
+
+
+def _dataset_of(config: dict, benchmark, where: Path):
+    dataset = config.get("dataset") or {}
+    if not dataset.get("root"):
+        raise ValueError(f"{where}: config.yaml records no dataset root to rerun")
+    options = {k: dataset[k] for k in benchmark.dataset_options if dataset.get(k) is not None}
+    return benchmark.load_dataset(dataset["root"], skip_bad=bool(dataset.get("skip_bad")), **options)
+
+
+def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Console | None = None,
+                   reseed: bool = True) -> pd.DataFrame:
+    """Rerun each run (report.Run) once per draw; returns the long table of per-pair values
+    (benchmark, method, pair, draw, then the per_pair.csv columns). Runs of one benchmark and
+    dataset are matched together, as the demo matches them (one backbone pass per image)."""
+    from .runner import run_methods
+
+    console = console or Console()
+    work = Path(work)
+    groups: dict[tuple, list] = {}
+    for run in runs:
+        dataset = run.config.get("dataset") or {}
+        key = (run.benchmark.name, str(dataset.get("root")), str(sorted(dataset.items(), key=str)))
+        groups.setdefault(key, []).append(run)
+    tables = []
+    for (bench_name, _, _), members in groups.items():
+        benchmark = get_benchmark(bench_name)
+        dataset = _dataset_of(members[0].config, benchmark, members[0].dir)
+        for draw in draws:
+            t = time.perf_counter()
+            folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, method_of(run.config, run.dir))
+                       for run in members]
+            ev = eval_settings_of(members[0].config, seed=draw if reseed else None)
+            with perturbed(Perturbation(draw=draw)):
+                run_methods(benchmark, folders, dataset, ev=ev, console=Console(quiet=True))
+            for run, (folder, _) in zip(members, folders):
+                per_pair = read_csv(folder / "per_pair.csv")
+                per_pair.insert(0, "draw", draw)
+                per_pair.insert(0, "method", run.label)
+                per_pair.insert(0, "benchmark", bench_name)
+                tables.append(per_pair)
+            console.print(f"ensemble: {bench_name} draw {draw}: {len(members)} runs in {time.perf_counter() - t:.0f} s",
+                          markup=False)
+    columns = list(DRAW_COLUMNS)
+    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=columns)
+
+
+def write_noise(table: pd.DataFrame, path: Path) -> Path:
+    return write_csv(table, path)
+
+
+def read_noise(path: Path) -> pd.DataFrame:
+    table = read_csv(path, what="noise ensemble (write one with check --update --ensemble K)")
+    missing = [c for c in DRAW_COLUMNS if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+    return table
