@@ -29,6 +29,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from e3cm_bench.files import create_new, refuse_link
 from e3cm_bench.matches import Matches
 
 DATASETS = ("keypoints0", "keypoints1", "scores")
@@ -199,8 +200,12 @@ class MatchCache:
 def _replace(path: Path, data) -> None:
     """`data` becomes the content of `path` all at once: written beside it, flushed, renamed over it."""
     temporary = path.with_name(f".{path.name}.writing")
+    refuse_link(path)
+    # A stale temporary (a killed run's) is removed, and the new one is created with O_EXCL |
+    # O_NOFOLLOW, so neither name is ever written through a link.
+    temporary.unlink(missing_ok=True)
     try:
-        with open(temporary, "wb") as f:
+        with create_new(temporary) as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

@@ -7,12 +7,14 @@ file into a one-line ValueError that names the file.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
 import os
 import platform
 import socket
+import stat
 import sys
 import tempfile
 import time
@@ -103,13 +105,46 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def refuse_link(path: str | Path) -> Path:
+    """`path`, or a one-line ValueError where it is a symbolic link (dangling or not).
+
+    The toolkit never writes through a link: a link planted in an output folder (``.lock ->
+    ~/notes.txt``) would otherwise have its target truncated or created. Where a file is
+    replaced by a rename the link is never followed anyway; refusing says so instead of
+    silently dropping a link the user may have made on purpose."""
+    path = Path(path)
+    if path.is_symlink():
+        raise ValueError(f"{path}: is a symbolic link (to {os.readlink(path)}); e3cm-bench does not write through "
+                         "links: remove it or choose another --out")
+    return path
+
+
+# O_NOFOLLOW: a link at the name is an error (ELOOP), never followed; O_EXCL: a file that is
+# already there (a link included) is an error, never reused; O_CLOEXEC: not inherited.
+NEW_FILE_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+
+
+def create_new(path: str | Path, mode: int = 0o666):
+    """A new file at `path` opened for binary writing, created with NEW_FILE_FLAGS (whatever
+    is at the name, a link above all, is refused in one line naming it)."""
+    path = Path(path)
+    try:
+        fd = os.open(path, NEW_FILE_FLAGS, mode)
+    except FileExistsError:
+        refuse_link(path)
+        raise ValueError(f"{path}: already exists; e3cm-bench writes only files it creates") from None
+    return os.fdopen(fd, "wb")
+
+
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
     """Write through a temporary file in the same folder, then rename over ``path``.
 
-    The rename is atomic on one filesystem. The temporary file is created 0600 by
-    mkstemp; the result gets the mode a plain ``open`` would have given (umask honoured).
+    The rename is atomic on one filesystem, and replaces a name without following it. The
+    temporary file is created 0600 by mkstemp (O_CREAT | O_EXCL: never an existing file or
+    link); the result gets the mode a plain ``open`` would have given (umask honoured). A
+    symbolic link at ``path`` is refused (refuse_link).
     """
-    path = Path(path)
+    path = refuse_link(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
@@ -123,6 +158,18 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> Path:
     finally:
         tmp_path.unlink(missing_ok=True)
     return path
+
+
+def save_npz(path: str | Path, **arrays) -> Path:
+    """`np.savez` through write_atomically (given a name, np.savez would open it following a link,
+    and add '.npz' to a temporary's name)."""
+    import numpy as np
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+    return write_atomically(path, write)
 
 
 def yaml_plain(value):
@@ -269,7 +316,20 @@ class FolderLock:
 
     def __enter__(self) -> FolderLock:
         writable_folder(self.path.parent)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        # O_NOFOLLOW: a `.lock` that is a link (to a user's file, or dangling) is refused, never
+        # truncated or created through; a file with other names (hard links) likewise.
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o666)
+        except OSError as error:
+            if error.errno == errno.ELOOP:
+                refuse_link(self.path)
+            raise
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+            os.close(fd)
+            what = "not a regular file" if not stat.S_ISREG(info.st_mode) else f"a file with {info.st_nlink} names (hard links)"
+            raise ValueError(f"{self.path}: is {what}; e3cm-bench writes its lock only into a file of its own: "
+                             "remove it or choose another --out")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -17,10 +17,17 @@ in number (the worst pairs and an even sample) and in size, so a 4000-pair run s
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import errno
 import html
 import json
+import os
 import re
 import shutil
+import signal
+import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +35,7 @@ import numpy as np
 import pandas as pd
 from rich.console import Console
 
+from .files import create_new, writable_folder, write_atomically
 from .report import REPO_RESULTS, Run, display_cells, load_run, paper_table, without_comparison
 
 N_WORST = 8          # pairs drawn because most methods fail there
@@ -48,8 +56,6 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
                  compare: bool = True) -> Report:
     """The site for `run_dirs` (one benchmark) under `out`; returns where it is and what it holds.
     compare=False leaves out the paper's rows and the differences (data that is not the paper's)."""
-    from .files import writable_folder
-
     console = console or Console()
     if not run_dirs:
         raise ValueError("report: give at least one run folder")
@@ -66,9 +72,33 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
         if run.per_pair.empty:
             raise ValueError(f"{run.dir / 'per_pair.csv'}: missing or empty; the report reads each run's pairs from it")
     benchmark = runs[0].benchmark
-    out = writable_folder(Path(out))
+    target = _report_target(Path(out))
+    # Built in a new folder beside the target and swapped in whole at the end: a failure or a
+    # signal on the way leaves the previous report as it was (and the half-built one removed).
+    writable_folder(target.parent)
+    built = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".report-tmp", dir=target.parent))
+    try:
+        with _terminate_as_exception():
+            report, line = _build(runs, benchmark, built, Path(out) / "index.html", reference, compare)
+            _swap_in(built, target)
+    finally:
+        shutil.rmtree(built, ignore_errors=True)  # the half-built report, or the previous one swapped out
+    console.print(line, markup=False)
+    for note in report.notes:
+        console.print(f"[yellow]note[/]: {note}", highlight=False)
+    return report
+
+
+def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path | None,
+           compare: bool) -> tuple[Report, str]:
+    """The site written into the new folder `out` (index: where its index.html will be), and the
+    line that says what it holds."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(out, 0o777 & ~umask)  # mkdtemp makes it 0700; a report folder is as any other
+    with create_new(out / MARKER) as f:  # first: a folder holding it is a report, to be replaced whole
+        f.write(b"written by e3cm-bench report; the next report into this folder replaces it whole\n")
     for sub in ("runs", "pairs", "img"):
-        shutil.rmtree(out / sub, ignore_errors=True)
         (out / sub).mkdir()
     if reference is None and benchmark.paper_table and compare:
         candidate = REPO_RESULTS / "paper" / benchmark.paper_table
@@ -86,13 +116,103 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
     drawings = _draw(runs, chosen, out, notes)
     for name in chosen:
         _write_pair_page(out, name, runs, pairs, drawings)
-    index = out / "index.html"
-    index.write_text(_index_page(benchmark.name, runs, table, plots, run_links, pairs, set(chosen), notes, comparison))
-    console.print(f"report: {index} ({len(runs)} runs, {len(pairs)} pairs, {len(chosen)} pair pages, "
-                  f"{sum(len(v) for v in drawings.values())} drawings)", markup=False)
-    for note in notes:
-        console.print(f"[yellow]note[/]: {note}", highlight=False)
-    return Report(index, chosen, sum(len(v) for v in drawings.values()), notes)
+    page = _index_page(benchmark.name, runs, table, plots, run_links, pairs, set(chosen), notes, comparison)
+    write_atomically(out / "index.html", lambda tmp: tmp.write_text(page))
+    n_drawings = sum(len(v) for v in drawings.values())
+    line = f"report: {index} ({len(runs)} runs, {len(pairs)} pairs, {len(chosen)} pair pages, {n_drawings} drawings)"
+    return Report(index, chosen, n_drawings, notes), line
+
+
+# --------------------------------------------------------------------------- the folder
+
+MARKER = ".e3cm-bench-report"  # in every report folder: what a later report may replace
+REPORT_ENTRIES = {MARKER, "index.html", "runs", "pairs", "img"}
+
+
+def _report_target(out: Path) -> Path:
+    """`out` as an absolute path, or a one-line ValueError where a report may not replace it: a
+    link, a file, or a folder holding anything a report did not write (run folders, a user's
+    photos). An empty or missing folder is free; one with MARKER and report entries only is a
+    previous report."""
+    out = Path(os.path.abspath(out))
+    if out.is_symlink():
+        raise ValueError(f"{out}: is a symbolic link (to {os.readlink(out)}); give the report's folder itself as --out")
+    if not out.exists():
+        return out
+    if not out.is_dir():
+        raise ValueError(f"{out}: is a file, not a folder; choose another --out")
+    entries = sorted(os.listdir(out))
+    if not entries:
+        return out
+    marker = out / MARKER
+    if not marker.is_file() or marker.is_symlink():
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise ValueError(f"{out}: not empty and not a report folder (it holds {shown}); a report replaces only a "
+                         "folder it wrote itself: choose a new or empty --out")
+    foreign = [e for e in entries if e not in REPORT_ENTRIES]
+    if foreign:
+        raise ValueError(f"{out}: a report folder that also holds {', '.join(foreign[:3])}, which a report did not "
+                         "write; move it away or choose another --out")
+    return out
+
+
+def _swap_in(built: Path, target: Path) -> None:
+    """`built` becomes `target`; the previous report, if any, is left at `built` (to be removed).
+    SIGINT and SIGTERM wait until it is done, so that no signal leaves the target half moved."""
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    try:
+        _report_target(target)  # again: files may have been put there while the report was built
+        if not os.path.lexists(target):
+            os.rename(built, target)
+        elif not os.listdir(target):
+            # A folder the user made (a shell may stand in it): keep it, move the report in, marker first.
+            for name in [MARKER, *sorted(set(os.listdir(built)) - {MARKER})]:
+                os.rename(built / name, target / name)
+        elif not _exchange(built, target):
+            aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".report-old", dir=target.parent))
+            os.rename(target, aside / "previous")
+            os.rename(built, target)
+            os.rename(aside, built)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one step (Linux renameat2 RENAME_EXCHANGE); False where that is not
+    available, and the caller renames twice."""
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    error = ctypes.get_errno()
+    if error in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(error, os.strerror(error), str(b))
+
+
+class _Terminated(SystemExit):
+    """SIGTERM while a report is built: unwinds, so that the half-built folder is removed."""
+
+
+@contextlib.contextmanager
+def _terminate_as_exception():
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum, frame):
+        raise _Terminated(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 # --------------------------------------------------------------------------- data
@@ -157,7 +277,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
     from .benchmarks import EvalSettings
     from .cache import MatchCache
     from .images import load_image
-    from .viz import draw_matches
+    from .viz import draw_matches, save_image
 
     drawings: dict[str, dict[int, str]] = {name: {} for name in chosen}
     for k, run in enumerate(runs):
@@ -181,7 +301,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
                 canvas = cv2.resize(canvas, (round(canvas.shape[1] * scale), round(canvas.shape[0] * scale)),
                                     interpolation=cv2.INTER_AREA)
             path = out / "img" / f"{_slug(name)}--{k:02d}.jpg"
-            cv2.imwrite(str(path), canvas[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, DRAWING_QUALITY])
+            save_image(path, canvas, [cv2.IMWRITE_JPEG_QUALITY, DRAWING_QUALITY])
             drawings[name][k] = path.relative_to(out).as_posix()
     return drawings
 
@@ -261,7 +381,7 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
             for name, row in pairs.iterrows()
         ],
     }
-    payload = json.dumps(data, allow_nan=False).replace("</", "<\\/")
+    payload = script_json(data)
     selects = "".join(f"<option value=\"{k}\">{html.escape(label)}</option>" for k, label in enumerate(data["methods"]))
     failure = (f"a pair fails where {html.escape(data['failure'][0])} &gt; {data['failure'][1]:g} (or none)"
                if data["failure"] else "")
@@ -303,6 +423,15 @@ def _comparison_section(comparison) -> str:
             f"<p class=\"muted\">B - A: the mean difference over the pairs where both values are finite, with its "
             f"paired-bootstrap interval ({comparison.n_samples} resamples, seed {comparison.seed}); p: Wilcoxon or sign "
             f"test on the values, exact McNemar on pass/fail (e3cm-bench compare).</p>")
+
+
+def script_json(data) -> str:
+    """`data` as JSON for a <script type="application/json"> block: with <, > and & written as
+    \\u escapes the block holds no '<' at all, so no name ('</script>', '<!--<script>') can end
+    it or put the HTML parser into a script state that swallows the rest of the page;
+    JSON.parse reads the escapes back as the characters."""
+    text = json.dumps(data, allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
 def _json_value(value):
@@ -372,4 +501,5 @@ def _write_pair_page(out: Path, name: str, runs: list[Run], pairs: pd.DataFrame,
                       f"<p>{numbers}</p>{picture}</div>")
     body = (f"<p><a href=\"../index.html\">back to the report</a></p><h1>{html.escape(name)}</h1>"
             "<p class=\"muted\">Green: right by the ground truth; red: wrong (at most 400 lines drawn).</p>" + "".join(blocks))
-    (out / "pairs" / f"{_slug(name)}.html").write_text(_page(name, body))
+    page = _page(name, body)
+    write_atomically(out / "pairs" / f"{_slug(name)}.html", lambda tmp: tmp.write_text(page))

@@ -65,13 +65,20 @@ def draw_matches(
     return canvas
 
 
-def save_image(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB image (format from the extension), creating parent folders."""
+def save_image(path: str | Path, rgb: np.ndarray, params: list[int] | None = None) -> Path:
+    """Write an RGB image (format from the extension; params: cv2.imwrite's, e.g. JPEG quality),
+    creating parent folders. Encoded in memory and written by write_atomically: cv2.imwrite
+    would open the name following a link at it."""
+    from .files import write_atomically
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(_as_rgb(rgb), cv2.COLOR_RGB2BGR)):
-        raise ValueError(f"cannot write image {path} (unknown extension or unwritable location)")
-    return path
+    try:
+        ok, encoded = cv2.imencode(path.suffix, cv2.cvtColor(_as_rgb(rgb), cv2.COLOR_RGB2BGR), params or [])
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise ValueError(f"cannot write image {path} (unknown extension {path.suffix!r})")
+    return write_atomically(path, lambda tmp: tmp.write_bytes(encoded.tobytes()))
 
 
 def _as_rgb(image: np.ndarray) -> np.ndarray:

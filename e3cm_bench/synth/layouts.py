@@ -27,9 +27,9 @@ CROP = (384, 448)  # width, height of the HPatches-format images, cut from the 5
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-        raise ValueError(f"{path}: cannot write the image")
+    from ..viz import save_image  # written atomically, never through a link at `path`
+
+    save_image(path, image)
 
 
 def random_homography(rng: np.random.Generator, size: tuple[int, int], strength: float) -> np.ndarray:
