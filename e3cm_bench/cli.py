@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 from typing import Annotated, Optional
 
-import numpy as np
 import typer
 from rich.console import Console
 
@@ -17,7 +16,7 @@ from .backbones import BACKBONES, BackboneError
 from .cache import DiskFullError
 from .benchmarks import get_benchmark
 from .benchmarks.protocols import PROTOCOLS, get_protocol
-from .files import load_yaml_text, writable_folder
+from .files import load_yaml_text, save_npz, writable_folder
 from .benchmarks import EvalSettings
 from . import check as regression
 from .datasets.base import DatasetError, Pair
@@ -32,6 +31,7 @@ from .experiments import EXPERIMENT_COPY, merge_experiment, write_table
 from .images import load_image
 from .matchers import get_matcher
 from .matching import ESTIMATORS
+from .paper import config_names, resolve_config
 from .method import MethodSpec, parse_numbers
 from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
 from .download import find_root
@@ -171,7 +171,7 @@ def match(
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
         parse_numbers(ratio, "--ratio"), max_side or None, seed,
-        options=parse_settings(settings, precision, channel_order, device) if get_matcher(matcher).needs_backbone else parse_settings(settings),
+        options=parse_settings(settings, precision, channel_order, device) if get_matcher(matcher, allow_import=True).needs_backbone else parse_settings(settings),
     )
     kept = keep_freed_memory()  # the second image's pass reuses the first's pages, as in a run (docs/speed.md)
     t = time.perf_counter()
@@ -181,7 +181,7 @@ def match(
     k0, k1 = result.keypoints0, result.keypoints1
 
     writable_folder(out)
-    np.savez(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
+    save_npz(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
     correct = None
     if H is not None:
         correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), result, EvalSettings())
@@ -212,7 +212,7 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
     preset = get_protocol(protocol, benchmark)
     if max_side is None and benchmark in preset.max_side:
         max_side = preset.max_side[benchmark] or 0
-    if get_matcher(matcher).needs_backbone:
+    if get_matcher(matcher, allow_import=True).needs_backbone:
         options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order, device)}
     else:  # precision, channel order and the preset's network settings concern deep matchers only
         options = parse_settings(settings)
@@ -224,22 +224,24 @@ def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, e
 
 
 def _eval_settings(benchmark: str, protocol: str, seed: int, ransac_px: float | None,
-                   pose_estimator: str | None) -> EvalSettings:
-    """The evaluation settings of a command: the protocol's, then --ransac-px and --pose-estimator."""
+                   pose_estimator: str | None, repeats: int = 1) -> EvalSettings:
+    """The evaluation settings of a command: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
     fields = get_protocol(protocol, benchmark).eval_fields(benchmark)
     if pose_estimator:
         fields["estimator"] = pose_estimator
+    if repeats != 1:
+        fields["repeats"] = repeats
     return get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **fields)
 
 
 def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
          seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
          scale: tuple, protocol: str = "default", feature_cache_mb: float | None = FEATURE_CACHE_MB,
-         pose_estimator: str | None = None, backbone_batch: int | None = None) -> None:
+         pose_estimator: str | None = None, backbone_batch: int | None = None, repeats: int = 1) -> None:
     shard, workers, devices, launcher, shards = scale
     preset = get_protocol(protocol, benchmark)
     console.print(preset.line(), markup=False)
-    ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator)
+    ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator, repeats)
     run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz, feature_cache_mb=feature_cache_mb,
                backbone_batch=backbone_batch)
@@ -278,6 +280,7 @@ VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (gree
 SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in skipped.csv and count them; --skip-missing is the old name.")]
 CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
+RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
 PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench[poselib]'); --eval-only may change it.")]
 
 
@@ -294,14 +297,15 @@ def hpatches(
     exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
     method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("hpatches", method, find_root("hpatches", root), out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
+         repeats)
 
 
 @app.command()
@@ -316,14 +320,15 @@ def megadepth(
     backbone_batch: BackboneBatchOpt = None,
     scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info; a ROOT in glue-factory's megadepth1500 layout needs none).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
     method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("megadepth", method, find_root("megadepth", root), out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
+         repeats)
 
 
 @app.command()
@@ -338,14 +343,15 @@ def yfcc(
     backbone_batch: BackboneBatchOpt = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
     skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
+    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
 ) -> None:
     """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
     method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
                      precision, channel_order, device)
     _run("yfcc", method, find_root("yfcc", root), out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch)
+         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
+         repeats)
 
 
 @app.command()
@@ -353,7 +359,7 @@ def yfcc(
 def table(
     run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")],
     out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
-    reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default results/paper/tableN.csv).")] = None,
+    reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default: the shipped e3cm_bench/paper/tableN.csv).")] = None,
     compare: CompareOpt = True,
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
@@ -401,7 +407,7 @@ def compare_command(
 @app.command()
 @friendly_errors
 def reproduce(
-    config: Annotated[Path, typer.Argument(help="Experiment config, e.g. configs/table1_hpatches.yaml.")],
+    config: Annotated[str, typer.Argument(help=f"Experiment config: a shipped name ({', '.join(config_names())}) or a YAML file.")],
     out: OutOpt,
     root: RootOpt = None,
     backbone: Annotated[Optional[str], typer.Option("--backbone", help="Use this backbone for every deep method (labels say so).")] = None,
@@ -417,8 +423,7 @@ def reproduce(
     methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
-    if not config.is_file():
-        raise FileNotFoundError(f"{config}: experiment config not found (see configs/)")
+    config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
         from .experiments import load_experiment
@@ -465,26 +470,50 @@ def check(
     baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics, environment), e.g. results/baselines/demo_hpatches.csv.")],
     tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance", help="METRIC=T, or METHOD:METRIC=T for one method: allowed fall (absolute) of a metric; repeatable; wins over --tolerances.")] = None,
     tolerances: Annotated[Optional[Path], typer.Option("--tolerances", help="CSV of tolerances: benchmark, method, metric, tolerance (* = any; the most specific row applies; other columns ignored).")] = None,
-    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs (with each run's environment) instead of checking.")] = False,
+    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs (aggregate + per-pair values, each run's identity and environment) instead of checking.")] = False,
+    ensemble: Annotated[int, typer.Option("--ensemble", help="With --update: rerun every run K times under CPU-scale perturbations and store the draws beside the baseline (the noise model check then gates with).")] = 0,
+    ensemble_dir: Annotated[Optional[Path], typer.Option("--ensemble-dir", help="Work folder of the ensemble's reruns (resumable; default .e3cm-ensemble/BASELINE_NAME).")] = None,
+    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of the whole check under the noise model (split over its metrics).")] = regression.CHECK_ALPHA,
     summary: Annotated[Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
 ) -> None:
-    """Compare runs' summaries with a baseline: exit 1 naming each metric that fell by more than its tolerance.
+    """Compare runs with a baseline: exit 1 naming each metric that fell beyond its noise (or its tolerance).
 
-    Where a run's versions or CPU settings differ from those its baseline row was written with,
-    one line names each difference (information: the numbers may move with them)."""
+    With a noise ensemble beside the baseline (check --update --ensemble K), a metric is flagged
+    only where its change lies outside what a rerun on another CPU gives, at the false-alarm
+    rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
+    the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
+    settings differ from its baseline row's, one line names each difference (information)."""
     runs = regression.find_runs(run_dirs)
     if update:
-        regression.write_baseline(runs, baseline)
-        console.print(f"baseline: {len(runs)} runs written to {baseline}")
+        _update_baseline(runs, baseline, ensemble, ensemble_dir)
         return
+    if not 0 < alpha < 1:
+        raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
+    bad, lines, text = 0, [], ""
+    others, checked = runs, 0
+    if regression.has_noise_model(baseline):
+        verdicts, others, metric_alpha = regression.gate(runs, baseline, alpha)
+        checked += sum(len(v.gates) for v in verdicts)
+        for verdict in verdicts:
+            lines += regression.verdict_lines(verdict)
+        bad += sum(g.status == "regression" for v in verdicts for g in v.gates)
+        text += regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
+        console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
+                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False)
     limits = regression.Tolerances.load(tolerance, tolerances)
-    findings, problems = regression.compare(runs, baseline, limits)
+    findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
+    checked += len(findings)
     notes = regression.environment_notes(runs, baseline)
-    text = regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
+    if findings or problems or others is runs:
+        text += regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
     if summary is not None:
         regression.write_summary(text, summary)
     for note in notes:
         console.print(note, highlight=False, markup=False, soft_wrap=True)  # one line, however long
+    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim"}
+    for status, line in lines:
+        console.print(f"[{styles[status]}]{status}[/]: ", end="", highlight=False)
+        console.print(line, highlight=False, markup=False, soft_wrap=True)
     for f in findings:
         if f.status != "ok":
             style = "bold red" if f.status == "regression" else "yellow"
@@ -492,11 +521,33 @@ def check(
                           f"{f.measured:.4g} (tolerance {f.tolerance:g})", highlight=False)
     for problem in problems:
         console.print(f"[bold red]problem[/]: {problem}", highlight=False)
-    bad = sum(f.status == "regression" for f in findings) + len(problems)
-    console.print(f"check: {len(findings)} metrics of {len(runs)} runs against {baseline}: "
+    bad += sum(f.status == "regression" for f in findings) + len(problems)
+    console.print(f"check: {checked} metrics of {len(runs)} runs against {baseline}: "
                   + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
     if bad:
         raise typer.Exit(1)
+
+
+def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:
+    """check --update: the baseline files, and with --ensemble K its noise draws."""
+    from .ensemble import build_ensemble, write_noise
+
+    if ensemble < 0:
+        raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")
+    regression.write_baseline(runs, baseline)
+    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}")
+    noise = regression.noise_path(baseline)
+    if not ensemble:
+        if noise.is_file():  # draws around the old baseline would judge the new one
+            noise.unlink()
+            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)")
+        return
+    work = ensemble_dir or Path(".e3cm-ensemble") / baseline.stem
+    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False)
+    t = time.perf_counter()
+    table = build_ensemble(runs, range(1, ensemble + 1), work, console=console)
+    write_noise(table, noise)
+    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False)
 
 
 @app.command()
@@ -520,7 +571,7 @@ def calibrate(
     given = " ".join(item.strip() for item in settings or [])
     methods = []
     for name in matcher:
-        deep = get_matcher(name).needs_backbone
+        deep = get_matcher(name, allow_import=True).needs_backbone
         label = f"{name} {given}".strip() if deep and given else name
         label = label if backbone == "vgg19" or not deep else f"{label} [{backbone}]"
         methods.append(MethodSpec.create(name, backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
@@ -610,7 +661,7 @@ def matchers(
     """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings and defaults."""
     from .matchers import broken_plugins, entries
 
-    shown = [get_matcher(name) for name in names] if names else entries()
+    shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
     for line in describe_matchers(shown):
         console.print(line, markup=False, highlight=False, soft_wrap=True)
     for name, why in ([] if names else sorted(broken_plugins().items())):

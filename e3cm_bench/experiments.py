@@ -1,4 +1,4 @@
-"""Paper experiments: configs/*.yaml -> one run per method -> the paper-layout table and plots.
+"""Paper experiments: paper/configs/*.yaml -> one run per method -> the paper-layout table and plots.
 
 An experiment config (YAML) names a benchmark, dataset options and a list of methods;
 `reproduce` runs every method into OUT/<label>/ (each run reuses its cached matches; the
@@ -20,6 +20,7 @@ from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
 from .matchers import get_matcher
 from .method import MethodSpec
+from .paper import resolve_config
 from .runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
@@ -45,7 +46,7 @@ def experiment_method(
         protocol_side = protocol.max_side[benchmark.name] or 0 if benchmark.name in protocol.max_side else None
         max_side = benchmark.max_side(entry.get("max_side", experiment.get("max_side", protocol_side)))
     settings = dict(entry.get("settings") or {})
-    deep = get_matcher(matcher).needs_backbone
+    deep = get_matcher(matcher, allow_import=True).needs_backbone  # the config is the user's, as --matcher is
     if deep:
         settings = {**protocol.method_options.get(benchmark.name, {}), **settings}
     options = dict(
@@ -63,7 +64,7 @@ def experiment_method(
 
 
 def load_experiment(path: Path) -> dict:
-    """Read and check an experiment config (configs/*.yaml)."""
+    """Read and check an experiment config (paper/configs/*.yaml, or one of one's own)."""
     config = load_yaml(path, what="experiment config")
     unknown = set(config) - EXPERIMENT_KEYS
     if unknown:
@@ -84,16 +85,21 @@ def load_experiment(path: Path) -> dict:
         if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
             raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
         try:
-            get_matcher(method["matcher"])
+            get_matcher(method["matcher"], allow_import=True)
         except ValueError as exc:
             raise ValueError(f"{path}: methods[{i}]: {exc}") from None
         unknown = set(method) - METHOD_KEYS
         if unknown:
             raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")
         try:
-            label = experiment_method(method, config, benchmark, available=False).label
+            spec = experiment_method(method, config, benchmark, available=False)
         except ValueError as exc:
             raise ValueError(f"{path}: methods[{i}]: {exc}") from None
+        label = spec.label
+        # The label names the run's folder under --out: '../x' or '/abs' would write outside it.
+        if spec.folder in ("", ".", "..") or any(c in spec.folder for c in "/\\\0"):
+            raise ValueError(f"{path}: methods[{i}]: label {label!r} is not a plain folder name "
+                             "(no '/', '\\', '..' or empty label); its run folder must lie inside --out")
         if label in labels:
             raise ValueError(f"{path}: two methods are labelled {label!r}")
         labels.add(label)
@@ -104,7 +110,7 @@ def load_experiment(path: Path) -> dict:
 
 
 def reproduce(
-    config_path: Path,
+    config_path: Path | str,
     root: Path,
     out: Path,
     backbone: str | None = None,
@@ -119,7 +125,7 @@ def reproduce(
     only: list[str] | None = None,
 ) -> tuple[Path, Path] | None:
     """Run every method of an experiment config (or those labelled in `only`), then write its
-    table and plots.
+    table and plots. config_path: a YAML file, or a shipped config's name (``table1``; paper.config_names).
 
     backbone: replaces the backbone of every deep method (e.g. efficientnet_lite0 offline);
     the labels then say so. shard=(K, N): every method runs its K-th shard; the table is
@@ -127,6 +133,7 @@ def reproduce(
     paths (None while shards are missing).
     """
     console = console or Console()
+    config_path = resolve_config(config_path)
     experiment = load_experiment(config_path)
     benchmark = get_benchmark(experiment["benchmark"])
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
@@ -206,7 +213,7 @@ def write_table(
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
     if reference is None and benchmark.paper_table and paper_rows:
-        candidate = report.REPO_RESULTS / "paper" / benchmark.paper_table
+        candidate = report.paper_reference(benchmark)
         reference = candidate if candidate.is_file() else None
         if reference is None:
             console.print(f"[yellow]note[/]: {candidate} not found; the table has no paper reference rows")

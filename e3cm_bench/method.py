@@ -70,7 +70,8 @@ class MethodSpec:
         default label: e3cm + estimator ransac reads e3cm-ransac). available=False checks the
         options only (a config's validation): a peer's extra and weights are not looked for,
         and the spec, without their hashes, is not one to run."""
-        entry, _ = resolve(matcher, {})  # a preset's own matcher
+        # a preset's own matcher; `matcher` is the user's choice, so module:factory may be imported
+        entry, _ = resolve(matcher, {}, allow_import=True)
         deep = entry.needs_backbone
         settings: dict = {}
         shorthands = {"ratio": ratio, "estimator": estimator, "sampson_px": sampson_px}

@@ -21,8 +21,12 @@ from .benchmarks import Benchmark, get_benchmark
 from . import intervals
 from .files import load_yaml, read_csv, write_atomically, write_csv
 from .formats import format_interval, format_number
+from .paper import PAPER_DIR
 
-REPO_RESULTS = Path(__file__).resolve().parents[1] / "results"  # results/paper/: the paper's numbers
+# The paper's numbers ship inside the package (e3cm_bench/paper/), so that a wheel install has them.
+# REPO_RESULTS stays for readers that still build REPO_RESULTS / "paper" / <table> (reportsite.py)
+# until they call paper_reference: the package folder, whose paper/ holds the tables.
+REPO_RESULTS = PAPER_DIR.parent
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
 
@@ -156,6 +160,11 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
             f"[lo, hi]: {float(bounds.get('confidence', 0.95)):.0%} bootstrap interval over the pairs "
             f"({int(samples) if samples == samples and samples is not None else '?'} resamples, "
             f"seed {int(seed) if seed == seed and seed is not None else '?'})")
+    repeats = bounds.get("repeats")
+    if repeats is not None and repeats == repeats and int(repeats) > 1:
+        table.caption = (table.caption or "") + escape(
+            f"; values: the mean over {int(repeats)} repeats of the estimation (each metric's spread: <metric>_sd "
+            "in summary.csv)")
     table.add_column("metric")
     if split_bases:
         for header in ("overall", "illumination", "viewpoint"):
@@ -190,6 +199,11 @@ def method_key(name: str) -> str:
     """Normalised method name for matching runs to paper rows: 'sift' == 'SIFT+NN', 'E3CM (Ours)' == 'e3cm'."""
     key = "".join(str(name).lower().split()).removesuffix("(ours)")
     return METHOD_ALIASES.get(key, key)
+
+
+def paper_reference(benchmark: Benchmark) -> Path | None:
+    """The shipped CSV of the paper's numbers for a benchmark (None: the paper reports none)."""
+    return PAPER_DIR / benchmark.paper_table if benchmark.paper_table else None
 
 
 def _read_reference(path: Path, benchmark: Benchmark) -> pd.DataFrame:

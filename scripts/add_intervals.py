@@ -50,7 +50,7 @@ def rewrite_table(table_dir: Path) -> None:
         raise SystemExit(f"{table_dir}: no run folder for {', '.join(missing)}")
     loaded = [report.load_run(runs[m.removesuffix(" (non-standard)")]) for m in order]
     benchmark = loaded[0].benchmark
-    reference = report.REPO_RESULTS / "paper" / benchmark.paper_table if (old["source"] == "paper").any() else None
+    reference = report.paper_reference(benchmark) if (old["source"] == "paper").any() else None
     table = report.paper_table(loaded, benchmark, reference)
     if not any(c.startswith("d_") for c in old.columns):
         table = report.without_comparison(table)

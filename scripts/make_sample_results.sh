@@ -12,10 +12,10 @@ data="${1:-../shared/data}"
 # The peers' rows need their weights (a download this machine cannot make): the built-in methods only.
 common=(--backbone efficientnet_lite0 --no-compare --methods sift,dfm,e3cm-release,e3cm,e3cm-ransac,e3cm-plus,direct)
 
-e3cm-bench reproduce configs/table1_hpatches.yaml --root "$data/hpatches-sequences-release" --out runs/sample/table1_hpatches "${common[@]}"
-e3cm-bench reproduce configs/table2_megadepth.yaml --root "$data/megadepth_test_1500" \
+e3cm-bench reproduce table1 --root "$data/hpatches-sequences-release" --out runs/sample/table1_hpatches "${common[@]}"
+e3cm-bench reproduce table2 --root "$data/megadepth_test_1500" \
   --scene-info "$data/megadepth_test_1500/scene_info/kitti00_seq.npz" --out runs/sample/table2_kitti "${common[@]}"
-e3cm-bench reproduce configs/table3_yfcc.yaml --root "$data/scannet_sample" \
+e3cm-bench reproduce table3 --root "$data/scannet_sample" \
   --pairs "$data/scannet_sample/pairs_with_gt.txt" --out runs/sample/table3_scannet "${common[@]}"
 
 rm -rf results/sample/table*

@@ -1,4 +1,4 @@
-"""Paper experiments: the configs in configs/, `e3cm-bench table` and `e3cm-bench reproduce`."""
+"""Paper experiments: the shipped configs (e3cm_bench/paper/configs/), `e3cm-bench table` and `e3cm-bench reproduce`."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.experiments import experiment_method, load_experiment
+from e3cm_bench.paper import CONFIG_DIR as CONFIGS
 from helpers import invoke, one_line_error
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PAPER_ROWS = 12  # methods in each of the paper's Tables 1-3
 
 

@@ -19,9 +19,8 @@ from e3cm_bench import intervals, report
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.compare_runs import compare_runs, parse_mma
 from e3cm_bench.experiments import write_table
+from e3cm_bench.paper import PAPER_DIR
 from helpers import invoke, one_line_error
-
-PAPER_DIR = Path(__file__).resolve().parents[1] / "results" / "paper"
 
 
 def ok(*args):

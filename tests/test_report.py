@@ -14,8 +14,8 @@ from rich.console import Console
 from e3cm_bench import plots, report
 from e3cm_bench.files import write_csv
 from e3cm_bench.metrics import pose_error_curve
+from e3cm_bench.paper import PAPER_DIR
 
-PAPER_DIR = Path(__file__).resolve().parents[1] / "results" / "paper"
 PAPER_METHODS = [
     "SIFT+NN", "NCNet", "LIFT", "R2D2+NN", "DRC-Net", "SOSNet", "MAGSAC",
     "Patch2pix", "SuperPoint+SuperGlue", "LoFTR", "DFM", "E3CM",

@@ -225,6 +225,18 @@ def test_a_lock_with_another_name_is_refused(boat, tmp_path):
     assert victim.read_text() == "precious"
 
 
+def test_match_does_not_write_its_npz_through_a_link(boat, tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    out = tmp_path / "m"
+    out.mkdir()
+    (out / "matches.npz").symlink_to(victim)
+    images = sorted((boat / "v_boat").glob("*.ppm"))[:2]
+    line = one_line_error(invoke("match", *images, "--matcher", "sift", "--max-side", 320, "--out", out))
+    assert str(out / "matches.npz") in line and "symbolic link" in line
+    assert victim.read_text() == "precious"
+
+
 def test_report_does_not_write_its_index_through_a_link(made_run, tmp_path):
     run = run_copy(made_run, tmp_path / "sift")
     victim = tmp_path / "victim.txt"
@@ -245,6 +257,51 @@ def test_report_does_not_write_its_index_through_a_link(made_run, tmp_path):
     assert victim.read_text() == "precious"
 
 
+# ----------------------------------------------------------------------------- 3. no code from data
+
+
+def test_a_run_folders_matcher_is_never_imported(made_run, tmp_path):
+    folders = [run_copy(made_run, tmp_path / name.replace(":", "_"), name, matcher=name)
+               for name in ("this:x", "os:abort", "signal:pause")]
+    # One process runs table and report on each; importing `this` prints the Zen of Python,
+    # os:abort ends the process (134), signal:pause hangs it (the timeout).
+    script = textwrap.dedent(f"""
+        import sys
+        from typer.testing import CliRunner
+        from e3cm_bench.cli import app
+        for folder in {[str(f) for f in folders]!r}:
+            for args in (["table", folder, "--out", folder + "-table"], ["report", folder, "--out", folder + "-site"]):
+                result = CliRunner().invoke(app, args)
+                assert result.exit_code == 0, (args, result.output)
+                assert "Beautiful is better" not in result.output
+        assert "this" not in sys.modules
+        print("imported nothing")
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().endswith("imported nothing") and "Beautiful is better" not in done.stdout
+
+
+def test_the_registry_imports_a_module_only_when_asked(monkeypatch):
+    from e3cm_bench.matchers import get_matcher
+
+    monkeypatch.delitem(sys.modules, "this", raising=False)
+    with pytest.raises(ValueError, match="imported only when named by --matcher"):
+        get_matcher("this:x")
+    assert "this" not in sys.modules
+
+
+# ----------------------------------------------------------------------------- 6. experiment labels
+
+
+@pytest.mark.parametrize("label", ["../../x", "/an/absolute/path", ".."])
+def test_an_experiment_label_that_is_a_path_is_refused(boat, tmp_path, label):
+    config = tmp_path / "exp.yaml"
+    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "sift", "label": label}]}))
+    out = tmp_path / "a" / "b" / "out"
+    line = one_line_error(invoke("reproduce", config, "--root", boat, "--out", out, "--limit", 1, "--max-side", 320))
+    assert str(config) in line and repr(label) in line
+    assert not (tmp_path / "a").exists() and not (tmp_path / "x").exists()
 
 
 # ----------------------------------------------------------------------------- 12a. the page's data

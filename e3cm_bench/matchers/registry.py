@@ -62,25 +62,35 @@ def broken_plugins() -> dict[str, str]:
     return dict(_BROKEN)
 
 
-def get_matcher(name: str) -> MatcherEntry:
-    """The entry of `name`: a registered matcher, or ``module:factory`` (imported on first use)."""
+def get_matcher(name: str, allow_import: bool = False) -> MatcherEntry:
+    """The entry of `name`: a registered matcher, or ``module:factory`` (imported on first use).
+
+    allow_import=True only for a name the user gave (--matcher, an experiment config, the API's
+    MethodSpec.create): importing ``module:factory`` runs its code. A name read from a run
+    folder's config.yaml is data and resolves among registered matchers only (those already
+    imported in this process included); ``this:x`` there is an unknown matcher, imported never.
+    """
     _load()
     if name in _REGISTRY:
         return _REGISTRY[name]
     if name in _BROKEN:
         raise ValueError(f"matcher {name!r}: {_BROKEN[name]}")
-    if isinstance(name, str) and ":" in name:
+    if isinstance(name, str) and ":" in name and allow_import:
         entry = _from_module(name)
         _REGISTRY[name] = entry
         return entry
+    if isinstance(name, str) and ":" in name:
+        raise ValueError(f"matcher {name!r} is not registered here; a package.module:factory is imported only when "
+                         "named by --matcher (or an experiment config), never from a run folder's files")
     raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(_REGISTRY)} "
                      "(or a plugin's, or package.module:factory)")
 
 
-def resolve(name: str, settings: dict) -> tuple[MatcherEntry, dict]:
+def resolve(name: str, settings: dict, allow_import: bool = False) -> tuple[MatcherEntry, dict]:
     """A preset's base entry and its settings with the preset's; other entries as they are.
-    A setting given against the preset's is an error (e3cm-ransac with estimator top8)."""
-    entry = get_matcher(name)
+    A setting given against the preset's is an error (e3cm-ransac with estimator top8).
+    allow_import: as get_matcher's."""
+    entry = get_matcher(name, allow_import)
     if entry.preset_of is None:
         return entry, dict(settings)
     clash = sorted(k for k, v in entry.preset.items() if k in settings and settings[k] != v)
