@@ -90,7 +90,8 @@ def test_run_environment_names_what_numbers_depend_on(monkeypatch):
 def test_update_writes_the_environment_and_check_reads_it_back(runs, tmp_path):
     root, baseline = runs
     table = pd.read_csv(baseline)
-    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment"]
+    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment",
+                                   "identity"]
     assert list(table["environment"]) == [ENVIRONMENT_STRING] * 2
     assert check.parse_environment(ENVIRONMENT_STRING) == {
         "python": "3.12.3", "torch": "2.14.1+cu130", "torchvision": "0.29.1", "numpy": "2.4.6",

@@ -86,7 +86,9 @@ def checked(demo_out, tmp_path) -> tuple[Path, Path]:
     result = invoke("check", runs, "--baseline", baseline, "--update")
     assert result.exit_code == 0 and "2 runs written" in flat(result.output)
     table = pd.read_csv(baseline)
-    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment"]
+    assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment",
+                                   "identity"]
+    assert len(pd.read_csv(tmp_path / "baseline.pairs.csv")) == 2 * pd.read_csv(runs / "sift" / "per_pair.csv").shape[0]
     assert table["environment"].str.contains(f"; torch={torch.__version__}; ", regex=False).all()
     assert table["environment"].str.contains(f"; cpu={torch.backends.cpu.get_cpu_capability()}; ", regex=False).all()
     return runs, baseline
@@ -150,56 +152,8 @@ def test_committed_baselines_cover_the_demo():
         table = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
         assert sorted(table["method"]) == sorted(DEMO_METHODS)
         assert set(table["benchmark"]) == {benchmark} and not table.drop(columns=["benchmark", "method"]).isna().any().any()
-
-
-def committed_demo_runs(tmp_path: Path, set_name: str) -> Path:
-    """Run folders rebuilt from the committed baseline (each row's metrics as its summary, its
-    environment as its config), as the demo would leave them where nothing moved."""
-    from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.check import parse_environment
-
-    baseline = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv")
-    runs = tmp_path / set_name
-    for _, row in baseline.iterrows():
-        run = runs / row["method"]
-        run.mkdir(parents=True)
-        env = parse_environment(row["environment"])
-        versions = {k: v for k, v in env.items() if k in ("python", "torch", "torchvision", "numpy", "opencv-python-headless")}
-        config = {"benchmark": row["benchmark"], "method": row["method"], "identity": {"matcher": row["method"]},
-                  "versions": versions,
-                  "environment": {"torch": env["torch"], "cpu_capability": env["cpu"], "threads": int(env["threads"])}}
-        (run / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-        benchmark = get_benchmark(row["benchmark"])
-        summary = {c: 0.0 for c in benchmark.required_summary_columns()}
-        for metric, value in row.drop(labels=["benchmark", "method", "environment"]).items():
-            summary[benchmark.table_metrics.get(metric, metric)] = value
-        pd.DataFrame([summary]).to_csv(run / "summary.csv", index=False)
-    return runs
-
-
-@pytest.mark.parametrize("set_name, method, metric, worse", [
-    ("scenes", "e3cm-ransac", "P", "e3cm-release"),  # a cascade that stopped filtering
-    ("hpatches", "e3cm-plus", "h_acc@1", "e3cm-release"),
-    ("hpatches", "sift", "mma@3", "direct"),
-])
-def test_committed_tolerances_still_catch_a_degraded_run(tmp_path, set_name, method, metric, worse):
-    """results/baselines/demo_tolerances.csv (from the spread measured across environments,
-    scripts/demo_spread.py) passes the baseline's own numbers and still fails a method whose
-    metric falls to a worse method's value."""
-    tolerances = REPO_ROOT / "results" / "baselines" / "demo_tolerances.csv"
-    baseline = REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.csv"
-    table = pd.read_csv(tolerances)
-    assert {"benchmark", "method", "metric", "tolerance", "spread"} <= set(table.columns)
-    assert (table["tolerance"] >= 2 * table["spread"] - 1e-9).all()
-    runs = committed_demo_runs(tmp_path, set_name)
-    result = invoke("check", runs, "--baseline", baseline, "--tolerances", tolerances)
-    assert result.exit_code == 0 and "environment differs" not in result.output, result.output
-    rows = pd.read_csv(baseline).set_index("method")
-    from e3cm_bench.benchmarks import get_benchmark
-
-    column = get_benchmark(rows.loc[method, "benchmark"]).table_metrics.get(metric, metric)
-    summary = pd.read_csv(runs / method / "summary.csv")
-    summary[column] = rows.loc[worse, metric]
-    summary.to_csv(runs / method / "summary.csv", index=False)
-    result = invoke("check", runs, "--baseline", baseline, "--tolerances", tolerances)
-    assert result.exit_code == 1 and f"regression: {method} on" in flat(result.output) and metric in flat(result.output)
+        # and beside it the per-pair baseline and the noise ensemble the check gates with
+        pairs = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.pairs.csv")
+        noise = pd.read_csv(REPO_ROOT / "results" / "baselines" / f"demo_{set_name}.noise.csv")
+        assert sorted(pairs["method"].unique()) == sorted(DEMO_METHODS)
+        assert len(noise) == noise["draw"].nunique() * len(pairs) and noise["draw"].nunique() >= 10

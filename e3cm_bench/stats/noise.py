@@ -32,6 +32,9 @@ CHECK_ALPHA = 0.01
 RESAMPLES = 4000
 # The CSVs keep 8 significant digits: a difference below this relative size is no change.
 RESOLUTION = 1e-6
+# A pair's value (an error in px or degrees, a count, a fraction) computed from float32
+# keypoints: a move below this size (relative, at least absolute) is no move.
+PAIR_RESOLUTION = 1e-4
 
 
 def metric_alpha(n_metrics: int, check_alpha: float = CHECK_ALPHA) -> float:
@@ -144,13 +147,15 @@ class PairMove:
 
     @property
     def inside(self) -> bool:
-        """Within the pair's own noise: between its members' extremes (inf: a member failed too)."""
+        """Within the pair's own noise: between its members' extremes (inf: a member failed too).
+        A new value from the same noise falls outside the extremes of K+1 members with
+        probability 2/(K+2) (9% for K = 20): a few such pairs are expected, many are not."""
         m, lo, hi = self.measured, self.low, self.high
         if np.isnan(m) or np.isnan(lo):
             return bool(np.isnan(m) and np.isnan(lo))
         if np.isinf(m):
             return bool(m == (hi if m > 0 else lo))
-        return bool(lo - RESOLUTION * max(1.0, abs(lo)) <= m <= hi + RESOLUTION * max(1.0, abs(hi)))
+        return bool(lo - PAIR_RESOLUTION * max(1.0, abs(lo)) <= m <= hi + PAIR_RESOLUTION * max(1.0, abs(hi)))
 
 
 def pair_moves(pairs: Sequence[str], column: str, baseline: np.ndarray, members: Sequence[np.ndarray],
@@ -160,7 +165,7 @@ def pair_moves(pairs: Sequence[str], column: str, baseline: np.ndarray, members:
     for name, before, own, now in zip(pairs, baseline, members, measured):
         before, now = float(before), float(now)
         same = (before == now) or (np.isnan(before) and np.isnan(now)) or (
-            np.isfinite(before) and np.isfinite(now) and _close(before, now))
+            np.isfinite(before) and np.isfinite(now) and abs(before - now) <= PAIR_RESOLUTION * max(1.0, abs(before)))
         if same:
             continue
         own = np.asarray(own, float)
