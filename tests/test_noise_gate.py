@@ -82,7 +82,7 @@ def test_count_gate_matches_enumeration():
     rng = np.random.default_rng(2)
     p = rng.uniform(0, 1, 7)
     members = [np.array([True] * int(round(q * 20)) + [False] * (20 - int(round(q * 20)))) for q in p]
-    share = np.array([m.mean() for m in members])
+    share = np.array([(m.sum() + 0.5) / (len(m) + 1) for m in members])  # the predictive share
     counts = {k: 0.0 for k in range(8)}
     for outcome in itertools.product((0, 1), repeat=7):
         counts[sum(outcome)] += float(np.prod(np.where(outcome, share, 1 - share)))
@@ -91,18 +91,20 @@ def test_count_gate_matches_enumeration():
         below = sum(v for k, v in counts.items() if k <= observed)
         above = sum(v for k, v in counts.items() if k >= observed)
         assert gate.p_value == pytest.approx(min(1.0, 2 * min(below, above)), abs=1e-12)
-    assert count_gate("h_acc@1", [np.array([True])] * 5, 0.8, 1.0, 0.01).status == "regression"
-    assert count_gate("h_acc@1", [np.array([True])] * 5, 1.0, 1.0, 0.01).status == "ok"
+    always = [np.ones(200, bool)] * 15
+    assert count_gate("h_acc@1", always, 12 / 15, 1.0, 0.01).status == "regression"
+    assert count_gate("h_acc@1", always, 14 / 15, 1.0, 0.01).status == "ok"  # one new flip: the prior allows it
+    assert count_gate("h_acc@1", always, 1.0, 1.0, 0.01).status == "ok"
 
 
 def test_resampled_gate_and_pair_moves():
     samples = np.random.default_rng(3).normal(0.9, 0.01, 4000)
-    assert resampled_gate("mma@3", samples, 0.905, 0.9, 0.001).status == "ok"
-    assert resampled_gate("mma@3", samples, 0.85, 0.9, 0.001).status == "regression"
-    assert resampled_gate("mma@3", samples, 0.95, 0.9, 0.001).status == "improvement"
+    assert resampled_gate("mma@3", samples, 0.905, 0.9, 0.001, draws=20).status == "ok"
+    assert resampled_gate("mma@3", samples, 0.85, 0.9, 0.001, draws=20).status == "regression"
+    assert resampled_gate("mma@3", samples, 0.95, 0.9, 0.001, draws=20).status == "improvement"
     constant = np.full(100, 0.5)
-    assert resampled_gate("P", constant, 0.5, 0.5, 0.01).status == "ok"
-    assert resampled_gate("P", constant, 0.49, 0.5, 0.01).status == "regression"
+    assert resampled_gate("P", constant, 0.5, 0.5, 0.01, draws=20).status == "ok"
+    assert resampled_gate("P", constant, 0.49, 0.5, 0.01, draws=20).status == "regression"
     picks = member_picks([1, 3, 5], 2000, seed=0)
     assert picks.shape == (2000, 3) and (picks[:, 0] == 0).all() and set(picks[:, 2]) == set(range(5))
     assert PairMove("p", "h_error", 1.0, 1.2, 0.8, 1.3).inside
@@ -283,3 +285,21 @@ def test_repeats_report_the_mean_and_spread_of_seeded_evaluations(sift_demo, tmp
     line = one_line_error(invoke("hpatches", "--out", run, "--root", data, "--matcher", "sift", "--eval-only",
                                  "--repeats", "0"))
     assert "--repeats" in line
+
+
+@pytest.mark.parametrize("method", ["dfm", "e3cm", "sift"])
+def test_compare_two_ensemble_draws_of_one_run_finds_no_difference(tmp_path, method):
+    """Two noise draws of one committed run are the same method on the same pairs: every metric
+    of `compare` says no difference is detectable."""
+    noise = pd.read_csv(BASELINES / "demo_hpatches.noise.csv")
+    folders = []
+    for draw in (1, 2):
+        def as_draw(m: str, table: pd.DataFrame, draw=draw) -> pd.DataFrame:
+            own = noise[(noise["method"] == m) & (noise["draw"] == draw)].drop(columns=["benchmark", "method", "draw"])
+            return own.set_index("pair").loc[table["pair"]].reset_index()
+
+        folders.append(_committed_runs(tmp_path / f"draw{draw}", "hpatches", as_draw) / method)
+    result = invoke("compare", *folders, "--out", tmp_path / "cmp")
+    assert result.exit_code == 0, result.output
+    verdicts = pd.read_csv(tmp_path / "cmp" / "compare.csv")["verdict"]
+    assert len(verdicts) == 5 and (verdicts == "no difference detectable with 15 pairs").all(), list(verdicts)

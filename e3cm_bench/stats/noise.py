@@ -9,7 +9,8 @@ draw: ensemble.py reruns the run with every CPU-dependent stage perturbed). From
   under the threshold: Poisson-binomial, exact (`count_gate`);
 - any other aggregate (a mean, an AUC) is resampled: each sample takes, for every pair, one
   of its members at random and recomputes the aggregate (`member_picks` + the caller's
-  summary), and the gate uses the samples' mean and spread (`resampled_gate`).
+  summary), and the gate uses the samples' mean and spread with a Student t tail
+  (`resampled_gate`).
 
 A change is flagged where its two-sided tail probability under that distribution is below
 ``alpha``. Every gated metric is higher-is-better, so a flagged fall is a regression and a
@@ -72,8 +73,12 @@ def _close(a: float, b: float) -> bool:
 
 def count_gate(metric: str, passes: Sequence[np.ndarray], measured: float, baseline: float, alpha: float) -> Gate:
     """A fraction of pairs (measured, baseline) against the Poisson-binomial distribution of
-    its count; passes[i]: pair i's members, True where the pair passes the threshold."""
-    p = np.array([np.mean(np.asarray(m, bool)) for m in passes], float)
+    its count; passes[i]: pair i's members, True where the pair passes the threshold.
+
+    p_i is the predictive share (k_i + 1/2) / (m_i + 1) of pair i's k_i passing members of m_i
+    (Jeffreys' prior): a pair that passed in every one of 21 members still fails a new rerun
+    with probability 1/44, as a new draw may land outside everything the members showed."""
+    p = np.array([(np.sum(np.asarray(m, bool)) + 0.5) / (len(m) + 1) for m in passes], float)
     n = len(p)
     pmf = poisson_binomial_pmf(p)
     mean = float(p.sum())
@@ -101,33 +106,33 @@ def member_picks(member_counts: Sequence[int], n_samples: int = RESAMPLES, seed:
     return (rng.random((n_samples, len(counts))) * counts).astype(int)
 
 
-def resampled_gate(metric: str, samples: np.ndarray, measured: float, baseline: float, alpha: float) -> Gate:
+def resampled_gate(metric: str, samples: np.ndarray, measured: float, baseline: float, alpha: float,
+                   draws: int) -> Gate:
     """An aggregate against the samples of its noise distribution (member_picks), through
-    their mean and standard deviation: the band is mean +- z(alpha) sd (the aggregate of many
-    pairs is close to normal, and a normal tail reaches the small alphas a check needs, where
-    a few thousand samples cannot)."""
+    their mean m and standard deviation s. The spread comes from `draws` reruns, so a new
+    run is judged by the predictive Student t: (x - m) / (s sqrt(1 + 1/draws)) with `draws`
+    degrees of freedom (a t tail reaches the small alphas a check needs, where a few
+    thousand samples cannot, and widens as the ensemble shrinks)."""
     samples = np.asarray(samples, float)
     samples = samples[np.isfinite(samples)]
     if len(samples) == 0:
         mean, sd = float("nan"), 0.0
     else:
         mean, sd = float(samples.mean()), float(samples.std(ddof=1)) if len(samples) > 1 else 0.0
-    z = _normal_quantile(1 - alpha / 2)
+    from scipy.stats import t as student
+
+    df = max(int(draws), 1)
+    scale = sd * math.sqrt(1 + 1 / df)
+    half = float(student.ppf(1 - alpha / 2, df)) * scale
     if math.isnan(measured) or math.isnan(mean):
         p_value = 1.0 if math.isnan(measured) and math.isnan(mean) else 0.0
-    elif sd == 0:
-        p_value = 1.0 if _close(measured, mean) else 0.0
     elif _close(measured, mean):
         p_value = 1.0
+    elif scale == 0:
+        p_value = 0.0
     else:
-        p_value = float(math.erfc(abs(measured - mean) / sd / math.sqrt(2)))
-    return Gate(metric, "resampled", baseline, measured, mean, sd, mean - z * sd, mean + z * sd, p_value, alpha)
-
-
-def _normal_quantile(q: float) -> float:
-    from scipy.stats import norm
-
-    return float(norm.ppf(q))
+        p_value = float(2 * student.sf(abs(measured - mean) / scale, df))
+    return Gate(metric, "resampled", baseline, measured, mean, sd, mean - half, mean + half, p_value, alpha)
 
 
 @dataclass(frozen=True)
