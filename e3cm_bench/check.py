@@ -35,7 +35,7 @@ import pandas as pd
 
 from . import noise_gate
 from .ensemble import eval_settings_of, noise_path, read_noise
-from .files import read_csv, write_atomically, write_csv
+from .files import read_csv, read_keyed_csv, write_atomically, write_csv
 from .formats import format_number
 from .stats.noise import CHECK_ALPHA, metric_alpha
 from .report import Run, load_run
@@ -345,17 +345,7 @@ class Tolerances:
 
 
 def read_baseline(path: Path) -> pd.DataFrame:
-    baseline = read_csv(path, what="baseline (write one with check --update)")
-    missing_columns = [c for c in KEYS if c not in baseline.columns]
-    if missing_columns:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing_columns)}")
-    # A repeated row would let the last one win, and a fall could pass as a rise.
-    repeated = baseline.duplicated(list(KEYS))
-    if repeated.any():
-        row = baseline[repeated].iloc[0]
-        raise ValueError(f"{path}: {row['method']} on {row['benchmark']} has more than one row "
-                         f"(line {int(repeated.to_numpy().nonzero()[0][0]) + 2})")
-    return baseline
+    return read_keyed_csv(path, "baseline (write one with check --update)", KEYS)
 
 
 def _baseline_value(value, path: Path, key: tuple[str, str], metric: str) -> float:

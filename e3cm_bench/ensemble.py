@@ -19,7 +19,7 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import EvalSettings, get_benchmark
-from .files import read_csv, write_csv
+from .files import read_csv, read_keyed_csv, write_csv
 from .method import MethodSpec
 from .perturb import Perturbation, perturbed
 
@@ -105,8 +105,4 @@ def write_noise(table: pd.DataFrame, path: Path) -> Path:
 
 
 def read_noise(path: Path) -> pd.DataFrame:
-    table = read_csv(path, what="noise ensemble (write one with check --update --ensemble K)")
-    missing = [c for c in DRAW_COLUMNS if c not in table.columns]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
-    return table
+    return read_keyed_csv(path, "noise ensemble (write one with check --update --ensemble K)", DRAW_COLUMNS)

@@ -18,7 +18,7 @@ import stat
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
 
@@ -278,6 +278,23 @@ def read_csv(path: str | Path, what: str = "CSV file") -> pd.DataFrame:
         return pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
+
+
+def read_keyed_csv(path: str | Path, what: str, keys: Sequence[str], unique: bool = True) -> pd.DataFrame:
+    """A CSV whose rows are named by `keys`: a one-line ValueError naming the file for a
+    missing key column and (unique) for a key that has more than one row, since the last of
+    them would silently win wherever the rows are looked up."""
+    path = Path(path)
+    table = read_csv(path, what=what)
+    missing = [c for c in keys if c not in table.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+    repeated = table.duplicated(list(keys)) if unique else pd.Series(False, index=table.index)
+    if repeated.any():
+        first = int(repeated.to_numpy().nonzero()[0][0])
+        named = ", ".join(f"{k} {table.iloc[first][k]}" for k in keys)
+        raise ValueError(f"{path}: {named} has more than one row (line {first + 2})")
+    return table
 
 
 def writable_folder(folder: Path, create: bool = True) -> Path:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .files import read_csv, write_csv
+from .files import read_keyed_csv, write_csv
 from .stats.noise import RESAMPLES, Gate, PairMove, count_gate, member_picks, pair_moves, resampled_gate
 
 PAIRS_SUFFIX = ".pairs.csv"
@@ -59,15 +59,7 @@ def write_pair_baseline(runs: Sequence, path: Path) -> Path | None:
 
 
 def read_pair_baseline(path: Path) -> pd.DataFrame:
-    table = read_csv(path, what="per-pair baseline (write one with check --update)")
-    missing = [c for c in KEY_COLUMNS if c not in table.columns]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
-    repeated = table.duplicated(list(KEY_COLUMNS))
-    if repeated.any():
-        row = table[repeated].iloc[0]
-        raise ValueError(f"{path}: pair {row['pair']} of {row['method']} on {row['benchmark']} appears twice")
-    return table
+    return read_keyed_csv(path, "per-pair baseline (write one with check --update)", KEY_COLUMNS)
 
 
 @dataclass

@@ -24,6 +24,7 @@ from e3cm_bench.stats import (
     resample_indices,
     verdict_line,
 )
+from e3cm_bench.stats import aggregate as aggregate_module
 from e3cm_bench.stats import bootstrap as bootstrap_module
 
 
@@ -134,7 +135,7 @@ def test_resample_indices():
 def test_resample_indices_blocks_equal_one_draw(monkeypatch):
     # The matrix is drawn in blocks of rows to bound memory; the blocks must give the same stream.
     full = resample_indices(13, 40, seed=9)
-    monkeypatch.setattr(bootstrap_module, "_BLOCK_ENTRIES", 13 * 3)
+    monkeypatch.setattr(aggregate_module, "_BLOCK_ENTRIES", 13 * 3)
     np.testing.assert_array_equal(resample_indices(13, 40, seed=9), full)
 
 

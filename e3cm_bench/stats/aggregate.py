@@ -15,6 +15,10 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 
 # Same reason as in bootstrap: draw the (n_samples, n_pairs) pick matrix a bounded block at a time.
+# Picks are generated a bounded number of entries at a time, so that many resamples of a large
+# benchmark do not materialise one huge (n_samples, n) matrix. numpy's generator gives the same
+# stream whether it draws one matrix or consecutive blocks of rows; the bootstrap draws through
+# the same helper, so the two agree by construction.
 _BLOCK_ENTRIES = 1 << 21
 
 

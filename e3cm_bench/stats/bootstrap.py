@@ -16,15 +16,12 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from .aggregate import _pick_blocks
+
 BOOTSTRAP_SAMPLES = 1000
 CONFIDENCE = 0.95
 BOOTSTRAP_SEED = 0
 
-# Index blocks are generated a bounded number of entries at a time, so that 1000 resamples of a
-# large benchmark do not materialise one huge (n_samples, n) matrix. numpy's generator gives the
-# same stream whether it draws one matrix or consecutive blocks of rows; all functions here still
-# draw through the same helper, so they agree with each other by construction.
-_BLOCK_ENTRIES = 1 << 21
 
 
 def _check_args(n_samples: int, confidence: float | None = None) -> None:
@@ -35,15 +32,9 @@ def _check_args(n_samples: int, confidence: float | None = None) -> None:
 
 
 def _index_blocks(n: int, n_samples: int, seed: int) -> Iterator[np.ndarray]:
-    """Consecutive row blocks of the (n_samples, n) resampling index matrix for `seed`."""
-    rng = np.random.default_rng(seed)
-    rows_per_block = max(1, _BLOCK_ENTRIES // max(n, 1))
-    for start in range(0, n_samples, rows_per_block):
-        rows = min(rows_per_block, n_samples - start)
-        if n == 0:
-            yield np.empty((rows, 0), dtype=np.int64)
-        else:
-            yield rng.integers(0, n, size=(rows, n), dtype=np.int64)
+    """Consecutive row blocks of the (n_samples, n) resampling index matrix for `seed`: the
+    picks of n pairs that each hold all n rows (the same draws, block by block)."""
+    yield from _pick_blocks(np.full(n, n, dtype=np.int64), n_samples, seed)
 
 
 def resample_indices(n: int, n_samples: int, seed: int) -> np.ndarray:
