@@ -23,10 +23,6 @@ from .files import load_yaml, read_csv, write_atomically, write_csv
 from .formats import format_interval, format_number
 from .paper import PAPER_DIR
 
-# The paper's numbers ship inside the package (e3cm_bench/paper/), so that a wheel install has them.
-# REPO_RESULTS stays for readers that still build REPO_RESULTS / "paper" / <table> (reportsite.py)
-# until they call paper_reference: the package folder, whose paper/ holds the tables.
-REPO_RESULTS = PAPER_DIR.parent
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
 

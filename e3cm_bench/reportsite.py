@@ -36,7 +36,7 @@ import pandas as pd
 from rich.console import Console
 
 from .files import create_new, writable_folder, write_atomically
-from .report import REPO_RESULTS, Run, display_cells, load_run, paper_table, without_comparison
+from .report import Run, display_cells, load_run, paper_reference, paper_table, without_comparison
 
 N_WORST = 8          # pairs drawn because most methods fail there
 N_SAMPLE = 8         # pairs drawn as an even sample of the rest
@@ -101,8 +101,8 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
     for sub in ("runs", "pairs", "img"):
         (out / sub).mkdir()
     if reference is None and benchmark.paper_table and compare:
-        candidate = REPO_RESULTS / "paper" / benchmark.paper_table
-        reference = candidate if candidate.is_file() else None
+        candidate = paper_reference(benchmark)
+        reference = candidate if candidate is not None and candidate.is_file() else None
     table = paper_table(runs, benchmark, reference)
     if not compare:
         table = without_comparison(table, vs_paper=True)

@@ -61,7 +61,7 @@ class Benchmark:
     dataset_options: the options it takes besides the root (config files are checked against them).
     default_max_side: longer image side for matching when the user gives none (None = full size).
     ransac_field: the EvalSettings field that ``--ransac-px`` sets.
-    paper_table: the paper's numbers, a file under results/paper/ (None: the paper has none).
+    paper_table: the paper's numbers, a file shipped in e3cm_bench/paper/ (None: the paper has none).
     table_metrics: paper-table column -> summary.csv column; table_extras: measured-only columns.
     """
 
