@@ -28,8 +28,12 @@ import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported where maps are perturbed: geometry.py, which needs none, imports this module
+    import torch
 
 FEATURE_SCALE = 1e-5
 POINT_SCALE = float(np.finfo(np.float32).eps)
@@ -85,6 +89,8 @@ def perturb_map(x: torch.Tensor) -> torch.Tensor:
     if p is None or p.feature_scale <= 0:
         return x
     # empty_like keeps x's memory format (channels_last maps stay so: their pixel rows are read)
+    import torch
+
     values = x.detach().float().cpu()
     generator = torch.Generator().manual_seed(int(np.random.SeedSequence(_seed(p.draw, 1, values.numpy())).generate_state(1)[0]))
     noise = torch.empty_like(x, dtype=torch.float32, device="cpu").normal_(generator=generator).to(x.device)
