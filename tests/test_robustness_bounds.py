@@ -77,7 +77,7 @@ def test_enospc_at_each_write_position_leaves_every_earlier_pair_readable(tmp_pa
 
     with monkeypatch.context() as patch:
         if fail_at == "write":
-            real_open = open
+            real_create_new = cache_module.create_new
 
             class FullFile:
                 def __init__(self, f):
@@ -93,7 +93,8 @@ def test_enospc_at_each_write_position_leaves_every_earlier_pair_readable(tmp_pa
                     self.f.write(bytes(data)[: len(data) // 2])
                     full()
 
-            patch.setattr(cache_module, "open", lambda path, mode="r", *a: FullFile(real_open(path, mode, *a)), raising=False)
+            # the block's temporary is created through files.create_new (O_EXCL | O_NOFOLLOW)
+            patch.setattr(cache_module, "create_new", lambda path: FullFile(real_create_new(path)))
         elif fail_at == "fsync":
             patch.setattr(cache_module.os, "fsync", full)
         else:
