@@ -59,9 +59,7 @@ def relative_pose(
         found = geometry.estimate_relative_pose(kpts0[order], kpts1[order], K0, K1, threshold_px, confidence)
         if found is None:
             return None
-        inliers = np.zeros(len(order), bool)
-        inliers[order] = found[2]
-        return found[0], found[1], inliers
+        return found[0], found[1], geometry.unshuffle(found[2], order)
     if len(kpts0) < 5:
         return None
     poselib = _poselib()

@@ -33,10 +33,10 @@ def evaluate_stage(
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
     """
     rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
-    summary = benchmark.summarize(rows, ev)
     if ev.repeats > 1:
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
+        summary = benchmark.summarize(rows, ev)
         summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
     return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), summary
 

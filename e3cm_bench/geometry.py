@@ -152,10 +152,15 @@ def estimate_relative_pose(
             best_count = count
             best = (R, t[:, 0], mask.ravel() > 0)
     if best is not None and order is not None:
-        inliers = np.zeros_like(best[2])
-        inliers[order] = best[2]
-        best = (best[0], best[1], inliers)
+        best = (best[0], best[1], unshuffle(best[2], order))
     return best
+
+
+def unshuffle(values: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Per-correspondence values computed on points taken in `order`, back in the points' own order."""
+    out = np.empty_like(values)
+    out[order] = values
+    return out
 
 
 def rotation_angle_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
