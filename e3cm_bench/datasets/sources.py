@@ -22,6 +22,7 @@ class Part:
     sha256: str | None = None
     size: int | None = None  # bytes, for the free-disk check before downloading
     extract: bool = True     # an archive to unpack (else the file is placed as it is)
+    md5: str | None = None   # for sources that publish only an md5 (WxBS, EVD); the sha256 is still recorded
 
 
 @dataclass(frozen=True)
