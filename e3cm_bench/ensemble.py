@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import fields
 from pathlib import Path
 
 import pandas as pd
@@ -47,19 +46,14 @@ def method_of(config: dict, where: Path) -> MethodSpec:
 
 def eval_settings_of(config: dict, seed: int | None = None) -> EvalSettings:
     """The run's evaluation settings (config.yaml `evaluation`), with another RANSAC seed if given."""
-    recorded = config.get("evaluation") or {}
-    names = {f.name for f in fields(EvalSettings)}
-    values = {k: (tuple(v) if isinstance(v, list) else v) for k, v in recorded.items() if k in names}
-    if seed is not None:
-        values["seed"] = int(seed)
-    return EvalSettings(**values)
+    return EvalSettings.from_record(config.get("evaluation"), **({} if seed is None else {"seed": int(seed)}))
 
 
 def _dataset_of(config: dict, benchmark, where: Path):
     dataset = config.get("dataset") or {}
     if not dataset.get("root"):
         raise ValueError(f"{where}: config.yaml records no dataset root to rerun")
-    options = {k: dataset[k] for k in benchmark.dataset_options if dataset.get(k) is not None}
+    options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
     return benchmark.load_dataset(dataset["root"], skip_bad=bool(dataset.get("skip_bad")), **options)
 
 

@@ -284,7 +284,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
         cache = MatchCache(run.dir / "matches.h5")
         cached = set(cache.names())
         pairs = _dataset_pairs(run, notes)
-        ev = EvalSettings(**{f: v for f, v in (run.config.get("evaluation") or {}).items() if f in EvalSettings.__dataclass_fields__})
+        ev = EvalSettings.from_record(run.config.get("evaluation"))
         for name in chosen:
             if name not in cached or name not in pairs:
                 continue
@@ -309,7 +309,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
 def _dataset_pairs(run: Run, notes: list[str]) -> dict:
     """The run's pairs with their ground truth, from the dataset its config.yaml names."""
     dataset = run.config.get("dataset") or {}
-    options = {k: dataset[k] for k in run.benchmark.dataset_options if dataset.get(k) is not None}
+    options = {k: dataset[k] for k in run.benchmark.option_names if dataset.get(k) is not None}
     try:
         loaded = run.benchmark.load_dataset(dataset.get("root", ""), skip_bad=True, **options)
     except (ValueError, OSError, TypeError) as error:

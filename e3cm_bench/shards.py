@@ -110,7 +110,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     dataset = benchmark.load_dataset(load["root"], skip_bad=load["skip_bad"], **load["options"])
     limit = first["dataset"].get("limit")
     pairs = list(dataset)[:limit] if limit else list(dataset)
-    ev = EvalSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in first["evaluation"].items()})
+    ev = EvalSettings.from_record(first["evaluation"])
     folders = [shard_dir(out, (k, n)) for k in range(1, n + 1)]
     cache = ShardedCache(folders, CACHE_FILE)
     skipped = []

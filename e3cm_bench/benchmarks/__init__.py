@@ -1,21 +1,41 @@
 """The benchmark registry: name -> Benchmark.
 
-Adding a benchmark: one file defining its `Benchmark` (usually a `HomographyBenchmark` or
-`PoseBenchmark` with its own dataset class), plus one `register(...)` line here.
+Adding a benchmark is adding one module to this package that defines a module-level
+``BENCHMARKS`` tuple (its `Benchmark` objects: usually a `HomographyBenchmark` or a
+`PoseBenchmark` with its own dataset class, or a subclass of its own), plus its data source
+in datasets/sources.py. Every module here is read once, on first use, so nothing else needs
+to name the new one: its command (`e3cm-bench NAME`), `import`, `reproduce` and the report
+all come from the registry. `register` adds one from outside the package (the Python API).
 """
 
 from __future__ import annotations
 
-from .base import Benchmark, EvalSettings
-from .homography import HPATCHES, HomographyBenchmark
-from .pose import MEGADEPTH, YFCC, PoseBenchmark
+import importlib
+import pkgutil
+
+from .base import Benchmark, DatasetOption, EvalSettings
+from .homography import HomographyBenchmark
+from .pose import PoseBenchmark
 
 BENCHMARKS: dict[str, Benchmark] = {}
 
 
 def register(benchmark: Benchmark) -> Benchmark:
+    if not isinstance(benchmark, Benchmark):
+        raise TypeError(f"register: expected a Benchmark, got {type(benchmark).__name__}")
     BENCHMARKS[benchmark.name] = benchmark
     return benchmark
+
+
+def _discover() -> None:
+    """Register the BENCHMARKS of every module of this package, in the modules' name order
+    after the three of the paper (the order `e3cm-bench --help` lists their commands in)."""
+    names = sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+    first = [n for n in ("homography", "pose") if n in names]
+    for name in first + [n for n in names if n not in first]:
+        module = importlib.import_module(f"{__name__}.{name}")
+        for benchmark in getattr(module, "BENCHMARKS", ()):
+            BENCHMARKS.setdefault(benchmark.name, benchmark)
 
 
 def get_benchmark(name: str | Benchmark) -> Benchmark:
@@ -26,8 +46,7 @@ def get_benchmark(name: str | Benchmark) -> Benchmark:
     return BENCHMARKS[name]
 
 
-register(HPATCHES)
-register(MEGADEPTH)
-register(YFCC)
+_discover()
 
-__all__ = ["BENCHMARKS", "Benchmark", "EvalSettings", "HomographyBenchmark", "PoseBenchmark", "get_benchmark", "register"]
+__all__ = ["BENCHMARKS", "Benchmark", "DatasetOption", "EvalSettings", "HomographyBenchmark", "PoseBenchmark",
+           "get_benchmark", "register"]

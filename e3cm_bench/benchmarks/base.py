@@ -7,7 +7,7 @@ runner and the reports ask it, never a benchmark name, what to do.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,13 @@ class EvalSettings:
     drop_failures: bool = False  # pose pairs without an estimate leave the AUC (protocol e3cm-release)
     # The robust estimator of the evaluation's H and relative pose: opencv or poselib (estimators.py).
     estimator: str = "opencv"
+    # wxbs and evd (benchmarks/wxbs.py, evd.py): OpenCV's robust method for the evaluation's F and
+    # EVD's H, ransac or magsac (USAC MAGSAC++, wxbs-benchmark's estimator: --protocol wxbs), and
+    # the F estimator's threshold (pixels), confidence and iterations. HPatches' H stays RANSAC.
+    opencv_method: str = "ransac"
+    fundamental_ransac_px: float = 1.0
+    fundamental_confidence: float = 0.999
+    fundamental_max_iters: int = 100000
     # --repeats K: the estimation rerun K times with seeds seed, seed+1, ... (no rematching); the
     # summary is the mean over the repeats with each metric's spread (evaluate.py), as RoMa (5)
     # and the Image Matching Challenge code (3) report it.
@@ -49,16 +56,58 @@ class EvalSettings:
         from ..estimators import check_estimator
 
         check_estimator(self.estimator)
+        if self.opencv_method not in ("ransac", "magsac"):
+            raise ValueError(f"opencv_method must be ransac or magsac, got {self.opencv_method!r}")
         if int(self.repeats) < 1:
             raise ValueError(f"--repeats must be at least 1, got {self.repeats}")
+
+    @classmethod
+    def from_record(cls, record: Mapping | None, **changes) -> EvalSettings:
+        """The settings as a run folder's config.yaml records them (its `evaluation` block; YAML
+        lists back to tuples, defaults for fields an older record lacks, unknown keys ignored),
+        with `changes` applied (another seed for a rerun)."""
+        names = {f.name for f in fields(cls)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in dict(record or {}).items() if k in names}
+        return cls(**{**values, **changes})
+
+
+# How a dataset option reads on the command line: a switch, one path, several paths (the option
+# repeated), several names (repeated), or one word.
+OPTION_KINDS = ("flag", "path", "paths", "names", "text")
+
+
+@dataclass(frozen=True)
+class DatasetOption:
+    """One option of a benchmark's dataset: the dataset class's keyword, and how it reads as a
+    command-line option (``--exclude-large``, ``--scene-info``) and in an experiment's
+    ``dataset:`` mapping. The benchmark's command gets one option per entry (cli.py)."""
+
+    name: str
+    kind: str
+    help: str
+
+    def __post_init__(self) -> None:
+        if self.kind not in OPTION_KINDS:
+            raise ValueError(f"dataset option {self.name}: kind {self.kind!r} is not one of {', '.join(OPTION_KINDS)}")
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
 
 
 @dataclass(frozen=True)
 class Benchmark:
-    """One benchmark. Subclasses say how a pair is scored (`evaluate_pair`, `summarize`).
+    """One benchmark, the unit everything else asks: its dataset and that dataset's options,
+    where its data comes from, its default resize, and (subclasses) how a pair is scored
+    (`evaluate_pair`, `summarize`) and how runs are reported. The benchmark's command
+    (`e3cm-bench NAME`), `import`, `reproduce` and the report are made from this object.
 
     dataset: the PairList class, built as ``dataset(root, skip_bad=..., **options)``.
-    dataset_options: the options it takes besides the root (config files are checked against them).
+    dataset_options: the options it takes besides the root (config files are checked against
+    them); a DatasetOption becomes an option of the benchmark's command, a plain name is for
+    the Python API only.
+    summary: the command's help line. Where its data comes from (the default --root) is its
+    entry in datasets/sources.py, which names the benchmark it serves.
     default_max_side: longer image side for matching when the user gives none (None = full size).
     ransac_field: the EvalSettings field that ``--ransac-px`` sets.
     paper_table: the paper's numbers, a file shipped in e3cm_bench/paper/ (None: the paper has none).
@@ -67,7 +116,8 @@ class Benchmark:
 
     name: str
     dataset: type[PairList]
-    dataset_options: tuple[str, ...] = ()
+    dataset_options: tuple[str | DatasetOption, ...] = ()
+    summary: str = ""
     default_max_side: int | None = None
     ransac_field: str = "homography_ransac_px"
     paper_table: str | None = None
@@ -81,8 +131,16 @@ class Benchmark:
     # metric -> (column, threshold). The regression gate's noise model counts them exactly.
     count_metrics: Mapping[str, tuple[str, float]] = field(default_factory=dict)
 
+    @property
+    def option_names(self) -> tuple[str, ...]:
+        return tuple(o.name if isinstance(o, DatasetOption) else o for o in self.dataset_options)
+
+    def command_options(self) -> tuple[DatasetOption, ...]:
+        """The dataset options its command line offers."""
+        return tuple(o for o in self.dataset_options if isinstance(o, DatasetOption))
+
     def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
-        unknown = set(options) - set(self.dataset_options)
+        unknown = set(options) - set(self.option_names)
         if unknown:
             raise ValueError(f"dataset option(s) {', '.join(sorted(unknown))} do not apply to {self.name}")
         return self.dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if v is not None})
@@ -95,10 +153,49 @@ class Benchmark:
             raise ValueError(f"--max-side must be 0 (full resolution) or positive, got {option}")
         return option or None
 
-    def eval_settings(self, seed: int = 0, ransac_px: float | None = None, **fields) -> EvalSettings:
+    def eval_settings(self, seed: int = 0, ransac_px: float | None = None, **values) -> EvalSettings:
         if ransac_px is not None:
-            fields[self.ransac_field] = float(ransac_px)
-        return EvalSettings(seed=seed, **fields)
+            values[self.ransac_field] = float(ransac_px)
+        return EvalSettings(seed=seed, **values)
+
+    # ---- what a command's options mean here: shared by the command line and experiment configs
+    def resolve_method(
+        self, matcher: str, *, protocol: str = "default", backbone: str = "vgg19", weights=None,
+        estimator: str | None = None, sampson_px=None, ratio=None, max_side: int | None = None, seed: int = 0,
+        label: str | None = None, settings: Mapping | None = None, available: bool = True,
+    ):
+        """The MethodSpec of a matcher on this benchmark under `protocol`.
+
+        max_side: None takes the protocol's side for this benchmark, else the benchmark's
+        default; 0 is full size. The protocol's matcher settings (num_levels, channel order)
+        apply to deep matchers where `settings` gives none; its resize and upright rule apply
+        to every matcher."""
+        from ..matchers import get_matcher
+        from ..method import MethodSpec
+        from .protocols import get_protocol
+
+        preset = get_protocol(protocol, self.name)
+        if max_side is None and self.name in preset.max_side:
+            max_side = preset.max_side[self.name] or 0
+        options = dict(settings or {})
+        if get_matcher(matcher, allow_import=True).needs_backbone:  # --matcher is the user's: it may import
+            options = {**preset.method_options.get(self.name, {}), **options}
+        return MethodSpec.create(
+            matcher, backbone, weights, estimator, sampson_px, ratio, self.max_side(max_side), seed, label,
+            options=options, upright=preset.upright, resize=preset.resize_mode(self.name), available=available,
+        )
+
+    def resolve_eval(self, protocol: str = "default", seed: int = 0, ransac_px: float | None = None,
+                     estimator: str | None = None, repeats: int = 1) -> EvalSettings:
+        """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
+        from .protocols import get_protocol
+
+        values = get_protocol(protocol, self.name).eval_fields(self.name)
+        if estimator:
+            values["estimator"] = estimator
+        if repeats != 1:
+            values["repeats"] = repeats
+        return self.eval_settings(seed=seed, ransac_px=ransac_px, **values)
 
     # ---- scoring: subclasses
     def pair_columns(self, ev: EvalSettings) -> list[str]:  # pragma: no cover - abstract

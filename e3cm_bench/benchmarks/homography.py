@@ -14,7 +14,7 @@ from ..datasets.base import Pair
 from ..datasets.hpatches import HPatches
 from ..geometry import warp_points
 from ..matches import Matches
-from .base import Benchmark, EvalSettings
+from .base import Benchmark, DatasetOption, EvalSettings
 
 
 @dataclass(frozen=True)
@@ -97,6 +97,12 @@ def _mean(values: np.ndarray) -> float:
 
 
 HPATCHES = HomographyBenchmark(
-    name="hpatches", dataset=HPatches, dataset_options=("exclude_large", "sequences"),
+    name="hpatches", dataset=HPatches,
+    dataset_options=(
+        DatasetOption("exclude_large", "flag", "The 108-sequence / 540-pair protocol (D2-Net)."),
+        DatasetOption("sequences", "names", "Keep these sequences (names or globs; repeatable)."),
+    ),
+    summary="HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy.",
     default_max_side=None, ransac_field="homography_ransac_px", paper_table="table1.csv",
 )
+BENCHMARKS = (HPATCHES,)

@@ -14,7 +14,7 @@ from ..datasets.base import Pair
 from ..datasets.megadepth import MegaDepth1500
 from ..datasets.yfcc import YFCC100M
 from ..matches import Matches
-from .base import Benchmark, EvalSettings
+from .base import Benchmark, DatasetOption, EvalSettings
 
 
 @dataclass(frozen=True)
@@ -109,9 +109,17 @@ class PoseBenchmark(Benchmark):
 
 
 MEGADEPTH = PoseBenchmark(
-    name="megadepth", dataset=MegaDepth1500, dataset_options=("scene_info",), default_max_side=1200,
-    paper_table="table2.csv",
+    name="megadepth", dataset=MegaDepth1500,
+    dataset_options=(DatasetOption(
+        "scene_info", "paths", "scene_info .npz files (default: all under ROOT/scene_info; a ROOT in glue-factory's "
+        "megadepth1500 layout needs none)."),),
+    summary="MegaDepth-1500: relative pose AUC@5/10/20 and matching precision.",
+    default_max_side=1200, paper_table="table2.csv",
 )
 YFCC = PoseBenchmark(
-    name="yfcc", dataset=YFCC100M, dataset_options=("pairs",), default_max_side=1200, paper_table="table3.csv",
+    name="yfcc", dataset=YFCC100M,
+    dataset_options=(DatasetOption("pairs", "path", "Pair list (default ROOT/yfcc_test_pairs_with_gt.txt)."),),
+    summary="YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision.",
+    default_max_side=1200, paper_table="table3.csv",
 )
+BENCHMARKS = (MEGADEPTH, YFCC)

@@ -97,5 +97,7 @@ def data_dir() -> Path:
 def default_sources(benchmark: str) -> list[Source]:
     """Where a benchmark's default data may be, in the order the folders are looked for: its
     first source, then the same data in other layouts (never another dataset it also reads)."""
-    first = next(s for s in SOURCES.values() if s.benchmark == benchmark)
+    first = next((s for s in SOURCES.values() if s.benchmark == benchmark), None)
+    if first is None:
+        raise ValueError(f"no data source is known for {benchmark}: pass --root (the folder holding its data)")
     return [first] + [s for s in SOURCES.values() if s.same_data_as == first.name]
