@@ -1,24 +1,42 @@
 """`e3cm-bench download`: fetch a benchmark's files (resuming), verify them, unpack them safely.
 
 - Fetching resumes: bytes arrive in ``FILE.part``; a rerun asks the server for the rest
-  (an HTTP range request) and starts over only where the server refuses ranges.
-- Verifying: sha256 against the hash pinned in datasets/sources.py; where none is pinned,
-  against the hash recorded in LOCK_FILE beside the data by the first download (which
-  records it). A file that does not match is moved aside to ``FILE.bad``, never used.
+  (an HTTP range request) and starts over where the server refuses ranges, answers a range
+  from byte 0, or answers 416 without saying that the part already holds the whole file.
+- Complete before trusted: ``FILE.part`` becomes ``FILE`` only when its length is the one the
+  server announced (Content-Length, Content-Range), and a 206 must answer the range asked.
+  An archive is then unpacked whole (every zip member read to its end against its CRC-32,
+  every tar member read through) before its hash is recorded; a damaged one is moved aside
+  to ``FILE.bad``, so the next run fetches it again instead of trusting it.
+- Verifying: sha256 (and md5 where a source publishes one) against the hash pinned in
+  datasets/sources.py; where none is pinned, against the hash recorded in LOCK_FILE beside the
+  data by the first complete download. LOCK_FILE is replaced atomically, never left half written.
 - Unpacking: into a temporary folder beside the target, renamed into place at the end;
   members with absolute paths, ``..``, links or device files are refused (tar: Python's
   ``data`` filter; zip: checked here), nothing is written outside the target.
-- Before fetching, the free disk is checked against the file's size (twice for archives).
+- Bounded: a body is cut off past the size a source expects (Part.size with a margin), an
+  archive whose members would unpack to more than UNPACK_RATIO times its size is refused, a
+  download has an overall deadline scaled to its size, and the disk is never filled below
+  FREE_RESERVE (the free disk is also checked before fetching: twice the size for archives).
+- One download at a time per data folder: the folder is locked like a run folder (FolderLock).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import errno
+import hashlib
 import http.client
 import json
+import lzma
+import os
+import re
 import shutil
 import stat
 import tarfile
+import time
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 from urllib.error import HTTPError, URLError
 from urllib.request import Request, urlopen
@@ -27,11 +45,27 @@ from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
 from .datasets.sources import Part, Source
-from .files import file_sha256
+from .files import FolderLock, refuse_link, write_atomically
 
 LOCK_FILE = "e3cm-bench-data.lock"
 CHUNK = 1 << 20
-TIMEOUT_S = 60
+TIMEOUT_S = 60  # one read without a byte: the server is gone
+# A part's sizes in sources.py are rounded, and hosts re-pack archives: a body may exceed its
+# Part.size by this factor plus this slack before it is taken for an endless one.
+SIZE_MARGIN = 1.25
+SIZE_SLACK = 8 << 20
+# Image archives compress little (ppm about 2:1, jpg not at all); members declaring more than
+# this many times the archive's bytes are a zip bomb, not data.
+UNPACK_RATIO = 20
+UNPACK_SLACK = 16 << 20
+FREE_RESERVE = 64 << 20  # never written below: the lock, logs and other programs still need room
+# The overall deadline: a base for slow starts plus the expected bytes at the slowest average
+# rate worth waiting for (1.3 GB: about 3.8 h); where no size is known, a fixed bound.
+DEADLINE_BASE_S = 600
+MIN_RATE = 100_000
+UNKNOWN_SIZE_DEADLINE_S = 4 * 3600
+SHA256 = re.compile(r"[0-9a-f]{64}")
+_JSON_KINDS = {bool: "true or false", int: "a number", float: "a number", str: "a string", list: "a list"}
 
 
 class DownloadError(ValueError):
@@ -50,126 +84,376 @@ def download(source: Source, to: Path, origin: str | None = None, sha256: str | 
     if origin is not None:
         if len(parts) != 1:
             raise DownloadError(f"--from applies to a one-file source; {source.name} has {len(parts) or 'no'} files")
-        parts = (Part(parts[0].file, origin, sha256 or parts[0].sha256, parts[0].size, parts[0].extract),)
+        parts = (dataclasses.replace(parts[0], url=origin, sha256=sha256 or parts[0].sha256),)
     elif sha256 is not None:
         raise DownloadError("--sha256 goes with --from (the hash of the file given there)")
     to.mkdir(parents=True, exist_ok=True)
-    for part in parts:
-        if part.url is None:
-            continue
-        archive = to / ".downloads" / Path(part.file).name if part.extract else target / part.file
-        if not (part.extract and (target.exists() and (target / ".complete").exists())):
-            fetched = fetch(part.url, archive, part.size, part.extract, console)
-            verify(fetched, part, to)
-            if part.extract:
-                extract(fetched, target, console)
+    # Two downloads into one folder would interleave their .part files, unpacking and hash
+    # records (an incomplete copy marked complete): the second is refused in one line.
+    with FolderLock(to, option="--to"):
+        try:
+            read_lock(to)  # a damaged record stops the download before anything is fetched
+            for part in parts:
+                if part.url is None:
+                    continue
+                if part.extract and (target / ".complete").is_file():
+                    continue
+                _fetch_part(part, to, target, console)
+        except OSError as error:
+            if error.errno != errno.ENOSPC:
+                raise
+            raise disk_full(Path(error.filename or to), "what was fetched is kept and resumed from") from None
     if source.manual:
         raise DownloadError(f"{source.name}: {source.manual.format(folder=target)}; then check it with "
                             f"e3cm-bench download {source.name} --to {to} --check")
     return target
 
 
+def _fetch_part(part: Part, to: Path, target: Path, console: Console) -> None:
+    """One part fetched, verified, checked whole, recorded, placed (in that order: the hash is
+    recorded only for a file that passed every check, and before it is placed, so that a
+    placed copy always has its record)."""
+    dest = to / ".downloads" / Path(part.file).name if part.extract else target / part.file
+    fetched = fetch(part.url, dest, part.size, part.extract, console)
+    owned = fetched == dest  # a file given with --from is the user's: never moved aside
+    digest = verify(fetched, part, to, owned)
+    if part.extract:
+        try:
+            temporary = unpack(fetched, target, owned)
+        except DownloadError as error:
+            if part.sha256 or read_lock(to).get(part.file) != digest:
+                raise
+            # a damaged archive whose hash is on record: recorded by a version that did not check
+            # archives, and it would refuse the good file next
+            raise DownloadError(f"{error}; its sha256 was recorded in {to / LOCK_FILE} by an earlier download "
+                                f"that did not check archives: remove the {part.file!r} entry there first") from None
+        try:
+            _record(to, part, digest)
+            _place(temporary, target, fetched)
+        finally:
+            shutil.rmtree(temporary, ignore_errors=True)
+    else:
+        if not owned:  # a file downloaded by hand is copied into place, leaving the user's own
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            write_atomically(dest, lambda tmp: shutil.copyfile(fetched, tmp))
+        _record(to, part, digest)
+
+
 def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, console: Console | None = None) -> Path:
-    """dest, downloaded from `url` (or a local file's path / file:// URL, used as it is)."""
+    """dest, downloaded from `url` (or a local file's path / file:// URL, used as it is).
+    `size`: the expected bytes (Part.size), which bound the body and the time it may take."""
     local = Path(url[len("file://"):]) if url.startswith("file://") else Path(url)
     if "://" not in url or url.startswith("file://"):
         if not local.is_file():
             raise DownloadError(f"{local}: no such file")
         return local
+    refuse_link(dest)
     if dest.is_file():
         return dest
     dest.parent.mkdir(parents=True, exist_ok=True)
-    part = dest.with_name(dest.name + ".part")
+    part = refuse_link(dest.with_name(dest.name + ".part"))
+    cap = max_bytes(size)
     offset = part.stat().st_size if part.exists() else 0
+    if offset > cap:  # more than this file can hold: not a beginning of it
+        part.unlink()
+        offset = 0
     check_free_space(dest.parent, (size or 0) * (2 if archive else 1) - offset)
+    response, refused = _open(url, offset)
+    if refused is not None:  # 416: the server has no byte from `offset` on
+        if offset == _whole_length(refused):
+            os.replace(part, dest)  # the server's own size says the part already holds it all
+            return dest
+        # A part longer than the file, or a server that does not say the file's size: the part
+        # cannot be shown to be the file's beginning, so it is dropped and the file fetched whole.
+        part.unlink()
+        offset = 0
+        response, _ = _open(url, 0)
+    with response:
+        start, end, total = _body_range(url, response, offset, part)
+        if total is not None and total > cap:
+            raise DownloadError(f"{url}: announces {total} bytes, more than the {cap} this file may have "
+                                f"(about {size} expected); nothing was written: check the URL or the mirror")
+        got = _receive(url, response, part, start, end, cap, size or total, console, dest.name)
+    if (end is not None and got != end) or (total is not None and got != total):
+        raise DownloadError(f"{url}: the connection dropped at {got} of {total if total is not None else end} bytes; "
+                            f"{part} is kept, rerun the same command to resume")
+    os.replace(part, dest)
+    return dest
+
+
+def _open(url: str, offset: int):
+    """(the server's answer to a GET from byte `offset`, None), or (None, the HTTPError) for a
+    416 to a resumed request, whose Content-Range may say the file's length."""
     request = Request(url, headers={"Range": f"bytes={offset}-"} if offset else {})
     try:
-        response = urlopen(request, timeout=TIMEOUT_S)  # noqa: S310 - the URLs come from sources.py or --from
+        return urlopen(request, timeout=TIMEOUT_S), None  # noqa: S310 - the URLs come from sources.py or --from
     except HTTPError as error:
-        if error.code == 416 and offset:  # nothing left to send: the part is whole
-            part.rename(dest)
-            return dest
+        if error.code == 416 and offset:
+            return None, error
         raise DownloadError(f"{url}: HTTP {error.code} {error.reason}") from None
-    except (URLError, OSError) as error:
+    except (URLError, OSError, http.client.HTTPException) as error:
         reason = getattr(error, "reason", error)
         raise DownloadError(f"{url}: cannot connect ({reason}); check the network or pass --from MIRROR_OR_FILE") from None
-    with response:
-        resumed = offset > 0 and response.status == 206
-        if not resumed:
-            offset = 0  # the server sends the whole file: start over
-        length = response.headers.get("Content-Length")
-        total = offset + int(length) if length is not None else None
-        if total is not None:
-            check_free_space(dest.parent, (total - offset) * (2 if archive else 1))
-        with open(part, "ab" if resumed else "wb") as out, _progress(console) as progress:
-            task = progress.add_task(dest.name, total=total, completed=offset)
-            try:
-                while chunk := response.read(CHUNK):
-                    out.write(chunk)
-                    progress.advance(task, len(chunk))
-            except (OSError, http.client.HTTPException):
-                pass  # the connection dropped: what arrived is kept, and the size check below says so
-    got = part.stat().st_size
-    if total is not None and got != total:
-        raise DownloadError(f"{url}: the connection dropped at {got} of {total} bytes; {part} is kept, "
-                            "rerun the same command to resume")
-    part.rename(dest)
-    return dest
+
+
+def _whole_length(error: HTTPError) -> int | None:
+    """The file's length from a 416's Content-Range (``bytes */LENGTH``), else None."""
+    match = re.fullmatch(r"\s*bytes\s+\*/(\d+)\s*", error.headers.get("Content-Range") or "")
+    return int(match.group(1)) if match else None
+
+
+def _body_range(url: str, response, offset: int, part: Path) -> tuple[int, int | None, int | None]:
+    """Where the body starts in the file, where it ends (None: at the connection's end) and
+    the file's whole length (None where unknown), checked against what was asked."""
+    length = response.headers.get("Content-Length")
+    length = int(length) if length is not None and length.strip().isdigit() else None
+    if response.status != 206:
+        return 0, length, length  # the whole file (a server that ignores ranges starts over)
+    content_range = response.headers.get("Content-Range") or ""
+    match = re.fullmatch(r"\s*bytes\s+(\d+)-(\d+)/(\d+|\*)\s*", content_range)
+    first, last = (int(match.group(1)), int(match.group(2))) if match else (-1, -1)
+    total = int(match.group(3)) if match and match.group(3) != "*" else None
+    if not match or last < first or (total is not None and last >= total) or \
+            (length is not None and length != last - first + 1):
+        raise DownloadError(f"{url}: a partial answer (206) with Content-Range {content_range!r} and Content-Length "
+                            f"{length}, which do not agree; {part} is kept: rerun, or pass --from another mirror")
+    if first != offset and first != 0:
+        part.unlink(missing_ok=True)
+        raise DownloadError(f"{url}: asked for the bytes from {offset} on, the server sent {first}-{last}; {part} is "
+                            "dropped: rerun the same command to fetch the file from the start")
+    # first == 0: the server restarted the file; it is written from the start, never appended
+    return first, last + 1, total
+
+
+def _receive(url: str, response, part: Path, start: int, end: int | None, cap: int, expected: int | None,
+             console: Console | None, label: str) -> int:
+    """The body written into `part` from byte `start` on; returns the part's length. Stops at
+    `cap`, at the deadline and at FREE_RESERVE, each with one line; a dropped connection ends
+    the loop quietly (the caller compares the length with what was announced)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_APPEND if start else os.O_TRUNC)
+    seconds = deadline_s(None if expected is None else max(0, expected - start))
+    deadline = time.monotonic() + seconds
+    got = start
+    fd = os.open(part, flags, 0o666)
+    try:
+        with _progress(console) as progress:
+            task = progress.add_task(label, total=end, completed=start)
+            while True:
+                if time.monotonic() > deadline:
+                    raise DownloadError(f"{url}: not finished after {seconds:.0f} s ({got} bytes arrived; the deadline "
+                                        f"allows {MIN_RATE // 1000} kB/s on average); {part} is kept: rerun the same "
+                                        "command to resume, or pass --from a faster mirror")
+                try:
+                    # read1: whatever has arrived, so that a trickling server cannot hold one
+                    # call past the deadline (read(n) waits for all n bytes)
+                    chunk = response.read1(CHUNK)
+                except (OSError, http.client.HTTPException):
+                    break  # the connection dropped: what arrived is kept
+                if not chunk:
+                    break
+                if got + len(chunk) > min(cap, end if end is not None else cap):
+                    os.close(fd)
+                    fd = -1
+                    part.unlink(missing_ok=True)
+                    limit = min(cap, end) if end is not None else cap
+                    raise DownloadError(f"{url}: sent more than the {limit} bytes this file may have; nothing is kept: "
+                                        "check the URL or the mirror")
+                free = shutil.disk_usage(part.parent).free
+                if free - len(chunk) < FREE_RESERVE:
+                    raise disk_full(part.parent, f"the {got} bytes that arrived in {part.name} are kept and resumed from",
+                                    free)
+                _write_all(fd, chunk)
+                got += len(chunk)
+                progress.advance(task, len(chunk))
+    finally:
+        if fd >= 0:
+            os.close(fd)
+    return got
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def max_bytes(size: int | None) -> int:
+    """The most bytes a part may have: its expected size with a margin; where none is known,
+    what the disk can spare (the free-space floor in _receive bounds it as it fills)."""
+    if size is None:
+        return 1 << 62
+    return int(size * SIZE_MARGIN) + SIZE_SLACK
+
+
+def deadline_s(expected: int | None) -> float:
+    return UNKNOWN_SIZE_DEADLINE_S if expected is None else DEADLINE_BASE_S + expected / MIN_RATE
 
 
 def check_free_space(folder: Path, needed: int) -> None:
     free = shutil.disk_usage(folder).free
-    if needed > 0 and free < needed:
-        raise DownloadError(f"{folder}: {free / 1e9:.1f} GB free, {needed / 1e9:.1f} GB needed; free space or use --to")
+    if needed > 0 and free < needed + FREE_RESERVE:
+        raise DownloadError(f"{folder}: {free / 1e9:.1f} GB free, {(needed + FREE_RESERVE) / 1e9:.1f} GB needed; "
+                            "free space or use --to")
 
 
-def verify(path: Path, part: Part, to: Path) -> str:
-    """The file's sha256 if it is the pinned (or first recorded) one; else the file is moved
-    aside and a one-line error says both hashes."""
-    digest = file_sha256(path)
-    lock_path = to / LOCK_FILE
-    lock = json.loads(lock_path.read_text()) if lock_path.is_file() else {}
-    expected = part.sha256 or lock.get(part.file)
-    if expected is not None and digest != expected:
-        bad = path.with_name(path.name + ".bad")
-        path.replace(bad)
-        where = "pinned in e3cm-bench" if part.sha256 else f"recorded in {lock_path} by the first download"
-        raise DownloadError(f"{path.name}: sha256 {digest} is not the {expected} {where}; the file is kept aside as {bad}")
-    if expected is None:
-        lock[part.file] = digest
-        lock_path.write_text(json.dumps(lock, indent=1, sort_keys=True) + "\n")
+def disk_full(folder: Path, kept: str, free: int | None = None) -> DownloadError:
+    """The full-disk line of a download: the free space of the filesystem that filled (the
+    nearest existing folder of `folder`), and what a rerun finds (`kept`)."""
+    where = next((p for p in [folder, *folder.parents] if p.exists()), Path("."))
+    try:
+        free = shutil.disk_usage(where).free if free is None else free
+        room = f" ({free / 2**20:.1f} MiB free there, {FREE_RESERVE >> 20} MiB kept free)"
+    except OSError:
+        room = ""
+    return DownloadError(f"{folder}: no space left on the device{room}; free some space and rerun the same command "
+                         f"({kept})")
+
+
+def read_lock(to: Path) -> dict[str, str]:
+    """The hashes recorded by earlier downloads ({file: sha256}), {} where none were; a file
+    that is not such a record is one line naming it (never trusted, never overwritten)."""
+    path = Path(to) / LOCK_FILE
+    if not path.exists():
+        return {}
+    try:
+        record = json.loads(path.read_text())
+        problem = "" if isinstance(record, dict) else f"holds {_JSON_KINDS.get(type(record), 'null')}, not files and their hashes"
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        record, problem = None, ("empty" if isinstance(error, ValueError) and not path.read_bytes().strip()
+                                 else f"not JSON ({str(error).splitlines()[0] if str(error) else type(error).__name__})")
+    if not problem:
+        bad = next((k for k, v in record.items() if not isinstance(v, str) or not SHA256.fullmatch(v)), None)
+        problem = f"the entry {bad!r} is not a sha256" if bad is not None else ""
+    if problem:
+        raise DownloadError(f"{path}: {problem}, so the hashes of earlier downloads are lost; restore it from a "
+                            "backup, or remove it and the next download records them again")
+    return record
+
+
+def _record(to: Path, part: Part, digest: str) -> None:
+    """The first complete download's hash, where none is pinned, written atomically."""
+    if part.sha256:
+        return
+    record = read_lock(to)
+    if record.get(part.file) == digest:
+        return
+    record[part.file] = digest
+    text = json.dumps(record, indent=1, sort_keys=True) + "\n"
+    write_atomically(Path(to) / LOCK_FILE, lambda tmp: tmp.write_text(text))
+
+
+def verify(path: Path, part: Part, to: Path, owned: bool = True) -> str:
+    """The file's sha256 if it is the pinned (or first recorded) one and its md5 the published
+    one (where given); else the file is moved aside (`owned`: only a file the download wrote)
+    and a one-line error says both hashes. Records nothing (see _record)."""
+    sha, md5 = hashlib.sha256(), hashlib.md5() if part.md5 else None
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(CHUNK), b""):
+            sha.update(block)
+            if md5 is not None:
+                md5.update(block)
+    digest = sha.hexdigest()
+    lock_path = Path(to) / LOCK_FILE
+    expected = part.sha256 or read_lock(to).get(part.file)
+    checks = [("sha256", digest, expected, "pinned in e3cm-bench" if part.sha256 else
+               f"recorded in {lock_path} by the first download")]
+    if md5 is not None:
+        checks.append(("md5", md5.hexdigest(), part.md5.lower(), "published by the source"))
+    for kind, got, want, where in checks:
+        if want is not None and got != want:
+            raise DownloadError(f"{path.name}: {kind} {got} is not the {want} {where}; {_set_aside(path, owned)}")
     return digest
+
+
+def _set_aside(path: Path, owned: bool) -> str:
+    if not owned:
+        return f"{path} is left as it is"
+    bad = path.with_name(path.name + ".bad")
+    path.replace(bad)
+    return f"the file is kept aside as {bad}"
 
 
 def extract(archive: Path, target: Path, console: Console | None = None) -> Path:
     """Unpack into a temporary folder beside `target`, refusing unsafe members, then rename into
     place (the archive's single top folder, or its contents, become `target`)."""
+    temporary = unpack(archive, target, owned=False)
+    try:
+        _place(temporary, target, archive)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+    return target
+
+
+def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
+    """The archive unpacked whole into a temporary folder beside `target` (returned): unsafe
+    members refused, more than UNPACK_RATIO times the archive's bytes refused, and every member
+    read to its end, which checks each zip member's CRC-32 and finds a tar cut short. A damaged
+    or refused archive is moved aside (`owned`), so that a rerun fetches it again instead of
+    reusing it, and said in one line."""
     temporary = target.with_name(f".{target.name}.extracting")
     shutil.rmtree(temporary, ignore_errors=True)
     temporary.mkdir(parents=True)
+    limit = UNPACK_RATIO * archive.stat().st_size + UNPACK_SLACK
     try:
         if zipfile.is_zipfile(archive):
             with zipfile.ZipFile(archive) as zf:
+                declared = 0
                 for info in zf.infolist():
-                    _check_member(archive, info.filename, stat.S_IFMT(info.external_attr >> 16))
+                    _check_member(info.filename, stat.S_IFMT(info.external_attr >> 16))
+                    declared += info.file_size  # a zip member never yields more than it declares
+                _check_unpacked_size(declared, limit, temporary)
                 zf.extractall(temporary)
         elif tarfile.is_tarfile(archive):
             with tarfile.open(archive) as tf:
-                for member in tf.getmembers():
+                declared = 0
+                for member in tf:  # one by one: a bomb is refused at the member that passes the limit
                     kind = stat.S_IFLNK if member.issym() or member.islnk() else \
                         stat.S_IFCHR if not (member.isfile() or member.isdir()) else 0
-                    _check_member(archive, member.name, kind)
+                    _check_member(member.name, kind)
+                    declared += member.size
+                    _check_unpacked_size(declared, limit, temporary)
                 tf.extractall(temporary, filter="data")
         else:
-            raise DownloadError(f"{archive}: neither a zip nor a tar archive")
-        top = [p for p in temporary.iterdir()]
-        content = top[0] if len(top) == 1 and top[0].is_dir() else temporary
-        if target.exists():
-            shutil.rmtree(target)
-        content.rename(target)
-        (target / ".complete").write_text(f"{archive.name}\n")
-    finally:
+            raise _Refused("damaged or cut short (neither a zip nor a tar archive)")
+    except _Refused as error:
         shutil.rmtree(temporary, ignore_errors=True)
+        raise DownloadError(f"{archive}: {error}; no hash was recorded and nothing was extracted; "
+                            f"{_set_aside(archive, owned)}: rerun to download it again, or pass --from another mirror") from None
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, EOFError, zlib.error, lzma.LZMAError,
+            NotImplementedError, OSError) as error:
+        shutil.rmtree(temporary, ignore_errors=True)
+        if isinstance(error, OSError) and error.errno is not None:
+            raise  # the disk or the folder, not the archive (a full disk is said by download)
+        why = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise DownloadError(f"{archive}: damaged or cut short ({why}); no hash was recorded and nothing was extracted; "
+                            f"{_set_aside(archive, owned)}: rerun the same command to download it again") from None
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise
+    return temporary
+
+
+class _Refused(Exception):
+    """An archive that unpack will not unpack (the reason); it becomes a DownloadError there."""
+
+
+def _check_unpacked_size(declared: int, limit: int, temporary: Path) -> None:
+    if declared > limit:
+        raise _Refused(f"its members would unpack to at least {declared} bytes, over the {limit} allowed "
+                       f"({UNPACK_RATIO} times the archive's size)")
+    free = shutil.disk_usage(temporary).free
+    if declared + FREE_RESERVE > free:
+        raise disk_full(temporary.parent, "the archive is kept", free)
+
+
+def _place(temporary: Path, target: Path, archive: Path) -> Path:
+    """The unpacked archive's single top folder, or its contents, renamed into `target`."""
+    top = list(temporary.iterdir())
+    content = top[0] if len(top) == 1 and top[0].is_dir() else temporary
+    if target.exists():
+        shutil.rmtree(target)
+    content.rename(target)
+    write_atomically(target / ".complete", lambda tmp: tmp.write_text(f"{archive.name}\n"))
     return target
 
 
@@ -220,23 +504,22 @@ def find_root(benchmark: str, root: Path | None) -> Path:
 def status(source: Source, to: Path) -> str:
     """One line for `e3cm-bench datasets`: where a source's data is looked for and what is there."""
     root = Path(to) / source.folder
-    lock = Path(to) / LOCK_FILE
+    recorded = read_lock(to)  # a damaged record is one line, whatever the copies hold
     try:
         line = check(source, to)
     except DownloadError as error:
         text = str(error)
         return f"{source.name}: {'missing' if 'not found' in text else 'incomplete'} at {root} ({text.split(': ', 1)[-1]})"
-    recorded = json.loads(lock.read_text()) if lock.is_file() else {}
     hashes = [part.file for part in source.parts if part.file in recorded]
     return line + (f"; sha256 recorded for {', '.join(hashes)}" if hashes else "; no download recorded (placed by hand)")
 
 
-def _check_member(archive: Path, name: str, kind: int) -> None:
+def _check_member(name: str, kind: int) -> None:
     path = PurePosixPath(name.replace("\\", "/"))
     if path.is_absolute() or ".." in path.parts or (len(name) > 1 and name[1] == ":"):
-        raise DownloadError(f"{archive}: member {name!r} would be written outside the folder; nothing was extracted")
+        raise _Refused(f"member {name!r} would be written outside the folder")
     if kind in (stat.S_IFLNK, stat.S_IFCHR, stat.S_IFBLK, stat.S_IFIFO, stat.S_IFSOCK):
-        raise DownloadError(f"{archive}: member {name!r} is a link or a device file; nothing was extracted")
+        raise _Refused(f"member {name!r} is a link or a device file")
 
 
 def _progress(console: Console | None) -> Progress:

@@ -327,8 +327,9 @@ class FolderLock:
     written into the file, so a second run can say who holds the folder.
     """
 
-    def __init__(self, folder: str | Path) -> None:
+    def __init__(self, folder: str | Path, option: str = "--out") -> None:
         self.path = Path(folder) / ".lock"
+        self.option = option  # the option that named the folder (download's is --to), for the advice
         self._fd: int | None = None
 
     def __enter__(self) -> FolderLock:
@@ -346,14 +347,14 @@ class FolderLock:
             os.close(fd)
             what = "not a regular file" if not stat.S_ISREG(info.st_mode) else f"a file with {info.st_nlink} names (hard links)"
             raise ValueError(f"{self.path}: is {what}; e3cm-bench writes its lock only into a file of its own: "
-                             "remove it or choose another --out")
+                             f"remove it or choose another {self.option}")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 4096).decode("utf-8", "replace")
             os.close(fd)
             raise ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
-                             "wait for it to finish or choose another --out") from None
+                             f"wait for it to finish or choose another {self.option}") from None
         os.ftruncate(fd, 0)
         holder = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                   "command": " ".join(sys.argv)}
