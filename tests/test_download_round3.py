@@ -172,6 +172,19 @@ def test_a_damaged_first_download_records_no_hash_and_the_good_file_is_then_trus
     assert lock_of(data) == {"hp.zip": GOOD_SHA}
 
 
+def test_a_damaged_archive_whose_hash_an_earlier_version_recorded_is_named(hp, tmp_path):
+    """The state the earlier versions left: a cut zip in .downloads with its hash in the lock.
+    It is set aside, and the line says which entry of the lock would refuse the good file."""
+    data = tmp_path / "data"
+    (data / ".downloads").mkdir(parents=True)
+    (data / ".downloads" / "hp.zip").write_bytes(GOOD[:-5000])
+    (data / dl.LOCK_FILE).write_text(json.dumps({"hp.zip": hashlib.sha256(GOOD[:-5000]).hexdigest()}))
+    line = one_line_error(invoke("download", "hp", "--to", data))
+    assert "damaged or cut short" in line and f"recorded in {data / dl.LOCK_FILE} by an earlier download" in line
+    assert "remove the 'hp.zip' entry there first" in line
+    assert (data / ".downloads" / "hp.zip.bad").is_file() and not (data / "hp-data").exists()
+
+
 def test_a_resume_that_the_server_answers_wrongly_never_appends_to_the_part(hp, tmp_path):
     """A 206 that restarts at byte 0 (before: appended, the YFCC list grew to 5961 lines, hash
     recorded) and a 416 whose Content-Range says a longer file (before: the half part renamed as
