@@ -75,14 +75,15 @@ def relative_pose(
 
 def homography(
     x0: np.ndarray, x1: np.ndarray, threshold_px: float, max_iters: int, confidence: float,
-    estimator: str = "opencv", seed: int = 0,
+    estimator: str = "opencv", seed: int = 0, method: str = "ransac",
 ) -> np.ndarray | None:
-    """H mapping image-0 pixels to image-1 pixels, or None (OpenCV's RANSAC or PoseLib's)."""
+    """H mapping image-0 pixels to image-1 pixels, or None (OpenCV's RANSAC or PoseLib's).
+    method: OpenCV's robust method, ransac or magsac (MAGSAC++); PoseLib has one of its own."""
     if estimator == "opencv":
         order = seeded_order(len(x0), seed)
         if order is not None:
             x0, x1 = x0[order], x1[order]
-        return geometry.estimate_homography(x0, x1, threshold_px, max_iters, confidence)
+        return geometry.estimate_homography(x0, x1, threshold_px, max_iters, confidence, method)
     if len(x0) < 4:
         return None
     poselib = _poselib()
@@ -94,3 +95,34 @@ def homography(
     if not info.get("num_inliers") or not np.all(np.isfinite(H)):
         return None
     return H
+
+
+OPENCV_METHODS = ("ransac", "magsac")
+
+
+def fundamental(
+    x0: np.ndarray, x1: np.ndarray, threshold_px: float, max_iters: int, confidence: float,
+    estimator: str = "opencv", seed: int = 0, method: str = "ransac",
+) -> np.ndarray | None:
+    """F with x1^T F x0 = 0 (pixels), or None. opencv: cv2.findFundamentalMat with `method`
+    (ransac, or magsac: USAC MAGSAC++, wxbs-benchmark's estimator), the threshold in pixels,
+    seeded through the points' order like the other OpenCV estimators; poselib: its
+    LO-RANSAC with threshold_px as max_epipolar_error, seeded with `seed`."""
+    if method not in OPENCV_METHODS:
+        raise ValueError(f"unknown OpenCV method {method!r}; choose one of {', '.join(OPENCV_METHODS)}")
+    if estimator == "opencv":
+        order = seeded_order(len(x0), seed)
+        if order is not None:
+            x0, x1 = x0[order], x1[order]
+        return geometry.estimate_fundamental(x0, x1, method, threshold_px, confidence, max_iters)
+    if len(x0) < 7:
+        return None
+    poselib = _poselib()
+    F, info = poselib.estimate_fundamental(
+        np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64),
+        {"max_epipolar_error": float(threshold_px), "max_iterations": int(max_iters),
+         "success_prob": float(confidence), "seed": int(seed)}, {})
+    F = np.asarray(F, dtype=np.float64)
+    if not info.get("num_inliers") or F.shape != (3, 3) or not np.all(np.isfinite(F)):
+        return None
+    return F

@@ -189,22 +189,31 @@ def estimate_homography(
     threshold_px: float = 3.0,
     max_iters: int = 5000,
     confidence: float = 0.9999,
+    method: str = "ransac",
 ) -> np.ndarray | None:
-    """RANSAC homography mapping image-0 pixels to image-1 pixels, or None."""
+    """Robust homography mapping image-0 pixels to image-1 pixels, or None. method: 'ransac'
+    (cv2.RANSAC) or 'magsac' (OpenCV's USAC MAGSAC++, wxbs-benchmark's estimator)."""
     if len(x0) < 4:
         return None
     x0, x1, _ = perturb_correspondences(x0, x1)
-    H, _ = cv2.findHomography(
-        np.ascontiguousarray(x0, dtype=np.float64),
-        np.ascontiguousarray(x1, dtype=np.float64),
-        cv2.RANSAC,
-        threshold_px,
-        maxIters=max_iters,
-        confidence=confidence,
-    )
+    try:
+        H, _ = cv2.findHomography(
+            np.ascontiguousarray(x0, dtype=np.float64),
+            np.ascontiguousarray(x1, dtype=np.float64),
+            _H_METHODS[method],
+            threshold_px,
+            maxIters=max_iters,
+            confidence=confidence,
+        )
+    except cv2.error:  # USAC asserts on some degenerate samples instead of finding no model
+        return None
     if H is None or not np.all(np.isfinite(H)):
         return None
     return H
+
+
+# OpenCV's method flag for each way of estimating H.
+_H_METHODS = {"ransac": cv2.RANSAC, "magsac": cv2.USAC_MAGSAC}
 
 
 def warp_points(H: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -49,7 +49,18 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
         "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side at most 1200, HPatches full size; "
         "failures count with error inf; YFCC images turned upright)",
-        ("hpatches", "megadepth", "yfcc"),
+        ("hpatches", "megadepth", "yfcc", "wxbs", "evd"),
+    ),
+    Protocol(
+        "wxbs", "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), F at 0.25 px "
+        "(WxBS), H at 0.5 px (EVD), confidence 0.999, 100000 iterations; a failed estimate scores 0",
+        ("wxbs", "evd"),
+        evaluation={
+            "wxbs": {"opencv_method": "magsac", "fundamental_ransac_px": 0.25, "fundamental_confidence": 0.999,
+                     "fundamental_max_iters": 100000},
+            "evd": {"opencv_method": "magsac", "homography_ransac_px": 0.5, "homography_confidence": 0.999,
+                    "homography_max_iters": 100000},
+        },
     ),
     Protocol(
         "loftr", "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "

@@ -78,6 +78,20 @@ SOURCES: dict[str, Source] = {s.name: s for s in [
                 "scannet_test_1500.tar) holds the images and the pair list: download it by hand and unpack it into {folder}/"),
         expected={"pairs": 1500},
     ),
+    # WxBS and EVD: the zips and md5s that wxbs-benchmark's dataset.py names (no sha256 is
+    # published). WxBS_v1.1.zip holds the category folders and a README at its top, which the
+    # reference unpacks into v1.1/; EVD.zip holds one EVD/ folder (1/, 2/, h/).
+    Source(
+        "wxbs", "wxbs", "WxBS/v1.1",
+        (Part("WxBS_v1.1.zip", "http://cmp.felk.cvut.cz/wbs/datasets/WxBS_v1.1.zip",
+              md5="66da037e7d20487e86db147307615870"),),
+        expected={"pairs": 32},  # the test split, the benchmark's default; 2 validation pairs besides
+    ),
+    Source(
+        "evd", "evd", "EVD",
+        (Part("EVD.zip", "http://cmp.felk.cvut.cz/wbs/datasets/EVD.zip", md5="7ce52151abdafa71a609424d09e43075"),),
+        expected={"pairs": 15},
+    ),
 ]}
 
 
