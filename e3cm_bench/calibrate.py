@@ -17,18 +17,19 @@ import pandas as pd
 from rich.console import Console
 
 from . import plots
-from .cache import MatchCache
 from .calibration import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
 from .datasets.base import Pair
 from .datasets.stereo import StereoSequence, load_stereo_sequence
-from .devices import allocator, keep_freed_memory
-from .files import FolderLock, load_yaml, package_versions, read_csv, save_yaml, write_csv, yaml_plain
+from .devices import keep_freed_memory
+from .files import load_yaml, read_csv, save_yaml, write_csv, yaml_plain
 from .images import load_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
-from .runner import CACHE_FILE, CONFIG_FILE, match_stage
+from .run import RunConfig, RunFolder
+from .runner import match_stage
 
 FRAMES = (1, 3, 5, 10)
+WINDOWS_FILE = "windows.csv"  # every window's errors (a calibration's per-pair table)
 
 
 @dataclass(frozen=True)
@@ -117,41 +118,37 @@ def run_calibration(
         record["methods"] = dict(before.get("methods") or {})
     all_windows = {}
     for method in methods:
-        run_dir = out / method.folder
-        with FolderLock(run_dir):
-            config = {"command": "calibrate", "method": method.label, "identity": method.identity(),
-                      "sequence": sequence.describe(), "calibration": asdict(settings), "device": device,
-                      "versions": package_versions(), "allocator": allocator()}
-            path = run_dir / CONFIG_FILE
-            if path.is_file() and not overwrite:
-                before = load_yaml(path)
-                if identity_changes(before.get("identity") or {}, config["identity"]) or before.get("sequence", {}).get("root") != str(sequence.root):
-                    raise ValueError(f"{path}: the matches in this folder were made with other settings or frames; "
-                                     "pass --overwrite or choose another --out")
-            cache = MatchCache(run_dir / CACHE_FILE)
+        folder = RunFolder(out / method.folder)
+        with folder.lock():
+            config = RunConfig(benchmark=None, method=method.label, identity=method.identity(), device=device,
+                               environment=RunConfig.environment_now(), command="calibrate",
+                               sequence=sequence.describe(), calibration=asdict(settings))
             if overwrite:
-                cache.clear()
-            done = set(cache.names())
-            todo = [p for p in pairs if p.name not in done]
-            save_yaml(config, path)
+                folder.clear()
+            before = folder.previous(config.identity, None, changes=identity_changes)
+            if before is not None and (before.get("sequence") or {}).get("root") != str(sequence.root):
+                raise ValueError(f"{folder.config_path}: the matches in this folder were made from other frames "
+                                 f"({(before.get('sequence') or {}).get('root')}); pass --overwrite or choose another --out")
+            cache, todo = folder.resume(pairs, console)
+            folder.write_config(config)
             if todo:
                 console.rule(f"calibrate: {method.label}")
                 match_stage(method, todo, cache, device, console)
             matches = [cache.read(p.name) for p in pairs]
             table = calibrate_windows(sequence, matches, settings, (width, height))
-            write_csv(table, run_dir / "windows.csv")
-            write_csv(summarize(table), run_dir / "summary.csv")
+            write_csv(table, folder.path / WINDOWS_FILE)
+            write_csv(summarize(table), folder.summary_path)
             all_windows[method.label] = table.assign(method=method.label)
         record["methods"][method.label] = method.folder
         save_yaml(record, record_path)
     for label, folder in record["methods"].items():
         if label not in all_windows:  # calibrated by an earlier run into this folder
-            all_windows[label] = read_csv(out / folder / "windows.csv", what=f"{label}'s windows.csv").assign(method=label)
+            all_windows[label] = read_csv(out / folder / WINDOWS_FILE, what=f"{label}'s windows.csv").assign(method=label)
     windows_df = pd.concat(all_windows.values(), ignore_index=True)
-    write_csv(windows_df, out / "windows.csv")
+    write_csv(windows_df, out / WINDOWS_FILE)
     summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows.values()])
     summary = summary[["method", *[c for c in summary.columns if c != "method"]]]
-    write_csv(summary, out / "summary.csv")
+    write_csv(summary, RunFolder(out).summary_path)  # the set's table, where a run keeps its summary
     plots.plot_calibration_boxplots(windows_df, max(settings.frames), out / "calibration_boxplot.png")
     plots.plot_calibration_vs_frames(summary, out / "calibration_vs_frames.png")
     for _, row in summary[summary["frames"] == max(settings.frames)].iterrows():

@@ -39,6 +39,7 @@ from .files import read_csv, read_keyed_csv, write_atomically, write_csv
 from .formats import format_number
 from .stats.noise import CHECK_ALPHA, metric_alpha
 from .report import Run, load_run
+from .run import RunFolder
 
 # Tolerances (absolute, in the metric's own unit: fractions for HPatches, percent for pose),
 # from the spread measured over repeated demo runs (scripts/demo_spread.py; docs/results.md
@@ -84,10 +85,7 @@ def find_runs(paths: list[Path]) -> list[Run]:
         path = Path(path)
         if not path.is_dir():
             raise ValueError(f"{path}: not a folder")
-        if (path / "config.yaml").is_file():
-            runs.append(load_run(path))
-            continue
-        found = sorted(p.parent for p in path.rglob("config.yaml") if (p.parent / "summary.csv").is_file())
+        found = [folder.path for folder in RunFolder.find(path)]
         if not found:
             raise ValueError(f"{path}: no run folder (config.yaml + summary.csv) in it")
         runs += [load_run(p) for p in found]

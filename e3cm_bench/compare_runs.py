@@ -152,10 +152,10 @@ def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEF
 def _pairs(run: Run) -> pd.DataFrame:
     per_pair = run.per_pair
     if per_pair.empty or "pair" not in per_pair.columns:
-        raise ValueError(f"{run.dir / 'per_pair.csv'}: missing, empty or without a 'pair' column; compare reads each run's pairs from it")
+        raise ValueError(f"{run.folder.per_pair_path}: missing, empty or without a 'pair' column; compare reads each run's pairs from it")
     duplicated = per_pair["pair"][per_pair["pair"].duplicated()]
     if len(duplicated):
-        raise ValueError(f"{run.dir / 'per_pair.csv'}: pair {duplicated.iloc[0]!r} appears more than once")
+        raise ValueError(f"{run.folder.per_pair_path}: pair {duplicated.iloc[0]!r} appears more than once")
     return per_pair.set_index("pair")
 
 

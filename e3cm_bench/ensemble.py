@@ -21,6 +21,7 @@ from .benchmarks import EvalSettings, get_benchmark
 from .files import read_csv, read_keyed_csv, write_csv
 from .method import MethodSpec
 from .perturb import Perturbation, perturbed
+from .run import RunFolder
 
 NOISE_SUFFIX = ".noise.csv"
 DRAW_COLUMNS = ("benchmark", "method", "pair", "draw")
@@ -83,7 +84,7 @@ def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Co
             with perturbed(Perturbation(draw=draw)):
                 run_methods(benchmark, folders, dataset, ev=ev, console=Console(quiet=True))
             for run, (folder, _) in zip(members, folders):
-                per_pair = read_csv(folder / "per_pair.csv")
+                per_pair = read_csv(RunFolder(folder).per_pair_path)
                 per_pair.insert(0, "draw", draw)
                 per_pair.insert(0, "method", run.label)
                 per_pair.insert(0, "benchmark", bench_name)

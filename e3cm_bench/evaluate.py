@@ -18,10 +18,12 @@ from .datasets.base import Pair
 from .files import write_csv
 from .images import load_image
 from .intervals import metric_keys, summary_intervals
+from .run import RunFolder
 from .viz import draw_matches, save_image
 
-CONFIG_FILE = "config.yaml"
-CACHE_FILE = "matches.h5"
+# Until every reader asks RunFolder: the two names importers still use.
+CONFIG_FILE = RunFolder.CONFIG
+CACHE_FILE = RunFolder.MATCHES
 
 
 def evaluate_stage(
@@ -68,20 +70,20 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
 
 
 def write_reports(
-    benchmark: Benchmark, out: Path, label: str, per_pair: pd.DataFrame, summary: dict,
+    benchmark: Benchmark, folder: RunFolder, label: str, per_pair: pd.DataFrame, summary: dict,
     pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
 ) -> None:
     """per_pair.csv, summary.csv, the run's plot, and drawings of the first `viz` pairs."""
-    write_csv(per_pair, out / "per_pair.csv")
-    write_csv(pd.DataFrame([summary]), out / "summary.csv")
-    benchmark.plot_run(label, summary, per_pair, out)
+    write_csv(per_pair, folder.per_pair_path)
+    write_csv(pd.DataFrame([summary]), folder.summary_path)
+    benchmark.plot_run(label, summary, per_pair, folder.path)
     for pair in pairs[:viz]:
         matches = cache.read(pair.name)
         canvas = draw_matches(
             load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
             correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
         )
-        save_image(out / "viz" / (pair.name.replace("/", "__") + ".png"), canvas)
+        save_image(folder.drawing_path(pair.name), canvas)
 
 
 REPORT_BYTES = 16 << 20  # a run's CSVs and plots, with room to spare
@@ -89,11 +91,13 @@ VIZ_BYTES = 2 << 20      # one match drawing
 
 
 def evaluate_and_report(
-    benchmark: Benchmark, out: Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
+    benchmark: Benchmark, out: RunFolder | Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
     ev: EvalSettings, viz: int, console: Console,
 ) -> tuple[list[Pair], dict]:
     """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
     skipped ones; returns the pairs evaluated and the summary."""
+    folder = out if isinstance(out, RunFolder) else RunFolder(out)
+    out = folder.path
     failed = {name for name, _ in skipped}
     pairs = [p for p in pairs if p.name not in failed]
     if not pairs:
@@ -102,8 +106,8 @@ def evaluate_and_report(
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
     check_free_space(out, REPORT_BYTES + max(viz, 0) * VIZ_BYTES)  # the reports (tables, plots) need room too
-    write_skipped(skipped, out / "skipped.csv", console)
-    write_reports(benchmark, out, label, per_pair, summary, pairs, cache, ev, viz)
+    write_skipped(skipped, folder.skipped_path, console)
+    write_reports(benchmark, folder, label, per_pair, summary, pairs, cache, ev, viz)
     return pairs, summary
 
 

@@ -5,13 +5,12 @@ last to finish merges (shards.py)."""
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import pandas as pd
 from rich.console import Console
 
 from .report import print_summary
-from .shards import SHARDS_DIR
+from .run import RunFolder
 
 
 WORKER_BYTES = 2 << 30  # memory one local CPU worker may take (torch, a backbone, two images' pyramids)
@@ -105,7 +104,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
             import submitit
         except ImportError:
             raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
-        executor = submitit.AutoExecutor(folder=Path(kwargs["out"]) / SHARDS_DIR / "slurm")
+        executor = submitit.AutoExecutor(folder=RunFolder(kwargs["out"]).shards_dir / "slurm")
         params = {"timeout_min": 24 * 60, "slurm_array_parallelism": n, **(slurm or {})}
         if executor.cluster != "slurm":
             params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
@@ -122,7 +121,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
         for k, future in enumerate(futures, start=1):
             results.append(future.result())
             console.print(f"shard {k}-of-{n} done", markup=False)
-    merged = Path(kwargs["out"]) / "summary.csv"
+    merged = RunFolder(kwargs["out"]).summary_path
     if merged.is_file():  # the last worker merged; show what a single run would have shown
         summary = pd.read_csv(merged).iloc[0].to_dict()
         print_summary(summary, f"{n} shards merged -> {kwargs['out']}", console=console)

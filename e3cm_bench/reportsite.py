@@ -70,7 +70,7 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
                          "give each its own --label")
     for run in runs:
         if run.per_pair.empty:
-            raise ValueError(f"{run.dir / 'per_pair.csv'}: missing or empty; the report reads each run's pairs from it")
+            raise ValueError(f"{run.folder.per_pair_path}: missing or empty; the report reads each run's pairs from it")
     benchmark = runs[0].benchmark
     target = _report_target(Path(out))
     # Built in a new folder beside the target and swapped in whole at the end: a failure or a
@@ -234,7 +234,9 @@ def _comparison(runs: list[Run], notes: list[str]):
 def _copy_run(run: Run, folder: Path) -> dict:
     folder.mkdir(parents=True)
     files = {}
-    for name in ("config.yaml", "summary.csv", "per_pair.csv", "mma.png", "pose_error_cdf.png"):
+    own = run.folder
+    # the run's record and tables, and its plot (each benchmark draws one of these two)
+    for name in (own.CONFIG, own.SUMMARY, own.PER_PAIR, "mma.png", "pose_error_cdf.png"):
         if (run.dir / name).is_file():
             shutil.copy(run.dir / name, folder / name)
             files[name] = (folder / name).relative_to(folder.parents[1]).as_posix()
@@ -275,13 +277,12 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
     import cv2
 
     from .benchmarks import EvalSettings
-    from .cache import MatchCache
     from .images import load_image
     from .viz import draw_matches, save_image
 
     drawings: dict[str, dict[int, str]] = {name: {} for name in chosen}
     for k, run in enumerate(runs):
-        cache = MatchCache(run.dir / "matches.h5")
+        cache = run.folder.cache()
         cached = set(cache.names())
         pairs = _dataset_pairs(run, notes)
         ev = EvalSettings.from_record(run.config.get("evaluation"))

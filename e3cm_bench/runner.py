@@ -25,17 +25,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColum
 from rich.text import Text
 
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
-from .cache import BLOCK_PAIRS, MatchCache
+from .cache import MatchCache
 from .datasets.base import Pair, PairList
-from .devices import allocator, check_device, is_out_of_memory, keep_freed_memory
-from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
-from .files import FolderLock, absolute_paths, load_yaml, package_versions, run_environment, save_yaml
+from .devices import check_device, is_out_of_memory, keep_freed_memory
+from .evaluate import evaluate_and_report
+from .files import absolute_paths
 from .images import ImageError, load_image, resize_max_side, to_original_pixels
 from .matchers.base import Matcher
 from .matches import Matches, MatchesError, check_in_image
 from .method import MethodSpec, identity_changes
 from .pair_order import most_alive, reuse_order
 from .report import print_summary
+from .run import RunConfig, RunFolder
 from .shards import merge_when_complete, shard_dir, shard_slice
 # What match_pair adds to a result's info and the cache keeps next to each pair's matches.
 PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
@@ -221,9 +222,6 @@ def progress_bar(console: Console) -> Progress:
 # 16 GiB (feature_cache.auto_cache_mb). VGG19 at 1200 x 900 needs about 0.5 GiB per image,
 # Lite0 0.12; bf16 and fp16 maps are held in half of that.
 FEATURE_CACHE_MB = None
-# What memory cannot hold goes to this folder of the run (removed when the stage ends), up to
-# half the free disk space there, at most 64 GiB (feature_cache.auto_spill_mb); 0: never.
-SPILL_FOLDER = ".feature-spill"
 
 
 @dataclass
@@ -281,7 +279,9 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, feature_cach
     batch = auto_backbone_batch(device) if backbone_batch is None else int(backbone_batch)
     if batch < 1:
         raise ValueError(f"--backbone-batch must be at least 1, got {batch}")
-    spill_root = jobs[0].cache.path.parent / SPILL_FOLDER if jobs else None
+    # What memory cannot hold goes to the first job's run folder (removed when the stage ends), up
+    # to half the free disk space there, at most 64 GiB (feature_cache.auto_spill_mb); 0: never.
+    spill_root = RunFolder(jobs[0].cache.path.parent).spill_dir if jobs else None
     if spill_root is not None:
         shutil.rmtree(spill_root, ignore_errors=True)  # what an interrupted stage left
     disk = 0.0 if not budget or spill_root is None else auto_spill_mb(spill_root) if spill_mb is None else float(spill_mb)
@@ -384,31 +384,6 @@ def too_big_message(method: MethodSpec, error: BaseException) -> str:
 # --------------------------------------------------------------------------- a run
 
 
-def _previous_config(out: Path, method: MethodSpec | None, benchmark: Benchmark, eval_only: bool) -> dict | None:
-    """The config of matches already in `out`; refuse to mix matches made differently."""
-    path = out / CONFIG_FILE
-    if not path.exists():
-        return None
-    previous = load_yaml(path)
-    before = previous.get("identity")
-    if before is None and "match_options" in previous and not eval_only:
-        # Made by e3cm-bench before MethodSpec: its record lacks what the identity now holds
-        # (the weights' hash, the seed), so its matches cannot be trusted to resume.
-        raise ValueError(f"{path}: made by an older e3cm-bench (no 'identity'); --eval-only re-evaluates it, "
-                         "--overwrite replaces its matches")
-    if eval_only or before is None or method is None:
-        return previous
-    changed = identity_changes(before, method.identity())
-    if previous.get("benchmark") != benchmark.name:
-        changed.insert(0, "benchmark")
-    if changed:
-        raise ValueError(
-            f"{path}: the matches in this folder were made with other settings ({', '.join(changed)}); "
-            "pass --overwrite to replace them or choose another --out"
-        )
-    return previous
-
-
 # Settings a matcher resolves when it is built, not in the identity: `auto` there may resolve
 # otherwise in another version (VGG19's fp32 layout became channels_last), and the maps with it.
 RESOLVED_AT_BUILD = ("memory_format",)
@@ -424,13 +399,6 @@ def _check_resolved(before: dict | None, now: dict, path: Path) -> None:
             f"{path}: the matches in this folder were made with the backbone run otherwise ({', '.join(changed)}; "
             "the maps round differently); pass --overwrite to replace them or choose another --out"
         )
-
-
-def _clear(out: Path) -> None:
-    MatchCache(out / CACHE_FILE).clear()
-    for name in (CONFIG_FILE, "per_pair.csv", "summary.csv", "skipped.csv"):
-        (out / name).unlink(missing_ok=True)
-    shutil.rmtree(out / "viz", ignore_errors=True)
 
 
 def run_benchmark(
@@ -502,7 +470,7 @@ def run_benchmark(
     summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
                             console, shard, load, feature_cache_mb, backbone_batch)
     if shard is not None and merge_when_complete(out, console):
-        return pd.read_csv(out / "summary.csv")
+        return pd.read_csv(RunFolder(out).summary_path)
     return pd.DataFrame([summary])
 
 
@@ -552,7 +520,7 @@ def _run_folders(
     with ExitStack() as locks:
         opened = []
         for out, method in runs:
-            locks.enter_context(FolderLock(out))  # taken before anything in the folder is read or written
+            locks.enter_context(RunFolder(out).lock())  # taken before anything in the folder is read or written
             opened.append(_open_run(benchmark, out, method, dataset, ev, limit, overwrite, eval_only, device,
                                     console, shard, load))
         matching = [run for run in opened if run.todo]
@@ -569,14 +537,14 @@ class _OpenRun:
     """A run whose folder is locked and described, between its match and evaluate stages."""
 
     benchmark: Benchmark
-    out: Path
+    folder: RunFolder
     method: MethodSpec | None
     pairs: list[Pair]
     todo: list[Pair]
     skipped: list[tuple[str, str]]
     skip_bad: bool
     cache: MatchCache
-    config: dict
+    config: RunConfig
     ev: EvalSettings
 
     def job(self) -> MatchJob:
@@ -585,9 +553,9 @@ class _OpenRun:
             describe = getattr(matcher, "config", None)
             now = describe() if callable(describe) else {"matcher": getattr(matcher, "name", type(matcher).__name__)}
             if len(self.todo) < len(self.pairs):  # resuming: the folder holds matches already
-                _check_resolved(self.config.get("matcher"), now, self.out / CONFIG_FILE)
-            self.config["matcher"] = now
-            save_yaml(self.config, self.out / CONFIG_FILE)
+                _check_resolved(self.config.matcher, now, self.folder.config_path)
+            self.config.matcher = now
+            self.folder.write_config(self.config)
 
         return MatchJob(self.method, self.todo, self.cache, self.skipped if self.skip_bad else None, record_matcher)
 
@@ -596,7 +564,7 @@ class _OpenRun:
         config, spent = self.config, dict(spent)
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
-            before, reuse = config.get("feature_reuse") or {}, dict(reuse)
+            before, reuse = config.feature_reuse or {}, dict(reuse)
             for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full",
                         "dropped_from_disk", "products_reused", "batches_run"):
                 if key in reuse:  # counts of a resumed run add up over its stages
@@ -606,8 +574,8 @@ class _OpenRun:
                     reuse[key] = max(reuse[key], before.get(key, 0))
             if reuse.get("distinct_images"):
                 reuse["passes_per_image"] = round(reuse["backbone_passes"] / reuse["distinct_images"], 4)
-            config["feature_reuse"] = reuse
-        timing = config["timing"]
+            config.feature_reuse = reuse
+        timing = config.timing
         for key, value in spent.items():
             timing[key] = timing.get(key, 0) + value
         timing["pairs_per_minute"] = 60.0 * timing["pairs_matched"] / max(timing["match_seconds"], 1e-9)
@@ -618,70 +586,61 @@ def _open_run(
     limit: int | None, overwrite: bool, eval_only: bool, device: str, console: Console,
     shard: tuple[int, int] | None = None, load: dict | None = None,
 ) -> _OpenRun:
+    folder = RunFolder(out)
     if overwrite and out.exists():
-        _clear(out)
+        folder.clear()
     out.mkdir(parents=True, exist_ok=True)
-    previous = _previous_config(out, method, benchmark, eval_only)
+    previous = folder.previous(None if method is None else method.identity(), benchmark.name, eval_only,
+                               changes=identity_changes)
     pairs = list(dataset)[:limit] if limit else list(dataset)
     if shard is not None:
         pairs = pairs[shard_slice(len(pairs), shard)]
     # (pair, problem): the dataset's bad pairs (listed by the first shard only, so that a merge
     # counts them once), then those that fail to decode while matching.
     skipped = list(dataset.skipped) if shard is None or shard[0] == 1 else []
-    cache = MatchCache(out / CACHE_FILE)
-    done = set(cache.names())  # one pass over the files, not one open per pair
-    for block in cache.damaged:
-        console.print(f"warning: {block} is damaged (unreadable); its pairs (at most {BLOCK_PAIRS}) will be "
-                      "matched again into a new file; the damaged file is left as it is", markup=False)
-    todo = [p for p in pairs if p.name not in done]
+    cache, todo = folder.resume(pairs, console)
 
     if eval_only:
         if previous is None:
-            raise ValueError(f"{out / CONFIG_FILE}: not found; --eval-only needs a finished or resumed run in --out")
+            raise ValueError(f"{folder.config_path}: not found; --eval-only needs a finished or resumed run in --out")
         if todo:
             raise ValueError(
-                f"{out / CACHE_FILE}: {len(todo)} of {len(pairs)} pairs have no matches (first: {todo[0].name}); "
+                f"{folder.matches_path}: {len(todo)} of {len(pairs)} pairs have no matches (first: {todo[0].name}); "
                 "run without --eval-only to match them"
             )
     # What the matches are comes from the folder when only evaluating, else from the method.
     source = previous if eval_only else None
-    config = {
-        "benchmark": benchmark.name,
-        "method": source["method"] if source else method.label,
-        "identity": source.get("identity") if source else method.identity(),
-        "matcher": (previous or {}).get("matcher"),
-        "device": source.get("device", device) if source else device,
-        "dataset": {**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
-        "evaluation": asdict(ev),
-        # Where the numbers were made (this stage's, like versions); neither is part of the
-        # identity that decides whether a folder may be resumed (_previous_config).
-        "versions": package_versions(),
-        "environment": {**run_environment(), "allocator": allocator()},
-        "timing": (previous or {}).get("timing", {}),
-    }
-    if (previous or {}).get("feature_reuse"):  # counts of earlier stages; add_stats adds this one's
-        config["feature_reuse"] = previous["feature_reuse"]
-    if load is not None or (previous or {}).get("dataset_load"):
-        config["dataset_load"] = load or previous["dataset_load"]
-    if shard is not None:
-        config["shard"] = {"index": shard[0], "count": shard[1], "n_pairs": len(pairs), "complete": False}
-
+    previous = previous or {}
+    config = RunConfig(
+        benchmark=benchmark.name,
+        method=source["method"] if source else method.label,
+        identity=source.get("identity") if source else method.identity(),
+        matcher=previous.get("matcher"),
+        device=source.get("device", device) if source else device,
+        dataset={**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
+        evaluation=asdict(ev),
+        environment=RunConfig.environment_now(),
+        timing=previous.get("timing", {}),
+        feature_reuse=previous.get("feature_reuse") or None,  # counts of earlier stages; add_stats adds this one's
+        dataset_load=load or previous.get("dataset_load"),
+        shard=None if shard is None else {"index": shard[0], "count": shard[1], "n_pairs": len(pairs), "complete": False},
+    )
     if todo:
         console.print(method.describe(), markup=False)
-        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {out / CACHE_FILE}")
-        save_yaml(config, out / CONFIG_FILE)  # before the model loads: the folder is claimed and described
+        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {folder.matches_path}")
+        folder.write_config(config)  # before the model loads: the folder is claimed and described
     else:
-        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {out / CACHE_FILE}; evaluating only")
-    return _OpenRun(benchmark, out, method, pairs, todo, skipped, dataset.skip_bad, cache, config, ev)
+        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {folder.matches_path}; evaluating only")
+    return _OpenRun(benchmark, folder, method, pairs, todo, skipped, dataset.skip_bad, cache, config, ev)
 
 
 def _finish_run(run: _OpenRun, viz: int, console: Console) -> dict:
-    config, out = run.config, run.out
-    pairs, summary = evaluate_and_report(run.benchmark, out, config["method"], run.pairs, run.skipped, run.cache,
+    config, folder = run.config, run.folder
+    pairs, summary = evaluate_and_report(run.benchmark, folder, config.method, run.pairs, run.skipped, run.cache,
                                          run.ev, viz, console)
-    config["dataset"]["n_skipped"] = len(run.skipped)
-    if "shard" in config:
-        config["shard"]["complete"] = True  # written before the merge check (shards.merge_when_complete)
-    save_yaml(config, out / CONFIG_FILE)
-    print_summary(summary, f"{run.benchmark.name} - {config['method']} ({len(pairs)} pairs) -> {out}", console=console)
+    config.dataset["n_skipped"] = len(run.skipped)
+    if config.shard is not None:
+        config.shard["complete"] = True  # written before the merge check (shards.merge_when_complete)
+    folder.write_config(config)
+    print_summary(summary, f"{run.benchmark.name} - {config.method} ({len(pairs)} pairs) -> {folder.path}", console=console)
     return summary

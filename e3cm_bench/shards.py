@@ -18,12 +18,9 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import EvalSettings, get_benchmark
-from .cache import MatchCache
-from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
-from .files import FolderLock, load_yaml, package_versions, save_yaml
+from .evaluate import evaluate_and_report
 from .report import print_summary
-
-SHARDS_DIR = "shards"
+from .run import RunConfig, RunFolder
 
 def parse_shard(text: str) -> tuple[int, int]:
     """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""
@@ -41,15 +38,15 @@ def shard_slice(n_pairs: int, shard: tuple[int, int]) -> slice:
     return slice(n_pairs * (k - 1) // n, n_pairs * k // n)
 
 def shard_dir(out: Path, shard: tuple[int, int]) -> Path:
-    return Path(out) / SHARDS_DIR / f"{shard[0]}-of-{shard[1]}"
+    return RunFolder(out).shard(shard).path
 
 class ShardedCache:
     """Reads a pair's matches from whichever shard's cache holds it."""
 
-    def __init__(self, folders: list[Path], cache_file: str) -> None:
+    def __init__(self, folders: list[RunFolder]) -> None:
         self.where = {}
         for folder in folders:
-            cache = MatchCache(folder / cache_file)
+            cache = folder.cache()
             for name in cache.names():
                 self.where[name] = cache
 
@@ -63,10 +60,9 @@ class ShardedCache:
 
 def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
     configs = {}
-    for folder in sorted((Path(out) / SHARDS_DIR).glob("*-of-*")):
-        config_path = folder / "config.yaml"
-        if config_path.is_file():
-            config = load_yaml(config_path)
+    for folder in RunFolder(out).shard_folders():
+        config = folder.read_config()
+        if config is not None:
             if "shard" in config:
                 configs[(config["shard"]["index"], config["shard"]["count"])] = config
     return configs
@@ -84,58 +80,59 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     out = Path(out)
     configs = shard_configs(out)
     if not configs:
-        raise ValueError(f"{out / SHARDS_DIR}: no shards to merge (run with --shard K/N first)")
+        raise ValueError(f"{RunFolder(out).shards_dir}: no shards to merge (run with --shard K/N first)")
     counts = {n for _, n in configs}
     if len(counts) > 1:
-        raise ValueError(f"{out / SHARDS_DIR}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
+        raise ValueError(f"{RunFolder(out).shards_dir}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
                          "keep one and delete the others")
     n = counts.pop()
     missing = [f"{k}-of-{n}" for k in range(1, n + 1) if (k, n) not in configs]
     if missing:
-        raise ValueError(f"{out / SHARDS_DIR}: shard(s) {', '.join(missing)} missing; run them with --shard K/{n}")
+        raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {', '.join(missing)} missing; run them with --shard K/{n}")
     unfinished = [f"{k}-of-{n}" for (k, _), c in sorted(configs.items()) if not c["shard"].get("complete")]
     if unfinished:
-        raise ValueError(f"{out / SHARDS_DIR}: shard(s) {', '.join(unfinished)} not finished; rerun them to resume")
+        raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {', '.join(unfinished)} not finished; rerun them to resume")
     first = configs[(1, n)]
     for (k, _), config in sorted(configs.items()):
         for key in ("benchmark", "identity", "dataset_load", "evaluation"):
             if config.get(key) != first.get(key):
-                raise ValueError(f"{shard_dir(out, (k, n)) / CONFIG_FILE}: its {key} differs from shard 1-of-{n}'s; "
+                raise ValueError(f"{RunFolder(out).shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s; "
                                  "shards of one run must be made with one command")
     load = first.get("dataset_load")
     if not load:
-        raise ValueError(f"{shard_dir(out, (1, n)) / CONFIG_FILE}: no dataset_load (shards made from a dataset object "
+        raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
     benchmark = get_benchmark(first["benchmark"])
     dataset = benchmark.load_dataset(load["root"], skip_bad=load["skip_bad"], **load["options"])
     limit = first["dataset"].get("limit")
     pairs = list(dataset)[:limit] if limit else list(dataset)
     ev = EvalSettings.from_record(first["evaluation"])
-    folders = [shard_dir(out, (k, n)) for k in range(1, n + 1)]
-    cache = ShardedCache(folders, CACHE_FILE)
+    folders = [RunFolder(out).shard((k, n)) for k in range(1, n + 1)]
+    cache = ShardedCache(folders)
     skipped = []
     for folder in folders:
-        if (folder / "skipped.csv").is_file():
-            skipped += [tuple(r) for r in pd.read_csv(folder / "skipped.csv").itertuples(index=False)]
+        if folder.skipped_path.is_file():
+            skipped += [tuple(r) for r in pd.read_csv(folder.skipped_path).itertuples(index=False)]
     skipped = list(dict.fromkeys(skipped))
     failed = {name for name, _ in skipped}
     absent = [p.name for p in pairs if p.name not in cache.where and p.name not in failed]
     if absent:
-        raise ValueError(f"{out / SHARDS_DIR}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
+        raise ValueError(f"{RunFolder(out).shards_dir}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
                          "the shards were made from another pair list")
-    with FolderLock(out):
-        pairs, summary = evaluate_and_report(benchmark, out, first["method"], pairs, skipped, cache, ev, viz, console)
+    folder = RunFolder(out)
+    with folder.lock():
+        pairs, summary = evaluate_and_report(benchmark, folder, first["method"], pairs, skipped, cache, ev, viz, console)
         timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
-        config = {
-            "benchmark": first["benchmark"], "method": first["method"], "identity": first["identity"],
-            "matcher": first.get("matcher"), "device": first.get("device"),
-            "dataset": {**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
-            "dataset_load": load, "evaluation": first["evaluation"], "versions": package_versions(),
-            "shards": {"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
-            "timing": {"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
-                       "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
-        }
-        save_yaml(config, out / CONFIG_FILE)
+        folder.write_config(RunConfig(
+            benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
+            matcher=first.get("matcher"), device=first.get("device"),
+            dataset={**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
+            evaluation=first["evaluation"], environment=first.get("environment") or {},
+            timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
+                    "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
+            dataset_load=load,
+            shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
+        ))
     print_summary(summary, f"{benchmark.name} - {first['method']} ({len(pairs)} pairs, {n} shards merged) -> {out}",
                   console=console)
     return pd.DataFrame([summary])

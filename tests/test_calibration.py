@@ -178,7 +178,7 @@ def test_calibrate_end_to_end_with_sift(synthetic, tmp_path):
     import platform
 
     if platform.libc_ver()[0] == "glibc":  # the rig's matching keeps freed memory as a benchmark run does
-        assert yaml.safe_load((out / "sift" / "config.yaml").read_text())["allocator"].startswith("glibc, freed memory kept")
+        assert yaml.safe_load((out / "sift" / "config.yaml").read_text())["environment"]["allocator"].startswith("glibc, freed memory kept")
     again = invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--frames", 1, "--frames", 5)
     assert again.exit_code == 0 and "matching (" not in again.output  # matches are reused
     line = one_line_error(invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--frames", 10))

@@ -1,0 +1,218 @@
+"""A run folder and its one owner: the layout, the config record, and lock / resume / clear.
+
+Every command that writes or reads a run folder (a benchmark run, a merge of shards, an
+import, a calibration, table, check, compare, report) asks a `RunFolder` for its files, so
+that how a run is stored is decided here and nowhere else. The two levels of a run's
+identity are those of glue-factory's evaluation pipeline: what made the matches (the
+config's ``identity``: a MethodSpec's, an import's sources) decides whether a folder may
+be resumed; the evaluation settings (``evaluation``) change only the metrics, and
+``--eval-only`` may change them.
+
+    OUT/config.yaml      the RunConfig record (below)
+    OUT/matches.h5       the match cache (cache.MatchCache; blocks matches.NNN.h5 beside it)
+    OUT/per_pair.csv     one row per pair;  OUT/summary.csv: the run's numbers with intervals
+    OUT/skipped.csv      pairs skipped for bad input;  OUT/failures.csv: pairs a matcher failed on
+    OUT/viz/             match drawings (--viz)
+    OUT/shards/K-of-N/   the shards of a sharded run, each a run folder of its own
+    OUT/.lock            held while a process uses the folder (files.FolderLock)
+    OUT/.feature-spill/  feature maps memory could not hold, while matching
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+from ..cache import MatchCache
+from ..files import FolderLock, load_yaml, package_versions, run_environment, save_yaml
+
+
+@dataclass
+class RunConfig:
+    """What config.yaml records, in the order it is written. The optional blocks are written
+    only where they apply (a shard, a merge, an import, a calibration)."""
+
+    benchmark: str | None
+    method: str
+    identity: dict | None
+    matcher: dict | None = None
+    device: str | None = None
+    dataset: dict = field(default_factory=dict)
+    evaluation: dict | None = None
+    # Where the numbers were made (this stage's); not part of the identity that decides whether
+    # a folder may be resumed.
+    versions: dict = field(default_factory=package_versions)
+    environment: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+    feature_reuse: dict | None = None
+    dataset_load: dict | None = None
+    shard: dict | None = None
+    shards: dict | None = None
+    imported_files: dict | None = None
+    # a calibration's (calibrate.py): the sequence and its settings
+    command: str | None = None
+    sequence: dict | None = None
+    calibration: dict | None = None
+
+    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "command", "sequence",
+                "calibration")
+
+    def as_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if not (f.name in self.OPTIONAL and getattr(self, f.name) is None)}
+
+    @classmethod
+    def from_dict(cls, record: dict) -> RunConfig:
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in record.items() if k in names})
+
+    @staticmethod
+    def environment_now() -> dict:
+        """The environment block: CPU dispatch, threads, allocator (files.run_environment)."""
+        from ..devices import allocator
+
+        return {**run_environment(), "allocator": allocator()}
+
+
+class RunFolder:
+    """One run folder. Its file names are its own; everyone else asks for paths."""
+
+    CONFIG = "config.yaml"
+    MATCHES = "matches.h5"
+    PER_PAIR = "per_pair.csv"
+    SUMMARY = "summary.csv"
+    SKIPPED = "skipped.csv"
+    FAILURES = "failures.csv"
+    VIZ = "viz"
+    SHARDS = "shards"
+    SPILL = ".feature-spill"
+    # What a new run replaces (--overwrite), besides the match cache.
+    RESULTS = (CONFIG, PER_PAIR, SUMMARY, SKIPPED, FAILURES)
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.path)!r})"
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    # ---- layout
+    @property
+    def config_path(self) -> Path:
+        return self.path / self.CONFIG
+
+    @property
+    def matches_path(self) -> Path:
+        return self.path / self.MATCHES
+
+    @property
+    def per_pair_path(self) -> Path:
+        return self.path / self.PER_PAIR
+
+    @property
+    def summary_path(self) -> Path:
+        return self.path / self.SUMMARY
+
+    @property
+    def skipped_path(self) -> Path:
+        return self.path / self.SKIPPED
+
+    @property
+    def failures_path(self) -> Path:
+        return self.path / self.FAILURES
+
+    @property
+    def viz_dir(self) -> Path:
+        return self.path / self.VIZ
+
+    @property
+    def spill_dir(self) -> Path:
+        return self.path / self.SPILL
+
+    @property
+    def shards_dir(self) -> Path:
+        return self.path / self.SHARDS
+
+    def drawing_path(self, pair_name: str) -> Path:
+        return self.viz_dir / (pair_name.replace("/", "__") + ".png")
+
+    def shard(self, shard: tuple[int, int]) -> RunFolder:
+        """The folder of the K-th of N shards of this run."""
+        return RunFolder(self.shards_dir / f"{shard[0]}-of-{shard[1]}")
+
+    def shard_folders(self) -> list[RunFolder]:
+        return [RunFolder(p) for p in sorted(self.shards_dir.glob("*-of-*"))]
+
+    # ---- state
+    def is_run(self) -> bool:
+        """A finished (or evaluated) run: its config and summary are there."""
+        return self.config_path.is_file() and self.summary_path.is_file()
+
+    @classmethod
+    def find(cls, path: str | Path) -> list[RunFolder]:
+        """The run folder at `path`, or the finished ones below it."""
+        here = cls(path)
+        if here.config_path.is_file():
+            return [here]
+        return [cls(p.parent) for p in sorted(Path(path).rglob(cls.CONFIG)) if cls(p.parent).is_run()]
+
+    def lock(self) -> FolderLock:
+        """The folder's exclusive lock (a context manager), taken before anything in it is read
+        or written."""
+        return FolderLock(self.path)
+
+    def read_config(self) -> dict | None:
+        return load_yaml(self.config_path) if self.config_path.exists() else None
+
+    def write_config(self, config: RunConfig | dict) -> Path:
+        return save_yaml(config.as_dict() if isinstance(config, RunConfig) else config, self.config_path)
+
+    def cache(self) -> MatchCache:
+        return MatchCache(self.matches_path)
+
+    def clear(self) -> None:
+        """Remove a run's matches and results (--overwrite); the folder and foreign files stay."""
+        self.cache().clear()
+        for name in self.RESULTS:
+            (self.path / name).unlink(missing_ok=True)
+        shutil.rmtree(self.viz_dir, ignore_errors=True)
+
+    def previous(self, identity: dict | None, benchmark: str, eval_only: bool = False,
+                 changes=None) -> dict | None:
+        """The config of the matches already here, or None for a new folder; a ValueError when
+        they were made otherwise (another benchmark, or an identity that `changes(before, now)`
+        finds different: method.identity_changes) and this is not --eval-only."""
+        previous = self.read_config()
+        if previous is None:
+            return None
+        before = previous.get("identity")
+        if before is None and "match_options" in previous and not eval_only:
+            # Made by e3cm-bench before MethodSpec: its record lacks what the identity now holds
+            # (the weights' hash, the seed), so its matches cannot be trusted to resume.
+            raise ValueError(f"{self.config_path}: made by an older e3cm-bench (no 'identity'); --eval-only "
+                             "re-evaluates it, --overwrite replaces its matches")
+        if eval_only or before is None or identity is None:
+            return previous
+        changed = list(changes(before, identity)) if changes is not None else ([] if before == identity else ["identity"])
+        if previous.get("benchmark") != benchmark:
+            changed.insert(0, "benchmark")
+        if changed:
+            raise ValueError(f"{self.config_path}: the matches in this folder were made with other settings "
+                             f"({', '.join(changed)}); pass --overwrite to replace them or choose another --out")
+        return previous
+
+    def resume(self, pairs, console=None) -> tuple[MatchCache, list]:
+        """The cache and the pairs it still lacks (an interrupted run resumes at them); a block of
+        the cache that HDF5 cannot read is said, and its lost pairs are matched again."""
+        from ..cache import BLOCK_PAIRS
+
+        cache = self.cache()
+        done = set(cache.names())  # one pass over the files, not one open per pair
+        for block in cache.damaged:
+            if console is not None:
+                console.print(f"warning: {block} is damaged (unreadable); its pairs (at most {BLOCK_PAIRS}) will be "
+                              "matched again into a new file; the damaged file is left as it is", markup=False)
+        return cache, [p for p in pairs if p.name not in done]
