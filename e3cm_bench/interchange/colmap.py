@@ -1,0 +1,197 @@
+"""A COLMAP database (``database.db``), written and read through pycolmap, PyPI's COLMAP
+bindings (the ``colmap`` extra; 4.2.1 is the version tested: its ``Database`` class writes
+cameras, images, keypoints, matches and two-view geometries, so no SQL is written here).
+
+COLMAP's keypoints are in its corner convention: the top-left pixel's centre is (0.5, 0.5)
+(hloc adds 0.5 when it imports into COLMAP: hloc/triangulation.py ``keypoints += 0.5  #
+COLMAP origin``). COLMAP stores them as float32, so half a pixel added to a float32 can lose
+its last bit where the sum crosses a power of two (x in [2^k - 0.5, 2^k)); docs/interchange.md
+gives what that changes.
+
+Export, per image: a camera (PINHOLE from the pair's intrinsics where the benchmark has them,
+the principal point moved by half a pixel with the keypoints; else SIMPLE_RADIAL with COLMAP's
+own prior, focal 1.2 x the longer side), its name (path relative to the dataset root), and the
+matched keypoints of every pair it is in (each pair's appended, as hloc.py explains). Per pair:
+the matches, and a two-view geometry holding the inliers of the evaluation's own estimate (pose:
+the essential-matrix RANSAC's inliers, CALIBRATED, with E and the relative pose; homography:
+the matches within the RANSAC threshold of the estimated H, PLANAR, with H), so that COLMAP's
+mapper can run without its own verification. A pair whose estimate failed gets no geometry.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..files import file_sha256, write_atomically
+from ..matches import Matches, MatchesError
+from .base import MissingPair, check_declared, image_name, real_points
+from .pixels import check_origin, from_origin, to_origin
+
+DEFAULT_ORIGIN = "corner"
+
+
+def pycolmap_module():
+    try:
+        import pycolmap
+    except ImportError:
+        raise ValueError("the COLMAP format needs pycolmap: pip install 'e3cm-bench[colmap]'") from None
+    return pycolmap
+
+
+def _shift(origin: str) -> float:
+    return float(to_origin(np.zeros((1, 2)), origin)[0, 0])
+
+
+def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: str):
+    w, h = (int(v) for v in size)
+    if K is None:
+        f = 1.2 * max(w, h)  # COLMAP's default focal prior for an image without EXIF
+        return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, 0.0])
+    K = np.asarray(K, np.float64)
+    shift = _shift(origin)
+    # has_prior_focal_length: the focal is the benchmark's calibration, not a guess, so that
+    # COLMAP verifies the pair with an essential matrix and its mapper keeps the intrinsics
+    return pycolmap.Camera(model="PINHOLE", width=w, height=h, params=[K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift],
+                           has_prior_focal_length=True)
+
+
+def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN) -> list[Path]:
+    pycolmap = pycolmap_module()
+    shift = _shift(origin)
+
+    def write(tmp: Path) -> None:
+        tmp.unlink()  # pycolmap creates the file itself
+        db = pycolmap.Database.open(str(tmp))
+        try:
+            ids: dict[str, int] = {}
+            lists: dict[str, list[np.ndarray]] = {}
+            offsets = []
+            for item in items:
+                offset = []
+                for name, K, size, points in ((item.name0, item.K0, item.size0, item.matches.keypoints0),
+                                              (item.name1, item.K1, item.size1, item.matches.keypoints1)):
+                    if name not in ids:
+                        camera_id = db.write_camera(camera_for(pycolmap, K, size, origin))
+                        ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+                    listed = lists.setdefault(name, [])
+                    offset.append(sum(len(p) for p in listed))
+                    listed.append(to_origin(points, origin).astype(np.float32))
+                offsets.append(offset)
+            for name, listed in lists.items():
+                db.write_keypoints(ids[name], np.concatenate(listed).reshape(-1, 2))
+            for item, (at0, at1) in zip(items, offsets):
+                id0, id1 = ids[item.name0], ids[item.name1]
+                if db.exists_matches(id0, id1):
+                    raise ValueError(f"two pairs of the run join images {item.name0} and {item.name1}; "
+                                     "COLMAP holds one match list per image pair")
+                n = len(item.matches)
+                pairs = np.stack([at0 + np.arange(n), at1 + np.arange(n)], axis=1).astype(np.uint32)
+                db.write_matches(id0, id1, pairs)
+                geometry = item.geometry
+                if geometry is None:
+                    continue
+                tvg = pycolmap.TwoViewGeometry()
+                tvg.inlier_matches = pairs[geometry["inliers"]]
+                if "H" in geometry:
+                    T = np.array([[1, 0, shift], [0, 1, shift], [0, 0, 1]], np.float64)
+                    tvg.config = pycolmap.TwoViewGeometryConfiguration.PLANAR
+                    tvg.H = T @ geometry["H"] @ np.linalg.inv(T)
+                else:
+                    R, t = geometry["R"], geometry["t"]
+                    tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+                    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], np.float64)
+                    tvg.E = tx @ R
+                    tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+                db.write_two_view_geometry(id0, id1, tvg)
+        finally:
+            db.close()
+
+    return [write_atomically(out / "database.db", write)]
+
+
+class ColmapSource:
+    """A COLMAP database: images found by name (relative to the dataset root), keypoints in
+    COLMAP's corner convention, the raw matches of each pair (not only the verified ones:
+    they are what the matcher gave)."""
+
+    format = "colmap"
+    per_pair = False
+
+    def __init__(self, database: Path, origin: str | None = None) -> None:
+        self.database = Path(database)
+        self.origin = check_origin(origin or DEFAULT_ORIGIN)
+        if not self.database.is_file():
+            raise ValueError(f"{self.database}: not found")
+        with open(self.database, "rb") as f:
+            if f.read(16) != b"SQLite format 3\x00":
+                raise ValueError(f"{self.database}: not a COLMAP database (not an SQLite file)")
+        self._db = None
+        self._ids: dict[str, int] = {}
+
+    def files(self, pairs) -> dict[str, str]:
+        return {"database": file_sha256(self.database)}
+
+    def identity(self, files: dict[str, str]) -> dict:
+        identity = {"format": self.format, "files": files}
+        if self.origin != DEFAULT_ORIGIN:
+            identity["pixel_origin"] = self.origin
+        return identity
+
+    def location(self) -> dict:
+        return {"database": str(self.database), "pixel_origin": self.origin}
+
+    def expected(self, pair, root: Path) -> str:
+        names = image_name(pair.image0, root), image_name(pair.image1, root)
+        absent = [n for n in names if n not in self._ids]
+        if absent:
+            return f"{self.database}: an image named {absent[0]}, which the database lacks"
+        return f"{self.database}: matches between images {names[0]} and {names[1]}"
+
+    def _open(self):
+        """The database, opened from a private copy: opening a file, COLMAP creates missing
+        tables and upgrades old schemas in place, which would change the user's file (and its
+        hash, the import's identity)."""
+        if self._db is None:
+            pycolmap = pycolmap_module()
+            self._copy = Path(tempfile.mkdtemp(prefix="e3cm-colmap-")) / "database.db"
+            shutil.copyfile(self.database, self._copy)
+            try:
+                self._db = pycolmap.Database.open(str(self._copy))
+                self._ids = {image.name: image.image_id for image in self._db.read_all_images()}
+            except Exception as error:  # pycolmap raises its own types for a damaged file
+                raise ValueError(f"{self.database}: not a readable COLMAP database ({error})") from None
+        return self._db
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            shutil.rmtree(self._copy.parent, ignore_errors=True)
+            self._db = None
+
+    def read(self, pair, root: Path) -> Matches:
+        db = self._open()
+        names = image_name(pair.image0, root), image_name(pair.image1, root)
+        missing = [n for n in names if n not in self._ids]
+        if missing:
+            raise MissingPair(f"{self.database}: no image named {missing[0]}")
+        id0, id1 = (self._ids[n] for n in names)
+        if not db.exists_matches(id0, id1):
+            raise MissingPair(f"{self.database}: no matches between {names[0]} and {names[1]}")
+        points = []
+        for name, image_id in zip(names, (id0, id1)):
+            what = f"{self.database}: keypoints of {name}"
+            check_declared(what, (db.num_keypoints_for_image(image_id), 2), 4)
+            points.append(real_points(np.asarray(db.read_keypoints(image_id))[:, :2], what))
+        index = np.asarray(db.read_matches(id0, id1), np.int64).reshape(-1, 2)
+        for side, name in enumerate(names):
+            past = index[:, side] >= len(points[side])
+            if past.any():
+                raise MatchesError(f"{self.database}: a match of {names[0]} and {names[1]} points to keypoint "
+                                   f"{int(index[past, side][0])} of {name}, which has {len(points[side])}")
+        k0 = from_origin(points[0][index[:, 0]], self.origin)
+        k1 = from_origin(points[1][index[:, 1]], self.origin)
+        return Matches(k0, k1, None)

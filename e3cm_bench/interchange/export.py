@@ -1,0 +1,172 @@
+"""A run's matches out to another tool: ``export_run(RUN, FORMAT, OUT)``.
+
+The run folder's config.yaml names the benchmark and how its pairs were loaded (dataset_load,
+else the dataset block's root and options, as the report reads them); every pair of the run
+with matches in its cache is written (pairs it skipped have none), in the run's pair order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from ..benchmarks import EvalSettings, get_benchmark
+from ..cache import MatchCache
+from ..evaluate import CACHE_FILE, CONFIG_FILE
+from ..files import FolderLock, load_yaml, writable_folder
+from ..images import load_image
+from ..matches import Matches
+from .base import image_name
+from .pixels import check_origin
+
+FORMATS = ("colmap", "hloc", "gluefactory", "npz")
+OUTPUTS = {"colmap": ("database.db",), "hloc": ("features.h5", "matches.h5"), "gluefactory": ("predictions.h5",),
+           "npz": ()}
+DEFAULT_ORIGINS = {"colmap": "corner", "hloc": "center", "gluefactory": "corner", "npz": "center"}
+
+
+@dataclass
+class ExportItem:
+    """One pair on its way out: its names in the dataset, its images' sizes (w, h) and
+    intrinsics where the benchmark has them, its matches, and (colmap) the geometry the
+    evaluation estimates from them."""
+
+    name: str
+    pair: object
+    name0: str
+    name1: str
+    size0: tuple[int, int]
+    size1: tuple[int, int]
+    matches: Matches
+    K0: np.ndarray | None = None
+    K1: np.ndarray | None = None
+    geometry: dict | None = None
+
+
+def load_run_pairs(run_dir: Path):
+    """(benchmark, config, root, pairs) of a run folder, the pairs as the run loaded them."""
+    config_path = Path(run_dir) / CONFIG_FILE
+    config = load_yaml(config_path, what="config.yaml (every run folder needs one)")
+    try:
+        benchmark = get_benchmark(config.get("benchmark"))
+    except ValueError as error:
+        raise ValueError(f"{config_path}: {error}") from None
+    dataset = config.get("dataset") or {}
+    load = config.get("dataset_load")
+    if isinstance(load, dict) and load.get("root"):
+        root, skip_bad, options = load["root"], bool(load.get("skip_bad")), dict(load.get("options") or {})
+    elif dataset.get("root"):
+        root, skip_bad = dataset["root"], bool(dataset.get("skip_bad"))
+        options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
+    else:
+        raise ValueError(f"{config_path}: records no dataset root; the run's images cannot be named")
+    options = {k: v for k, v in options.items() if k in benchmark.option_names}
+    loaded = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
+    limit = dataset.get("limit")
+    pairs = list(loaded)[:limit] if isinstance(limit, int) and limit > 0 else list(loaded)
+    return benchmark, config, Path(root).resolve(), pairs, options
+
+
+def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
+    """The evaluation's own estimate on these matches (the same estimator, threshold and seed)."""
+    from .. import estimators
+    from ..geometry import warp_points
+
+    k0, k1 = matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64)
+    if getattr(pair, "H", None) is not None:
+        H = estimators.homography(k0, k1, ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
+                                  estimator=ev.estimator, seed=ev.seed)
+        if H is None:
+            return None
+        with np.errstate(invalid="ignore"):
+            error = np.linalg.norm(warp_points(H, k0) - k1, axis=1)
+        return {"H": H, "inliers": np.nan_to_num(error, nan=np.inf) <= ev.homography_ransac_px}
+    if getattr(pair, "K0", None) is not None and hasattr(benchmark, "ransac_px"):
+        sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
+        found = estimators.relative_pose(k0, k1, pair.K0, pair.K1, benchmark.ransac_px(pair, matches, ev),
+                                         ev.pose_confidence, estimator=ev.estimator, seed=ev.seed, sizes=sizes)
+        if found is None:
+            return None
+        R, t, inliers = found
+        return {"R": np.asarray(R, np.float64), "t": np.asarray(t, np.float64).ravel(), "inliers": np.asarray(inliers, bool)}
+    return None
+
+
+def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | None = None, overwrite: bool = False,
+               console: Console | None = None) -> dict:
+    """Write RUN's matches to OUT in FORMAT (colmap, hloc, gluefactory, npz); returns what was
+    written. An existing output file is refused unless overwrite; files are written beside
+    their name and renamed into place, never through a link."""
+    console = console or Console()
+    if fmt not in FORMATS:
+        raise ValueError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    origin = check_origin(origin or DEFAULT_ORIGINS[fmt])
+    run_dir, out = Path(run_dir), Path(out)
+    benchmark, config, root, pairs, options = load_run_pairs(run_dir)
+    ev = None
+    if fmt == "colmap":
+        from .colmap import pycolmap_module
+
+        pycolmap_module()  # before any work: one line if the extra is not installed
+        try:  # the evaluation's own settings, so that the stored inliers are the ones it found
+            ev = EvalSettings.from_record(config.get("evaluation"))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{run_dir / CONFIG_FILE}: its evaluation settings cannot be read ({error})") from None
+    writable_folder(out)
+    if not overwrite:
+        taken = [out / name for name in OUTPUTS[fmt] if (out / name).exists()]
+        if fmt == "npz":
+            taken = [out / f"{p.name}.npz" for p in pairs if (out / f"{p.name}.npz").exists()][:1]
+        if taken:
+            raise ValueError(f"{taken[0]}: already exists; pass --overwrite to replace it or choose another OUT")
+    items = []
+    with FolderLock(run_dir):
+        cache = MatchCache(run_dir / CACHE_FILE)
+        done = set(cache.names())
+        for pair in pairs:
+            if pair.name not in done:
+                continue
+            matches = cache.read(pair.name)
+            size0 = tuple(int(v) for v in matches.info.get("size0", ())) or _size(pair.image0)
+            size1 = tuple(int(v) for v in matches.info.get("size1", ())) or _size(pair.image1)
+            item = ExportItem(pair.name, pair, image_name(pair.image0, root), image_name(pair.image1, root), size0, size1,
+                              matches, getattr(pair, "K0", None), getattr(pair, "K1", None))
+            if ev is not None:
+                item.geometry = _geometry(benchmark, pair, matches, ev)
+            items.append(item)
+    if not items:
+        raise ValueError(f"{run_dir}: no matched pairs in its cache to export")
+    if fmt == "hloc":
+        from .hloc import write_hloc
+
+        written = write_hloc(out, items, origin)
+    elif fmt == "npz":
+        from .npz import write_npz
+
+        written = write_npz(out, items, origin)
+    elif fmt == "colmap":
+        from .colmap import write_colmap
+
+        written = write_colmap(out, items, origin)
+    else:
+        from .gluefactory import write_gluefactory
+
+        written = write_gluefactory(out, items, origin, benchmark=benchmark.name, root=root,
+                                    ignore_large=bool(options.get("exclude_large")))
+    n_matches = sum(len(item.matches) for item in items)
+    console.print(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt} in {out} "
+                  f"(pixel origin: {origin})", markup=False, highlight=False, soft_wrap=True)
+    if fmt == "colmap":
+        verified = sum(item.geometry is not None for item in items)
+        console.print(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)",
+                      markup=False, highlight=False)
+    return {"format": fmt, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
+            "pixel_origin": origin}
+
+
+def _size(path: Path) -> tuple[int, int]:
+    image = load_image(path)
+    return int(image.shape[1]), int(image.shape[0])
