@@ -139,7 +139,7 @@ def _convention_check(pairs: list[Pair], cache: MatchCache, source, console: Con
     if check is None:
         return None
     if check.other_fits_better:
-        other = "corner" if source.origin == "center" else "center"
+        other = "corner" if getattr(source, "origin", "center") == "center" else "center"
         console.print(f"warning: {check.line()}: the file looks written in the other pixel convention; "
                       f"import it again with --pixel-origin {other} --overwrite", markup=False, highlight=False,
                       soft_wrap=True)
