@@ -372,3 +372,21 @@ def test_fundamental_estimators_fit_a_known_scene_despite_outliers(estimator, me
     assert np.array_equal(F, fundamental(x0, x1, 1.0, 10000, 0.999, estimator, 0, method))
     with pytest.raises(ValueError, match="unknown OpenCV method"):
         fundamental(x0, x1, 1.0, 100, 0.999, estimator, 0, "lmeds")
+
+
+def test_drawings_call_matches_right_by_the_ground_truth(wxbs_root, evd_root):
+    """--viz colours: WxBS through the F of the hand-labelled correspondences themselves, EVD
+    through its H; the ground truth is right, the same points shifted 40 px are not."""
+    ev = EvalSettings()
+    bench = get_benchmark("wxbs")
+    pair = next(p for p in bench.load_dataset(wxbs_root) if p.name == "WGABS/kremlin")
+    corrs = pair.meta["corrs"]
+    right = bench.correct_mask(pair, Matches(corrs[:, :2], corrs[:, 2:], None), ev)
+    wrong = bench.correct_mask(pair, Matches(corrs[:, :2], corrs[:, 2:] + [0.0, 40.0], None), ev)
+    assert right.mean() > 0.8 and wrong.mean() < 0.2
+    bench = get_benchmark("evd")
+    pair = bench.load_dataset(evd_root)[0]
+    x0 = np.array([[100.0, 100.0], [200.0, 150.0], [300.0, 250.0]])
+    x1 = warp_points(pair.H, x0)
+    assert bench.correct_mask(pair, Matches(x0, x1, None), ev).all()
+    assert not bench.correct_mask(pair, Matches(x0, x1 + 40.0, None), ev).any()
