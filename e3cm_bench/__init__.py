@@ -14,17 +14,47 @@ Models and torch are imported when a matcher is built, not when this package is 
 
 from __future__ import annotations
 
-from .benchmarks import BENCHMARKS, Benchmark, EvalSettings, get_benchmark, register
-from .matchers import Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
-from .matchers import register as register_matcher
-from .matches import Matches
-from .method import MethodSpec
-from .runner import match_pair, run_benchmark
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
+
+# The public names, imported on first use (PEP 562) rather than here: `import e3cm_bench`
+# then loads nothing heavy, so the command line's entry point (e3cm_bench.__main__.main) is
+# running, and can turn a Ctrl-C during the slow imports into one line, from the first moment.
+_EXPORTS = {
+    "BENCHMARKS": ".benchmarks", "Benchmark": ".benchmarks", "EvalSettings": ".benchmarks",
+    "get_benchmark": ".benchmarks", "register": ".benchmarks",
+    "Matcher": ".matchers", "MatcherEntry": ".matchers", "build_matcher": ".matchers", "get_matcher": ".matchers",
+    "matcher_names": ".matchers", "register_matcher": ".matchers",
+    "Matches": ".matches", "MethodSpec": ".method", "match_pair": ".runner", "run_benchmark": ".runner",
+}
+_RENAMED = {"register_matcher": "register"}
 
 __all__ = [
     "BENCHMARKS", "Benchmark", "EvalSettings", "Matcher", "MatcherEntry", "Matches", "MethodSpec",
     "build_matcher", "get_benchmark", "get_matcher", "match_pair", "matcher_names", "register", "register_matcher",
     "run_benchmark",
 ]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), _RENAMED.get(name, name))
+    globals()[name] = value  # found directly from now on
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # what type checkers and the documentation's static reader see
+    from .benchmarks import BENCHMARKS, Benchmark, EvalSettings, get_benchmark, register
+    from .matchers import Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
+    from .matchers import register as register_matcher
+    from .matches import Matches
+    from .method import MethodSpec
+    from .runner import match_pair, run_benchmark

@@ -13,8 +13,16 @@ caller turns into one line, never an HDF5 library failure. The space a write nee
 block and the pair, twice for the rename) is checked first (DiskFullError). The attribute
 ``complete=1`` is still set last, and the pairs are spread over block files of at most
 BLOCK_PAIRS pairs (``matches.h5``, ``matches.001.h5``, ...), so that a block damaged by
-other means (a copy cut short) costs only its own pairs, which ``names`` leaves out
-(listing the file in ``damaged``) so that the run matches them again.
+other means (a copy cut short) costs at most its own pairs: ``names`` lists the file in
+``damaged`` (no pair is ever written into it again) and keeps only the pairs HDF5 can still
+read whole from it; the run matches the others again. A block whose end was cut is read
+with the missing bytes taken as zeros up to the length its superblock records (HDF5 refuses
+to open a file shorter than that), which keeps every pair whose metadata and compressed
+data lie before the cut; a pair whose data was lost fails to decompress and is left out.
+
+A block is a file from outside as much as ours: before a pair's arrays are read, their
+declared shapes are checked (N x 2, N x 2 and N, with N at most MAX_PAIR_MATCHES), so that a
+small file declaring gigabytes is one line naming the file and the pair, never an allocation.
 """
 
 from __future__ import annotations
@@ -36,6 +44,12 @@ DATASETS = ("keypoints0", "keypoints1", "scores")
 COMPLETE_ATTR = "complete"
 BLOCK_PAIRS = 50  # pairs per file: the most a damaged file can cost
 SPARE_BYTES = 256 << 10  # kept free beyond what a write needs (config.yaml and the like)
+# Matches of one pair a block may declare: 10 million (about 200 MB of arrays) is ten times what
+# a dense matcher at full resolution returns; a declared size beyond it is damage or a hostile file.
+MAX_PAIR_MATCHES = 10_000_000
+# A cut block is read only when what is left is at least this fraction of its recorded length
+# (the zeros standing for the lost tail are held in memory).
+MIN_RECOVERABLE_FRACTION = 0.5
 
 
 class DiskFullError(OSError):
@@ -74,6 +88,7 @@ class MatchCache:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.damaged: list[Path] = []  # blocks found unreadable by the last names()
+        self.recovered: dict[Path, int] = {}  # damaged block -> pairs still read whole from it
         self._where: dict[str, Path] | None = None  # pair -> block, from the last names()
         self._counts: dict[Path, int] = {}
 
@@ -85,7 +100,7 @@ class MatchCache:
         """Delete every block file (a run started over with --overwrite)."""
         for block in self.blocks():
             block.unlink()
-        self._where, self._counts, self.damaged = None, {}, []
+        self._where, self._counts, self.damaged, self.recovered = None, {}, [], {}
 
     def _indexed_blocks(self) -> list[tuple[int, Path]]:
         pattern = re.compile(re.escape(self.path.stem) + r"\.(\d{3,})" + re.escape(self.path.suffix) + "$")
@@ -100,7 +115,8 @@ class MatchCache:
 
     def names(self) -> list[str]:
         """The names of all complete entries in readable blocks, sorted; unreadable blocks go to ``damaged``."""
-        self._where, self._counts, self.damaged = {}, {}, []
+        self._where, self._counts, self.damaged, self.recovered = {}, {}, [], {}
+        recovered: dict[str, Path] = {}
         for block in self.blocks():
             found: list[str] = []
             try:
@@ -113,10 +129,16 @@ class MatchCache:
                     file.visititems(collect)
             except (OSError, ValueError, RuntimeError, KeyError):
                 self.damaged.append(block)
+                readable = _readable_pairs(block)
+                self.recovered[block] = len(readable)
+                for name in readable:
+                    recovered.setdefault(name, block)
                 continue
             self._counts[block] = len(found)
             for name in found:
                 self._where.setdefault(name, block)
+        for name, block in recovered.items():  # a pair written whole since, in a later block, wins
+            self._where.setdefault(name, block)
         return sorted(self._where)
 
     def read(self, name: str) -> Matches:
@@ -127,17 +149,11 @@ class MatchCache:
         block = self._where.get(name)
         if block is None:
             raise KeyError(f"pair {name!r} has no complete entry in {self.path}")
-        with _open(block, "r") as file:
+        with _open_for_reading(block, block in self.damaged) as file:
             group = file.get(key)
             if not _is_complete(group):
                 raise KeyError(f"pair {name!r} has no complete entry in {block}")
-            info = {k: _plain(v) for k, v in group.attrs.items() if k != COMPLETE_ATTR}
-            return Matches(
-                keypoints0=group["keypoints0"][()],
-                keypoints1=group["keypoints1"][()],
-                scores=group["scores"][()],
-                info=info,
-            )
+            return _read_entry(group, block, name)
 
     # ---------------------------------------------------------------- mutations
 
@@ -187,7 +203,7 @@ class MatchCache:
         (never a damaged one: a new block follows it)."""
         if self._where is None:
             self.names()
-        if name in self._where:
+        if name in self._where and self._where[name] not in self.damaged:
             return self._where[name]
         existing = self._indexed_blocks()
         if existing:
@@ -225,6 +241,92 @@ def _open(path: Path, mode: str) -> h5py.File:
         if "signature" in str(error).lower() or "truncated" in str(error).lower():
             raise ValueError(_not_hdf5_message(path)) from error
         raise
+
+
+def _read_entry(group: h5py.Group, block: Path, name: str) -> Matches:
+    """One pair's matches, its arrays' declared shapes checked before any is read."""
+    shapes = {}
+    for dataset in DATASETS:
+        item = group.get(dataset)
+        if not isinstance(item, h5py.Dataset):
+            raise ValueError(f"{block}: pair {name}: {dataset} is missing (delete the file or rerun with --overwrite)")
+        shapes[dataset] = item.shape
+    n = shapes["scores"][0] if len(shapes["scores"]) == 1 else -1
+    expected = {"keypoints0": (n, 2), "keypoints1": (n, 2), "scores": (n,)}
+    if n < 0 or n > MAX_PAIR_MATCHES or any(shapes[d] != expected[d] for d in DATASETS):
+        declared = ", ".join(f"{d} {'x'.join(map(str, shapes[d])) or 'scalar'}" for d in DATASETS)
+        raise ValueError(f"{block}: pair {name}: the file declares {declared}; expected N x 2, N x 2 and N with N at most "
+                         f"{MAX_PAIR_MATCHES:,} (a damaged or foreign file: delete it or rerun with --overwrite)")
+    info = {k: _plain(v) for k, v in group.attrs.items() if k != COMPLETE_ATTR}
+    return Matches(keypoints0=group["keypoints0"][()], keypoints1=group["keypoints1"][()],
+                   scores=group["scores"][()], info=info)
+
+
+def _open_for_reading(block: Path, damaged: bool) -> h5py.File:
+    """A block to read pairs from; one cut short (known as damaged, or cut since it was listed)
+    is read as _open_cut reads it."""
+    if not damaged:
+        try:
+            return _open(block, "r")
+        except ValueError:
+            pass
+    return _open_cut(block)
+
+
+def _open_cut(path: Path) -> h5py.File:
+    """A block whose end is missing, opened read-only in memory with the lost bytes as zeros up
+    to the length its superblock records; ValueError when it is not such a block."""
+    data = path.read_bytes()
+    try:
+        return h5py.File(io.BytesIO(data), "r")
+    except OSError as error:
+        recorded = re.search(r"stored_eof = (\d+)", str(error))
+    if recorded is None:
+        raise ValueError(_not_hdf5_message(path))
+    length = int(recorded.group(1))
+    if not len(data) < length <= len(data) / MIN_RECOVERABLE_FRACTION:
+        raise ValueError(_not_hdf5_message(path))
+    try:
+        return h5py.File(io.BytesIO(data + bytes(length - len(data))), "r")
+    except OSError:
+        raise ValueError(_not_hdf5_message(path)) from None
+
+
+def _readable_pairs(block: Path) -> list[str]:
+    """The complete pairs of a damaged block that read back whole (arrays decompressed, shapes
+    and values sound); none when the block cannot be opened even as a cut one."""
+    try:
+        file = _open_cut(block)
+    except (OSError, ValueError):
+        return []
+    found: list[str] = []
+
+    def walk(group: h5py.Group, prefix: str) -> None:
+        # Not visititems: HDF5's visit stops at the first object it cannot decode, losing the
+        # readable pairs after it; each link is tried on its own here.
+        try:
+            keys = list(group.keys())
+        except (OSError, RuntimeError, KeyError, ValueError):
+            return
+        for key in keys:
+            name = f"{prefix}{key}"
+            try:
+                item = group[key]
+            except (OSError, RuntimeError, KeyError, ValueError):
+                continue
+            if not isinstance(item, h5py.Group):
+                continue
+            try:
+                if _is_complete(item):
+                    _read_entry(item, block, name)
+                    found.append(name)
+            except (OSError, RuntimeError, KeyError, ValueError, TypeError):
+                pass  # this pair's data was lost; a pair nested under its name may not be
+            walk(item, f"{name}/")
+
+    with file:
+        walk(file, "")
+    return found
 
 
 def _not_hdf5_message(path: Path) -> str:

@@ -87,3 +87,24 @@ def check_in_image(matches: Matches, size0: tuple[int, int], size1: tuple[int, i
                                f"(first: {x:.1f}, {y:.1f})")
     if not np.isfinite(matches.scores).all():
         raise MatchesError("scores: not all finite")
+
+
+def distinct(matches: Matches) -> tuple[Matches, int]:
+    """The matches with each correspondence (x0, y0, x1, y1) kept once, at its first occurrence
+    (with that occurrence's score), and how many repeats were dropped.
+
+    The evaluation counts a correspondence once: a matcher returning one correct match 5000
+    times has one correct match, not an MMA of 1.0 over 5000. Repeats are common and harmless
+    otherwise (SIFT returns a keypoint once per orientation, so about a tenth of SIFT+NN's
+    matches repeat another exactly); refusing them would refuse SIFT.
+    """
+    if len(matches) < 2:
+        return matches, 0
+    both = np.concatenate([matches.keypoints0, matches.keypoints1], axis=1)
+    _, first = np.unique(both, axis=0, return_index=True)
+    dropped = len(matches) - len(first)
+    if dropped == 0:
+        return matches, 0
+    keep = np.sort(first)
+    info = {**matches.info, "n_duplicates": dropped}
+    return Matches(matches.keypoints0[keep], matches.keypoints1[keep], matches.scores[keep], info), dropped

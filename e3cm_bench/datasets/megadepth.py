@@ -220,6 +220,29 @@ class _ArraysOnlyUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"it would build {module}.{name}; only numpy arrays and plain containers are read")
 
 
+# The most one scene_info member may hold once decompressed. The LoFTR lists' largest member
+# is a few MiB; a full MegaDepth scene's (depth paths, overlap matrix) stays under 256 MiB.
+MAX_MEMBER_BYTES = 1 << 30
+
+
+def _read_npz_members(path: Path) -> dict:
+    """The SCENE_INFO_KEYS members of an npz archive, and only those: the others (a depth map
+    list, an overlap matrix, or a 2 GB member of a crafted file) are never decompressed. Each
+    member's size as the archive declares it is checked before it is read."""
+    loaded = {}
+    with zipfile.ZipFile(path) as archive:
+        for member in archive.infolist():
+            key = member.filename.removesuffix(".npy")
+            if key not in SCENE_INFO_KEYS or key in loaded:
+                continue
+            if member.file_size > MAX_MEMBER_BYTES:
+                raise ValueError(f"member {member.filename} declares {member.file_size / 2**20:.0f} MiB, over the "
+                                 f"{MAX_MEMBER_BYTES >> 20} MiB a scene_info member may hold")
+            # zipfile stops reading at the declared size, so the bound holds for what is read too
+            loaded[key] = _read_npy(archive.read(member))
+    return loaded
+
+
 def _read_npy(data: bytes) -> np.ndarray:
     """One .npy member of an archive; object arrays (pickled inside) go through the safe unpickler."""
     f = io.BytesIO(data)
@@ -245,8 +268,7 @@ def load_scene_info(path: Path) -> dict:
         raise DatasetError(f"{path}: scene_info file not found")
     try:
         if zipfile.is_zipfile(path):
-            with zipfile.ZipFile(path) as archive:
-                loaded = {name.removesuffix(".npy"): _read_npy(archive.read(name)) for name in archive.namelist()}
+            loaded = _read_npz_members(path)
         else:
             with open(path, "rb") as f:
                 loaded = _ArraysOnlyUnpickler(f).load()

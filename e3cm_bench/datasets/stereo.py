@@ -43,19 +43,47 @@ class StereoSequence:
 
 
 def read_calibration_file(path: Path) -> dict[str, np.ndarray]:
-    """'KEY: numbers' lines; lines whose values are not numbers (calib_time) are left out."""
+    """'KEY: numbers' lines; lines whose values are not numbers (calib_time) are left out. A key
+    given twice is refused: which of the two the file's author meant cannot be told."""
     if not path.is_file():
         raise DatasetError(f"{path}: calibration file not found")
-    values = {}
+    values, lines = {}, {}
     for number, line in enumerate(path.read_text().splitlines(), start=1):
         key, sep, rest = line.partition(":")
         if not sep:
             continue
+        key = key.strip()
+        if key in lines:
+            raise DatasetError(f"{path}: '{key}:' is given twice (lines {lines[key]} and {number})")
+        lines[key] = number
         try:
-            values[key.strip()] = np.array([float(v) for v in rest.split()])
+            values[key] = np.array([float(v) for v in rest.split()])
         except ValueError:
             continue
     return values
+
+
+# How far a calibration file's rotation may be from orthonormal with determinant +1: KITTI
+# prints seven significant digits, which leaves about 1e-6.
+ROTATION_TOLERANCE = 1e-3
+# The baseline below which two cameras are taken as one (the file's units: metres in KITTI).
+MIN_BASELINE = 1e-9
+
+
+def _rotation(values: dict, key: str, path: Path) -> np.ndarray:
+    R = _entry(values, key, 9, path).reshape(3, 3)
+    off = float(np.abs(R @ R.T - np.eye(3)).max())
+    if off > ROTATION_TOLERANCE or abs(np.linalg.det(R) - 1) > ROTATION_TOLERANCE:
+        raise DatasetError(f"{path}: '{key}:' is not a rotation (R R^T differs from I by {off:.3g}, "
+                           f"det {np.linalg.det(R):.4f}); expected an orthonormal 3x3 matrix with determinant 1")
+    return R
+
+
+def _baseline(t: np.ndarray, path: Path, keys: str) -> np.ndarray:
+    """A rig's t, refused when the two cameras sit at one place (nothing to rectify or triangulate)."""
+    if not np.linalg.norm(t) > MIN_BASELINE:
+        raise DatasetError(f"{path}: {keys} put both cameras at the same place (no baseline); a stereo rig needs two")
+    return t
 
 
 def _entry(values: dict, key: str, size: int, path: Path) -> np.ndarray:
@@ -94,6 +122,7 @@ def load_stereo_sequence(root: str | Path, unrectified: bool = False) -> StereoS
         values = read_calibration_file(path)
         K0, K1, R, t = _from_projections(_entry(values, "P0", 12, path).reshape(3, 4),
                                          _entry(values, "P1", 12, path).reshape(3, 4), path)
+        t = _baseline(t, path, "P0 and P1")
         left, right = _frames(root / "image_0", root / "image_1")
         return StereoSequence(root, "kitti-odometry", left, right, K0, K1, R, t, {"calib": str(path)})
     if (root / "image_00").is_dir():
@@ -102,13 +131,14 @@ def load_stereo_sequence(root: str | Path, unrectified: bool = False) -> StereoS
         values = read_calibration_file(path)
         if unrectified:
             K0, K1 = _entry(values, "K_00", 9, path).reshape(3, 3), _entry(values, "K_01", 9, path).reshape(3, 3)
-            R00, R01 = _entry(values, "R_00", 9, path).reshape(3, 3), _entry(values, "R_01", 9, path).reshape(3, 3)
+            R00, R01 = _rotation(values, "R_00", path), _rotation(values, "R_01", path)
             T00, T01 = _entry(values, "T_00", 3, path), _entry(values, "T_01", 3, path)
             R = R01 @ R00.T
-            t = T01 - R @ T00
+            t = _baseline(T01 - R @ T00, path, "R_00, T_00 and R_01, T_01")
         else:
             K0, K1, R, t = _from_projections(_entry(values, "P_rect_00", 12, path).reshape(3, 4),
                                              _entry(values, "P_rect_01", 12, path).reshape(3, 4), path)
+            t = _baseline(t, path, "P_rect_00 and P_rect_01")
         left, right = _frames(root / "image_00" / "data", root / "image_01" / "data")
         layout = "kitti-raw" + ("" if unrectified else "-rectified")
         return StereoSequence(root, layout, left, right, K0, K1, R, t, {"calib": str(path)})

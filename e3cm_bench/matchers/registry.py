@@ -10,6 +10,16 @@ Three ways in, one `register`:
 
 A plugin that fails to load costs only itself: it is listed with its error, and asking for
 it gives that error in one line. Models load when a matcher is built, never at lookup.
+
+Entry points are imported only when they are needed: when a name that is not a built-in is
+asked for, or when every matcher is listed (`e3cm-bench matchers`, `entries()`). A run of
+`--matcher sift` imports no plugin, so a broken one cannot touch it. Each import (with the
+call of its object) runs in a daemon thread bounded by PLUGIN_IMPORT_SECONDS (environment:
+E3CM_BENCH_PLUGIN_TIMEOUT): a plugin that hangs at import is listed as not loaded, and the
+thread is left behind (Python cannot stop a thread). A thread rather than a subprocess,
+because the import must happen in this process for its classes to be used; a consequence
+is that a plugin cannot install signal handlers at import. ``sys.exit`` at import, or in a
+factory, is that plugin's failure in one line, never the tool's exit.
 """
 
 from __future__ import annotations
@@ -17,7 +27,10 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.metadata
+import os
+import threading
 from pathlib import Path
+from typing import Callable
 
 from ..devices import check_device
 from ..files import file_sha256
@@ -28,6 +41,11 @@ ENTRY_POINT_GROUP = "e3cm_bench.matchers"
 _REGISTRY: dict[str, MatcherEntry] = {}
 _BROKEN: dict[str, str] = {}  # plugin entry point -> why it did not load
 _loaded = False
+_plugins_loaded = False
+
+# How long one plugin's import may take. Generous: a plugin importing torch and a model zoo
+# takes seconds on a cold disk; one that never returns must not hang every command.
+PLUGIN_IMPORT_SECONDS = 60.0
 
 
 def register(entry: MatcherEntry, replace: bool = False) -> MatcherEntry:
@@ -47,18 +65,18 @@ def unregister(name: str) -> None:
 
 def matcher_names() -> list[str]:
     """Every registered matcher's name (built-ins first, then plugins, in load order)."""
-    _load()
+    _load(plugins=True)
     return list(_REGISTRY)
 
 
 def entries() -> list[MatcherEntry]:
-    _load()
+    _load(plugins=True)
     return list(_REGISTRY.values())
 
 
 def broken_plugins() -> dict[str, str]:
     """Plugin entry points that failed to load: name -> one line."""
-    _load()
+    _load(plugins=True)
     return dict(_BROKEN)
 
 
@@ -71,6 +89,8 @@ def get_matcher(name: str, allow_import: bool = False) -> MatcherEntry:
     imported in this process included); ``this:x`` there is an unknown matcher, imported never.
     """
     _load()
+    if name not in _REGISTRY and name not in _BROKEN and not (isinstance(name, str) and ":" in name):
+        _load(plugins=True)  # not a built-in: perhaps an installed plugin's
     if name in _REGISTRY:
         return _REGISTRY[name]
     if name in _BROKEN:
@@ -135,9 +155,9 @@ def build_matcher(
     if entry.model:
         entry.check_requirements()
         check_device(device)
-        return entry.build(instance, device=device, weights=weights, pretrained=pretrained)
+        return _built(entry, lambda: entry.build(instance, device=device, weights=weights, pretrained=pretrained))
     if not entry.needs_backbone:
-        return entry.build(instance)
+        return _built(entry, lambda: entry.build(instance))
     from ..backbones import load_backbone
 
     net_settings = BackboneSettings(**net_settings)
@@ -151,23 +171,86 @@ def build_matcher(
                             memory_format=net_settings.memory_format)
         if loaded is not None:
             loaded[key] = net
-    return entry.build(instance, net=net, channel_order=net_settings.channel_order)
+    return _built(entry, lambda: entry.build(instance, net=net, channel_order=net_settings.channel_order))
+
+
+def _built(entry: MatcherEntry, build: Callable[[], Matcher]) -> Matcher:
+    """entry.build(...), where a factory that calls sys.exit is that matcher's failure in one
+    line (other exceptions pass as they are: the callers already say what they mean)."""
+    try:
+        return build()
+    except SystemExit as exc:
+        raise ValueError(f"matcher {entry.name} ({entry.origin}): building it called {_exit_text(exc)}") from None
 
 
 # --------------------------------------------------------------------------- loading
 
 
-def _load() -> None:
-    global _loaded
-    if _loaded:
-        return
-    _loaded = True
-    from .builtin import BUILTIN
-    from .peers import PEERS
+def _load(plugins: bool = False) -> None:
+    """The built-ins on the first call; the installed plugins too when `plugins` (once)."""
+    global _loaded, _plugins_loaded
+    if not _loaded:
+        _loaded = True
+        from .builtin import BUILTIN
+        from .peers import PEERS
 
-    for entry in (*BUILTIN, *PEERS):  # the peers' entries import neither kornia nor transformers
-        _REGISTRY[entry.name] = entry
-    load_plugins()
+        for entry in (*BUILTIN, *PEERS):  # the peers' entries import neither kornia nor transformers
+            _REGISTRY[entry.name] = entry
+    if plugins and not _plugins_loaded:
+        _plugins_loaded = True
+        load_plugins()
+
+
+def plugin_import_seconds() -> float:
+    """The bound on one plugin's import: E3CM_BENCH_PLUGIN_TIMEOUT seconds, else PLUGIN_IMPORT_SECONDS."""
+    text = os.environ.get("E3CM_BENCH_PLUGIN_TIMEOUT")
+    if not text:
+        return PLUGIN_IMPORT_SECONDS
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise ValueError(f"E3CM_BENCH_PLUGIN_TIMEOUT={text!r}: expected a number of seconds > 0")
+    return seconds
+
+
+class _TimedOut(Exception):
+    pass
+
+
+def _bounded(call: Callable[[], object], what: str):
+    """call() in a daemon thread, waited for at most plugin_import_seconds(); _TimedOut after
+    that. Whatever call() raises, SystemExit included, is raised here in the caller."""
+    seconds = plugin_import_seconds()
+    done: dict = {}
+
+    def target() -> None:
+        try:
+            done["value"] = call()
+        except BaseException as exc:  # noqa: BLE001 - carried to the caller, SystemExit included
+            done["error"] = exc
+
+    thread = threading.Thread(target=target, name=f"e3cm-bench import {what}", daemon=True)
+    thread.start()
+    thread.join(seconds)
+    if thread.is_alive():
+        raise _TimedOut(f"did not finish importing within {seconds:g} s (E3CM_BENCH_PLUGIN_TIMEOUT sets the bound)")
+    if "error" in done:
+        raise done["error"]
+    return done["value"]
+
+
+def _exit_text(exc: SystemExit) -> str:
+    return f"sys.exit({exc.code!r})"
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, SystemExit):
+        return f"called {_exit_text(exc)}"
+    if isinstance(exc, _TimedOut):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
 
 
 def load_plugins() -> None:
@@ -177,9 +260,11 @@ def load_plugins() -> None:
         origin = f"plugin {dist.name} {dist.version}" if dist is not None else f"plugin {point.value}"
         source = {"package": dist.name, "version": dist.version} if dist is not None else {"entry_point": point.value}
         try:
-            found = _entries_of(point.load(), point.value)
-        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the toolkit
-            _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) failed to load: {type(exc).__name__}: {exc}"
+            found = _bounded(lambda point=point: _entries_of(point.load(), point.value), point.value)
+        except KeyboardInterrupt:
+            raise
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a broken plugin must not break the toolkit
+            _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) failed to load: {_why(exc)}"
             continue
         _BROKEN.pop(point.name, None)
         for entry in found:
@@ -201,9 +286,11 @@ def _entries_of(obj, where: str) -> list[MatcherEntry]:
 def _from_module(name: str) -> MatcherEntry:
     module_name, _, attr = name.partition(":")
     try:
-        module = importlib.import_module(module_name)
-    except Exception as exc:  # noqa: BLE001 - one line, whatever the module does wrong
-        raise ValueError(f"--matcher {name}: cannot import {module_name} ({type(exc).__name__}: {exc})") from None
+        module = _bounded(lambda: importlib.import_module(module_name), module_name)
+    except KeyboardInterrupt:
+        raise
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - one line, whatever the module does wrong
+        raise ValueError(f"--matcher {name}: cannot import {module_name} ({_why(exc)})") from None
     if not hasattr(module, attr):
         raise ValueError(f"--matcher {name}: module {module_name} has no {attr!r}")
     factory = getattr(module, attr)
@@ -215,6 +302,8 @@ def _from_module(name: str) -> MatcherEntry:
     elif callable(factory):
         try:
             made = factory()
+        except SystemExit as exc:
+            raise ValueError(f"--matcher {name}: {attr}() called {_exit_text(exc)}") from None
         except Exception as exc:  # noqa: BLE001
             raise ValueError(f"--matcher {name}: {attr}() raised {type(exc).__name__}: {exc}") from None
         if isinstance(made, MatcherEntry):
