@@ -96,4 +96,5 @@ def pair_time_limit(seconds: float | None, what: str) -> Iterator[None]:
         yield
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        # None: a handler installed outside Python, which cannot be put back; the default then
+        signal.signal(signal.SIGALRM, previous if previous is not None else signal.SIG_DFL)
