@@ -26,7 +26,7 @@ from .images import load_image
 from .method import MethodSpec, identity_changes
 from .report import print_summary
 from .run import RunConfig, RunFolder
-from .runner import match_stage
+from .run.stage import match_stage
 
 FRAMES = (1, 3, 5, 10)
 WINDOWS_FILE = "windows.csv"  # every window's errors (a calibration's per-pair table)

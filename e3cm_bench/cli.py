@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import functools
+import inspect
 import os
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -14,7 +16,7 @@ from rich.console import Console
 
 from .backbones import BACKBONES, BackboneError
 from .cache import DiskFullError
-from .benchmarks import get_benchmark
+from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
 from .benchmarks.protocols import PROTOCOLS, get_protocol
 from .files import load_yaml_text, save_npz, writable_folder
 from .benchmarks import EvalSettings
@@ -33,7 +35,8 @@ from .matchers import get_matcher
 from .matching import ESTIMATORS
 from .paper import config_names, resolve_config
 from .method import MethodSpec, parse_numbers
-from .runner import FEATURE_CACHE_MB, match_pair, run_benchmark
+from .run.stage import MatchOptions
+from .runner import match_pair, run_benchmark
 from .download import find_root
 from .launch import check_workers, run_shards
 from .shards import merge_run, parse_shard
@@ -86,21 +89,30 @@ def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_ord
     return settings
 
 
-def os_error_line(exc: OSError) -> str:
-    """One line for an OSError: the file, the problem, and for a full disk what to do."""
+# The commands that write run folders (with every benchmark's own): only their rerun resumes at
+# the first pair not written.
+RESUMING_COMMANDS = frozenset({"reproduce", "import_matches", "calibrate", "demo"})
+
+
+def os_error_line(exc: OSError, resumes: bool = False) -> str:
+    """One line for an OSError: the file, the problem, and for a full disk what to do (`resumes`:
+    the command is a benchmark's or one of RESUMING_COMMANDS)."""
     import errno
 
     where = exc.filename or ""
     text = exc.strerror or str(exc)
     if isinstance(exc, DiskFullError) or exc.errno != errno.ENOSPC:
         return f"{where}: {text}" if where and where not in text else text
+    # The free space of the filesystem that filled: the nearest existing folder of the file
+    # named. A failed write() names no file: then nothing is quoted, not some other disk's space.
+    existing = next((p for p in (Path(where), *Path(where).parents) if p.exists()), None) if where else None
     free = ""
     try:
-        free = f" ({shutil.disk_usage(Path(where).parent if where else '.').free / 2**20:.1f} MiB free)"
+        free = f" ({shutil.disk_usage(existing).free / 2**20:.1f} MiB free there)" if existing is not None else ""
     except OSError:
         pass
     return (f"{where or 'the output folder'}: no space left on device{free}; free some space and rerun the same "
-            "command: every pair already written resumes")
+            "command" + (": every pair already written resumes" if resumes else ""))
 
 
 def friendly_errors(command):
@@ -128,7 +140,9 @@ def friendly_errors(command):
         except OSError as exc:  # a full disk, a folder that cannot be written: what and where, in one line
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
-            err_console.print(f"[bold red]error:[/] {os_error_line(exc)}", highlight=False, soft_wrap=True)
+            name = command.__name__
+            line = os_error_line(exc, resumes=name in RESUMING_COMMANDS or name.replace("_", "-") in BENCHMARKS)
+            err_console.print(f"[bold red]error:[/] {line}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")
@@ -203,67 +217,74 @@ def match(
     console.print(f"allocator: {kept}", markup=False)
 
 
-def _method(benchmark: str, matcher: str, backbone: str, weights: Path | None, estimator: str,
+def _method(bench: Benchmark, matcher: str, backbone: str, weights: Path | None, estimator: str | None,
             sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
             settings: list[str] | None, protocol: str, precision: str = "fp32",
             channel_order: str = "rgb", device: str = "cpu") -> MethodSpec:
-    """The method of a benchmark command. --max-side unset takes the protocol's side, else the
-    benchmark's default (resized the protocol's way); the protocol's matcher settings apply where --set gives none."""
-    preset = get_protocol(protocol, benchmark)
-    if max_side is None and benchmark in preset.max_side:
-        max_side = preset.max_side[benchmark] or 0
-    if get_matcher(matcher, allow_import=True).needs_backbone:
-        options = {**preset.method_options.get(benchmark, {}), **parse_settings(settings, precision, channel_order, device)}
-    else:  # precision, channel order and the preset's network settings concern deep matchers only
-        options = parse_settings(settings)
-    return MethodSpec.create(
-        matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"), parse_numbers(ratio, "--ratio"),
-        get_benchmark(benchmark).max_side(max_side), seed, label, options=options, upright=preset.upright,
-        resize=preset.resize_mode(benchmark),
+    """The method of a benchmark command (Benchmark.resolve_method, as experiment configs get theirs)."""
+    deep = get_matcher(matcher, allow_import=True).needs_backbone
+    # precision and channel order concern deep matchers only
+    options = parse_settings(settings, precision, channel_order, device) if deep else parse_settings(settings)
+    return bench.resolve_method(
+        matcher, protocol=protocol, backbone=backbone, weights=weights, estimator=estimator,
+        sampson_px=parse_numbers(sampson_px, "--sampson-px"), ratio=parse_numbers(ratio, "--ratio"),
+        max_side=max_side, seed=seed, label=label, settings=options,
     )
 
 
-def _eval_settings(benchmark: str, protocol: str, seed: int, ransac_px: float | None,
-                   pose_estimator: str | None, repeats: int = 1) -> EvalSettings:
-    """The evaluation settings of a command: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
-    fields = get_protocol(protocol, benchmark).eval_fields(benchmark)
-    if pose_estimator:
-        fields["estimator"] = pose_estimator
-    if repeats != 1:
-        fields["repeats"] = repeats
-    return get_benchmark(benchmark).eval_settings(seed=seed, ransac_px=ransac_px, **fields)
+@dataclass(frozen=True)
+class Scale:
+    """How a run's shards run: --shard K/N here, --workers N local processes, --devices one per
+    device, or --launcher slurm with --shards N; at most one of them."""
+
+    shard: str | None = None
+    workers: int = 0
+    devices: str | None = None
+    launcher: str = "local"
+    shards: int = 0
+
+    def check(self) -> None:
+        several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
+                                                ("--devices", self.devices), ("--launcher slurm", self.launcher == "slurm"))
+                   if given]
+        if len(several) > 1:
+            raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
+        if not self.devices:
+            check_workers(self.workers)
+        if self.launcher == "slurm" and not self.shards:
+            raise ValueError("--launcher slurm needs --shards N")
 
 
-def _run(benchmark: str, method: MethodSpec, root: Path, out: Path, dataset_options: dict, skip_bad: bool,
-         seed: int, ransac_px: float | None, limit: int | None, overwrite: bool, eval_only: bool, viz: int, device: str,
-         scale: tuple, protocol: str = "default", feature_cache_mb: float | None = FEATURE_CACHE_MB,
-         pose_estimator: str | None = None, backbone_batch: int | None = None, repeats: int = 1) -> None:
-    shard, workers, devices, launcher, shards = scale
-    preset = get_protocol(protocol, benchmark)
-    console.print(preset.line(), markup=False)
-    ev = _eval_settings(benchmark, protocol, seed, ransac_px, pose_estimator, repeats)
-    run = dict(benchmark=benchmark, out=out, method=method, root=root, dataset_options=dataset_options,
-               skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz, feature_cache_mb=feature_cache_mb,
-               backbone_batch=backbone_batch)
-    several = [option for option, given in (("--shard", shard), ("--workers", workers), ("--devices", devices),
-                                            ("--launcher slurm", launcher == "slurm")) if given]
-    if len(several) > 1:
-        raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
-    if not devices:
-        check_workers(workers)
+def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path | None, matcher: str, backbone: str,
+                weights: Path | None, max_side: int | None, limit: int | None, device: str, seed: int,
+                overwrite: bool, eval_only: bool, viz: int, estimator: str | None, sampson_px: str | None,
+                ratio: str | None, label: str | None, settings: list[str] | None, protocol: str, precision: str,
+                channel_order: str, feature_cache_mb: float | None, backbone_batch: int | None, skip_bad: bool,
+                ransac_px: float | None, pose_estimator: str | None, repeats: int, on_matcher_error: str,
+                pair_timeout: float | None,
+                shard: str | None, workers: int, devices: str | None, launcher: str, shards: int) -> None:
+    """What every benchmark command does with its options (the commands are made by benchmark_command)."""
+    method = _method(bench, matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings,
+                     protocol, precision, channel_order, device)
+    scale = Scale(shard, workers, devices, launcher, shards)
+    scale.check()
+    console.print(get_protocol(protocol, bench.name).line(), markup=False)
+    ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator, repeats)
+    run = dict(benchmark=bench.name, out=out, method=method, root=find_root(bench.name, root),
+               dataset_options=dataset_options, skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz,
+               options=MatchOptions(feature_cache_mb, backbone_batch=backbone_batch, on_matcher_error=on_matcher_error,
+                                    pair_timeout=pair_timeout))
     if workers or devices:
         device_list = devices.split(",") if devices else ["cpu"] * workers
         run_shards(run, len(device_list), devices=device_list, console=console)
     elif launcher == "slurm":
-        if not shards:
-            raise ValueError("--launcher slurm needs --shards N")
         run_shards(run, shards, launcher="slurm", console=console)
     else:
         run_benchmark(**run, eval_only=eval_only, device=device, shard=parse_shard(shard) if shard else None,
                       console=console)
 
 
-# Options of the three benchmark commands.
+# Options of the benchmark commands.
 ShardOpt = Annotated[Optional[str], typer.Option("--shard", help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).")]
 WorkersOpt = Annotated[int, typer.Option("--workers", help="Run N shards at once in N local processes, CPU threads divided among them, then merge.")]
 DevicesOpt = Annotated[Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")]
@@ -281,77 +302,64 @@ SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="
 CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
 RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
+OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.")]
+PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the pair fails as --on-matcher-error says (POSIX, main thread; default: no limit).")]
 PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench[poselib]'); --eval-only may change it.")]
 
-
-@app.command()
-@friendly_errors
-def hpatches(
-    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
-    max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
-    overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
-    backbone_batch: BackboneBatchOpt = None,
-    exclude_large: Annotated[bool, typer.Option("--exclude-large", help="The 108-sequence / 540-pair protocol (D2-Net).")] = False,
-    sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="Keep these sequences (names or globs; repeatable).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
-    shards: ShardsOpt = 0,
-) -> None:
-    """HPatches: MMA@1..10 px (overall / illumination / viewpoint) and homography accuracy."""
-    method = _method("hpatches", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order, device)
-    _run("hpatches", method, find_root("hpatches", root), out, {"exclude_large": exclude_large, "sequences": sequences}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
-         repeats)
+# Every benchmark command's options, in the order --help lists them; the benchmark's own
+# dataset options (Benchmark.dataset_options) come between the two groups.
+_NO_DEFAULT = inspect.Parameter.empty
+COMMON_BEFORE = (
+    ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), ("matcher", MatcherOpt, "e3cm"),
+    ("backbone", BackboneOpt, "vgg19"), ("weights", WeightsOpt, None), ("max_side", MaxSideOpt, None),
+    ("limit", LimitOpt, None), ("device", DeviceOpt, "cpu"), ("seed", SeedOpt, 0), ("overwrite", OverwriteOpt, False),
+    ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0), ("estimator", EstimatorOpt, None),
+    ("sampson_px", SampsonOpt, None), ("ratio", RatioOpt, None), ("label", LabelOpt, None), ("settings", SetOpt, None),
+    ("protocol", ProtocolOpt, "default"), ("precision", PrecisionOpt, "fp32"), ("channel_order", ChannelOrderOpt, "rgb"),
+    ("feature_cache_mb", FeatureCacheOpt, None), ("backbone_batch", BackboneBatchOpt, None),
+)
+COMMON_AFTER = (
+    ("skip_bad", SkipBadOpt, False), ("ransac_px", RansacOpt, None), ("pose_estimator", PoseEstimatorOpt, None),
+    ("repeats", RepeatsOpt, 1), ("on_matcher_error", OnMatcherErrorOpt, "stop"),
+    ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
+    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0),
+)
+# A dataset option's kind (benchmarks/base.py OPTION_KINDS) -> its type and default on the command line.
+OPTION_TYPES = {"flag": (bool, False), "path": (Optional[Path], None), "paths": (Optional[list[Path]], None),
+                "names": (Optional[list[str]], None), "text": (Optional[str], None)}
 
 
-@app.command()
-@friendly_errors
-def megadepth(
-    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
-    max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
-    overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
-    backbone_batch: BackboneBatchOpt = None,
-    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="scene_info .npz files (default: all under ROOT/scene_info; a ROOT in glue-factory's megadepth1500 layout needs none).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
-    shards: ShardsOpt = 0,
-) -> None:
-    """MegaDepth-1500: relative pose AUC@5/10/20 and matching precision."""
-    method = _method("megadepth", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order, device)
-    _run("megadepth", method, find_root("megadepth", root), out, {"scene_info": scene_info}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
-         repeats)
+def dataset_parameters(bench: Benchmark) -> list[inspect.Parameter]:
+    """The command-line options of a benchmark's dataset options."""
+    params = []
+    for option in bench.command_options():
+        kind, default = OPTION_TYPES[option.kind]
+        annotation = Annotated[kind, typer.Option(option.flag, help=option.help)]
+        params.append(inspect.Parameter(option.name, inspect.Parameter.KEYWORD_ONLY, default=default,
+                                        annotation=annotation))
+    return params
 
 
-@app.command()
-@friendly_errors
-def yfcc(
-    out: OutOpt, root: RootOpt = None, matcher: MatcherOpt = "e3cm", backbone: BackboneOpt = "vgg19", weights: WeightsOpt = None,
-    max_side: MaxSideOpt = None, limit: LimitOpt = None, device: DeviceOpt = "cpu", seed: SeedOpt = 0,
-    overwrite: OverwriteOpt = False, eval_only: EvalOnlyOpt = False, viz: VizOpt = 0,
-    estimator: EstimatorOpt = None, sampson_px: SampsonOpt = None, ratio: RatioOpt = None, label: LabelOpt = None,
-    settings: SetOpt = None, protocol: ProtocolOpt = "default", precision: PrecisionOpt = "fp32",
-    channel_order: ChannelOrderOpt = "rgb", feature_cache_mb: FeatureCacheOpt = FEATURE_CACHE_MB,
-    backbone_batch: BackboneBatchOpt = None,
-    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pair list (default ROOT/yfcc_test_pairs_with_gt.txt).")] = None,
-    skip_bad: SkipBadOpt = False, ransac_px: RansacOpt = None, pose_estimator: PoseEstimatorOpt = None,
-    repeats: RepeatsOpt = 1, shard: ShardOpt = None, workers: WorkersOpt = 0, devices: DevicesOpt = None, launcher: LauncherOpt = "local",
-    shards: ShardsOpt = 0,
-) -> None:
-    """YFCC100M (or any SuperGlue-format pair list): pose AUC@5/10/20 and matching precision."""
-    method = _method("yfcc", matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, protocol,
-                     precision, channel_order, device)
-    _run("yfcc", method, find_root("yfcc", root), out, {"pairs": pairs}, skip_bad, seed, ransac_px, limit, overwrite, eval_only, viz, device,
-         (shard, workers, devices, launcher, shards), protocol, feature_cache_mb, pose_estimator, backbone_batch,
-         repeats)
+def benchmark_command(bench: Benchmark):
+    """The command `e3cm-bench NAME` of a registered benchmark: the common options and its own
+    dataset options (typer reads the signature built here, as it reads a written one)."""
+
+    def command(**given) -> None:
+        dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
+        run_command(bench, dataset_options, **given)
+
+    common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
+                                              annotation=annotation) for name, annotation, default in group]
+    params = common(COMMON_BEFORE) + dataset_parameters(bench) + common(COMMON_AFTER)
+    command.__signature__ = inspect.Signature(params)
+    command.__annotations__ = {p.name: p.annotation for p in params}
+    command.__name__ = command.__qualname__ = bench.name.replace("-", "_")
+    command.__doc__ = bench.summary or f"The {bench.name} benchmark."
+    return friendly_errors(command)
+
+
+for _bench in BENCHMARKS.values():
+    app.command(_bench.name)(benchmark_command(_bench))
 
 
 @app.command()
@@ -625,6 +633,10 @@ def import_matches(
     root: RootOpt = None,
     hloc: Annotated[Optional[tuple[Path, Path]], typer.Option("--hloc", help="FEATURES.h5 MATCHES.h5 written by hloc (or in its layout).")] = None,
     npz: Annotated[Optional[Path], typer.Option("--npz", help="Folder of <pair name>.npz (keypoints0, keypoints1, optional scores).")] = None,
+    colmap: Annotated[Optional[Path], typer.Option("--colmap", help="A COLMAP database.db (images named by their path under the root; needs pycolmap).")] = None,
+    gluefactory: Annotated[Optional[Path], typer.Option("--gluefactory", help="glue-factory's predictions.h5 (its evaluation cache).")] = None,
+    pixel_origin: Annotated[Optional[str], typer.Option("--pixel-origin", help="center (top-left pixel's centre at 0,0) or corner (at 0.5,0.5): overrides the format's own (hloc, npz: center; colmap, gluefactory: corner).")] = None,
+    limit: Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs (as a benchmark run's --limit).")] = None,
     label: LabelOpt = None,
     skip_bad: SkipBadOpt = False,
     overwrite: OverwriteOpt = False,
@@ -639,18 +651,28 @@ def import_matches(
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: keep these sequences (names or globs).")] = None,
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
-    from .imported import HlocSource, NpzSource, import_run
+    from .imported import ColmapSource, GluefactorySource, HlocSource, NpzSource, import_run
 
-    if (hloc is None) == (npz is None):
-        raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5 or --npz DIR")
+    given = [name for name, value in (("--hloc", hloc), ("--npz", npz), ("--colmap", colmap),
+                                      ("--gluefactory", gluefactory)) if value is not None]
+    if len(given) != 1:
+        raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5, --npz DIR, --colmap DATABASE.db or "
+                         f"--gluefactory PREDICTIONS.h5 (given: {', '.join(given) or 'none'})")
     bench = get_benchmark(benchmark)
     root = find_root(bench.name, root)
     options = {"exclude_large": exclude_large, "sequences": sequences, "scene_info": scene_info, "pairs": pairs}
-    dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.dataset_options})
-    ev = _eval_settings(bench.name, protocol, seed, ransac_px, pose_estimator)
-    source = HlocSource(*hloc) if hloc is not None else NpzSource(npz)
+    dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.option_names})
+    ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator)
+    if hloc is not None:
+        source = HlocSource(*hloc, origin=pixel_origin)
+    elif npz is not None:
+        source = NpzSource(npz, origin=pixel_origin)
+    elif colmap is not None:
+        source = ColmapSource(colmap, origin=pixel_origin)
+    else:
+        source = GluefactorySource(gluefactory, bench.name, origin=pixel_origin)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
-               console=console)
+               console=console, limit=limit)
 
 
 @app.command()
@@ -723,6 +745,21 @@ def synth_stereo(
     """A stereo rig with a drifted extrinsic (about 1 degree each angle) moving through the demo's room scene."""
     root = write_stereo_sequence(out, frames=frames, seed=seed)
     console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)")
+
+
+@app.command("export")
+@friendly_errors
+def export_matches(
+    run: Annotated[Path, typer.Argument(help="A run folder (config.yaml, matches.h5).")],
+    out: Annotated[Path, typer.Argument(help="Folder for the files.")],
+    to: Annotated[str, typer.Option("--to", help="colmap (database.db), hloc (features.h5, matches.h5), gluefactory (predictions.h5) or npz (the folder import --npz reads).")],
+    pixel_origin: Annotated[Optional[str], typer.Option("--pixel-origin", help="center or corner: overrides the format's own convention (hloc, npz: center; colmap, gluefactory: corner).")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the files already in OUT.")] = False,
+) -> None:
+    """Write a run's matches for another tool: COLMAP, hloc, glue-factory or npz (docs: Matches in and out)."""
+    from .interchange import export_run
+
+    export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -18,7 +18,7 @@ from .datasets.base import Pair
 from .files import write_csv
 from .images import load_image
 from .intervals import metric_keys, summary_intervals
-from .run import RunFolder
+from .run import FAILED_ATTR, RunFolder
 from .viz import draw_matches, save_image
 
 # Until every reader asks RunFolder: the two names importers still use.
@@ -105,8 +105,12 @@ def evaluate_and_report(
     per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
+    failures = matcher_failures(pairs, cache)
+    if failures:  # scored as failures (no matches); the count says how many were the matcher's
+        summary["n_failed"] = len(failures)
     check_free_space(out, REPORT_BYTES + max(viz, 0) * VIZ_BYTES)  # the reports (tables, plots) need room too
     write_skipped(skipped, folder.skipped_path, console)
+    write_failures(failures, folder.failures_path, console)
     write_reports(benchmark, folder, label, per_pair, summary, pairs, cache, ev, viz)
     return pairs, summary
 
@@ -118,3 +122,23 @@ def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) 
         return
     write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
     console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
+
+
+def matcher_failures(pairs: list[Pair], cache) -> list[tuple[str, str]]:
+    """(pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair)."""
+    failures = []
+    for pair in pairs:
+        message = cache.read(pair.name).info.get(FAILED_ATTR)
+        if message is not None:
+            failures.append((pair.name, str(message)))
+    return failures
+
+
+def write_failures(failures: list[tuple[str, str]], path: Path, console: Console) -> None:
+    """failures.csv (pair, error) when the matcher failed on pairs; no stale file when it did not."""
+    if not failures:
+        path.unlink(missing_ok=True)
+        return
+    write_csv(pd.DataFrame(failures, columns=["pair", "error"]), path)
+    console.print(f"{len(failures)} pair(s) failed in the matcher and count as failures, listed in {path} "
+                  f"(first: {failures[0][1]})", markup=False)

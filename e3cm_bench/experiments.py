@@ -21,11 +21,63 @@ from .files import absolute_paths, load_yaml, save_yaml
 from .matchers import get_matcher
 from .method import MethodSpec
 from .paper import resolve_config
+from .run import RunFolder
 from .runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
 METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side", "settings"}
 EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods", "protocol"}
+
+
+# What each key's value must be, checked before anything reads it, so that a value of the wrong
+# kind is one line naming the file and the key instead of a traceback deep in a run (a label of
+# 123 used as a folder name, a max_side of "big" compared with 0). YAML reads `no` and `"no"`
+# differently; a flag takes true/false only, since a quoted "no" would be truthy.
+def _text(value) -> bool:
+    return isinstance(value, str) and value.strip() != ""
+
+
+def _whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _numbers(value) -> bool:
+    return _number(value) or isinstance(value, list) and bool(value) and all(_number(v) for v in value)
+
+
+def _texts(value) -> bool:
+    return _text(value) or isinstance(value, list) and bool(value) and all(_text(v) for v in value)
+
+
+_KINDS = {
+    "text": (_text, "non-empty text"),
+    "whole": (_whole, "a whole number >= 0"),
+    "numbers": (_numbers, "a number or a list of numbers"),
+    "mapping": (lambda v: isinstance(v, dict), "a mapping of NAME: VALUE"),
+    "flag": (lambda v: isinstance(v, bool), "true or false"),
+    "texts": (_texts, "text or a list of texts"),
+}
+EXPERIMENT_TYPES = {"name": "text", "benchmark": "text", "seed": "whole", "max_side": "whole", "backbone": "text",
+                    "protocol": "text", "dataset": "mapping"}
+METHOD_TYPES = {"matcher": "text", "label": "text", "backbone": "text", "weights": "text", "estimator": "text",
+                "sampson_px": "numbers", "ratio": "numbers", "max_side": "whole", "settings": "mapping"}
+# a dataset option's kind (benchmarks.base.OPTION_KINDS) -> what its value in a config must be
+DATASET_TYPES = {"flag": "flag", "path": "text", "paths": "texts", "names": "texts", "text": "text"}
+
+
+def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = ()) -> None:
+    """A one-line ValueError naming the file and the first key whose value is not of its kind
+    (`nullable` keys may also be null: the default)."""
+    for key, kind in types.items():
+        if key not in values or values[key] is None and key in nullable:
+            continue
+        test, wanted = _KINDS[kind]
+        if not test(values[key]):
+            raise ValueError(f"{path}: {where}{key!r} must be {wanted}, got {values[key]!r}")
 
 
 def experiment_method(
@@ -39,23 +91,14 @@ def experiment_method(
     """
     matcher = entry["matcher"]
     own_backbone = entry.get("backbone", experiment.get("backbone", "vgg19"))
-    protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
-    if max_side_override is not None:
-        max_side = benchmark.max_side(max_side_override)
-    else:
-        protocol_side = protocol.max_side[benchmark.name] or 0 if benchmark.name in protocol.max_side else None
-        max_side = benchmark.max_side(entry.get("max_side", experiment.get("max_side", protocol_side)))
-    settings = dict(entry.get("settings") or {})
-    deep = get_matcher(matcher, allow_import=True).needs_backbone  # the config is the user's, as --matcher is
-    if deep:
-        settings = {**protocol.method_options.get(benchmark.name, {}), **settings}
-    options = dict(
-        matcher=matcher, weights=entry.get("weights"), estimator=entry.get("estimator"),
-        sampson_px=entry.get("sampson_px"), ratio=entry.get("ratio"), max_side=max_side,
-        seed=int(experiment.get("seed", 0)), options=settings, upright=protocol.upright,
-        resize=protocol.resize_mode(benchmark.name), available=available,
+    max_side = max_side_override if max_side_override is not None else entry.get("max_side", experiment.get("max_side"))
+    spec = benchmark.resolve_method(
+        matcher, protocol=experiment.get("protocol", "default"), backbone=backbone_override or own_backbone,
+        weights=entry.get("weights"), estimator=entry.get("estimator"), sampson_px=entry.get("sampson_px"),
+        ratio=entry.get("ratio"), max_side=max_side, seed=int(experiment.get("seed", 0)),
+        settings=entry.get("settings"), available=available,
     )
-    spec = MethodSpec.create(backbone=backbone_override or own_backbone, **options)
+    deep = spec.backbone is not None
     # The default label names the method's own backbone; a forced one is added in brackets.
     label = entry.get("label") or replace(spec, backbone=own_backbone if spec.backbone else None).default_label()
     if backbone_override and deep and backbone_override != own_backbone:
@@ -69,14 +112,14 @@ def load_experiment(path: Path) -> dict:
     unknown = set(config) - EXPERIMENT_KEYS
     if unknown:
         raise ValueError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has {', '.join(sorted(EXPERIMENT_KEYS))}")
-    for key in ("seed", "max_side"):
-        if key in config and (not isinstance(config[key], int) or isinstance(config[key], bool) or config[key] < 0):
-            raise ValueError(f"{path}: '{key}' must be a whole number >= 0, got {config[key]!r}")
     if not isinstance(config.get("dataset") or {}, dict):
         raise ValueError(f"{path}: 'dataset' must be a mapping of dataset options")
+    _check_types(path, "", config, EXPERIMENT_TYPES, nullable=("dataset",))
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])
+    kinds = {o.name: DATASET_TYPES[o.kind] for o in benchmark.command_options()}
+    _check_types(path, "dataset: ", config.get("dataset") or {}, kinds, nullable=tuple(kinds))
     methods = config.get("methods")
     if not isinstance(methods, list) or not methods:
         raise ValueError(f"{path}: 'methods' must be a non-empty list")
@@ -84,6 +127,7 @@ def load_experiment(path: Path) -> dict:
     for i, method in enumerate(methods):
         if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
             raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
+        _check_types(path, f"methods[{i}]: ", method, METHOD_TYPES, nullable=tuple(set(METHOD_TYPES) - {"matcher"}))
         try:
             get_matcher(method["matcher"], allow_import=True)
         except ValueError as exc:
@@ -103,7 +147,7 @@ def load_experiment(path: Path) -> dict:
         if label in labels:
             raise ValueError(f"{path}: two methods are labelled {label!r}")
         labels.add(label)
-    unknown = set(config.get("dataset") or {}) - set(benchmark.dataset_options)
+    unknown = set(config.get("dataset") or {}) - set(benchmark.option_names)
     if unknown:
         raise ValueError(f"{path}: dataset option(s) {', '.join(sorted(unknown))} do not apply to {benchmark.name}")
     return config
@@ -139,7 +183,7 @@ def reproduce(
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
     dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
     protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
-    ev = benchmark.eval_settings(seed=int(experiment.get("seed", 0)), **protocol.eval_fields(benchmark.name))
+    ev = benchmark.resolve_eval(experiment.get("protocol", "default"), seed=int(experiment.get("seed", 0)))
     out = Path(out)
     entries = experiment["methods"]
     if only:
@@ -169,7 +213,7 @@ def reproduce(
             run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev,
                           limit=limit, device=device, shard=shard, console=console)
     run_dirs = [out / m.folder for m in methods]
-    if shard is not None and not all((d / "summary.csv").is_file() and "shards" in load_yaml(d / "config.yaml") for d in run_dirs):
+    if shard is not None and not all(RunFolder(d).is_run() and "shards" in RunFolder(d).read_config() for d in run_dirs):
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
                       f"(or: e3cm-bench merge {out})", markup=False)
         return None

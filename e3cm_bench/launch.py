@@ -5,12 +5,14 @@ last to finish merges (shards.py)."""
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 
 import pandas as pd
 from rich.console import Console
 
 from .report import print_summary
 from .run import RunFolder
+from .run.stage import MatchOptions
 
 
 WORKER_BYTES = 2 << 30  # memory one local CPU worker may take (torch, a backbone, two images' pyramids)
@@ -93,11 +95,12 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
         device = devices[(k - 1) % len(devices)]
         threads = threads_per_worker(len(devices)) if device == "cpu" else None
         job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True}
-        if launcher == "local" and device == "cpu" and kwargs.get("feature_cache_mb") is None:
+        options = kwargs.get("options") or MatchOptions()
+        if launcher == "local" and device == "cpu" and options.feature_cache_mb is None:
             from .matchers.feature_cache import auto_cache_mb
 
             # local CPU workers share the host's memory: each gets its part of the default budget
-            job["feature_cache_mb"] = auto_cache_mb("cpu") / sum(d == "cpu" for d in devices)
+            job["options"] = replace(options, feature_cache_mb=auto_cache_mb("cpu") / sum(d == "cpu" for d in devices))
         jobs.append(job)
     if launcher == "slurm":
         try:

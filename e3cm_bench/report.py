@@ -19,9 +19,10 @@ from rich.table import Table
 
 from .benchmarks import Benchmark, get_benchmark
 from . import intervals
-from .files import load_yaml, read_csv, write_atomically, write_csv
+from .files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
 from .formats import format_interval, format_number
 from .paper import PAPER_DIR
+from .run import RunFolder
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
@@ -44,6 +45,10 @@ class Run:
     benchmark: Benchmark
     label: str
 
+    @property
+    def folder(self) -> RunFolder:
+        return RunFolder(self.dir)
+
 
 def _read_config(path: Path) -> dict:
     config = load_yaml(path, what="config.yaml (every run folder needs one)")
@@ -52,6 +57,27 @@ def _read_config(path: Path) -> dict:
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
     return config
+
+
+# per_pair.csv columns that hold names; every other column of the benchmark's holds numbers.
+TEXT_PAIR_COLUMNS = ("pair", "sequence", "scene")
+
+
+def _read_per_pair(path: Path, benchmark: Benchmark) -> pd.DataFrame:
+    """A run's per-pair rows, refused in one line naming the file where the report could not
+    use them: a pair with two rows (the tables index rows by pair; one of the two would be
+    taken at random), or a number column holding text."""
+    table = read_keyed_csv(path, "per-pair table", ["pair"])
+    numeric = set(benchmark.pair_columns(benchmark.eval_settings())) | set(benchmark.report_columns)
+    for column in [c for c in table.columns if c in numeric and c not in TEXT_PAIR_COLUMNS]:
+        values = pd.to_numeric(table[column], errors="coerce")
+        bad = values.isna() & table[column].notna()
+        if bad.any():
+            first = int(bad.to_numpy().nonzero()[0][0])
+            raise ValueError(f"{path}: column {column} holds {table[column].iloc[first]!r}, not a number "
+                             f"(pair {table['pair'].iloc[first]}, line {first + 2})")
+        table[column] = values
+    return table
 
 
 def _read_summary(path: Path, benchmark: Benchmark) -> dict:
@@ -71,12 +97,13 @@ def load_run(run_dir: str | Path) -> Run:
     ``per_pair.csv`` is optional: the tables need only the summary, and a missing
     per-pair file yields an empty DataFrame (the pose CDF plot then refuses that run).
     """
-    run_dir = Path(run_dir)
-    config = _read_config(run_dir / "config.yaml")
+    folder = RunFolder(run_dir)
+    run_dir = folder.path
+    config = _read_config(folder.config_path)
     benchmark = get_benchmark(config["benchmark"])
-    summary = _read_summary(run_dir / "summary.csv", benchmark)
-    per_pair_path = run_dir / "per_pair.csv"
-    per_pair = read_csv(per_pair_path) if per_pair_path.is_file() else pd.DataFrame()
+    summary = _read_summary(folder.summary_path, benchmark)
+    per_pair_path = folder.per_pair_path
+    per_pair = _read_per_pair(per_pair_path, benchmark) if per_pair_path.is_file() else pd.DataFrame()
     label = str(config.get("method") or run_dir.resolve().name)
     return Run(dir=run_dir, config=config, summary=summary, per_pair=per_pair, benchmark=benchmark, label=label)
 
@@ -105,12 +132,8 @@ def eval_settings_of(run: Run):
     fields it lacks); None when the block cannot be read as settings."""
     from .benchmarks import EvalSettings
 
-    block = dict(run.config.get("evaluation") or {})
-    fields = {k: v for k, v in block.items() if k in EvalSettings.__dataclass_fields__}
-    if isinstance(fields.get("precision_thresholds"), list):
-        fields["precision_thresholds"] = tuple(fields["precision_thresholds"])
     try:
-        return EvalSettings(**fields)
+        return EvalSettings.from_record(run.config.get("evaluation"))
     except (TypeError, ValueError):
         return None
 

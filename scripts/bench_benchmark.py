@@ -12,7 +12,7 @@ homography, written as JPEG, so decoding is paid as with the real files and matc
 real work. VGG19 with random weights (seed 0), the same on both sides; random weights cost
 what ImageNet ones do.
 
-  ours: runner.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
+  ours: run.stage.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
         reuse_order, the feature cache with this machine's default memory and disk budgets,
         decoding ahead, --precision, --device, --backbone-batch (default: the run's, 8 on a
         GPU and 1 on a CPU). Backbone passes and passes per image are its own counts.
@@ -54,7 +54,7 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import load_image
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import match_stage
+from e3cm_bench.run.stage import MatchOptions, match_stage
 from e3cm_bench.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -165,7 +165,7 @@ def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -
     method.build(args.device).pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)
     t = time.perf_counter()
     stats = match_stage(method, pairs, MatchCache(work / "ours" / "matches.h5"), args.device, quiet,
-                        feature_cache_mb=args.cache_mb, backbone_batch=args.backbone_batch)
+                        options=MatchOptions(feature_cache_mb=args.cache_mb, backbone_batch=args.backbone_batch))
     t_ours = time.perf_counter() - t
     reuse = stats["feature_reuse"]
     result = {

@@ -22,7 +22,7 @@ import pytest
 import torch
 import yaml
 
-import e3cm_bench.runner as runner_module
+import e3cm_bench.run.stage as runner_module
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.method import MethodSpec
 from helpers import flat, invoke, one_line_error
@@ -442,7 +442,7 @@ def test_resume_matches_only_new_pairs(megadepth_root, kitti_npz, kitti_referenc
     out = tmp_path / "run"
     matched = count_matching(monkeypatch)
     ok(*kitti_args(megadepth_root, kitti_npz, out, 2))
-    # the match stage orders pairs for feature reuse (runner.reuse_order): which, not in what order
+    # the match stage orders pairs for feature reuse (pair_order.reuse_order): which, not in what order
     assert sorted(matched) == ["kitti00_seq/000100--000103", "kitti00_seq/000101--000104"]
     assert len(read_csv(out / "per_pair.csv")) == 2
 

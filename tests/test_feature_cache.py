@@ -16,7 +16,10 @@ from e3cm_bench.cache import MatchCache
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore, compact
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.images import load_image
-from e3cm_bench.runner import SPILL_FOLDER, matcher_input, run_benchmark
+from e3cm_bench.run import RunFolder
+from e3cm_bench.run.pair import matcher_input
+from e3cm_bench.run.stage import MatchOptions
+from e3cm_bench.runner import run_benchmark
 from helpers import assert_same_arrays
 
 MiB = 2**20
@@ -191,14 +194,14 @@ def test_spilling_to_disk_passes_each_image_once_and_changes_no_match(shared_dat
     dataset = hp.load_dataset(root, sequences=["v_boat"])
     one = method.build("cpu").backbone.pyramid_bytes(240, 320) / MiB  # float32 bytes of one pyramid
     budget = one * (0.8 if precision == "fp32" else 0.4)  # bf16 maps are held in 2 bytes
-    run_benchmark(hp, tmp_path / "spill", method, dataset=dataset, feature_cache_mb=budget)
+    run_benchmark(hp, tmp_path / "spill", method, dataset=dataset, options=MatchOptions(feature_cache_mb=budget))
     reuse = yaml.safe_load((tmp_path / "spill" / "config.yaml").read_text())["feature_reuse"]
     assert reuse["backbone_passes"] == 6 == reuse["distinct_images"] and reuse["passes_per_image"] == 1.0
     assert reuse["read_from_disk"] == 4 and reuse["peak_memory_mb"] == 0 and reuse["images_alive_at_most"] == 2
     # written once and read in place (memory cannot hold it); the others have no pair left to wait for
     assert reuse["written_to_disk"] == 1
-    assert not (tmp_path / "spill" / SPILL_FOLDER).exists()
-    run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, feature_cache_mb=0)
+    assert not (RunFolder(tmp_path / "spill").spill_dir).exists()
+    run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, options=MatchOptions(feature_cache_mb=0))
     assert_same_arrays(tmp_path / "spill", tmp_path / "plain")
 
 
@@ -220,13 +223,13 @@ def test_backbone_passes_batched_ahead_pass_each_image_once_and_change_no_match(
     exact = all(torch.equal(a, b) for i, maps in enumerate(backbone.forward_batch(images))
                 for a, b in zip(maps, backbone(images[i:i + 1])))
     budget = None if memory == "default" else 0.8 * method.build("cpu").backbone.pyramid_bytes(240, 320) / MiB
-    run_benchmark(hp, tmp_path / "batched", method, dataset=dataset, feature_cache_mb=budget, backbone_batch=4)
+    run_benchmark(hp, tmp_path / "batched", method, dataset=dataset, options=MatchOptions(feature_cache_mb=budget, backbone_batch=4))
     reuse = yaml.safe_load((tmp_path / "batched" / "config.yaml").read_text())["feature_reuse"]
     assert reuse["backbone_batch"] == 4 and reuse["largest_batch"] == 4
     assert reuse["backbone_passes"] == 6 == reuse["distinct_images"]
     if memory == "short":
         assert reuse["read_from_disk"] >= 5  # each image computed ahead came back from disk
-    run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, feature_cache_mb=0)
+    run_benchmark(hp, tmp_path / "plain", method, dataset=dataset, options=MatchOptions(feature_cache_mb=0))
     if exact:
         assert_same_arrays(tmp_path / "batched", tmp_path / "plain")
     else:
@@ -244,7 +247,8 @@ import json, sys
 from pathlib import Path
 import cv2, numpy as np
 from rich.console import Console
-import e3cm_bench.runner as runner
+import e3cm_bench.run.stage as stage
+from e3cm_bench.run.stage import MatchOptions
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.method import MethodSpec
@@ -260,11 +264,11 @@ def resident_mb():
 # the resident memory after each pair: what the process holds between pairs (the cache among
 # it), without the network's transient activations, which dwarf a few pyramids at their peak
 after = []
-match_one = runner._match_one
+match_one = stage._match_one
 def measured(*args, **kwargs):
     match_one(*args, **kwargs)
     after.append(resident_mb())
-runner._match_one = measured
+stage._match_one = measured
 
 folder, budget = Path(sys.argv[1]), float(sys.argv[2])
 paths = []
@@ -278,8 +282,8 @@ pairs = [Pair(f"{a}-{b}", paths[a], paths[b]) for a, b in edges]
 method = MethodSpec.create("direct", "efficientnet_lite0")
 out = folder / f"run{budget}"
 out.mkdir()
-stats = runner.match_stage(method, pairs, MatchCache(out / "matches.h5"), "cpu", Console(quiet=True), feature_cache_mb=budget,
-                           spill_mb=0)
+stats = stage.match_stage(method, pairs, MatchCache(out / "matches.h5"), "cpu", Console(quiet=True), options=MatchOptions(feature_cache_mb=budget,
+                           spill_mb=0))
 print(json.dumps({"peak_mb": max(after), "reuse": stats.get("feature_reuse")}))
 """
 

@@ -21,7 +21,7 @@ import torch  # noqa: E402
 from e3cm_bench.images import load_image, resize_max_side  # noqa: E402
 from e3cm_bench.matchers import build_matcher, get_matcher  # noqa: E402
 from e3cm_bench.method import MethodSpec  # noqa: E402
-from e3cm_bench.runner import checked_match, match_pair  # noqa: E402
+from e3cm_bench.run.pair import checked_match, match_pair  # noqa: E402
 
 PEERS = ("loftr", "superpoint+superglue", "superpoint+lightglue", "disk+lightglue", "aliked+lightglue")
 # Random networks score nothing above the reference thresholds: open them so that matches come out.

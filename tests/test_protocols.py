@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from e3cm_bench.metrics import summarize_pose
-from e3cm_bench.runner import match_pair, unrotate_points
+from e3cm_bench.run.pair import match_pair, unrotate_points
 from helpers import invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
@@ -78,7 +78,7 @@ def test_a_pair_stored_rotated_is_matched_upright_and_mapped_back(shared_data, l
 def test_yfcc_pairs_carry_their_rotations_to_the_runner(tmp_path):
     from e3cm_bench.datasets.yfcc import YFCC100M
     from e3cm_bench.method import MethodSpec
-    from e3cm_bench.runner import pair_rotations
+    from e3cm_bench.run.pair import pair_rotations
 
     for name in ("a.jpg", "b.jpg"):
         cv2.imwrite(str(tmp_path / name), np.full((32, 48, 3), 128, np.uint8))

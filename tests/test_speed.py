@@ -20,7 +20,8 @@ from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import ImageError
 from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import decoded_ahead, run_benchmark, run_methods
+from e3cm_bench.run.stage import MatchOptions, decoded_ahead
+from e3cm_bench.runner import run_benchmark, run_methods
 from helpers import assert_same_arrays
 
 GLIBC = platform.libc_ver()[0] == "glibc"  # keep_freed_memory tunes glibc's malloc only
@@ -63,7 +64,7 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
         assert config["environment"]["allocator"] == "glibc, freed memory kept (M_MMAP_MAX=0, no trim)"
 
     run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
-                  feature_cache_mb=0)
+                  options=MatchOptions(feature_cache_mb=0))
     assert "feature_reuse" not in yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())
 
     assert_same_arrays(tmp_path / "reuse", tmp_path / "plain")
@@ -97,7 +98,7 @@ def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_da
         assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 14
         assert config["feature_reuse"]["products_reused"] > 0
     for method in [*methods, sift]:
-        run_benchmark(hp, tmp_path / "alone" / method.folder, method, dataset=dataset, limit=3, feature_cache_mb=0)
+        run_benchmark(hp, tmp_path / "alone" / method.folder, method, dataset=dataset, limit=3, options=MatchOptions(feature_cache_mb=0))
         assert_same_arrays(tmp_path / "joint" / method.folder, tmp_path / "alone" / method.folder)
 
 

@@ -1,5 +1,5 @@
 """A run: its folder (RunFolder, the one owner of the layout and the config record)."""
 
-from .folder import RunConfig, RunFolder
+from .folder import FAILED_ATTR, RunConfig, RunFolder
 
-__all__ = ["RunConfig", "RunFolder"]
+__all__ = ["FAILED_ATTR", "RunConfig", "RunFolder"]

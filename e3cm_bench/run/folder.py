@@ -27,6 +27,11 @@ from pathlib import Path
 from ..cache import MatchCache
 from ..files import FolderLock, load_yaml, package_versions, run_environment, save_yaml
 
+# The cache attribute of a pair whose matcher failed (--on-matcher-error fail-pair): the message.
+# The pair is stored with no matches, so that it scores as a failure and a resume keeps it;
+# failures.csv lists such pairs.
+FAILED_ATTR = "matcher_error"
+
 
 @dataclass
 class RunConfig:
