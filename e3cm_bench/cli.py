@@ -35,6 +35,7 @@ from .matchers import get_matcher
 from .matching import ESTIMATORS
 from .paper import config_names, resolve_config
 from .method import MethodSpec, parse_numbers
+from .run import RunConfig
 from .run.stage import MatchOptions
 from .runner import match_pair, run_benchmark
 from .download import find_root
@@ -625,10 +626,8 @@ def datasets(
         console.print(status(source, to), markup=False, highlight=False, soft_wrap=True)
 
 
-@app.command("import")
-@friendly_errors
 def import_matches(
-    benchmark: Annotated[str, typer.Argument(help="hpatches, megadepth or yfcc.")],
+    benchmark: Annotated[str, typer.Argument(help=f"The benchmark: {', '.join(BENCHMARKS)}.")],
     out: OutOpt,
     root: RootOpt = None,
     hloc: Annotated[Optional[tuple[Path, Path]], typer.Option("--hloc", help="FEATURES.h5 MATCHES.h5 written by hloc (or in its layout).")] = None,
@@ -645,10 +644,7 @@ def import_matches(
     ransac_px: RansacOpt = None,
     pose_estimator: PoseEstimatorOpt = None,
     protocol: ProtocolOpt = "default",
-    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files.")] = None,
-    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list.")] = None,
-    exclude_large: Annotated[bool, typer.Option("--exclude-large", help="HPatches: the 108-sequence protocol.")] = False,
-    sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: keep these sequences (names or globs).")] = None,
+    **dataset_options,
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
     from .imported import ColmapSource, GluefactorySource, HlocSource, NpzSource, import_run
@@ -660,8 +656,12 @@ def import_matches(
                          f"--gluefactory PREDICTIONS.h5 (given: {', '.join(given) or 'none'})")
     bench = get_benchmark(benchmark)
     root = find_root(bench.name, root)
-    options = {"exclude_large": exclude_large, "sequences": sequences, "scene_info": scene_info, "pairs": pairs}
-    dataset = bench.load_dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if k in bench.option_names})
+    mine = {o.name for o in bench.command_options()}
+    foreign = sorted(OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False, []))
+    if foreign:
+        raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
+    options = {k: v for k, v in dataset_options.items() if k in mine}
+    dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
     ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator)
     if hloc is not None:
         source = HlocSource(*hloc, origin=pixel_origin)
@@ -672,7 +672,38 @@ def import_matches(
     else:
         source = GluefactorySource(gluefactory, bench.name, origin=pixel_origin)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
-               console=console, limit=limit)
+               console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+
+
+def all_dataset_parameters() -> list[inspect.Parameter]:
+    """Every registered benchmark's dataset options, once each (for `import`, which takes the
+    benchmark as an argument); the help names the benchmarks an option applies to."""
+    seen: dict[str, tuple[object, list[str]]] = {}
+    for bench in BENCHMARKS.values():
+        for option in bench.command_options():
+            seen.setdefault(option.name, (option, []))[1].append(bench.name)
+    params = []
+    for name, (option, names) in seen.items():
+        kind, default = OPTION_TYPES[option.kind]
+        annotation = Annotated[kind, typer.Option(option.flag, help=f"{', '.join(names)}: {option.help}")]
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation))
+    return params
+
+
+def _with_dataset_options(command):
+    """`command` with every benchmark's dataset options added to its signature (typer reads it)."""
+    signature = inspect.signature(command, eval_str=True)
+    fixed = [p for p in signature.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    fixed = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) if p.default is not inspect.Parameter.empty else p
+             for p in fixed]
+    params = fixed + all_dataset_parameters()
+    command.__signature__ = inspect.Signature(params)
+    command.__annotations__ = {p.name: p.annotation for p in params}
+    return command
+
+
+OPTION_FLAGS = {o.name: o.flag for bench in BENCHMARKS.values() for o in bench.command_options()}
+app.command("import")(friendly_errors(_with_dataset_options(import_matches)))
 
 
 @app.command()

@@ -24,14 +24,14 @@ from rich.console import Console
 from .benchmarks import Benchmark, EvalSettings
 from .cache import MatchCache
 from .datasets.base import Pair, PairList
-from .evaluate import CACHE_FILE, CONFIG_FILE, evaluate_and_report
-from .files import FolderLock, load_yaml, package_versions, run_environment, save_yaml
+from .evaluate import evaluate_and_report
 from .images import load_image
 from .interchange import ColmapSource, GluefactorySource, HlocSource, MissingPair, NpzSource, half_pixel_check
 from .interchange.base import image_name
 from .interchange.hloc import hloc_pair_key
 from .matches import MatchesError, check_in_image
 from .report import print_summary
+from .run import RunConfig, RunFolder
 
 # The sources live in e3cm_bench.interchange; these names stay importable from here.
 SOURCES = (HlocSource, NpzSource, ColmapSource, GluefactorySource)
@@ -42,13 +42,15 @@ __all__ = ["SOURCES", "ColmapSource", "GluefactorySource", "HlocSource", "Missin
 def import_run(
     benchmark: Benchmark, dataset: PairList, root: Path, out: Path, source,
     ev: EvalSettings | None = None, label: str | None = None, skip_bad: bool = False, overwrite: bool = False,
-    viz: int = 0, console: Console | None = None, limit: int | None = None,
+    viz: int = 0, console: Console | None = None, limit: int | None = None, dataset_load: dict | None = None,
 ) -> dict:
     """Write another tool's matches for every benchmark pair into OUT's cache, then evaluate
     them as any run; returns the summary. A pair the source lacks or holds bad matches for
     (wrong shapes, NaN, outside the image) is an error naming it, or with skip_bad is
     skipped and listed in skipped.csv. An interrupted import resumes: pairs already in the
-    cache are kept. limit: only the first N pairs of the dataset (as a benchmark run's --limit)."""
+    cache are kept. limit: only the first N pairs of the dataset (as a benchmark run's --limit).
+    dataset_load: how to load the pairs again (RunConfig.dataset_load_of), so that the run can
+    be exported or its matches drawn later."""
     console = console or Console()
     ev = ev or EvalSettings()
     out = Path(out)
@@ -61,26 +63,24 @@ def import_run(
     files = source.files(pairs)
     identity = {"imported": source.identity(files)}
     label = label or f"imported-{source.format}"
-    with FolderLock(out):
-        cache = MatchCache(out / CACHE_FILE)
-        config_path = out / CONFIG_FILE
+    folder = RunFolder(out)
+    with folder.lock():
         if overwrite:
-            cache.clear()
-            for name in (CONFIG_FILE, "per_pair.csv", "summary.csv", "skipped.csv"):
-                (out / name).unlink(missing_ok=True)
-        done = set(cache.names())
-        if config_path.exists():
-            _check_resume(load_yaml(config_path), config_path, benchmark, identity, files if source.per_pair else None, done)
-        config = {
-            "benchmark": benchmark.name, "method": label, "identity": identity,
-            "matcher": {"imported": source.format, **source.location()}, "device": None,
-            "dataset": {**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
-            "evaluation": asdict(ev), "versions": package_versions(), "environment": run_environment(),
-            "timing": {},
-        }
-        if source.per_pair:  # each pair's file, so that a resume can tell what changed
-            config["imported_files"] = files
-        save_yaml(config, config_path)
+            folder.clear()
+        cache, todo = folder.resume(pairs)
+        done = {p.name for p in pairs} - {p.name for p in todo}
+        previous = folder.read_config()
+        if previous is not None:
+            _check_resume(previous, folder.config_path, benchmark, identity, files if source.per_pair else None, done)
+        config = RunConfig(
+            benchmark=benchmark.name, method=label, identity=identity,
+            matcher={"imported": source.format, **source.location()}, device=None,
+            dataset={**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
+            evaluation=asdict(ev), environment=RunConfig.environment_now(), dataset_load=dataset_load,
+            # each pair's file, so that a resume can tell what changed
+            imported_files=files if source.per_pair else None,
+        )
+        folder.write_config(config)
         skipped = list(dataset.skipped)
         missing: list[str] = []
         t = time.perf_counter()
@@ -92,13 +92,11 @@ def import_run(
             first = next(p for p in pairs if p.name == missing[0])
             raise ValueError(f"{len(missing)} of {len(pairs)} pairs are not in the source (first: {missing[0]}, "
                              f"expected at {source.expected(first, root)}); --skip-bad evaluates the others")
-        config["timing"] = {"import_seconds": time.perf_counter() - t}
-        check = _convention_check(pairs, cache, source, console)
-        if check is not None:
-            config["pixel_origin_check"] = check
-        pairs_done, summary = evaluate_and_report(benchmark, out, label, pairs, skipped, cache, ev, viz, console)
-        config["dataset"]["n_skipped"] = len(skipped)
-        save_yaml(config, config_path)
+        config.timing = {"import_seconds": time.perf_counter() - t}
+        config.pixel_origin_check = _convention_check(pairs, cache, source, console)
+        pairs_done, summary = evaluate_and_report(benchmark, folder, label, pairs, skipped, cache, ev, viz, console)
+        config.dataset["n_skipped"] = len(skipped)
+        folder.write_config(config)
     print_summary(summary, f"{benchmark.name} - {label} ({len(pairs_done)} pairs, imported from {source.format}) -> {out}",
                   console=console)
     return summary

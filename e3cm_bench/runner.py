@@ -22,7 +22,6 @@ from .cache import MatchCache
 from .datasets.base import Pair, PairList
 from .devices import check_device, keep_freed_memory
 from .evaluate import evaluate_and_report
-from .files import absolute_paths
 from .matchers.base import Matcher
 from .matchers.guards import describe_matcher
 from .method import MethodSpec, identity_changes
@@ -98,10 +97,7 @@ def run_benchmark(
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
         dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **(dataset_options or {}))
-        # How to load the same pairs again (merging shards needs the ground truth), with absolute
-        # paths: a merge may run in another working directory (a SLURM task's).
-        load = {"root": str(Path(root).resolve()), "skip_bad": skip_bad,
-                "options": {k: absolute_paths(v) for k, v in (dataset_options or {}).items() if v is not None}}
+        load = RunConfig.dataset_load_of(root, skip_bad, dataset_options)
     else:
         load = dataset_load  # given with a dataset object, so that its shards can be merged
     n_total = len(dataset) + dataset.n_skipped

@@ -14,9 +14,8 @@ import numpy as np
 from rich.console import Console
 
 from ..benchmarks import EvalSettings, get_benchmark
-from ..cache import MatchCache
-from ..evaluate import CACHE_FILE, CONFIG_FILE
-from ..files import FolderLock, load_yaml, writable_folder
+from ..files import load_yaml, writable_folder
+from ..run import RunFolder
 from ..images import load_image
 from ..matches import Matches
 from .base import image_name
@@ -48,8 +47,8 @@ class ExportItem:
 
 def load_run_pairs(run_dir: Path):
     """(benchmark, config, root, pairs) of a run folder, the pairs as the run loaded them."""
-    config_path = Path(run_dir) / CONFIG_FILE
-    config = load_yaml(config_path, what="config.yaml (every run folder needs one)")
+    config_path = RunFolder(run_dir).config_path
+    config = load_yaml(config_path, what=f"{config_path.name} (every run folder needs one)")
     try:
         benchmark = get_benchmark(config.get("benchmark"))
     except ValueError as error:
@@ -114,7 +113,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
         try:  # the evaluation's own settings, so that the stored inliers are the ones it found
             ev = EvalSettings.from_record(config.get("evaluation"))
         except (TypeError, ValueError) as error:
-            raise ValueError(f"{run_dir / CONFIG_FILE}: its evaluation settings cannot be read ({error})") from None
+            raise ValueError(f"{RunFolder(run_dir).config_path}: its evaluation settings cannot be read ({error})") from None
     writable_folder(out)
     if not overwrite:
         taken = [out / name for name in OUTPUTS[fmt] if (out / name).exists()]
@@ -123,8 +122,9 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
         if taken:
             raise ValueError(f"{taken[0]}: already exists; pass --overwrite to replace it or choose another OUT")
     items = []
-    with FolderLock(run_dir):
-        cache = MatchCache(run_dir / CACHE_FILE)
+    folder = RunFolder(run_dir)
+    with folder.lock():
+        cache = folder.cache()
         done = set(cache.names())
         for pair in pairs:
             if pair.name not in done:

@@ -55,13 +55,14 @@ class RunConfig:
     shard: dict | None = None
     shards: dict | None = None
     imported_files: dict | None = None
+    pixel_origin_check: dict | None = None  # an import's half-pixel check (interchange.pixels)
     # a calibration's (calibrate.py): the sequence and its settings
     command: str | None = None
     sequence: dict | None = None
     calibration: dict | None = None
 
-    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "command", "sequence",
-                "calibration")
+    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "pixel_origin_check", "command",
+                "sequence", "calibration")
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)
@@ -71,6 +72,15 @@ class RunConfig:
     def from_dict(cls, record: dict) -> RunConfig:
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in record.items() if k in names})
+
+    @staticmethod
+    def dataset_load_of(root: str | Path, skip_bad: bool, options: dict | None) -> dict:
+        """How to load the same pairs again (merging shards and exporting need the ground truth),
+        with absolute paths: a merge may run in another working directory (a SLURM task's)."""
+        from ..files import absolute_paths
+
+        return {"root": str(Path(root).resolve()), "skip_bad": skip_bad,
+                "options": {k: absolute_paths(v) for k, v in (options or {}).items() if v is not None}}
 
     @staticmethod
     def environment_now() -> dict:
@@ -216,6 +226,11 @@ class RunFolder:
 
         cache = self.cache()
         done = set(cache.names())  # one pass over the files, not one open per pair
+        if done and not self.config_path.exists():
+            # matches whose record is gone: what made them (a matcher, an import) is unknown
+            raise ValueError(f"{self.matches_path}: holds the matches of {len(done)} pairs but {self.CONFIG} is "
+                             "missing, so what made them is unknown; pass --overwrite to replace them or choose "
+                             "another --out")
         for block in cache.damaged:
             if console is not None:
                 console.print(f"warning: {block} is damaged (unreadable); its pairs (at most {BLOCK_PAIRS}) will be "
