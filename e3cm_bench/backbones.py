@@ -52,12 +52,10 @@ class BackboneSpec:
     # DFM's stage 1 starts one conv before the deepest tap (VGG19: conv5_2, features[30]): the
     # position of that module inside the last stage, for backbones the DFM release supports.
     stage1_tap: int | None = None
-    # fp32 convolutions in channels_last memory where that is faster (scripts/bench_layout.py,
-    # results/perf/layout_fp32.txt: EfficientNet-Lite0 0.68x the NCHW time at 640x480, 0.72x at
-    # 1200x900; VGG19 0.92x and 0.77x once its maps were copied out of channels_last in bands,
-    # channel_first_float). The rounding differs (Lite0 maps at most 2e-9 apart, VGG19 6e-6);
-    # the parity tests pass with either. `memory_format=nchw` gives VGG19 the releases' maps
-    # bit for bit.
+    # fp32 convolutions in channels_last memory, for the backbones where that layout is the
+    # faster one (docs/speed.md, "channels_last in fp32"). Convolutions in another layout add
+    # in another order, so the maps round differently from NCHW ones; the parity tests hold
+    # either way, and `memory_format=nchw` keeps the releases' maps bit for bit.
     fp32_channels_last: bool = False
 
 

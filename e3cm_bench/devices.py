@@ -51,9 +51,9 @@ def available_host_memory() -> int | None:
     return None
 
 
-# Measured (docs/speed.md): bf16 autocast on a CPU without native bf16 instructions (an AMD
-# EPYC with AVX2, no AVX-512 BF16 or AMX) took 111.5 s per pair at 1200x900 where fp32 took
-# 21.2 s: oneDNN emulates it.
+# How many times slower than fp32 a bf16 pass is where the CPU lacks bf16 instructions and
+# oneDNN emulates them: the warning quotes it, so the user sees what --precision bf16 costs
+# there. The two timings it is the ratio of: docs/speed.md, "bf16: effect on the results".
 EMULATED_BF16_SLOWDOWN = 111.5 / 21.2
 
 

@@ -82,10 +82,7 @@ def run_environment() -> dict:
     """
     import torch  # lazily: files.py is imported by commands that never need torch
 
-    try:
-        capability = str(torch.backends.cpu.get_cpu_capability())
-    except (AttributeError, RuntimeError):  # torch before 2.1
-        capability = "unknown"
+    capability = str(torch.backends.cpu.get_cpu_capability())
     model, flags = cpu_info()
     # torch's own version string names its build (2.14.1+cu130, 2.14.1+cpu), which the
     # package metadata in `versions` may not.

@@ -44,12 +44,10 @@ from .deep import DeepMatcher
 
 # "auto" prewarp: warp when the stage-0 homography's local map at B's centre turns by more
 # than this, or scales (either axis, or one against the other) by more than this factor.
-# Chosen with Lite0 on the shared sets (scripts/prewarp_report.py; docs/methods.md
-# "e3cm-plus"): the warp rescues the pairs the unwarped cascade fails (HPatches sample:
-# v_boat 1-4 and 1-6, v_graffiti 1-6, turns of 35-51 degrees or zooms of 1.6-3.6), and costs
-# 0.2-0.5 px or 0.2 degrees where the unwarped cascade already succeeds: the demo's pairs,
-# which turn 2-16 degrees and scale up to 1.39, and its room scene (1.26). KITTI pairs turn
-# 0-3 degrees. Before, 5 degrees and 1.25 fired on all of those demo pairs.
+# The warp rescues pairs with large turns or zooms, which the unwarped cascade fails, and
+# costs a little accuracy on pairs the unwarped cascade already matches; the bounds sit
+# between those two kinds of pair on the shared sets (scripts/prewarp_report.py; the
+# evidence: docs/methods.md, "Where e3cm-plus's automatic prewarp fires").
 PREWARP_MIN_ROTATION_DEG = 16.0
 PREWARP_MAX_SCALE = 1.5
 # realign: the RANSAC threshold of the homography refitted to the final (level-0) matches.

@@ -38,8 +38,8 @@ class UnitPixels:
         """len(index) x C: the normalised pixels at flat positions `index` (y W + x)."""
         rows = self.rows.index_select(0, index)
         # bf16 rows widen to float32 exactly, so widening them first and dividing in place
-        # gives the bits of dividing the bf16 rows by the float32 norms, in 0.76-0.87x the time
-        # (scripts/bench_gather.py, 474 patches of 16 x 16).
+        # gives the bits of dividing the bf16 rows by the float32 norms, and spares torch
+        # widening element by element inside the division (the cost: docs/speed.md).
         rows = rows.to(self.norms.dtype)
         return rows.div_(self.norms.index_select(0, index)[:, None])
 

@@ -107,9 +107,9 @@ def first_of_each(rows: torch.Tensor) -> torch.Tensor:
     if len(rows) == 0:
         return torch.zeros(0, dtype=torch.long, device=rows.device)
     keys = row_keys(rows)
-    # torch.unique over rows (dim=0) compares them one pair at a time on the CPU: 26 ms a call,
-    # about 100 ms of a 1200x900 pair, in a profile; 46 ms for 40,000 random rows of 4 cells,
-    # where one integer per row, which sorts the same way, took 3.4 ms (Intel Xeon, avx512f).
+    # torch.unique over rows (dim=0) compares them one pair at a time on the CPU; one integer
+    # per row sorts the same way and is unique'd as a flat tensor, far faster (docs/speed.md,
+    # "Duplicate children found by one key per row"). Rows whose key could overflow fall back.
     uniq, inverse = torch.unique(rows, dim=0, return_inverse=True) if keys is None else torch.unique(keys, return_inverse=True)
     first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
     return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")

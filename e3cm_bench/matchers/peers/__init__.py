@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from ..base import MatcherEntry
 from .weights import HubFile, HubModel
 
-PEER_REQUIREMENTS = ("kornia", "transformers")
 LOFTR_WEIGHTS = ("outdoor", "indoor", "indoor_new")
 
 
