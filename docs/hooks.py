@@ -5,6 +5,7 @@ In a page:
     {{ csv_table("results/sample/table1_hpatches/table.csv", columns=[...], where="source == 'measured'",
                  rename={...}, decimals=2, pivot={"index": ..., "columns": ..., "values": ...}) }}
     {{ cli_reference }}
+    {{ layer_table }}
 Paths are relative to the repository root (the folder of mkdocs.yml). Only literals are
 accepted as arguments (read with ast.literal_eval): a page cannot run code.
 """
@@ -15,7 +16,7 @@ import ast
 import re
 from pathlib import Path
 
-MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference)\s*\}\}", re.S)
+MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference|layer_table)\s*\}\}", re.S)
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -45,6 +46,8 @@ def render(call: str, root: Path, page: str) -> str:
     try:
         if call == "cli_reference":
             return cli_reference()
+        if call == "layer_table":
+            return layer_table(root)
         node = ast.parse(call, mode="eval").body
         args = [ast.literal_eval(a) for a in node.args]
         kwargs = {k.arg: ast.literal_eval(k.value) for k in node.keywords}
@@ -115,3 +118,18 @@ def cli_reference() -> str:
     command = typer.main.get_command(app)
     text = get_docs_for_click(obj=command, ctx=typer.Context(command), name="e3cm-bench", title="e3cm-bench")
     return re.sub(r"^# e3cm-bench\n", "", text)
+
+
+def layer_table(root: Path) -> str:
+    """The package's layers as its imports make them now (scripts/code_shape.py computes them)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("code_shape", root / "scripts" / "code_shape.py")
+    shape = importlib.util.module_from_spec(spec)
+    sys.modules["code_shape"] = shape  # its dataclasses look the module up while it loads
+    spec.loader.exec_module(shape)
+    package = root / "e3cm_bench"
+    depth = shape.layers(shape.import_graph(package))
+    return (f"{len(depth)} modules in {max(depth.values()) + 1} layers.\n\n{shape.layer_table(package)}\n\n"
+            "<small>Rendered at build time from the package's imports (`scripts/code_shape.py --layers`).</small>\n")

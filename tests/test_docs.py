@@ -31,12 +31,24 @@ def test_there_are_runnable_examples_and_the_api_page_has_one():
     assert "api.md" in pages and len(pages) >= 2
 
 
+# Pages whose every Python block shows code to run, so every one is marked runnable.
+FULLY_RUNNABLE = ("own-matcher.md", "architecture.md")
+
+
+def test_every_python_block_of_the_fully_runnable_pages_is_marked():
+    for name in FULLY_RUNNABLE:
+        text = (REPO / "docs" / name).read_text()
+        blocks = text.count("```python\n")
+        assert blocks and len(RUNNABLE.findall(text)) == blocks, f"{name}: a ```python block is not marked runnable"
+
+
 @pytest.mark.parametrize("page, index, code", [b for b in runnable_blocks() if b[0] != "api.md"],
                          ids=lambda v: v if isinstance(v, str) and v.endswith(".md") else None)
-def test_runnable_examples_run_as_written(page, index, code, shared_data, tmp_path):
+def test_runnable_examples_run_as_written(page, index, code, request, tmp_path):
     work = tmp_path / "checkout"  # a checkout-like folder: ../shared/data and runs/ resolve here
     work.mkdir()
-    (tmp_path / "shared").symlink_to(shared_data.parent)
+    if "../shared" in code:  # only the blocks that read the real samples skip without them
+        (tmp_path / "shared").symlink_to(request.getfixturevalue("shared_data").parent)
     done = subprocess.run([sys.executable, "-c", code], cwd=work, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, f"{page} block {index}:\n{done.stderr[-2000:]}"
 
@@ -73,9 +85,11 @@ def site(tmp_path_factory):
 
 def test_the_strict_build_has_every_page_the_cli_and_api_references(site):
     pages = ["getting-started", "data", "benchmarks", "methods", "peers", "own-matcher", "results", "report", "speed",
-             "robustness", "calibration", "cluster", "cli", "api", "development"]
+             "robustness", "calibration", "cluster", "cli", "api", "development", "architecture"]
     for page in pages:
         assert (site / page / "index.html").is_file(), page
+    architecture = (site / "architecture" / "index.html").read_text()  # the layer table, computed at build time
+    assert re.search(r"\d+ modules in \d+ layers", architecture) and "<code>run.folder</code>" in architecture
     cli = (site / "cli" / "index.html").read_text()
     for command in ("e3cm-bench hpatches", "e3cm-bench download", "e3cm-bench datasets", "--pose-estimator"):
         assert command in cli, command

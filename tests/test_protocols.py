@@ -257,6 +257,19 @@ def test_a_protocol_of_another_benchmark_is_a_one_line_error(tmp_path):
     assert "unknown protocol" in line
 
 
+def test_the_default_protocol_holds_for_a_benchmark_added_later():
+    """A new benchmark module needs no line in protocols.py: `default` sets nothing of its own."""
+    from e3cm_bench.benchmarks import HomographyBenchmark
+    from e3cm_bench.benchmarks.protocols import get_protocol
+    from e3cm_bench.datasets.hpatches import HPatches
+
+    assert get_protocol("default", "added-later").name == "default"
+    spec = HomographyBenchmark(name="added-later", dataset=HPatches).resolve_method("sift")
+    assert spec.matcher == "sift" and spec.max_side is None
+    with pytest.raises(ValueError, match="defined for"):
+        get_protocol("wxbs", "added-later")
+
+
 def test_set_rejects_a_setting_the_matcher_does_not_have(tmp_path):
     line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "o", "--matcher", "e3cm",
                                  "--set", "variant=corrected"))

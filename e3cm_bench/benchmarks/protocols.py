@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 
 @dataclass(frozen=True)
 class Protocol:
-    """max_side: {benchmark: longer side for matching, None = full resolution}; a benchmark
-    not listed keeps its own default. resize: {benchmark: how images are brought to that side,
+    """benchmarks: those the protocol is defined for; empty: every benchmark. max_side:
+    {benchmark: longer side for matching, None = full resolution}; a benchmark not listed
+    keeps its own default. resize: {benchmark: how images are brought to that side,
     images.RESIZE_MODES}; not listed: shrink (ours). method_options: deep-matcher settings the reference
     code used (num_levels, channel_order), per benchmark. drop_failures: pairs whose pose
     could not be estimated leave the AUC (instead of counting with error inf). upright:
@@ -49,7 +50,7 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
         "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side at most 1200, HPatches full size; "
         "failures count with error inf; YFCC images turned upright)",
-        ("hpatches", "megadepth", "yfcc", "wxbs", "evd"),
+        (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
     ),
     Protocol(
         "wxbs", "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), F at 0.25 px "
@@ -98,6 +99,6 @@ def get_protocol(name: str, benchmark: str) -> Protocol:
     if name not in PROTOCOLS:
         raise ValueError(f"unknown protocol {name!r}; choose one of {', '.join(PROTOCOLS)}")
     protocol = PROTOCOLS[name]
-    if benchmark not in protocol.benchmarks:
+    if protocol.benchmarks and benchmark not in protocol.benchmarks:
         raise ValueError(f"protocol {name!r} is defined for {', '.join(protocol.benchmarks)}, not {benchmark}")
     return protocol
