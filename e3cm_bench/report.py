@@ -60,7 +60,7 @@ def _read_config(path: Path) -> dict:
 
 
 # per_pair.csv columns that hold names; every other column of the benchmark's holds numbers.
-TEXT_PAIR_COLUMNS = ("pair", "sequence", "scene")
+TEXT_PAIR_COLUMNS = ("pair", "sequence", "scene", "category")  # category: WxBS (benchmarks/wxbs.py)
 
 
 def _read_per_pair(path: Path, benchmark: Benchmark) -> pd.DataFrame:
