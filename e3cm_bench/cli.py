@@ -25,7 +25,7 @@ from .datasets.base import DatasetError, Pair
 from .devices import keep_freed_memory
 from .demo import METHODS as DEMO_METHODS
 from .demo import run_demo
-from .calibrate import CalibrationSettings, run_calibration
+from .calibration.run import CalibrationSettings, run_calibration
 from .synth.stereo import write_stereo_sequence
 from .synth.textures import demo_pair
 from .experiments import reproduce as reproduce_experiment
@@ -39,8 +39,8 @@ from .run import RunConfig
 from .run.stage import MatchOptions
 from .runner import match_pair, run_benchmark
 from .download import find_root
-from .launch import check_workers, run_shards
-from .shards import merge_run, parse_shard
+from .run.launch import check_workers, run_shards
+from .run.shards import merge_run, parse_shard
 from .viz import draw_matches, save_image
 
 app = typer.Typer(

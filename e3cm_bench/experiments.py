@@ -231,7 +231,7 @@ def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: C
 
 def merge_experiment(out: Path, compare: bool = True, console: Console | None = None) -> tuple[Path, Path]:
     """Merge every method of a sharded reproduce in OUT, then write its table."""
-    from .shards import merge_run
+    from .run.shards import merge_run
 
     experiment = load_yaml(Path(out) / EXPERIMENT_COPY)
     run_dirs = [Path(out) / folder for folder in experiment["runs"]]

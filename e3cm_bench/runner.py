@@ -29,7 +29,7 @@ from .report import print_summary
 from .run import RunConfig, RunFolder
 from .run.pair import match_pair
 from .run.stage import MatchJob, MatchOptions, match_jobs
-from .shards import merge_when_complete, shard_dir, shard_slice
+from .run.shards import merge_when_complete, shard_dir, shard_slice
 
 __all__ = ["MatchOptions", "match_pair", "run_benchmark", "run_methods"]
 

@@ -72,19 +72,22 @@ def test_the_scan_finds_a_run_file_name_built_into_a_path(tmp_path):
 
 
 # interchange's hloc format writes hloc's own files, features.h5 and matches.h5: the same name as
-# the run folder's match cache, another file. The lead is deciding how interchange names them.
-HLOC_NAMES = "e3cm_bench/interchange/export.py and e3cm_bench/interchange/hloc.py"
+# the run folder's match cache, another tool's file in another folder. Exempt by file and name only.
+FOREIGN = {("e3cm_bench/interchange/export.py", "matches.h5"), ("e3cm_bench/interchange/hloc.py", "matches.h5")}
 
 
-@pytest.mark.xfail(reason=f"{HLOC_NAMES} name 'matches.h5' (hloc's own file, not the run folder's): "
-                          "being converted", strict=False)
+def _exempt(line: str) -> bool:
+    where, rest = line.split(":", 1)[0], line.split(": ", 1)[1]
+    return (where, rest.split(" in ")[0]) in FOREIGN
+
+
 def test_only_the_run_folder_names_its_files():
     """Every module but run/folder.py asks RunFolder for a run folder's paths."""
     as_path, in_prose = [], []
     for path in sorted(PACKAGE.rglob("*.py")):
         if path != OWNER:
             found = run_file_names(path)
-            as_path += found[0]
+            as_path += [line for line in found[0] if not _exempt(line)]
             in_prose += found[1]
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")

@@ -11,7 +11,7 @@ from e3cm_bench.pair_order import most_alive, reuse_order
 
 
 def _script():
-    path = Path(__file__).resolve().parents[1] / "scripts" / "pair_order.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_pair_order.py"
     spec = importlib.util.spec_from_file_location("pair_order_script", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)

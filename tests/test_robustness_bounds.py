@@ -175,7 +175,7 @@ def test_workers_die_with_their_parent(tmp_path):
     """A parent killed with SIGKILL (no chance to clean up) takes its pool's workers with it."""
     code = """
 import os, time
-from e3cm_bench.launch import worker_pool
+from e3cm_bench.run.launch import worker_pool
 pool = worker_pool(2)
 futures = [pool.submit(time.sleep, 120) for _ in range(2)]
 time.sleep(3)

@@ -1,6 +1,6 @@
 """Launching a run's shards: one local process per worker or device, or a SLURM array
 (submitit). Each shard is an ordinary run (runner.run_benchmark with shard=(K, N)); the
-last to finish merges (shards.py)."""
+last to finish merges (run/shards.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from dataclasses import replace
 import pandas as pd
 from rich.console import Console
 
-from .report import print_summary
-from .run import RunFolder
-from .run.stage import MatchOptions
+from ..report import print_summary
+from .folder import RunFolder
+from .stage import MatchOptions
 
 
 WORKER_BYTES = 2 << 30  # memory one local CPU worker may take (torch, a backbone, two images' pyramids)
@@ -25,7 +25,7 @@ def threads_per_worker(workers: int) -> int:
 def max_cpu_workers() -> tuple[int, str]:
     """How many local CPU workers this machine holds: one per core, and WORKER_BYTES of
     available memory each; with the reason, for the message."""
-    from .devices import available_host_memory
+    from ..devices import available_host_memory
 
     cores = os.cpu_count() or 1
     free = available_host_memory()
@@ -73,7 +73,7 @@ def run_shard_job(kwargs: dict) -> dict:
     """One shard in this process (what a local worker or a SLURM array task runs)."""
     import torch
 
-    from .runner import run_benchmark  # in the worker: a shard loads the models
+    from ..runner import run_benchmark  # in the worker: a shard loads the models
 
     threads = kwargs.pop("threads", None)
     if threads:
@@ -97,7 +97,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
         job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True}
         options = kwargs.get("options") or MatchOptions()
         if launcher == "local" and device == "cpu" and options.feature_cache_mb is None:
-            from .matchers.feature_cache import auto_cache_mb
+            from ..matchers.feature_cache import auto_cache_mb
 
             # local CPU workers share the host's memory: each gets its part of the default budget
             job["options"] = replace(options, feature_cache_mb=auto_cache_mb("cpu") / sum(d == "cpu" for d in devices))

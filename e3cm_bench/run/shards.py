@@ -7,7 +7,7 @@ shared between processes. `merge_run` checks that all N shards exist, are comple
 share one identity, evaluates every pair from the shards' caches, and writes the usual
 CSVs, plots and config.yaml into OUT. The last shard to finish merges automatically.
 Launching is left to the cluster's scheduler (SLURM arrays, scripts/slurm/) or to
-`launch.run_shards` (one local process per worker or device; submitit for SLURM).
+`run.launch.run_shards` (one local process per worker or device; submitit for SLURM).
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from .benchmarks import EvalSettings, get_benchmark
-from .evaluate import evaluate_and_report
-from .report import print_summary
-from .run import RunConfig, RunFolder
+from ..benchmarks import EvalSettings, get_benchmark
+from ..evaluate import evaluate_and_report
+from ..report import print_summary
+from .folder import RunConfig, RunFolder
 
 def parse_shard(text: str) -> tuple[int, int]:
     """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from .geometry import essential_from_pose, estimate_fundamental
+from ..geometry import essential_from_pose, estimate_fundamental
 
 ERROR_COLUMNS = ("yaw", "pitch", "roll", "tx", "ty", "tz")
 
