@@ -75,12 +75,27 @@ class EvalSettings:
 # repeated), several names (repeated), or one word.
 OPTION_KINDS = ("flag", "path", "paths", "names", "text")
 
+# The per_pair.csv column of the correspondences a matcher returned more than once for a pair:
+# the evaluation scores each correspondence once (matches.distinct), and this says how many
+# repeats it set aside, so that a count that shrank is explained on the row that shows it.
+DUPLICATES = "n_duplicates"
+
+
+def with_duplicates(columns: Sequence[str]) -> list[str]:
+    """A benchmark's per_pair.csv columns with DUPLICATES right after n_matches (at the end
+    where there is no n_matches); unchanged where it is already there."""
+    columns = list(columns)
+    if DUPLICATES in columns:
+        return columns
+    at = columns.index("n_matches") + 1 if "n_matches" in columns else len(columns)
+    return [*columns[:at], DUPLICATES, *columns[at:]]
+
 
 @dataclass(frozen=True)
 class DatasetOption:
     """One option of a benchmark's dataset: the dataset class's keyword, and how it reads as a
     command-line option (``--exclude-large``, ``--scene-info``) and in an experiment's
-    ``dataset:`` mapping. The benchmark's command gets one option per entry (cli.py)."""
+    ``dataset:`` mapping. The benchmark's command gets one option per entry (cli/benchmarks.py)."""
 
     name: str
     kind: str

@@ -1,0 +1,154 @@
+"""What every command shares: the application, its consoles, the options used by several
+commands, the settings parser, and the one-line error wrapper."""
+
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+
+from ..backbones import BACKBONES, BackboneError
+from ..cache import DiskFullError
+from ..benchmarks import BENCHMARKS
+from ..benchmarks.protocols import PROTOCOLS
+from ..files import load_yaml_text
+from ..datasets.base import DatasetError
+from ..matching import ESTIMATORS
+
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M benchmarks.",
+)
+console = Console()
+err_console = Console(stderr=True)
+
+# Options shared by `match` and the benchmark commands.
+MatcherOpt = Annotated[str, typer.Option("--matcher", help="A matcher's name (e3cm-bench matchers lists them: built-ins and installed plugins) or package.module:factory.")]
+BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)}.")]
+WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", help="Local state-dict file for the backbone (instead of the ImageNet download).")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
+EstimatorOpt = Annotated[Optional[str], typer.Option("--estimator", "--cascade-estimator", help=f"e3cm: how the cascade estimates F per level: {', '.join(ESTIMATORS)} (default top8 = the paper).")]
+SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson thresholds in pixels for levels 0,1,2,3, comma-separated.")]
+RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
+LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
+PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs), fp16 (GPUs), or auto: bf16 where the device computes it natively, else fp32 (fp16 on a GPU without bf16).")]
+ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
+BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", show_default="8 on a GPU, 1 on a CPU", help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the feature cache lacks go through the network with it (for GPUs; needs the cache).")]
+FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
+ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
+
+
+def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:
+    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
+    a precision other than fp32 and a channel order other than rgb join them (the defaults are
+    left out, so that runs with them keep their identity). --precision auto is resolved for
+    `device` here (the identity records what runs); a precision that will be emulated is said."""
+    if precision != "fp32":
+        from ..devices import resolve_precision
+
+        precision, warning = resolve_precision(precision, device)
+        if warning:
+            err_console.print(f"[yellow]warning[/]: {warning}", highlight=False, soft_wrap=True)
+    settings = {} if precision == "fp32" else {"precision": precision}
+    if channel_order != "rgb":
+        settings["channel_order"] = channel_order
+    for item in pairs or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
+        settings[key.strip()] = load_yaml_text(value)
+    return settings
+
+
+# The commands that write run folders (with every benchmark's own): only their rerun resumes at
+# the first pair not written.
+RESUMING_COMMANDS = frozenset({"reproduce", "import_matches", "calibrate", "demo"})
+
+
+def os_error_line(exc: OSError, resumes: bool = False) -> str:
+    """One line for an OSError: the file, the problem, and for a full disk what to do (`resumes`:
+    the command is a benchmark's or one of RESUMING_COMMANDS)."""
+    import errno
+
+    where = exc.filename or ""
+    text = exc.strerror or str(exc)
+    if isinstance(exc, DiskFullError) or exc.errno != errno.ENOSPC:
+        return f"{where}: {text}" if where and where not in text else text
+    # The free space of the filesystem that filled: the nearest existing folder of the file
+    # named. A failed write() names no file: then nothing is quoted, not some other disk's space.
+    existing = next((p for p in (Path(where), *Path(where).parents) if p.exists()), None) if where else None
+    free = ""
+    try:
+        free = f" ({shutil.disk_usage(existing).free / 2**20:.1f} MiB free there)" if existing is not None else ""
+    except OSError:
+        pass
+    return (f"{where or 'the output folder'}: no space left on device{free}; free some space and rerun the same "
+            "command" + (": every pair already written resumes" if resumes else ""))
+
+
+def friendly_errors(command):
+    """Bad input ends in one line on stderr and a non-zero exit, never a traceback.
+
+    E3CM_BENCH_DEBUG=1 lets the exception through with its traceback (for developers).
+    """
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except (DatasetError, BackboneError, ValueError, FileNotFoundError, KeyError) as exc:
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
+            message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except MemoryError as exc:
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "not enough memory"
+            err_console.print(f"[bold red]error:[/] out of memory: {detail}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except OSError as exc:  # a full disk, a folder that cannot be written: what and where, in one line
+            if os.environ.get("E3CM_BENCH_DEBUG"):
+                raise
+            name = command.__name__
+            line = os_error_line(exc, resumes=name in RESUMING_COMMANDS or name.replace("_", "-") in BENCHMARKS)
+            err_console.print(f"[bold red]error:[/] {line}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")
+            raise typer.Exit(130) from None
+
+    return wrapper
+
+
+
+ShardOpt = Annotated[Optional[str], typer.Option("--shard", help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).")]
+WorkersOpt = Annotated[int, typer.Option("--workers", help="Run N shards at once in N local processes, CPU threads divided among them, then merge.")]
+DevicesOpt = Annotated[Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")]
+LauncherOpt = Annotated[str, typer.Option("--launcher", help="slurm: submit --shards N as a SLURM array (submitit; runs locally where SLURM is absent).")]
+ShardsOpt = Annotated[int, typer.Option("--shards", help="Number of shards for --launcher slurm.")]
+RootOpt = Annotated[Optional[Path], typer.Option("--root", help="Dataset root folder (default: the downloaded data under $E3CM_BENCH_DATA, else ./data; e3cm-bench datasets).")]
+OutOpt = Annotated[Path, typer.Option("--out", help="Run folder (config.yaml, matches.h5, CSVs, plots).")]
+MaxSideOpt = Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (0 = full resolution).")]
+LimitOpt = Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every RANSAC (set before each pair).")]
+OverwriteOpt = Annotated[bool, typer.Option("--overwrite", help="Discard matches already in --out.")]
+EvalOnlyOpt = Annotated[bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")]
+VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")]
+SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in skipped.csv and count them; --skip-missing is the old name.")]
+CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
+RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
+RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
+OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.")]
+PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the pair fails as --on-matcher-error says (POSIX, main thread; default: no limit).")]
+PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench[poselib]'); --eval-only may change it.")]
+

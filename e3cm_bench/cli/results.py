@@ -1,0 +1,217 @@
+"""Commands over run folders: table, report, compare, reproduce, merge, demo and the regression check."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .. import check as regression
+from ..demo import METHODS as DEMO_METHODS
+from ..demo import run_demo
+from ..experiments import reproduce as reproduce_experiment
+from ..experiments import EXPERIMENT_COPY, merge_experiment, write_table
+from ..paper import config_names, resolve_config
+from ..download import find_root
+from ..run.shards import merge_run, parse_shard
+from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt
+
+
+@app.command()
+@friendly_errors
+def table(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")],
+    out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
+    reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default: the shipped e3cm_bench/paper/tableN.csv).")] = None,
+    compare: CompareOpt = True,
+) -> None:
+    """Collect runs into the paper's table layout, with the paper's numbers and differences."""
+    write_table(list(run_dirs), out, reference, compare, console)
+
+
+@app.command()
+@friendly_errors
+def report(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders of one benchmark (each with config.yaml, summary.csv, per_pair.csv).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder of the site (index.html, pairs/, runs/, img/).")] = Path("report"),
+    compare: CompareOpt = True,
+) -> None:
+    """A static site of runs: the paper-layout table, plots, every pair per method (sortable, filterable)
+    and match drawings of the worst and a sample of pairs; opens from the file system, no server."""
+    from ..reportsite import write_report
+
+    write_report(list(run_dirs), out, console=console, compare=compare)
+
+
+@app.command("compare")
+@friendly_errors
+def compare_command(
+    run_a: Annotated[Path, typer.Argument(help="Run folder A (config.yaml, summary.csv, per_pair.csv).")],
+    run_b: Annotated[Path, typer.Argument(help="Run folder B, of the same benchmark.")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Folder for compare.csv and compare.md.")] = None,
+    mma: Annotated[Optional[str], typer.Option("--mma", help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")] = None,
+    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of each test; intervals at 1 - alpha.")] = 0.05,
+) -> None:
+    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric the mean
+    difference B - A with its paired-bootstrap interval, a paired test (Wilcoxon or sign;
+    McNemar for pass/fail) and a verdict."""
+    from ..compare_runs import compare_runs, parse_mma, print_comparison, write_comparison
+    from ..report import load_run
+
+    first, second = load_run(run_a), load_run(run_b)
+    columns = set(first.per_pair.columns) & set(second.per_pair.columns)
+    comparison = compare_runs(first, second, mma=parse_mma(mma, sorted(columns)), alpha=alpha)
+    print_comparison(comparison, console)
+    if out is not None:
+        csv_path, md_path = write_comparison(comparison, out)
+        console.print(f"compare: {csv_path}, {md_path}", markup=False)
+
+
+@app.command()
+@friendly_errors
+def reproduce(
+    config: Annotated[str, typer.Argument(help=f"Experiment config: a shipped name ({', '.join(config_names())}) or a YAML file.")],
+    out: OutOpt,
+    root: RootOpt = None,
+    backbone: Annotated[Optional[str], typer.Option("--backbone", help="Use this backbone for every deep method (labels say so).")] = None,
+    limit: LimitOpt = None,
+    device: DeviceOpt = "cpu",
+    max_side: MaxSideOpt = None,
+    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files instead of the config's.")] = None,
+    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list instead of the default.")] = None,
+    sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
+    skip_bad: SkipBadOpt = False,
+    compare: CompareOpt = True,
+    shard: ShardOpt = None,
+    methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
+) -> None:
+    """Run every method of a paper experiment (reusing cached matches) and write its table."""
+    config = resolve_config(config)
+    overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
+    if root is None:
+        from ..experiments import load_experiment
+
+        root = find_root(load_experiment(config)["benchmark"], None)
+    reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
+                         skip_bad=skip_bad, max_side=max_side, compare=compare, console=console,
+                         shard=parse_shard(shard) if shard else None, only=methods.split(",") if methods else None)
+
+
+@app.command()
+@friendly_errors
+def merge(
+    run_dir: Annotated[Path, typer.Argument(help="A sharded run's --out (with shards/), or a sharded reproduce's --out.")],
+    viz: VizOpt = 0,
+    compare: CompareOpt = True,
+) -> None:
+    """Merge the shards of a run (or of every method of a reproduce) into the usual CSVs, plots and config.yaml."""
+    if (run_dir / EXPERIMENT_COPY).is_file():
+        merge_experiment(run_dir, compare=compare, console=console)
+    else:
+        merge_run(run_dir, viz=viz, console=console)
+
+
+@app.command()
+@friendly_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Folder for the data, the runs, the tables and the plots.")] = Path("e3cm-demo"),
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every robust estimator (the data is always the same).")] = 0,
+    quick: Annotated[bool, typer.Option("--quick", help="Fewer pairs of the same kinds (a smoke test).")] = False,
+    methods: Annotated[Optional[str], typer.Option("--methods", help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")] = None,
+    device: DeviceOpt = "cpu",
+) -> None:
+    """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-ransac, direct, dfm and sift
+    (EfficientNet-Lite0) on HPatches-format sequences and a non-planar scene, prints both tables."""
+    run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device, console=console)
+    console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)")
+
+
+@app.command()
+@friendly_errors
+def check(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders, or folders holding run folders (e.g. e3cm-demo/hpatches).")],
+    baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics, environment), e.g. results/baselines/demo_hpatches.csv.")],
+    tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance", help="METRIC=T, or METHOD:METRIC=T for one method: allowed fall (absolute) of a metric; repeatable; wins over --tolerances.")] = None,
+    tolerances: Annotated[Optional[Path], typer.Option("--tolerances", help="CSV of tolerances: benchmark, method, metric, tolerance (* = any; the most specific row applies; other columns ignored).")] = None,
+    update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs (aggregate + per-pair values, each run's identity and environment) instead of checking.")] = False,
+    ensemble: Annotated[int, typer.Option("--ensemble", help="With --update: rerun every run K times under CPU-scale perturbations and store the draws beside the baseline (the noise model check then gates with).")] = 0,
+    ensemble_dir: Annotated[Optional[Path], typer.Option("--ensemble-dir", help="Work folder of the ensemble's reruns (resumable; default .e3cm-ensemble/BASELINE_NAME).")] = None,
+    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of the whole check under the noise model (split over its metrics).")] = regression.CHECK_ALPHA,
+    summary: Annotated[Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
+) -> None:
+    """Compare runs with a baseline: exit 1 naming each metric that fell beyond its noise (or its tolerance).
+
+    With a noise ensemble beside the baseline (check --update --ensemble K), a metric is flagged
+    only where its change lies outside what a rerun on another CPU gives, at the false-alarm
+    rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
+    the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
+    settings differ from its baseline row's, one line names each difference (information)."""
+    runs = regression.find_runs(run_dirs)
+    if update:
+        _update_baseline(runs, baseline, ensemble, ensemble_dir)
+        return
+    if not 0 < alpha < 1:
+        raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
+    bad, lines, text = 0, [], ""
+    others, checked = runs, 0
+    if regression.has_noise_model(baseline):
+        verdicts, others, metric_alpha = regression.gate(runs, baseline, alpha)
+        checked += sum(len(v.gates) for v in verdicts)
+        for verdict in verdicts:
+            lines += regression.verdict_lines(verdict)
+        bad += sum(g.status == "regression" for v in verdicts for g in v.gates)
+        text += regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
+        console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
+                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False)
+    limits = regression.Tolerances.load(tolerance, tolerances)
+    findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
+    checked += len(findings)
+    notes = regression.environment_notes(runs, baseline)
+    if findings or problems or others is runs:
+        text += regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
+    if summary is not None:
+        regression.write_summary(text, summary)
+    for note in notes:
+        console.print(note, highlight=False, markup=False, soft_wrap=True)  # one line, however long
+    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim"}
+    for status, line in lines:
+        console.print(f"[{styles[status]}]{status}[/]: ", end="", highlight=False)
+        console.print(line, highlight=False, markup=False, soft_wrap=True)
+    for f in findings:
+        if f.status != "ok":
+            style = "bold red" if f.status == "regression" else "yellow"
+            console.print(f"[{style}]{f.status}[/]: {f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> "
+                          f"{f.measured:.4g} (tolerance {f.tolerance:g})", highlight=False)
+    for problem in problems:
+        console.print(f"[bold red]problem[/]: {problem}", highlight=False)
+    bad += sum(f.status == "regression" for f in findings) + len(problems)
+    console.print(f"check: {checked} metrics of {len(runs)} runs against {baseline}: "
+                  + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
+    if bad:
+        raise typer.Exit(1)
+
+
+def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:
+    """check --update: the baseline files, and with --ensemble K its noise draws."""
+    from ..ensemble import build_ensemble, write_noise
+
+    if ensemble < 0:
+        raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")
+    regression.write_baseline(runs, baseline)
+    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}")
+    noise = regression.noise_path(baseline)
+    if not ensemble:
+        if noise.is_file():  # draws around the old baseline would judge the new one
+            noise.unlink()
+            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)")
+        return
+    work = ensemble_dir or Path(".e3cm-ensemble") / baseline.stem
+    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False)
+    t = time.perf_counter()
+    table = build_ensemble(runs, range(1, ensemble + 1), work, console=console)
+    write_noise(table, noise)
+    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False)
+
+
