@@ -9,8 +9,9 @@ into memory, adds the pair there (HDF5 on an in-memory file), writes the result 
 temporary file beside it with plain Python I/O, flushes it to disk and renames it over the
 block (an atomic replace). A full disk, a signal or a crash at any point leaves the old
 block whole, every earlier pair readable; a full disk is an OSError (ENOSPC) that the
-caller turns into one line, never an HDF5 library failure. The space a write needs (the
-block and the pair, twice for the rename) is checked first (DiskFullError). The attribute
+caller turns into one line, never an HDF5 library failure. The space a write needs is
+checked first (DiskFullError): the temporary copy of the block with the pair added (the old
+block is already counted as used, and the rename frees it), WRITE_MARGIN_BYTES beyond. The attribute
 ``complete=1`` is still set last, and the pairs are spread over block files of at most
 BLOCK_PAIRS pairs (``matches.h5``, ``matches.001.h5``, ...), so that a block damaged by
 other means (a copy cut short) costs at most its own pairs: ``names`` lists the file in
@@ -44,6 +45,10 @@ DATASETS = ("keypoints0", "keypoints1", "scores")
 COMPLETE_ATTR = "complete"
 BLOCK_PAIRS = 50  # pairs per file: the most a damaged file can cost
 SPARE_BYTES = 256 << 10  # kept free beyond what a write needs (config.yaml and the like)
+# Beyond the block's bytes and the pair's arrays, a write adds the pair's HDF5 metadata (its
+# group, three dataset headers, the attributes: a few KiB) and, at worst, gzip's growth of data
+# it cannot compress (a few bytes per block); 64 KiB and 1/64 of the arrays cover both.
+WRITE_MARGIN_BYTES = 64 << 10
 # Matches of one pair a block may declare: 10 million (about 200 MB of arrays) is ten times what
 # a dense matcher at full resolution returns; a declared size beyond it is damage or a hostile file.
 MAX_PAIR_MATCHES = 10_000_000
@@ -55,9 +60,9 @@ MIN_RECOVERABLE_FRACTION = 0.5
 class DiskFullError(OSError):
     """Not enough free space for the next write; one line naming the folder and the space."""
 
-    def __init__(self, folder: Path, need: int, free: int) -> None:
+    def __init__(self, folder: Path, need: int, free: int, what: str = "the next write") -> None:
         super().__init__(errno.ENOSPC, f"{folder}: not enough free disk space ({_size(free)} free, about {_size(need)} "
-                                       "needed for the next write); free some space and rerun the same command: "
+                                       f"needed for {what}); free some space and rerun the same command: "
                                        "every pair already written resumes")
 
 
@@ -69,14 +74,15 @@ def _size(n: int) -> str:
     return f"{n:.1f} GiB"
 
 
-def check_free_space(folder: Path, need: int) -> None:
-    """DiskFullError unless `folder`'s filesystem has `need` bytes (plus SPARE_BYTES) free."""
+def check_free_space(folder: Path, need: int, what: str = "the next write") -> None:
+    """DiskFullError unless `folder`'s filesystem has `need` bytes (plus SPARE_BYTES) free;
+    `what` names what the bytes are for in its message."""
     try:
         free = shutil.disk_usage(folder).free
     except OSError:
         return
     if free < need + SPARE_BYTES:
-        raise DiskFullError(folder, need + SPARE_BYTES, free)
+        raise DiskFullError(folder, need + SPARE_BYTES, free, what)
 
 
 class MatchCache:
@@ -172,7 +178,7 @@ class MatchCache:
         block = self._block_for(name)
         old = block.read_bytes() if block.exists() else b""
         payload = sum(np.asarray(v).nbytes for v in (matches.keypoints0, matches.keypoints1, matches.scores))
-        check_free_space(block.parent, 2 * (len(old) + payload) + 65536)
+        check_free_space(block.parent, len(old) + payload + payload // 64 + WRITE_MARGIN_BYTES)
         buffer = io.BytesIO(old)
         try:
             file = h5py.File(buffer, "a")

@@ -13,17 +13,15 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import Benchmark, EvalSettings
+from .benchmarks.base import DUPLICATES, with_duplicates
 from .cache import MatchCache, check_free_space
 from .datasets.base import Pair
-from .files import write_csv
+from .files import CSV_FLOAT_FORMAT, write_csv
 from .images import load_image
 from .intervals import metric_keys, summary_intervals
+from .matches import Matches, distinct
 from .run import FAILED_ATTR, RunFolder
 from .viz import draw_matches, save_image
-
-# Until every reader asks RunFolder: the two names importers still use.
-CONFIG_FILE = RunFolder.CONFIG
-CACHE_FILE = RunFolder.MATCHES
 
 
 def evaluate_stage(
@@ -34,13 +32,29 @@ def evaluate_stage(
     The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
     """
-    rows = [benchmark.evaluate_pair(pair, cache.read(pair.name), ev) for pair in pairs]
+    rows = [evaluate_pair(benchmark, pair, cache.read(pair.name), ev) for pair in pairs]
     if ev.repeats > 1:
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
         summary = benchmark.summarize(rows, ev)
         summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
-    return pd.DataFrame(rows, columns=benchmark.pair_columns(ev)), summary
+    # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
+    return pd.DataFrame(rows, columns=with_duplicates(benchmark.pair_columns(ev))), summary
+
+
+def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+    """The pair's row, each correspondence scored once, and how many repeats were set aside.
+
+    Every consumer of a run's per-pair numbers goes through here (and `drawn`), so that a
+    matcher cannot raise its MMA or precision by returning a correct match many times."""
+    kept, repeats = distinct(matches)
+    return {**benchmark.evaluate_pair(pair, kept, ev), DUPLICATES: repeats}
+
+
+def drawn(matches: Matches) -> Matches:
+    """The matches a drawing shows: the ones the evaluation scored (each correspondence once),
+    so that the drawing's count is the row's n_matches."""
+    return distinct(matches)[0]
 
 
 def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
@@ -49,7 +63,7 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
     `first`, the run's own), their mean as the run's numbers, each metric's standard deviation
     over the repeats (``<metric>_sd``), and the bootstrap interval over pairs of that mean.
     per_pair.csv keeps the first repeat's rows."""
-    repeats = [first] + [[benchmark.evaluate_pair(pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
+    repeats = [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
                           for pair in pairs] for r in range(1, ev.repeats)]
     each = [benchmark.summarize(rows, ev) for rows in repeats]
     keys = metric_keys(each[0])
@@ -78,7 +92,7 @@ def write_reports(
     write_csv(pd.DataFrame([summary]), folder.summary_path)
     benchmark.plot_run(label, summary, per_pair, folder.path)
     for pair in pairs[:viz]:
-        matches = cache.read(pair.name)
+        matches = drawn(cache.read(pair.name))
         canvas = draw_matches(
             load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
             correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
@@ -86,8 +100,42 @@ def write_reports(
         save_image(folder.drawing_path(pair.name), canvas)
 
 
-REPORT_BYTES = 16 << 20  # a run's CSVs and plots, with room to spare
-VIZ_BYTES = 2 << 20      # one match drawing
+# The reports' room, checked before the first of them is written, follows what they hold: the
+# CSVs as write_csv renders them, a bound on the run's plot, and each drawing's canvas
+# uncompressed (PNG stores a photograph in fewer bytes, plus a filter byte per row and a header).
+PLOT_BYTES = 1 << 20     # the run's plot: the demo's are about 50 KiB each
+DRAWING_BYTES = 8 << 20  # a drawing of images whose sizes neither the cache nor their headers give
+PNG_HEADER_BYTES = 4096
+
+
+def report_bytes(per_pair: pd.DataFrame, summary: dict, skipped: list[tuple[str, str]],
+                 failures: list[tuple[str, str]], drawings: list[tuple[Pair, Matches]]) -> int:
+    """About how many bytes write_skipped, write_failures and write_reports will write."""
+    tables = [per_pair, pd.DataFrame([summary]), pd.DataFrame(skipped), pd.DataFrame(failures)]
+    need = sum(len(t.to_csv(index=False, float_format=CSV_FLOAT_FORMAT).encode()) for t in tables if len(t))
+    need += PLOT_BYTES
+    for pair, matches in drawings:
+        sizes = [matches.info.get(f"size{i}") for i in (0, 1)]
+        if any(size is None for size in sizes):
+            sizes = [_header_size(path) for path in (pair.image0, pair.image1)]
+        if any(size is None for size in sizes):
+            need += DRAWING_BYTES
+            continue
+        (w0, h0), (w1, h1) = ((int(v) for v in size) for size in sizes)
+        height = max(h0, h1)
+        need += height * ((w0 + w1) * 3 + 1) + PNG_HEADER_BYTES
+    return need
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(w, h) from an image file's header, without decoding it; None where PIL cannot tell."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError):
+        return None
 
 
 def evaluate_and_report(
@@ -108,7 +156,12 @@ def evaluate_and_report(
     failures = matcher_failures(pairs, cache)
     if failures:  # scored as failures (no matches); the count says how many were the matcher's
         summary["n_failed"] = len(failures)
-    check_free_space(out, REPORT_BYTES + max(viz, 0) * VIZ_BYTES)  # the reports (tables, plots) need room too
+    repeats = int(per_pair[DUPLICATES].sum()) if len(per_pair) else 0
+    if repeats:
+        console.print(f"{repeats} repeated correspondence(s) in {int((per_pair[DUPLICATES] > 0).sum())} pair(s) "
+                      f"counted once (per_pair.csv: {DUPLICATES})", markup=False)
+    drawings = [(pair, cache.read(pair.name)) for pair in pairs[:max(viz, 0)]]
+    check_free_space(out, report_bytes(per_pair, summary, skipped, failures, drawings), "the run's reports")
     write_skipped(skipped, folder.skipped_path, console)
     write_failures(failures, folder.failures_path, console)
     write_reports(benchmark, folder, label, per_pair, summary, pairs, cache, ev, viz)

@@ -277,6 +277,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
     import cv2
 
     from .benchmarks import EvalSettings
+    from .evaluate import drawn
     from .images import load_image
     from .viz import draw_matches, save_image
 
@@ -289,7 +290,7 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
         for name in chosen:
             if name not in cached or name not in pairs:
                 continue
-            pair, matches = pairs[name], cache.read(name)
+            pair, matches = pairs[name], drawn(cache.read(name))  # the matches its row scored
             try:
                 image0, image1 = load_image(pair.image0), load_image(pair.image1)
             except ValueError as error:

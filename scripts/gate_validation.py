@@ -24,6 +24,7 @@ from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.check import baseline_metrics, read_baseline
 from e3cm_bench.ensemble import eval_settings_of, noise_path, read_noise
+from e3cm_bench.evaluate import evaluate_pair
 from e3cm_bench.matches import Matches
 from e3cm_bench.report import Run, load_run
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
@@ -117,7 +118,7 @@ def degraded(run: Run, pairs, change) -> Run:
     """run re-evaluated from its cached matches after change(matches, pair) -> matches."""
     cache = MatchCache(run.dir / "matches.h5")
     ev = eval_settings_of(run.config)
-    rows = [run.benchmark.evaluate_pair(pair, change(cache.read(pair.name), pair), ev) for pair in pairs]
+    rows = [evaluate_pair(run.benchmark, pair, change(cache.read(pair.name), pair), ev) for pair in pairs]
     return summarized(run, pd.DataFrame(rows, columns=run.benchmark.pair_columns(ev)))
 
 

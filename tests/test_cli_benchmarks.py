@@ -28,8 +28,8 @@ from e3cm_bench.method import MethodSpec
 from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
-HPATCHES_PAIR_COLUMNS = ["pair", "sequence", "n_matches", *[f"mma@{t}" for t in range(1, 11)], "h_error"]
-POSE_PAIR_COLUMNS = ["pair", "n_matches", "err_R", "err_t", "err_pose", "precision@1e-4", "precision@5e-4"]
+HPATCHES_PAIR_COLUMNS = ["pair", "sequence", "n_matches", "n_duplicates", *[f"mma@{t}" for t in range(1, 11)], "h_error"]
+POSE_PAIR_COLUMNS = ["pair", "n_matches", "n_duplicates", "err_R", "err_t", "err_pose", "precision@1e-4", "precision@5e-4"]
 POSE_SUMMARY_COLUMNS = ["n_pairs", "n_matches", "n_failures", "auc@5", "auc@10", "auc@20", "precision@1e-4", "precision@5e-4"]
 
 

@@ -14,7 +14,7 @@ from ..datasets.base import Pair
 from ..datasets.hpatches import HPatches
 from ..geometry import warp_points
 from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings
+from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class HomographyBenchmark(Benchmark):
     )
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return metrics.HPATCHES_PAIR_COLUMNS
+        return with_duplicates(metrics.HPATCHES_PAIR_COLUMNS)
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         width, height = (int(v) for v in matches.info["size0"])

@@ -14,7 +14,7 @@ from ..datasets.base import Pair
 from ..datasets.megadepth import MegaDepth1500
 from ..datasets.yfcc import YFCC100M
 from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings
+from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,8 @@ class PoseBenchmark(Benchmark):
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # degrees: a miss at AUC@10's threshold
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return ["pair", "n_matches", "err_R", "err_t", "err_pose", *map(metrics.precision_key, ev.precision_thresholds)]
+        return with_duplicates(["pair", "n_matches", "err_R", "err_t", "err_pose",
+                                *map(metrics.precision_key, ev.precision_thresholds)])
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         row = metrics.evaluate_pose_pair(
