@@ -146,6 +146,12 @@ def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEF
               for t in POSE_ERROR_THRESHOLDS),
             PairedMetric(precision, _column(precision), higher_is_better=True),
         ]
+    generic = [PairedMetric(name, _column(name, failure_is_inf=not higher), higher_is_better=higher)
+               for name, higher in benchmark.paired_columns]
+    generic += [PairedMetric(metric, _passes(column, threshold, inclusive=True), higher_is_better=True, binary=True)
+                for metric, (column, threshold) in benchmark.count_metrics.items()]
+    if generic:
+        return generic
     raise ValueError(f"compare: no per-pair metrics are defined for the {benchmark.name} benchmark")
 
 

@@ -145,6 +145,10 @@ class Benchmark:
     # Summary metrics that are the fraction of pairs whose per_pair column is <= a threshold:
     # metric -> (column, threshold). The regression gate's noise model counts them exactly.
     count_metrics: Mapping[str, tuple[str, float]] = field(default_factory=dict)
+    # `compare` (compare_runs.py): per_pair.csv columns compared pair by pair, each with whether
+    # higher is better (a lower-is-better error the run could not compute counts as +inf); each
+    # count metric is compared too, as pass/fail. Homography and pose benchmarks have their own.
+    paired_columns: tuple[tuple[str, bool], ...] = ()
 
     @property
     def option_names(self) -> tuple[str, ...]:

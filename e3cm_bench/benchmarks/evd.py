@@ -137,6 +137,7 @@ class EVDBenchmark(Benchmark):
     table_metrics: Mapping[str, str] = field(default_factory=lambda: {"mAA": MAA})
     table_extras: tuple[str, ...] = ("n_pairs", "n_failures", "acc@5.28", "acc@10.3")
     report_columns: tuple[str, ...] = ("n_matches", "h_error")
+    paired_columns: tuple[tuple[str, bool], ...] = (("h_error", False),)
     failure: tuple[str, float] | None = ("h_error", THRESHOLDS[-1])  # a miss at every threshold
     count_metrics: Mapping[str, tuple[str, float]] = field(
         default_factory=lambda: {accuracy_key(t): ("h_error", t) for t in THRESHOLDS}

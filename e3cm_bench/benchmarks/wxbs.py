@@ -224,6 +224,7 @@ class WxBSBenchmark(Benchmark):
     table_metrics: Mapping[str, str] = field(default_factory=lambda: {"mAA@10px": MAA})
     table_extras: tuple[str, ...] = ("n_pairs", "recall@1", "recall@5", "recall@10")
     report_columns: tuple[str, ...] = ("n_matches", MAA, "recall@10")
+    paired_columns: tuple[tuple[str, bool], ...] = ((MAA, True), ("recall@1", True), ("recall@10", True))
     failure: tuple[str, float] | None = None  # a pair's score is a fraction, no threshold makes it a miss
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
