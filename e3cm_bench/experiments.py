@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from . import report
+from .reporting import tables as report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
 from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
@@ -222,7 +222,7 @@ def reproduce(
 
 def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None) -> tuple[Path, Path]:
     """OUT/table.{csv,md} with its plots, and the report site OUT/report/ for the same runs."""
-    from .reportsite import write_report
+    from .reporting.site import write_report
 
     written = write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
     write_report(run_dirs, Path(out) / "report", console=console, compare=compare)

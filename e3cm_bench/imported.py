@@ -30,7 +30,7 @@ from .interchange import ColmapSource, GluefactorySource, HlocSource, MissingPai
 from .interchange.base import image_name
 from .interchange.hloc import hloc_pair_key
 from .matches import MatchesError, check_in_image
-from .report import print_summary
+from .reporting.tables import print_summary
 from .run import RunConfig, RunFolder
 
 # The sources live in e3cm_bench.interchange; these names stay importable from here.

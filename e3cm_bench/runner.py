@@ -25,7 +25,7 @@ from .evaluate import evaluate_and_report
 from .matchers.base import Matcher
 from .matchers.guards import describe_matcher
 from .method import MethodSpec, identity_changes
-from .report import print_summary
+from .reporting.tables import print_summary
 from .run import RunConfig, RunFolder
 from .run.pair import match_pair
 from .run.stage import MatchJob, MatchOptions, match_jobs

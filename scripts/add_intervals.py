@@ -19,7 +19,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from e3cm_bench import intervals, report
+from e3cm_bench import intervals
+
+from e3cm_bench.reporting import tables as report
 from e3cm_bench.files import write_csv
 
 

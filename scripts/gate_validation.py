@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from e3cm_bench import noise_gate
+from e3cm_bench.reporting import noise_gate
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.cache import MatchCache
-from e3cm_bench.check import baseline_metrics, read_baseline
-from e3cm_bench.ensemble import eval_settings_of, noise_path, read_noise
+from e3cm_bench.reporting.check import baseline_metrics, read_baseline
+from e3cm_bench.reporting.ensemble import eval_settings_of, noise_path, read_noise
 from e3cm_bench.evaluate import evaluate_pair
 from e3cm_bench.matches import Matches
-from e3cm_bench.report import Run, load_run
+from e3cm_bench.reporting.tables import Run, load_run
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
 
 SETS = {"hpatches": "demo_hpatches", "scenes": "demo_scenes"}

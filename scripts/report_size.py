@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from e3cm_bench.method import MethodSpec
-from e3cm_bench.reportsite import write_report
+from e3cm_bench.reporting.site import write_report
 from e3cm_bench.runner import run_benchmark
 from e3cm_bench.synth.layouts import write_hpatches
 

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench import check
+from e3cm_bench.reporting import check
 from e3cm_bench.files import run_environment
 from helpers import flat, invoke, one_line_error
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from e3cm_bench import report
+from e3cm_bench.reporting import tables as report
 from e3cm_bench.benchmarks import BENCHMARKS
 from e3cm_bench.experiments import load_experiment
 from e3cm_bench.paper import CONFIG_DIR, PAPER_DIR, config_names, resolve_config

@@ -11,7 +11,9 @@ import pytest
 import yaml
 from rich.console import Console
 
-from e3cm_bench import plots, report
+from e3cm_bench.reporting import plots
+
+from e3cm_bench.reporting import tables as report
 from e3cm_bench.files import write_csv
 from e3cm_bench.metrics import pose_error_curve
 from e3cm_bench.paper import PAPER_DIR

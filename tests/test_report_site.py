@@ -105,8 +105,8 @@ def test_the_numbers_are_the_runs_own(site, demo):
 
 def test_two_runs_get_the_paired_comparison(site, demo):
     """Given exactly two runs of one benchmark, the page holds the table `e3cm-bench compare` prints."""
-    from e3cm_bench.compare_runs import compare_runs
-    from e3cm_bench.report import load_run
+    from e3cm_bench.reporting.compare import compare_runs
+    from e3cm_bench.reporting.tables import load_run
 
     text = (site / "index.html").read_text()
     assert "<h2>Paired comparison</h2>" in text and 'id="comparison"' in text

@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from e3cm_bench import files
-from e3cm_bench.reportsite import MARKER, script_json
+from e3cm_bench.reporting.site import MARKER, script_json
 from helpers import invoke, one_line_error
 
 
@@ -153,7 +153,7 @@ def test_sigterm_during_a_report_keeps_the_previous_one(made_run, tmp_path):
     script = textwrap.dedent(f"""
         import sys, time
         from pathlib import Path
-        import e3cm_bench.reportsite as reportsite
+        import e3cm_bench.reporting.site as reportsite
         def park(*args, **kwargs):
             Path({str(parked)!r}).write_text("here")
             while True:

@@ -138,14 +138,14 @@ class Benchmark:
     paper_table: str | None = None
     table_metrics: Mapping[str, str] = field(default_factory=dict)
     table_extras: tuple[str, ...] = ("n_pairs",)
-    # The report page (reportsite.py): the per_pair.csv columns shown for each method, and the
+    # The report page (reporting/site.py): the per_pair.csv columns shown for each method, and the
     # column and threshold above which a pair counts as failed (a NaN or inf value fails too).
     report_columns: tuple[str, ...] = ("n_matches",)
     failure: tuple[str, float] | None = None
     # Summary metrics that are the fraction of pairs whose per_pair column is <= a threshold:
     # metric -> (column, threshold). The regression gate's noise model counts them exactly.
     count_metrics: Mapping[str, tuple[str, float]] = field(default_factory=dict)
-    # `compare` (compare_runs.py): per_pair.csv columns compared pair by pair, each with whether
+    # `compare` (reporting/compare.py): per_pair.csv columns compared pair by pair, each with whether
     # higher is better (a lower-is-better error the run could not compute counts as +inf); each
     # count metric is compared too, as pass/fail. Homography and pose benchmarks have their own.
     paired_columns: tuple[tuple[str, bool], ...] = ()

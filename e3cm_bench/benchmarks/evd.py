@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .. import plots
+from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..datasets.hpatches import read_homography
 from ..estimators import homography

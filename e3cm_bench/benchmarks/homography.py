@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import metrics, plots
+from .. import metrics
+
+from ..reporting import plots
 from ..datasets.base import Pair
 from ..datasets.hpatches import HPatches
 from ..geometry import warp_points

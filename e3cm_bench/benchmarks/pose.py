@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import metrics, plots
+from .. import metrics
+
+from ..reporting import plots
 from ..datasets.base import Pair
 from ..datasets.megadepth import MegaDepth1500
 from ..datasets.yfcc import YFCC100M

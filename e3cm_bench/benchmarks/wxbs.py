@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from .. import plots
+from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..estimators import fundamental
 from ..geometry import to_homogeneous

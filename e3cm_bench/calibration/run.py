@@ -16,14 +16,14 @@ import numpy as np
 import pandas as pd
 from rich.console import Console
 
-from .. import plots
+from ..reporting import plots
 from ..datasets.base import Pair
 from ..datasets.stereo import StereoSequence, load_stereo_sequence
 from ..devices import keep_freed_memory
 from ..files import load_yaml, read_csv, save_yaml, write_csv, yaml_plain
 from ..images import load_image
 from ..method import MethodSpec, identity_changes
-from ..report import print_summary
+from ..reporting.tables import print_summary
 from ..run import RunConfig, RunFolder
 from ..run.stage import match_stage
 from .extrinsics import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity

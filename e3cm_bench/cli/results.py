@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .. import check as regression
+from ..reporting import check as regression
 from ..demo import METHODS as DEMO_METHODS
 from ..demo import run_demo
 from ..experiments import reproduce as reproduce_experiment
@@ -40,7 +40,7 @@ def report(
 ) -> None:
     """A static site of runs: the paper-layout table, plots, every pair per method (sortable, filterable)
     and match drawings of the worst and a sample of pairs; opens from the file system, no server."""
-    from ..reportsite import write_report
+    from ..reporting.site import write_report
 
     write_report(list(run_dirs), out, console=console, compare=compare)
 
@@ -57,8 +57,8 @@ def compare_command(
     """Two runs of one benchmark, pair by pair on the pairs both hold: per metric the mean
     difference B - A with its paired-bootstrap interval, a paired test (Wilcoxon or sign;
     McNemar for pass/fail) and a verdict."""
-    from ..compare_runs import compare_runs, parse_mma, print_comparison, write_comparison
-    from ..report import load_run
+    from ..reporting.compare import compare_runs, parse_mma, print_comparison, write_comparison
+    from ..reporting.tables import load_run
 
     first, second = load_run(run_a), load_run(run_b)
     columns = set(first.per_pair.columns) & set(second.per_pair.columns)
@@ -195,7 +195,7 @@ def check(
 
 def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:
     """check --update: the baseline files, and with --ensemble K its noise draws."""
-    from ..ensemble import build_ensemble, write_noise
+    from ..reporting.ensemble import build_ensemble, write_noise
 
     if ensemble < 0:
         raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")

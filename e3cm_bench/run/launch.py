@@ -10,7 +10,7 @@ from dataclasses import replace
 import pandas as pd
 from rich.console import Console
 
-from ..report import print_summary
+from ..reporting.tables import print_summary
 from .folder import RunFolder
 from .stage import MatchOptions
 

@@ -19,7 +19,7 @@ from rich.console import Console
 
 from ..benchmarks import EvalSettings, get_benchmark
 from ..evaluate import evaluate_and_report
-from ..report import print_summary
+from ..reporting.tables import print_summary
 from .folder import RunConfig, RunFolder
 
 def parse_shard(text: str) -> tuple[int, int]:

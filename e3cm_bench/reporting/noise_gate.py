@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .files import read_keyed_csv, write_csv
-from .stats.noise import RESAMPLES, Gate, PairMove, count_gate, member_picks, pair_moves, resampled_gate
+from ..files import read_keyed_csv, write_csv
+from ..stats.noise import RESAMPLES, Gate, PairMove, count_gate, member_picks, pair_moves, resampled_gate
 
 PAIRS_SUFFIX = ".pairs.csv"
 KEY_COLUMNS = ("benchmark", "method", "pair")

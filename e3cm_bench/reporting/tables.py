@@ -17,12 +17,12 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from .benchmarks import Benchmark, get_benchmark
-from . import intervals
-from .files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
+from ..benchmarks import Benchmark, get_benchmark
+from .. import intervals
+from ..files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
 from .formats import format_interval, format_number
-from .paper import PAPER_DIR
-from .run import RunFolder
+from ..paper import PAPER_DIR
+from ..run import RunFolder
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
@@ -113,7 +113,7 @@ def paper_row_of(run: Run) -> str | None:
     E3CM numbers came from the authors' released code, e3cm-release; its DFM numbers from
     the DFM release), when the run was made as the paper's were (the entry says which
     settings keep it so) on the paper's VGG19. Our variants and ablations have none."""
-    from .matchers import get_matcher
+    from ..matchers import get_matcher
 
     identity = run.config.get("identity") or {}
     if identity.get("backbone") not in (None, "vgg19"):
@@ -130,7 +130,7 @@ def paper_row_of(run: Run) -> str | None:
 def eval_settings_of(run: Run):
     """The EvalSettings a run was evaluated with (its config.yaml's evaluation block; defaults for
     fields it lacks); None when the block cannot be read as settings."""
-    from .benchmarks import EvalSettings
+    from ..benchmarks import EvalSettings
 
     try:
         return EvalSettings.from_record(run.config.get("evaluation"))
@@ -152,7 +152,7 @@ def run_intervals(run: Run) -> dict:
 
 def protocol_of(run: Run) -> tuple[str, bool]:
     """The run's evaluation protocol and whether it is a standard one."""
-    from .benchmarks.protocols import PROTOCOLS
+    from ..benchmarks.protocols import PROTOCOLS
 
     name = (run.config.get("evaluation") or {}).get("protocol", "default")
     protocol = PROTOCOLS.get(name)

@@ -35,8 +35,8 @@ import numpy as np
 import pandas as pd
 from rich.console import Console
 
-from .files import create_new, writable_folder, write_atomically
-from .report import Run, display_cells, load_run, paper_reference, paper_table, without_comparison
+from ..files import create_new, writable_folder, write_atomically
+from .tables import Run, display_cells, load_run, paper_reference, paper_table, without_comparison
 
 N_WORST = 8          # pairs drawn because most methods fail there
 N_SAMPLE = 8         # pairs drawn as an even sample of the rest
@@ -220,7 +220,7 @@ def _terminate_as_exception():
 
 def _comparison(runs: list[Run], notes: list[str]):
     """The paired comparison of exactly two runs (compare_runs), or None; why not, in the notes."""
-    from .compare_runs import compare_runs
+    from .compare import compare_runs
 
     if len(runs) != 2:
         return None
@@ -276,10 +276,10 @@ def _draw(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) -> di
     truth of the run's own dataset (recorded in its config.yaml) when it can be loaded."""
     import cv2
 
-    from .benchmarks import EvalSettings
-    from .evaluate import drawn
-    from .images import load_image
-    from .viz import draw_matches, save_image
+    from ..benchmarks import EvalSettings
+    from ..evaluate import drawn
+    from ..images import load_image
+    from ..viz import draw_matches, save_image
 
     drawings: dict[str, dict[int, str]] = {name: {} for name in chosen}
     for k, run in enumerate(runs):

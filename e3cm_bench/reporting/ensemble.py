@@ -17,11 +17,11 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from .benchmarks import EvalSettings, get_benchmark
-from .files import read_csv, read_keyed_csv, write_csv
-from .method import MethodSpec
-from .perturb import Perturbation, perturbed
-from .run import RunFolder
+from ..benchmarks import EvalSettings, get_benchmark
+from ..files import read_csv, read_keyed_csv, write_csv
+from ..method import MethodSpec
+from ..perturb import Perturbation, perturbed
+from ..run import RunFolder
 
 NOISE_SUFFIX = ".noise.csv"
 DRAW_COLUMNS = ("benchmark", "method", "pair", "draw")
@@ -63,7 +63,7 @@ def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Co
     """Rerun each run (report.Run) once per draw; returns the long table of per-pair values
     (benchmark, method, pair, draw, then the per_pair.csv columns). Runs of one benchmark and
     dataset are matched together, as the demo matches them (one backbone pass per image)."""
-    from .runner import run_methods
+    from ..runner import run_methods
 
     console = console or Console()
     work = Path(work)

@@ -15,8 +15,8 @@ from matplotlib import colormaps
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from .files import write_atomically
-from .metrics import MMA_THRESHOLDS, POSE_AUC_THRESHOLDS as AUC_THRESHOLDS, pose_error_curve
+from ..files import write_atomically
+from ..metrics import MMA_THRESHOLDS, POSE_AUC_THRESHOLDS as AUC_THRESHOLDS, pose_error_curve
 from .formats import format_number
 
 

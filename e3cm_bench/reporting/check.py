@@ -35,11 +35,11 @@ import pandas as pd
 
 from . import noise_gate
 from .ensemble import eval_settings_of, noise_path, read_noise
-from .files import read_csv, read_keyed_csv, write_atomically, write_csv
+from ..files import read_csv, read_keyed_csv, write_atomically, write_csv
 from .formats import format_number
-from .stats.noise import CHECK_ALPHA, metric_alpha
-from .report import Run, load_run
-from .run import RunFolder
+from ..stats.noise import CHECK_ALPHA, metric_alpha
+from .tables import Run, load_run
+from ..run import RunFolder
 
 # Tolerances (absolute, in the metric's own unit: fractions for HPatches, percent for pose),
 # from the spread measured over repeated demo runs (scripts/demo_spread.py; docs/results.md

@@ -20,11 +20,11 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from . import metrics, stats
-from .benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
-from .files import write_atomically, write_csv
+from .. import metrics, stats
+from ..benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
+from ..files import write_atomically, write_csv
 from .formats import format_interval, format_number
-from .report import Run
+from .tables import Run
 
 HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
 POSE_ERROR_THRESHOLDS = metrics.POSE_AUC_THRESHOLDS  # degrees: err_pose < t, the AUC's thresholds
