@@ -23,7 +23,12 @@ def touch(path: Path) -> Path:
 
 
 def test_registry_names():
-    assert {name: b.dataset for name, b in BENCHMARKS.items()} == {"hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M}
+    from e3cm_bench.benchmarks.evd import EVD
+    from e3cm_bench.benchmarks.wxbs import WxBS
+
+    assert {name: b.dataset for name, b in BENCHMARKS.items()} == {
+        "hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M, "wxbs": WxBS, "evd": EVD}
+    assert list(BENCHMARKS)[:3] == ["hpatches", "megadepth", "yfcc"]  # the paper's first (commands, --help)
 
 
 # --------------------------------------------------------------------------- HPatches

@@ -49,7 +49,9 @@ def test_the_paper_data_is_found_through_importlib_resources():
 
 def test_every_shipped_config_resolves_by_name_and_is_valid():
     names = config_names()
-    assert list(names)[:4] == sorted(PAPER_NAMES) and names["table1"] == CONFIG_DIR / "table1_hpatches.yaml"
+    # the short names first: the paper's, and WxBS and EVD (issue 43: every built-in method)
+    assert list(names)[:6] == sorted((*PAPER_NAMES, "wxbs", "evd")) and names["table1"] == CONFIG_DIR / "table1_hpatches.yaml"
+    assert names["wxbs"] == CONFIG_DIR / "wxbs_all.yaml" and names["evd"] == CONFIG_DIR / "evd_all.yaml"
     # a prefix several configs share names none of them
     assert "design" not in names and "refine" not in names and "e3cm" not in names
     for name, path in names.items():

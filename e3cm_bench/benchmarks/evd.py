@@ -33,7 +33,7 @@ from ..datasets.hpatches import read_homography
 from ..estimators import homography
 from ..geometry import warp_points
 from ..matches import Matches
-from .base import Benchmark, EvalSettings
+from .base import Benchmark, EvalSettings, with_duplicates
 from .wxbs import DEFAULT_MAX_SIDE, threshold_curves_figure
 
 # The reference's np.logspace(np.log2(1.0), np.log2(20), 10, base=2.0): 1 .. 20 px.
@@ -144,7 +144,7 @@ class EVDBenchmark(Benchmark):
     )
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return ["pair", "n_matches", "h_found", "h_error"]
+        return with_duplicates(["pair", "n_matches", "h_found", "h_error"])
 
     def estimate(self, matches: Matches, ev: EvalSettings) -> np.ndarray | None:
         """The evaluation's H from the matches (estimators.homography, seeded by ev.seed)."""

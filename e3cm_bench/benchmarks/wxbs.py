@@ -33,7 +33,7 @@ from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..estimators import fundamental
 from ..geometry import to_homogeneous
 from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings
+from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
 VERSION = "v1.1"
 THRESHOLDS = tuple(range(20))  # px: the reference's np.arange(20)
@@ -228,7 +228,7 @@ class WxBSBenchmark(Benchmark):
     failure: tuple[str, float] | None = None  # a pair's score is a fraction, no threshold makes it a miss
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return ["pair", "category", "n_matches", "n_gt", "f_found", MAA, *map(recall_key, THRESHOLDS)]
+        return with_duplicates(["pair", "category", "n_matches", "n_gt", "f_found", MAA, *map(recall_key, THRESHOLDS)])
 
     def estimate(self, matches: Matches, ev: EvalSettings) -> np.ndarray | None:
         """The evaluation's F from the matches (estimators.fundamental, seeded by ev.seed)."""

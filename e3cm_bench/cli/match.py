@@ -19,6 +19,7 @@ from ..images import load_image
 from ..matchers import get_matcher
 from ..method import MethodSpec, parse_numbers
 from ..runner import match_pair
+from ..evaluate import drawn
 from ..viz import draw_matches, save_image
 from .common import app, console, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, parse_settings, friendly_errors
 
@@ -69,9 +70,11 @@ def match(
     writable_folder(out)
     save_npz(out / "matches.npz", keypoints0=k0, keypoints1=k1, scores=result.scores)
     correct = None
+    shown = drawn(result)  # each correspondence once, as the evaluation scores them (matches.npz keeps all)
     if H is not None:
-        correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), result, EvalSettings())
-    save_image(out / "matches.png", draw_matches(img0, img1, k0, k1, correct=correct, max_lines=500))
+        correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), shown, EvalSettings())
+    save_image(out / "matches.png", draw_matches(img0, img1, shown.keypoints0, shown.keypoints1, correct=correct,
+                                                 max_lines=500))
 
     console.print(f"[bold]{len(k0)} matches[/] ({get_matcher(matcher).name}, {method.backbone or 'no backbone'}) -> {out}/matches.npz, matches.png")
     if correct is not None:

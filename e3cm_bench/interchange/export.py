@@ -17,7 +17,7 @@ from ..benchmarks import EvalSettings, get_benchmark
 from ..files import load_yaml, writable_folder
 from ..run import RunFolder
 from ..images import load_image
-from ..matches import Matches
+from ..matches import Matches, distinct
 from .base import image_name
 from .pixels import check_origin
 
@@ -70,7 +70,20 @@ def load_run_pairs(run_dir: Path):
 
 
 def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
-    """The evaluation's own estimate on these matches (the same estimator, threshold and seed)."""
+    """The evaluation's own estimate on these matches (the same estimator, threshold and seed,
+    on each correspondence once, as the evaluation counts them); the inliers are given for every
+    match written, a repeat of an inlier being an inlier."""
+    found = _estimate(benchmark, pair, distinct(matches)[0], ev)
+    if found is None or len(found["inliers"]) == len(matches):
+        return found
+    both = np.concatenate([matches.keypoints0, matches.keypoints1], axis=1)
+    _, first, inverse = np.unique(both, axis=0, return_index=True, return_inverse=True)
+    rank = np.empty(len(first), np.int64)
+    rank[np.argsort(first)] = np.arange(len(first))  # distinct keeps the first occurrences in order
+    return {**found, "inliers": np.asarray(found["inliers"], bool)[rank[np.ravel(inverse)]]}
+
+
+def _estimate(benchmark, pair, matches: Matches, ev) -> dict | None:
     from .. import estimators
     from ..geometry import warp_points
 
