@@ -131,7 +131,7 @@ def power(demo: Path, baseline: Path, set_name: str) -> pd.DataFrame:
             continue
         run = load_run(path)
         dataset = run.config["dataset"]
-        options = {k: dataset[k] for k in run.benchmark.dataset_options if dataset.get(k) is not None}
+        options = {k: dataset[k] for k in run.benchmark.option_names if dataset.get(k) is not None}
         pairs = run.benchmark.load_dataset(dataset["root"], **options).pairs
         smallest = None
         for shift in SHIFTS:
