@@ -24,7 +24,7 @@ from ..matching import ESTIMATORS
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
-    help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M benchmarks.",
+    help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / WxBS / EVD benchmarks.",
 )
 console = Console()
 err_console = Console(stderr=True)
