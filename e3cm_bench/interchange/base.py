@@ -30,6 +30,13 @@ def image_name(path: Path, root: Path) -> str:
         return path.name
 
 
+def source_identity(identity: dict, origin: str, default: str) -> dict:
+    """A source's identity with its pixel origin, named only where it is not the format's own:
+    identities recorded before --pixel-origin existed then stay equal, and a folder imported
+    with them still resumes."""
+    return {**identity, "pixel_origin": origin} if origin != default else identity
+
+
 def check_declared(what: str, shape: tuple, itemsize: int) -> None:
     """Refuse an array whose declared shape is larger than MAX_POINTS rows (of any width)."""
     rows = int(shape[0]) if len(shape) else 1

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
-from .base import MissingPair, check_declared, image_name, real_points
+from .base import MissingPair, source_identity, check_declared, image_name, real_points
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "corner"
@@ -136,10 +136,7 @@ class ColmapSource:
         return {"database": file_sha256(self.database)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        identity = {"format": self.format, "files": files}
-        if self.origin != DEFAULT_ORIGIN:
-            identity["pixel_origin"] = self.origin
-        return identity
+        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
 
     def location(self) -> dict:
         return {"database": str(self.database), "pixel_origin": self.origin}

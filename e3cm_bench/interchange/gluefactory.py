@@ -31,7 +31,7 @@ import numpy as np
 
 from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
-from .base import MissingPair, image_name, index_array, matched, real_points, score_array
+from .base import MissingPair, source_identity, image_name, index_array, matched, real_points, score_array
 from .hloc import hloc_pair_key, read_dataset
 from .pixels import check_origin, from_origin, to_origin
 
@@ -114,10 +114,7 @@ class GluefactorySource:
         return {"predictions": file_sha256(self.predictions)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        identity = {"format": self.format, "files": files}
-        if self.origin != DEFAULT_ORIGIN:
-            identity["pixel_origin"] = self.origin
-        return identity
+        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
 
     def location(self) -> dict:
         return {"predictions": str(self.predictions), "pixel_origin": self.origin}

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..files import file_sha256
 from ..matches import Matches, MatchesError
-from .base import MissingPair, check_declared, image_name, index_array, matched, real_points, score_array
+from .base import MissingPair, source_identity, check_declared, image_name, index_array, matched, real_points, score_array
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "center"
@@ -77,10 +77,7 @@ class HlocSource:
         return {"features": file_sha256(self.features), "matches": file_sha256(self.matches)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        identity = {"format": self.format, "files": files}
-        if self.origin != DEFAULT_ORIGIN:  # only then: identities recorded before the option stay equal
-            identity["pixel_origin"] = self.origin
-        return identity
+        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
 
     def location(self) -> dict:
         return {"features": str(self.features), "matches": str(self.matches), "pixel_origin": self.origin}

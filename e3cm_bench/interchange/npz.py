@@ -12,7 +12,7 @@ import numpy as np
 
 from ..files import file_sha256, save_npz
 from ..matches import Matches, MatchesError
-from .base import MissingPair, check_declared, real_points, score_array
+from .base import MissingPair, source_identity, check_declared, real_points, score_array
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "center"
@@ -61,10 +61,8 @@ class NpzSource:
     def identity(self, files: dict[str, str]) -> dict:
         """One digest for the folder: each file's hash by name."""
         digest = hashlib.sha256("\n".join(f"{k} {v}" for k, v in sorted(files.items())).encode()).hexdigest()
-        identity = {"format": self.format, "n_files": len(files), "sha256": digest}
-        if self.origin != DEFAULT_ORIGIN:
-            identity["pixel_origin"] = self.origin
-        return identity
+        return source_identity({"format": self.format, "n_files": len(files), "sha256": digest}, self.origin,
+                               DEFAULT_ORIGIN)
 
     def location(self) -> dict:
         return {"folder": str(self.folder), "pixel_origin": self.origin}
