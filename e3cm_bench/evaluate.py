@@ -26,20 +26,27 @@ from .viz import draw_matches, save_image
 
 def evaluate_stage(
     benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
-) -> tuple[pd.DataFrame, dict]:
-    """Every pair's row from its cached matches and ground truth, and the summary of the rows.
+) -> tuple[pd.DataFrame, dict, list[tuple[str, str]]]:
+    """Every pair's row from its cached matches and ground truth, the summary of the rows, and
+    (pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair),
+    each pair read from the cache once.
 
     The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
     """
-    rows = [evaluate_pair(benchmark, pair, cache.read(pair.name), ev) for pair in pairs]
+    rows, failures = [], []
+    for pair in pairs:
+        matches = cache.read(pair.name)
+        rows.append(evaluate_pair(benchmark, pair, matches, ev))
+        if FAILED_ATTR in matches.info:
+            failures.append((pair.name, str(matches.info[FAILED_ATTR])))
     if ev.repeats > 1:
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
         summary = benchmark.summarize(rows, ev)
         summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
     # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
-    return pd.DataFrame(rows, columns=with_duplicates(benchmark.pair_columns(ev))), summary
+    return pd.DataFrame(rows, columns=with_duplicates(benchmark.pair_columns(ev))), summary, failures
 
 
 def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
@@ -150,10 +157,9 @@ def evaluate_and_report(
     pairs = [p for p in pairs if p.name not in failed]
     if not pairs:
         raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary = evaluate_stage(benchmark, pairs, cache, ev)
+    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev)
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
-    failures = matcher_failures(pairs, cache)
     if failures:  # scored as failures (no matches); the count says how many were the matcher's
         summary["n_failed"] = len(failures)
     repeats = int(per_pair[DUPLICATES].sum()) if len(per_pair) else 0
@@ -175,16 +181,6 @@ def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) 
         return
     write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
     console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
-
-
-def matcher_failures(pairs: list[Pair], cache) -> list[tuple[str, str]]:
-    """(pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair)."""
-    failures = []
-    for pair in pairs:
-        message = cache.read(pair.name).info.get(FAILED_ATTR)
-        if message is not None:
-            failures.append((pair.name, str(message)))
-    return failures
 
 
 def write_failures(failures: list[tuple[str, str]], path: Path, console: Console) -> None:
