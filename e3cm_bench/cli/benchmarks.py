@@ -114,15 +114,16 @@ OPTION_TYPES = {"flag": (bool, False), "path": (Optional[Path], None), "paths": 
                 "names": (Optional[list[str]], None), "text": (Optional[str], None)}
 
 
+def option_parameter(option, help_text: str) -> inspect.Parameter:
+    """A dataset option as a keyword parameter typer reads as a command-line option."""
+    kind, default = OPTION_TYPES[option.kind]
+    annotation = Annotated[kind, typer.Option(option.flag, help=help_text)]
+    return inspect.Parameter(option.name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+
+
 def dataset_parameters(bench: Benchmark) -> list[inspect.Parameter]:
     """The command-line options of a benchmark's dataset options."""
-    params = []
-    for option in bench.command_options():
-        kind, default = OPTION_TYPES[option.kind]
-        annotation = Annotated[kind, typer.Option(option.flag, help=option.help)]
-        params.append(inspect.Parameter(option.name, inspect.Parameter.KEYWORD_ONLY, default=default,
-                                        annotation=annotation))
-    return params
+    return [option_parameter(option, option.help) for option in bench.command_options()]
 
 
 def benchmark_command(bench: Benchmark):

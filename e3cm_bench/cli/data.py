@@ -12,7 +12,7 @@ from ..benchmarks import BENCHMARKS, get_benchmark
 from ..synth.stereo import write_stereo_sequence
 from ..run import RunConfig
 from ..download import find_root
-from .benchmarks import OPTION_TYPES
+from .benchmarks import option_parameter
 from .common import app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
 
 
@@ -110,12 +110,7 @@ def all_dataset_parameters() -> list[inspect.Parameter]:
     for bench in BENCHMARKS.values():
         for option in bench.command_options():
             seen.setdefault(option.name, (option, []))[1].append(bench.name)
-    params = []
-    for name, (option, names) in seen.items():
-        kind, default = OPTION_TYPES[option.kind]
-        annotation = Annotated[kind, typer.Option(option.flag, help=f"{', '.join(names)}: {option.help}")]
-        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation))
-    return params
+    return [option_parameter(option, f"{', '.join(names)}: {option.help}") for option, names in seen.values()]
 
 
 def _with_dataset_options(command):
