@@ -16,3 +16,21 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data samples not found at {SHARED_DATA} (the ../shared checkout is absent)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def wxbs_root(shared_data) -> Path:
+    """The WxBS v1.1 release as its zip unpacks (the folder holding v1.1/)."""
+    root = shared_data / "WxBS"
+    if not (root / "v1.1").is_dir():
+        pytest.skip(f"WxBS v1.1 not found at {root} (the ../shared data lacks it)")
+    return root
+
+
+@pytest.fixture(scope="session")
+def evd_root(shared_data) -> Path:
+    """The EVD release as its zip unpacks (1/, 2/, h/)."""
+    root = shared_data / "EVD"
+    if not (root / "h").is_dir():
+        pytest.skip(f"EVD not found at {root} (the ../shared data lacks it)")
+    return root

@@ -17,22 +17,6 @@ from e3cm_bench.geometry import warp_points
 from e3cm_bench.matches import Matches
 
 
-@pytest.fixture(scope="module")
-def wxbs_root(shared_data):
-    root = shared_data / "WxBS"
-    if not (root / "v1.1").is_dir():
-        pytest.skip(f"WxBS v1.1 not found at {root} (the ../shared data lacks it)")
-    return root
-
-
-@pytest.fixture(scope="module")
-def evd_root(shared_data):
-    root = shared_data / "EVD"
-    if not (root / "h").is_dir():
-        pytest.skip(f"EVD not found at {root} (the ../shared data lacks it)")
-    return root
-
-
 # ----------------------------------------------------------------------------- loaders
 
 

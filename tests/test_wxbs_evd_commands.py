@@ -9,34 +9,16 @@ import dataclasses
 import hashlib
 import io
 import zipfile
-from pathlib import Path
 
 import pandas as pd
 import pytest
 
 import e3cm_bench.datasets.sources as sources
-from e3cm_bench.cache import MatchCache
 from e3cm_bench.run import RunFolder
 from helpers import flat, invoke, one_line_error
 from test_download_round3 import Server, answer
 
 SIFT = ("--matcher", "sift", "--protocol", "wxbs")
-
-
-@pytest.fixture(scope="module")
-def wxbs_root(shared_data) -> Path:
-    root = shared_data / "WxBS"
-    if not (root / "v1.1").is_dir():
-        pytest.skip(f"{root}/v1.1 not found (../shared/data/README.md)")
-    return root
-
-
-@pytest.fixture(scope="module")
-def evd_root(shared_data) -> Path:
-    root = shared_data / "EVD"
-    if not (root / "h").is_dir():
-        pytest.skip(f"{root}/h not found (../shared/data/README.md)")
-    return root
 
 
 def ok(*args):
