@@ -10,8 +10,9 @@ gives what that changes.
 
 Export, per image: a camera (PINHOLE from the pair's intrinsics where the benchmark has them,
 the principal point moved by half a pixel with the keypoints; else SIMPLE_RADIAL with COLMAP's
-own prior, focal 1.2 x the longer side), its name (path relative to the dataset root), and the
-matched keypoints of every pair it is in (each pair's appended, as hloc.py explains). Per pair:
+own prior, focal 1.2 x the longer side), its name (path relative to the dataset root), and one
+keypoint list holding the matched keypoints of every pair it is in, each location once
+(tracks.py says why and how a radius merges near ones). Per pair:
 the matches, and a two-view geometry holding the inliers of the evaluation's own estimate (pose:
 the essential-matrix RANSAC's inliers, CALIBRATED, with E and the relative pose; homography:
 the matches within the RANSAC threshold of the estimated H, PLANAR, with H), so that COLMAP's
@@ -59,37 +60,35 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
                            has_prior_focal_length=True)
 
 
-def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN) -> list[Path]:
+def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0) -> list[Path]:
+    """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
+    several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
+    mapper can chain pairs into tracks of more than two views."""
+    from .tracks import merge_keypoints
+
     pycolmap = pycolmap_module()
     shift = _shift(origin)
+    keypoints, indices = merge_keypoints(((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1)
+                                          for item in items), merge_px)
 
     def write(tmp: Path) -> None:
         tmp.unlink()  # pycolmap creates the file itself
         db = pycolmap.Database.open(str(tmp))
         try:
             ids: dict[str, int] = {}
-            lists: dict[str, list[np.ndarray]] = {}
-            offsets = []
             for item in items:
-                offset = []
-                for name, K, size, points in ((item.name0, item.K0, item.size0, item.matches.keypoints0),
-                                              (item.name1, item.K1, item.size1, item.matches.keypoints1)):
+                for name, K, size in ((item.name0, item.K0, item.size0), (item.name1, item.K1, item.size1)):
                     if name not in ids:
                         camera_id = db.write_camera(camera_for(pycolmap, K, size, origin))
                         ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
-                    listed = lists.setdefault(name, [])
-                    offset.append(sum(len(p) for p in listed))
-                    listed.append(to_origin(points, origin).astype(np.float32))
-                offsets.append(offset)
-            for name, listed in lists.items():
-                db.write_keypoints(ids[name], np.concatenate(listed).reshape(-1, 2))
-            for item, (at0, at1) in zip(items, offsets):
+            for name, points in keypoints.items():
+                db.write_keypoints(ids[name], to_origin(points, origin).astype(np.float32).reshape(-1, 2))
+            for item, pairs in zip(items, indices):
                 id0, id1 = ids[item.name0], ids[item.name1]
                 if db.exists_matches(id0, id1):
                     raise ValueError(f"two pairs of the run join images {item.name0} and {item.name1}; "
                                      "COLMAP holds one match list per image pair")
-                n = len(item.matches)
-                pairs = np.stack([at0 + np.arange(n), at1 + np.arange(n)], axis=1).astype(np.uint32)
+                pairs = pairs.astype(np.uint32)
                 db.write_matches(id0, id1, pairs)
                 geometry = item.geometry
                 if geometry is None:
