@@ -67,7 +67,8 @@ def same_csvs(a: Path, b: Path) -> None:
 
 
 def sbatch(options: list[str], command: list[str], env, cwd, **changes) -> str:
-    """Submit; the job id."""
+    """Submit; the job id. (Not sbatch --wait: it polls at growing intervals, up to half a
+    minute late; wait_for asks every second.)"""
     done = run(["sbatch", "--parsable", *options, *command], env, cwd, **changes)
     return done.stdout.strip().split(";")[0]
 
@@ -113,7 +114,7 @@ def test_launcher_slurm_submits_a_real_array(slurm_cluster, args, env, reference
 
 def test_array_script_runs_and_merges(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
-    job = sbatch(["--wait", *array_options(slurm_cluster, tmp_path, "1-2")], [str(ARRAY), *args, "--out", out],
+    job = sbatch(array_options(slurm_cluster, tmp_path, "1-2"), [str(ARRAY), *args, "--out", out],
                  env, tmp_path, E3CM_SHARDS="2")
     assert wait_for(job) == {"1": "COMPLETED", "2": "COMPLETED"}, job_lines(job)
     same_csvs(out, reference)
@@ -121,11 +122,9 @@ def test_array_script_runs_and_merges(slurm_cluster, args, env, reference, tmp_p
 
 
 def test_array_task_outside_the_shards_is_refused(slurm_cluster, args, env, tmp_path):
-    done = subprocess.run(["sbatch", "--parsable", "--wait", *array_options(slurm_cluster, tmp_path, "3"), str(ARRAY),
-                           *args, "--out", tmp_path / "run"], cwd=tmp_path, env={**env, "E3CM_SHARDS": "2"},
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0
-    job = done.stdout.strip().split(";")[0]
+    job = sbatch(array_options(slurm_cluster, tmp_path, "3"), [str(ARRAY), *args, "--out", tmp_path / "run"], env,
+                 tmp_path, E3CM_SHARDS="2")
+    assert wait_for(job) == {"3": "FAILED"}, job_lines(job)
     log = (tmp_path / f"slurm-{job}_3.out").read_text().strip().splitlines()
     assert log == ["array.sh: array task 3 is not a shard of 1..2 (--array=1-N with N = E3CM_SHARDS, 2)"]
     assert not (tmp_path / "run").exists()
@@ -147,7 +146,7 @@ def test_a_cancelled_task_resubmitted_resumes(slurm_cluster, args, env, referenc
     assert 1 <= before < N_PAIRS // 2 and not shard_config(out, "1-of-2")["shard"]["complete"]
     assert not (out / "summary.csv").exists()
     # array.sh's rerun of one shard: an array of one task, still shard 1 of 2
-    again = sbatch(["--wait", *array_options(slurm_cluster, tmp_path, "1")], command, env, tmp_path, E3CM_SHARDS="2")
+    again = sbatch(array_options(slurm_cluster, tmp_path, "1"), command, env, tmp_path, E3CM_SHARDS="2")
     assert wait_for(again) == {"1": "COMPLETED"}, job_lines(again)
     log = " ".join((tmp_path / f"slurm-{again}_1.out").read_text().split())
     assert f"{N_PAIRS // 2} pairs, {before} already in" in log  # it resumed: only the others were matched
@@ -157,12 +156,14 @@ def test_a_cancelled_task_resubmitted_resumes(slurm_cluster, args, env, referenc
 def test_a_task_past_its_time_limit_is_named_by_merge_and_resumes(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     command = [str(ARRAY), *args, "--out", str(out)]
-    second = sbatch(["--wait", *array_options(slurm_cluster, tmp_path, "2")], command, env, tmp_path, E3CM_SHARDS="2")
-    assert wait_for(second) == {"2": "COMPLETED"}
-    # shard 1: 40 s a pair, 3 pairs, a time limit of 1 minute (SLURM's smallest)
+    # shard 1: 40 s a pair, 3 pairs, a time limit of 1 minute (SLURM's smallest; slurmctld looks
+    # every 30 s, so the task ends 60 to 90 s in); shard 2 at the same time, with no wait
     first = sbatch(array_options(slurm_cluster, tmp_path, "1", time_limit="1"), command, env, tmp_path,
                    E3CM_SHARDS="2", E3CM_SLOW_SECONDS="40")
+    second = sbatch(array_options(slurm_cluster, tmp_path, "2"), command, env, tmp_path, E3CM_SHARDS="2")
+    assert wait_for(second) == {"2": "COMPLETED"}, job_lines(second)
     assert wait_for(first, timeout=300) == {"1": "TIMEOUT"}, job_lines(first)
+    assert "DUE TO TIME LIMIT" in (tmp_path / f"slurm-{first}_1.out").read_text()  # slurmstepd's line
     before = cached(out, "1-of-2")
     assert before < N_PAIRS // 2 and not shard_config(out, "1-of-2")["shard"]["complete"]
     merge = subprocess.run(cli("merge", out), env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
@@ -172,7 +173,7 @@ def test_a_task_past_its_time_limit_is_named_by_merge_and_resumes(slurm_cluster,
     rerun = line.split("it resumes what it matched: ", 1)[1]
     assert rerun.startswith(f"cd {tmp_path} && e3cm-bench hpatches ") and rerun.endswith("--shard 1/2"), rerun
     # the command merge names, as a SLURM job of its own, resumes the shard and merges the run
-    again = sbatch(["--wait", f"--partition={slurm_cluster.partition}", "--time=10", f"--output={tmp_path}/rerun.out",
+    again = sbatch([f"--partition={slurm_cluster.partition}", "--time=10", f"--output={tmp_path}/rerun.out",
                     "--wrap", rerun], [], env, tmp_path)
     assert wait_for(again) == {again: "COMPLETED"}, job_lines(again)
     log = " ".join((tmp_path / "rerun.out").read_text().split())
