@@ -89,6 +89,20 @@ def shard_config(out: Path, shard: str) -> dict:
     return yaml.safe_load((out / "shards" / shard / "config.yaml").read_text())
 
 
+def test_a_shard_records_the_command_that_reruns_it():
+    """Without a cluster: the launch options of the command line become --shard K/N."""
+    from e3cm_bench.run.shards import shard_command
+
+    for argv in (["/venv/bin/e3cm-bench", "hpatches", "--out", "my runs", "--launcher", "slurm", "--shards", "4"],
+                 ["/src/e3cm_bench/cli/__main__.py", "hpatches", "--out", "my runs", "--launcher=slurm", "--shards=4"],
+                 ["e3cm-bench", "hpatches", "--workers", "4", "--out", "my runs"],
+                 ["e3cm-bench", "hpatches", "--out", "my runs", "--shard", "1/4"]):
+        assert shard_command((3, 4), argv, cwd="/w d") == "cd '/w d' && e3cm-bench hpatches --out 'my runs' --shard 3/4"
+    assert shard_command((1, 2), ["e3cm-bench", "hpatches", "--devices", "cuda:0,cuda:1"], cwd="/w",
+                         device="cuda:0") == "cd /w && e3cm-bench hpatches --shard 1/2 --device cuda:0"
+    assert shard_command((1, 2), ["/usr/bin/pytest", "tests"]) is None  # the Python API: no command line to name
+
+
 def test_launcher_slurm_submits_a_real_array(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     # SBATCH_TIMELIMIT overrides the --time=1440 of the script submitit writes (docs/cluster.md)

@@ -53,7 +53,8 @@ def shard_command(shard: tuple[int, int], argv: list[str] | None = None, cwd: st
     shard's config.yaml (shard: command), so that merge can name it for a shard that is missing or unfinished."""
     argv = list(sys.argv if argv is None else argv)
     program = Path(argv[0]) if argv else Path()
-    if not (program.name == "e3cm-bench" or program.parts[-3:] == ("e3cm_bench", "cli", "__main__.py")):
+    if not (program.name == "e3cm-bench" or program.parts[-3:] == ("e3cm_bench", "cli", "__main__.py")
+            or program.parts[-2:] == ("e3cm_bench", "__main__.py")):
         return None
     args, rest = [], argv[1:]
     while rest:
