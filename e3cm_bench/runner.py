@@ -29,7 +29,7 @@ from .reporting.tables import print_summary
 from .run import RunConfig, RunFolder
 from .run.pair import match_pair
 from .run.stage import MatchJob, MatchOptions, match_jobs
-from .run.shards import merge_when_complete, shard_dir, shard_slice
+from .run.shards import merge_when_complete, shard_command, shard_dir, shard_slice
 
 __all__ = ["MatchOptions", "match_pair", "run_benchmark", "run_methods"]
 
@@ -266,7 +266,8 @@ def _open_run(
         timing=previous.get("timing", {}),
         feature_reuse=previous.get("feature_reuse") or None,  # counts of earlier stages; add_stats adds this one's
         dataset_load=load or previous.get("dataset_load"),
-        shard=None if shard is None else {"index": shard[0], "count": shard[1], "n_pairs": len(pairs), "complete": False},
+        shard=None if shard is None else {"index": shard[0], "count": shard[1], "n_pairs": len(pairs), "complete": False,
+                                          "command": shard_command(shard)},
     )
     if todo:
         console.print(method.describe(), markup=False)

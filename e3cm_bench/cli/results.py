@@ -15,8 +15,9 @@ from ..experiments import reproduce as reproduce_experiment
 from ..experiments import EXPERIMENT_COPY, merge_experiment, write_table
 from ..paper import config_names, resolve_config
 from ..download import find_root
+from ..run.launch import run_experiment_shards
 from ..run.shards import merge_run, parse_shard
-from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt
+from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt
 
 
 @app.command()
@@ -86,6 +87,8 @@ def reproduce(
     compare: CompareOpt = True,
     shard: ShardOpt = None,
     methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
+    launcher: LauncherOpt = "local",
+    shards: ShardsOpt = 0,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     config = resolve_config(config)
@@ -94,9 +97,15 @@ def reproduce(
         from ..experiments import load_experiment
 
         root = find_root(load_experiment(config)["benchmark"], None)
-    reproduce_experiment(config, root, out, backbone=backbone, limit=limit, device=device, dataset_overrides=overrides,
-                         skip_bad=skip_bad, max_side=max_side, compare=compare, console=console,
-                         shard=parse_shard(shard) if shard else None, only=methods.split(",") if methods else None)
+    run = dict(config_path=config, root=root, out=out, backbone=backbone, limit=limit, device=device,
+               dataset_overrides=overrides, skip_bad=skip_bad, max_side=max_side, compare=compare,
+               only=methods.split(",") if methods else None)
+    if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
+        if shard or not shards:
+            raise ValueError("--launcher slurm needs --shards N (and no --shard)")
+        run_experiment_shards(run, shards, console=console)
+    else:
+        reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)
 
 
 @app.command()

@@ -75,11 +75,93 @@ def run_shard_job(kwargs: dict) -> dict:
 
     from ..runner import run_benchmark  # in the worker: a shard loads the models
 
+    _as_launched(kwargs.pop("argv", None))
+    method = kwargs.get("method")
+    if method is not None and ":" in method.matcher:
+        from ..matchers import get_matcher
+
+        # a package.module:factory named by --matcher was imported in the process that launched
+        # this one; a worker or an array task is a new interpreter and imports it again
+        get_matcher(method.matcher, allow_import=True)
     threads = kwargs.pop("threads", None)
     if threads:
         torch.set_num_threads(threads)
     summary = run_benchmark(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
     return summary.iloc[0].to_dict()
+
+
+def run_experiment_shard_job(kwargs: dict) -> None:
+    """Shard K/N of every method of an experiment (reproduce), in this process (a SLURM array task)."""
+    from ..experiments import reproduce
+
+    _as_launched(kwargs.pop("argv", None))
+    reproduce(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
+
+
+def _as_launched(argv: list[str] | None) -> None:
+    """In a worker or an array task: the command line that launched the shards, with this
+    shard's own options, as sys.argv; each shard records from it the command that reruns it
+    (run/shards.shard_command). sys.argv here is otherwise the worker's or submitit's own."""
+    import sys
+
+    if argv:
+        sys.argv = list(argv)
+
+
+def launched_argv(shard: tuple[int, int], device: str | None = None) -> list[str] | None:
+    """sys.argv of the shard K/N of this command: --shard K/N (and --device) for the launch options."""
+    import shlex
+    import sys
+
+    from .shards import shard_command
+
+    command = shard_command(shard, device=device)
+    if command is None:
+        return None
+    # shard_command gave "cd DIR && e3cm-bench ARGS"; a shard records the same from this argv
+    return [sys.argv[0], *shlex.split(command.split(" && ", 1)[1])[1:]]
+
+
+def submit_array(function, jobs: list[dict], folder, console: Console, out, slurm: dict | None = None) -> list:
+    """Submit function(job) for each job as one SLURM array (submitit); where no SLURM is found,
+    submitit runs them as local processes and this waits for them. Returns the submitted
+    jobs (SLURM) or their results (local).
+
+    The sbatch options of the script submitit writes (FOLDER/<job>_submission.sh; docs/cluster.md):
+    --array=0-(N-1)%N, --time=1440 (24 h), --job-name=e3cm-bench, --nodes=1, --signal=USR2@90,
+    --open-mode=append, --output/--error FOLDER/%A_%a_0_log.{out,err}, --wckey=submitit; no
+    partition, CPUs, memory or GPUs: the cluster's defaults. The environment (the virtual
+    environment, PYTHONPATH) goes with the tasks (sbatch's --export=ALL). SBATCH_* environment
+    variables (SBATCH_PARTITION, SBATCH_TIMELIMIT, SBATCH_GRES, ...) override the script's
+    #SBATCH lines: a cluster's partition and limits need no option here."""
+    try:
+        import submitit
+    except ImportError:
+        raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
+    n = len(jobs)
+    executor = submitit.AutoExecutor(folder=folder)
+    params = {"timeout_min": 24 * 60, "name": "e3cm-bench", "slurm_array_parallelism": n, **(slurm or {})}
+    if executor.cluster != "slurm":
+        params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
+    executor.update_parameters(**params)
+    submitted = executor.map_array(function, jobs)
+    job_id = submitted[0].job_id.split("_")[0]
+    console.print(f"submitted {n} shard(s) to {executor.cluster}: job {job_id}; "
+                  f"they merge when the last one finishes (or: e3cm-bench merge {out})", markup=False)
+    if executor.cluster == "slurm":
+        console.print(f"watch: squeue -j {job_id}; logs: {folder}/{job_id}_*_log.*", markup=False)
+        return submitted
+    return [job.result() for job in submitted]
+
+
+def run_experiment_shards(kwargs: dict, n: int, console: Console | None = None, slurm: dict | None = None) -> list:
+    """reproduce --launcher slurm --shards N: a SLURM array of N tasks; task K runs shard K/N of
+    every method (experiments.reproduce_experiment with shard=(K, N)); the last to finish writes
+    the table (or: e3cm-bench merge OUT)."""
+    console = console or Console()
+    jobs = [{**kwargs, "shard": (k, n), "quiet": True, "argv": launched_argv((k, n))} for k in range(1, n + 1)]
+    folder = RunFolder(kwargs["out"]).shards_dir / "slurm"
+    return submit_array(run_experiment_shard_job, jobs, folder, console, kwargs["out"], slurm)
 
 
 def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher: str = "local",
@@ -93,8 +175,10 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
     jobs = []
     for k in range(1, n + 1):
         device = devices[(k - 1) % len(devices)]
-        threads = threads_per_worker(len(devices)) if device == "cpu" else None
-        job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True}
+        # local CPU workers divide the cores; a SLURM task keeps torch's default, the CPUs it was given
+        threads = threads_per_worker(len(devices)) if device == "cpu" and launcher == "local" else None
+        job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True,
+               "argv": launched_argv((k, n), None if device == "cpu" else device)}
         options = kwargs.get("options") or MatchOptions()
         if launcher == "local" and device == "cpu" and options.feature_cache_mb is None:
             from ..matchers.feature_cache import auto_cache_mb
@@ -103,21 +187,8 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
             job["options"] = replace(options, feature_cache_mb=auto_cache_mb("cpu") / sum(d == "cpu" for d in devices))
         jobs.append(job)
     if launcher == "slurm":
-        try:
-            import submitit
-        except ImportError:
-            raise ValueError("--launcher slurm needs submitit: pip install 'e3cm-bench[cluster]'") from None
-        executor = submitit.AutoExecutor(folder=RunFolder(kwargs["out"]).shards_dir / "slurm")
-        params = {"timeout_min": 24 * 60, "slurm_array_parallelism": n, **(slurm or {})}
-        if executor.cluster != "slurm":
-            params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
-        executor.update_parameters(**params)
-        submitted = executor.map_array(run_shard_job, jobs)
-        console.print(f"submitted {n} shard(s) to {executor.cluster}: job {submitted[0].job_id.split('_')[0]}; "
-                      f"they merge when the last one finishes (or: e3cm-bench merge {kwargs['out']})", markup=False)
-        if executor.cluster == "slurm":
-            return submitted
-        return [job.result() for job in submitted]
+        return submit_array(run_shard_job, jobs, RunFolder(kwargs["out"]).shards_dir / "slurm", console,
+                            kwargs["out"], slurm)
     with worker_pool(len(devices)) as pool:
         futures = [pool.submit(run_shard_job, job) for job in jobs]
         results = []

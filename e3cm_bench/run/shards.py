@@ -12,6 +12,9 @@ Launching is left to the cluster's scheduler (SLURM arrays, scripts/slurm/) or t
 
 from __future__ import annotations
 
+import os
+import shlex
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -36,6 +39,47 @@ def shard_slice(n_pairs: int, shard: tuple[int, int]) -> slice:
     """The K-th of N contiguous slices of n_pairs items; sizes differ by at most one."""
     k, n = shard
     return slice(n_pairs * (k - 1) // n, n_pairs * k // n)
+
+# The options that say how a run's shards run; a shard's own command line has only --shard K/N.
+LAUNCH_OPTIONS = {"--shard": 1, "--workers": 1, "--devices": 1, "--launcher": 1, "--shards": 1}
+
+
+def shard_command(shard: tuple[int, int], argv: list[str] | None = None, cwd: str | None = None,
+                  device: str | None = None) -> str | None:
+    """The command line that runs (or resumes) shard K/N of the run this process's command makes:
+    ``cd CWD && e3cm-bench ARGS --shard K/N``, the launch options (--workers, --devices,
+    --launcher, --shards, --shard) removed; device: a --device to add (a --devices worker's).
+    None where argv is not the e3cm-bench command line (the Python API). Recorded in each
+    shard's config.yaml (shard: command), so that merge can name it for a shard that is missing or unfinished."""
+    argv = list(sys.argv if argv is None else argv)
+    program = Path(argv[0]) if argv else Path()
+    if not (program.name == "e3cm-bench" or program.parts[-3:] == ("e3cm_bench", "cli", "__main__.py")
+            or program.parts[-2:] == ("e3cm_bench", "__main__.py")):
+        return None
+    args, rest = [], argv[1:]
+    while rest:
+        arg = rest.pop(0)
+        name = arg.split("=", 1)[0]
+        if name in LAUNCH_OPTIONS:
+            if "=" not in arg:
+                del rest[:LAUNCH_OPTIONS[name]]
+            continue
+        args.append(arg)
+    args += ["--shard", f"{shard[0]}/{shard[1]}"] + (["--device", device] if device else [])
+    return f"cd {shlex.quote(cwd or os.getcwd())} && " + shlex.join(["e3cm-bench", *args])
+
+
+def rerun_commands(configs: dict[tuple[int, int], dict], shards: list[tuple[int, int]]) -> str:
+    """': CMD1; CMD2' for the shards named (from their own recorded command, or
+    another shard's with its --shard K/N replaced), or '' where no shard recorded one."""
+    known = {key: c["shard"]["command"] for key, c in configs.items() if c["shard"].get("command")}
+    if not known:
+        return ""
+    (k0, n0), template = next(iter(sorted(known.items())))
+    commands = [known.get(shard) or template.replace(f"--shard {k0}/{n0}", f"--shard {shard[0]}/{shard[1]}")
+                for shard in shards]
+    return ": " + "; ".join(commands)
+
 
 def shard_dir(out: Path, shard: tuple[int, int]) -> Path:
     return RunFolder(out).shard(shard).path
@@ -86,12 +130,14 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
         raise ValueError(f"{RunFolder(out).shards_dir}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
                          "keep one and delete the others")
     n = counts.pop()
-    missing = [f"{k}-of-{n}" for k in range(1, n + 1) if (k, n) not in configs]
-    if missing:
-        raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {', '.join(missing)} missing; run them with --shard K/{n}")
-    unfinished = [f"{k}-of-{n}" for (k, _), c in sorted(configs.items()) if not c["shard"].get("complete")]
-    if unfinished:
-        raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {', '.join(unfinished)} not finished; rerun them to resume")
+    missing = [(k, n) for k in range(1, n + 1) if (k, n) not in configs]
+    unfinished = [key for key, c in sorted(configs.items()) if not c["shard"].get("complete")]
+    if missing or unfinished:
+        names = lambda shards: ", ".join(f"{k}-of-{n}" for k, _ in shards)  # noqa: E731
+        problems = ([f"{names(missing)} missing"] if missing else []) + \
+                   ([f"{names(unfinished)} not finished (stopped, or still running)"] if unfinished else [])
+        raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {'; '.join(problems)}; run each with --shard K/{n}, "
+                         "it resumes what it matched" + rerun_commands(configs, sorted(missing + unfinished)))
     first = configs[(1, n)]
     for (k, _), config in sorted(configs.items()):
         for key in ("benchmark", "identity", "dataset_load", "evaluation"):
