@@ -85,6 +85,23 @@ def homography_corner_error(
     return error if np.isfinite(error) else float("inf")
 
 
+def symmetric_homography_error(kpts0: np.ndarray, kpts1: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """Per match, the mean of ||H x0 - x1|| and ||H^-1 x1 - x0|| (glue-factory's match error on
+    HPatches; NaN where a point goes to infinity)."""
+    kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
+    kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
+    H = np.asarray(H, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        forward = np.linalg.norm(warp_points(H, kpts0) - kpts1, axis=1)
+        backward = np.linalg.norm(warp_points(np.linalg.inv(H), kpts1) - kpts0, axis=1)
+    return (forward + backward) / 2.0
+
+
+def precision_column(threshold: float) -> str:
+    """glue-factory's name of its match precision at `threshold` px: 1 -> 'prec@1px'."""
+    return f"prec@{threshold:g}px"
+
+
 def evaluate_homography_pair(
     kpts0: np.ndarray,
     kpts1: np.ndarray,

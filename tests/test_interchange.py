@@ -98,30 +98,84 @@ def test_a_homography_run_through_colmap_loses_at_most_one_float32_step(hpatches
     np.testing.assert_allclose(a["h_error"], b["h_error"], rtol=0, atol=1e-5)  # pixels
 
 
-def test_the_hloc_export_reads_as_hlocs_io_functions_read_it(hpatches_run, tmp_path):
+def hloc_pair_key(name0: str, name1: str, separator: str = "/") -> str:
+    """hloc's names_to_pair (separator "/") and names_to_pair_old ("_"), as its parsers.py defines them."""
+    return separator.join(n.replace("/", "-") for n in (name0, name1))
+
+
+def hloc_get_matches(path, name0: str, name1: str):
+    """(matches (M, 2), scores (M,)) as hloc/utils/io.py's get_matches returns them at c13273b:
+    find_pair tries the pair key, the swapped key, then both older '_' keys; idx =
+    where(matches0 != -1); the columns flipped for a pair stored the other way round."""
+    with h5py.File(path, "r") as f:
+        for key, reverse in ((hloc_pair_key(name0, name1), False), (hloc_pair_key(name1, name0), True),
+                             (hloc_pair_key(name0, name1, "_"), False), (hloc_pair_key(name1, name0, "_"), True)):
+            if key in f:
+                break
+        else:
+            raise AssertionError(f"hloc's find_pair would not find {name0}, {name1}")
+        matches0, scores0 = f[key]["matches0"].__array__(), f[key]["matching_scores0"].__array__()
+    idx = np.where(matches0 != -1)[0]
+    matches = np.stack([idx, matches0[idx]], -1)
+    return (np.flip(matches, -1) if reverse else matches), scores0[idx]
+
+
+def hloc_get_keypoints(path, name: str) -> np.ndarray:
+    """hloc's get_keypoints: f[name]["keypoints"] read whole."""
+    with h5py.File(path, "r") as f:
+        return f[name]["keypoints"].__array__()
+
+
+def rows(*columns) -> list:
+    """A pair's matches as a sorted list of rows (hloc returns them in keypoint order)."""
+    return sorted(map(tuple, np.concatenate([np.asarray(c, np.float64).reshape(len(c), -1) for c in columns], axis=1).tolist()))
+
+
+@pytest.mark.parametrize("which", ["hpatches", "kitti"])
+def test_the_hloc_export_reads_as_hlocs_io_functions_read_it(which, request, tmp_path):
     """hloc is not on PyPI (its README installs it from a git checkout, which needs the network),
-    so this reads the files as hloc/utils/io.py's get_keypoints and get_matches do, written from
-    that layout: keypoints at f[name]["keypoints"], the pair at names_to_pair(name0, name1) with
-    matches0 and matching_scores0, idx = where(matches0 != -1)."""
-    out, _ = hpatches_run
+    so the files are read as hloc/utils/io.py's get_keypoints and get_matches read them
+    (helpers above, written from that code's behaviour): every pair's matches and scores come
+    back, in either image order, from one keypoint list per image that repeats no location
+    (an appended keypoint only where a pair matched one keypoint twice); e3cm_order gives the
+    run's order; pairs.txt lists the pairs as hloc's pairs parser splits them."""
+    out, _ = request.getfixturevalue(f"{which}_run")
     exported = tmp_path / "hloc"
-    assert invoke("export", out, exported, "--to", "hloc").exit_code == 0
+    result = invoke("export", out, exported, "--to", "hloc")
+    assert result.exit_code == 0 and "one keypoint list per image" in result.output
     cache = MatchCache(out / "matches.h5")
-    with h5py.File(exported / "features.h5", "r") as features, h5py.File(exported / "matches.h5", "r") as matches:
-        for name in cache.names():
-            sequence, ids = name.split("/")
-            name0, name1 = (f"{sequence}/{i}.ppm" for i in ids.split("-"))
-            pair = "/".join(n.replace("/", "-") for n in (name0, name1))
-            m0, s0 = matches[pair]["matches0"].__array__(), matches[pair]["matching_scores0"].__array__()
-            assert m0.dtype == np.int16 and features[name0]["keypoints"].dtype == np.float32
-            idx = np.where(m0 != -1)[0]
-            k0 = features[name0]["keypoints"].__array__()[idx]
-            k1 = features[name1]["keypoints"].__array__()[m0[idx]]
-            native = cache.read(name)
-            np.testing.assert_array_equal(k0, native.keypoints0)
-            np.testing.assert_array_equal(k1, native.keypoints1)
-            np.testing.assert_array_equal(s0[idx], native.scores)
-            assert tuple(features[name0]["image_size"][()]) == tuple(native.info["size0"])
+    features, matches_path = exported / "features.h5", exported / "matches.h5"
+    names = [line.split() for line in (exported / "pairs.txt").read_text().splitlines()]
+    assert len(names) == len(cache.names()) and all(len(n) == 2 for n in names)
+    appended: dict[str, int] = {}
+    with h5py.File(features, "r") as f:
+        for name0, _ in names:
+            assert f[name0]["keypoints"].dtype == np.float32
+    for (name0, name1), pair in zip(names, cache.names()):
+        native = cache.read(pair)
+        k0, k1 = hloc_get_keypoints(features, name0), hloc_get_keypoints(features, name1)
+        for a, b, flip in ((name0, name1, False), (name1, name0, True)):
+            matches, scores = hloc_get_matches(matches_path, a, b)
+            if flip:
+                matches = np.flip(matches, -1)
+            assert rows(k0[matches[:, 0]], k1[matches[:, 1]], scores) == rows(native.keypoints0, native.keypoints1,
+                                                                                native.scores)
+        with h5py.File(matches_path, "r") as f:
+            group = f[hloc_pair_key(name0, name1)]
+            order = group["e3cm_order"][()]
+            m0 = group["matches0"][()]
+            assert m0.dtype == np.int16 and len(m0) == len(k0)
+            np.testing.assert_array_equal(k0[order], native.keypoints0)
+            np.testing.assert_array_equal(k1[m0[order]], native.keypoints1)
+            np.testing.assert_array_equal(group["matching_scores0"][()][order], native.scores)
+        repeats = len(native.keypoints0) - len(np.unique(native.keypoints0, axis=0))
+        appended[name0] = appended.get(name0, 0) + repeats  # a keypoint the pair matched twice: its own entry
+    for name in {n for pair in names for n in pair}:  # each location once, but for those entries
+        points = hloc_get_keypoints(features, name)
+        assert len(points) - len(np.unique(points, axis=0)) == appended.get(name, 0)
+    assert sum(appended.values()) > 0  # SIFT lists a location once per orientation: the case arises
+    total = sum(len(hloc_get_keypoints(features, n)) for n in {n for pair in names for n in pair})
+    assert total < sum(2 * len(cache.read(p)) for p in cache.names())  # merged: fewer than one per match side
 
 
 def test_gluefactory_names_hpatches_pairs_by_its_own_index(hpatches_run, shared_data, tmp_path):
@@ -252,6 +306,44 @@ def test_export_refuses_to_overwrite_and_names_a_missing_extra_cleanly(hpatches_
     assert invoke("export", out, tmp_path / "x", "--to", "hloc", "--overwrite").exit_code == 0
     line = one_line_error(invoke("export", out, tmp_path / "y", "--to", "bundler"))
     assert "--to must be one of colmap, hloc, gluefactory, npz" in line
+
+
+def test_export_never_writes_into_a_run_folder(hpatches_run, kitti_run, tmp_path):
+    """OUT = the run, a folder inside it, or another run folder: one line, and the run's own
+    files stay as they were (an --overwrite hloc export used to replace its matches.h5). An OUT
+    that holds the run is allowed: nothing export writes lands in the run."""
+    import shutil
+
+    holder = tmp_path / "runs"
+    run = holder / "sift"
+    shutil.copytree(hpatches_run[0], run)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".lock"}
+    for out, fmt, said in ((run, "hloc", "is the run folder"), (run / "exported", "colmap", "is inside the run folder"),
+                           (kitti_run[0], "npz", "is the run folder"), (run / "shards" / "x", "gluefactory", "is inside")):
+        if fmt == "colmap":
+            pytest.importorskip("pycolmap", reason="the colmap extra (pycolmap) is not installed")
+        line = one_line_error(invoke("export", run, out, "--to", fmt, "--overwrite"))
+        assert said in line and "never into one" in line
+    assert not (run / "exported").exists() and not (run / "shards").exists()
+    assert invoke("export", run, holder, "--to", "hloc").exit_code == 0  # beside the run
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".lock"} == before
+    assert (holder / "matches.h5").is_file()
+
+
+def test_merge_px_is_recorded_and_refused_where_it_means_nothing(kitti_run, tmp_path):
+    out, _ = kitti_run
+    exact, near = (invoke("export", out, tmp_path / name, "--to", "hloc", *extra)
+                   for name, extra in (("exact", ()), ("near", ("--merge-px", "2"))))
+    assert exact.exit_code == near.exit_code == 0
+    assert "(exact repeats merged)" in exact.output and "points within 2 px merged" in near.output
+    from e3cm_bench.interchange import export_run
+
+    found = export_run(out, "hloc", tmp_path / "again", merge_px=2.0)
+    assert found["merge_px"] == 2.0 and found["n_keypoints_merged"] > 0 and found["mean_track_length"] >= 2
+    assert "--merge-px applies to --to colmap and hloc" in one_line_error(
+        invoke("export", out, tmp_path / "npz", "--to", "npz", "--merge-px", "1"))
+    assert "--merge-px must be a radius of 0 or more pixels" in one_line_error(
+        invoke("export", out, tmp_path / "neg", "--to", "hloc", "--merge-px", "-1"))
 
 
 # --------------------------------------------------------------------------- bad hloc and npz files (issue 44)

@@ -29,6 +29,12 @@ class EvalSettings:
     homography_ransac_px: float = 3.0
     homography_max_iters: int = 5000
     homography_confidence: float = 0.9999
+    # HPatches: the pixel convention the ground-truth H is applied in: "center" (ours, PROTOCOLS
+    # §2) or "corner", glue-factory's (its keypoints are in the corner convention and its H
+    # error takes them as they are: --protocol gluefactory); and glue-factory's match precision
+    # (symmetric H error below t px: prec@t px per pair) at these thresholds, none by default.
+    homography_pixel_origin: str = "center"
+    match_precision_px: tuple[float, ...] = ()
     pose_ransac_px: float = 0.5
     # The pixels pose_ransac_px is in: "original" (the stored images, PROTOCOLS §3) or "matched"
     # (the images as resized for matching, SuperGlue's: 1 px at its 1600 px).
@@ -56,6 +62,8 @@ class EvalSettings:
         from ..estimators import check_estimator
 
         check_estimator(self.estimator)
+        if self.homography_pixel_origin not in ("center", "corner"):
+            raise ValueError(f"homography_pixel_origin must be center or corner, got {self.homography_pixel_origin!r}")
         if self.opencv_method not in ("ransac", "magsac"):
             raise ValueError(f"opencv_method must be ransac or magsac, got {self.opencv_method!r}")
         if int(self.repeats) < 1:

@@ -34,19 +34,33 @@ class HomographyBenchmark(Benchmark):
     )
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return with_duplicates(metrics.HPATCHES_PAIR_COLUMNS)
+        return with_duplicates([*metrics.HPATCHES_PAIR_COLUMNS, *_precision_columns(ev)])
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         width, height = (int(v) for v in matches.info["size0"])
+        k0, k1 = _in_origin(matches.keypoints0, ev), _in_origin(matches.keypoints1, ev)
+        if ev.homography_pixel_origin == "corner":
+            # glue-factory's corner error takes the image corners (0, 0) .. (w, h) of the corner
+            # convention; metrics' corners are (0, 0) .. (w - 1, h - 1): the same points for a
+            # size one larger, exactly.
+            width, height = width + 1, height + 1
         row = metrics.evaluate_homography_pair(
-            matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.H, width, height,
+            k0, k1, pair.H, width, height,
             seed=ev.seed, ransac_threshold=ev.homography_ransac_px, max_iters=ev.homography_max_iters,
             confidence=ev.homography_confidence, estimator=ev.estimator,
         )
+        if ev.match_precision_px:
+            error = np.nan_to_num(metrics.symmetric_homography_error(k0, k1, pair.H), nan=np.inf)
+            for t, column in zip(ev.match_precision_px, _precision_columns(ev)):
+                # glue-factory: strictly below t; a pair without matches scores 0 (its nan_to_num)
+                row[column] = float(np.mean(error < t)) if len(error) else 0.0
         return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
-        return metrics.summarize_hpatches(rows)
+        summary = metrics.summarize_hpatches(rows)
+        for column in _precision_columns(ev):
+            summary.update(_precision_summary(_column(list(rows), column), column))
+        return summary
 
     def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
         # metrics.summarize_hpatches on arrays read once: the same keys in the same order and the
@@ -56,6 +70,7 @@ class HomographyBenchmark(Benchmark):
         mma = {t: _column(rows, f"mma@{t}") for t in metrics.MMA_THRESHOLDS}
         h_error = _column(rows, "h_error")
         splits = {s: np.array([str(r["sequence"]).startswith(f"{s}_") for r in rows], dtype=bool) for s in ("i", "v")}
+        precision = {column: _column(rows, column) for column in _precision_columns(ev)}
 
         def block(idx: np.ndarray, suffix: str) -> dict:
             out = {f"n_pairs{suffix}": int(idx.size), f"n_matches{suffix}": _mean(n_matches[idx])}
@@ -69,12 +84,14 @@ class HomographyBenchmark(Benchmark):
                 summary.update(block(idx[mask[idx]], f"_{split}"))
             for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS:
                 summary[f"h_acc@{t}"] = _mean((h_error[idx] <= t).astype(np.float64))
+            for column, values in precision.items():
+                summary.update(_precision_summary(values[idx], column))
             return summary
 
         return summarize
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
-        err = np.linalg.norm(warp_points(pair.H, matches.keypoints0) - matches.keypoints1, axis=1)
+        err = np.linalg.norm(warp_points(pair.H, _in_origin(matches.keypoints0, ev)) - _in_origin(matches.keypoints1, ev), axis=1)
         return err <= ev.correct_px
 
     def required_summary_columns(self) -> list[str]:
@@ -87,6 +104,24 @@ class HomographyBenchmark(Benchmark):
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
         path = stem.with_name(stem.stem + "_mma.png")
         return [plots.plot_mma_curves({label: summary for label, (summary, _) in runs.items()}, path)]
+
+
+def _in_origin(points: np.ndarray, ev: EvalSettings) -> np.ndarray:
+    """Keypoints (ours: centre convention) as float64 in the convention the ground-truth H is
+    applied in (EvalSettings.homography_pixel_origin)."""
+    from ..interchange.pixels import to_origin
+
+    return to_origin(points, ev.homography_pixel_origin)
+
+
+def _precision_columns(ev: EvalSettings) -> list[str]:
+    return [metrics.precision_column(t) for t in ev.match_precision_px]
+
+
+def _precision_summary(values: np.ndarray, column: str) -> dict:
+    """glue-factory's match precision over the pairs: the mean, and its own summary, the median
+    over the pairs (its "m" + key)."""
+    return {column: _mean(values), f"m{column}": float(np.median(values)) if values.size else float("nan")}
 
 
 def _column(rows: Sequence[Mapping], key: str) -> np.ndarray:

@@ -75,10 +75,16 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
     ),
     Protocol(
-        "gluefactory", "glue-factory's MegaDepth-1500 evaluation (its official LightGlue configs): longer side resized "
-        "to 1600 px (enlarged too), PoseLib's relative pose at 2 px of the resized images (its README's command)",
-        ("megadepth",), max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
-        evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"}},
+        "gluefactory", "glue-factory's evaluation. MegaDepth-1500 (its official LightGlue configs): longer side resized "
+        "to 1600 px (enlarged too), PoseLib's relative pose at 2 px of the resized images (its README's command). "
+        "HPatches (gluefactory/eval/hpatches.py and eval/utils.py): the ground-truth H applied to corner-convention "
+        "coordinates, glue-factory's match precision prec@1px/prec@3px (symmetric H error strictly below t; "
+        "mprec: its median over pairs), PoseLib's H at 1 px, corner error on the corners (0, 0)..(w, h); "
+        "its 480 px short-side resize is not applied: the errors are in the run's pixels",
+        ("megadepth", "hpatches"), max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
+        evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"},
+                    "hpatches": {"homography_pixel_origin": "corner", "match_precision_px": (1.0, 3.0),
+                                 "estimator": "poselib", "homography_ransac_px": 1.0}},
     ),
     Protocol(
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "

@@ -155,11 +155,12 @@ def export_matches(
     to: Annotated[str, typer.Option("--to", help="colmap (database.db), hloc (features.h5, matches.h5), gluefactory (predictions.h5) or npz (the folder import --npz reads).")],
     pixel_origin: Annotated[Optional[str], typer.Option("--pixel-origin", help="center or corner: overrides the format's own convention (hloc, npz: center; colmap, gluefactory: corner).")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the files already in OUT.")] = False,
+    merge_px: Annotated[float, typer.Option("--merge-px", help="colmap, hloc: write an image's keypoints within this many pixels of one another as one (exact repeats always are), for dense matchers.")] = 0.0,
 ) -> None:
     """Write a run's matches for another tool: COLMAP, hloc, glue-factory or npz (docs: Matches in and out)."""
     from ..interchange import export_run
 
-    export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console)
+    export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console, merge_px=merge_px)
 
 
 if __name__ == "__main__":  # pragma: no cover

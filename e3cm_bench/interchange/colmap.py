@@ -47,6 +47,20 @@ def _shift(origin: str) -> float:
     return float(to_origin(np.zeros((1, 2)), origin)[0, 0])
 
 
+def mapper_options(pycolmap, calibrated: bool = True):
+    """pycolmap's incremental mapper options under which an export is checked (tests,
+    scripts/mapper_on_export.py): one thread and seed 0, so that the same database gives the
+    same model; with ``calibrated``, the cameras' intrinsics held fixed, since the benchmark's
+    calibration is ground truth (refining the focal length of a forward-moving camera is what
+    makes COLMAP's default lose most of KITTI: docs/interchange.md)."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = options.mapper.num_threads = 1
+    options.random_seed = options.mapper.random_seed = 0
+    if calibrated:
+        options.ba_refine_focal_length = options.ba_refine_principal_point = options.ba_refine_extra_params = False
+    return options
+
+
 def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: str):
     w, h = (int(v) for v in size)
     if K is None:
@@ -60,16 +74,17 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
                            has_prior_focal_length=True)
 
 
-def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0) -> list[Path]:
+def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0, merged=None) -> list[Path]:
     """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
-    mapper can chain pairs into tracks of more than two views."""
+    mapper can chain pairs into tracks of more than two views. merged: merge_keypoints' result
+    for these items, where the caller has it."""
     from .tracks import merge_keypoints
 
     pycolmap = pycolmap_module()
     shift = _shift(origin)
-    keypoints, indices = merge_keypoints(((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1)
-                                          for item in items), merge_px)
+    keypoints, indices = merged or merge_keypoints(
+        ((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1) for item in items), merge_px)
 
     def write(tmp: Path) -> None:
         tmp.unlink()  # pycolmap creates the file itself

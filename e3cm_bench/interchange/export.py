@@ -3,6 +3,10 @@
 The run folder's config.yaml names the benchmark and how its pairs were loaded (dataset_load,
 else the dataset block's root and options, as the report reads them); every pair of the run
 with matches in its cache is written (pairs it skipped have none), in the run's pair order.
+COLMAP and hloc get one keypoint list per image (tracks.py; ``merge_px`` merges within a
+radius). OUT is never a run folder nor inside one: export writes beside a run, so that it
+cannot replace what a run holds (an OUT that holds the run is allowed, since no file it
+writes can land in the run: each is checked).
 """
 
 from __future__ import annotations
@@ -22,9 +26,10 @@ from .base import image_name
 from .pixels import check_origin
 
 FORMATS = ("colmap", "hloc", "gluefactory", "npz")
-OUTPUTS = {"colmap": ("database.db",), "hloc": ("features.h5", "matches.h5"), "gluefactory": ("predictions.h5",),
+OUTPUTS = {"colmap": ("database.db",), "hloc": ("features.h5", "matches.h5", "pairs.txt"), "gluefactory": ("predictions.h5",),
            "npz": ()}
 DEFAULT_ORIGINS = {"colmap": "corner", "hloc": "center", "gluefactory": "corner", "npz": "center"}
+MERGING = ("colmap", "hloc")  # the formats with one keypoint list per image
 
 
 @dataclass
@@ -107,17 +112,52 @@ def _estimate(benchmark, pair, matches: Matches, ev) -> dict | None:
     return None
 
 
+def _run_folder_holding(folder: Path, run_dir: Path) -> Path | None:
+    """The run folder that `folder` is or lies in (the run being exported, or any folder with a
+    run's config.yaml and its matches or tables), else None; links resolved."""
+    run_dir = run_dir.resolve()
+    folder = folder.resolve()
+    for place in (folder, *folder.parents):
+        if place == run_dir:
+            return place
+        here = RunFolder(place)
+        if here.config_path.is_file() and any(p.is_file() for p in (here.matches_path, here.per_pair_path, here.summary_path)):
+            return place
+    return None
+
+
+def refuse_run_folder(run_dir: Path, out: Path, targets=()) -> None:
+    """A one-line refusal where OUT, or the folder of one of the files to write, is a run folder
+    or inside one: an export there would replace the run's own files (its matches.h5)."""
+    for folder in (out, *{Path(t).parent for t in targets}):
+        run = _run_folder_holding(folder, run_dir)
+        if run is not None:
+            where = "is" if run == folder.resolve() else "is inside"
+            raise ValueError(f"{folder}: {where} the run folder {run}; export writes beside a run, never into one: "
+                             "choose another OUT")
+
+
 def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | None = None, overwrite: bool = False,
-               console: Console | None = None) -> dict:
+               console: Console | None = None, merge_px: float = 0.0) -> dict:
     """Write RUN's matches to OUT in FORMAT (colmap, hloc, gluefactory, npz); returns what was
     written. An existing output file is refused unless overwrite; files are written beside
-    their name and renamed into place, never through a link."""
+    their name and renamed into place, never through a link. merge_px (colmap, hloc): keypoints
+    of an image within this radius are written as one (tracks.py); exact repeats always are."""
     console = console or Console()
     if fmt not in FORMATS:
         raise ValueError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    merge_px = float(merge_px)
+    if not merge_px >= 0:  # also refuses NaN
+        raise ValueError(f"--merge-px must be a radius of 0 or more pixels, got {merge_px:g}")
+    if merge_px > 0 and fmt not in MERGING:
+        raise ValueError(f"--merge-px applies to --to {' and '.join(MERGING)} (one keypoint list per image); "
+                         f"{fmt} keeps each pair's own keypoints")
     origin = check_origin(origin or DEFAULT_ORIGINS[fmt])
     run_dir, out = Path(run_dir), Path(out)
+    refuse_run_folder(run_dir, out)
     benchmark, config, root, pairs, options = load_run_pairs(run_dir)
+    if fmt == "npz":  # a pair's name may hold folders, which could reach into a run under OUT
+        refuse_run_folder(run_dir, out, [out / f"{p.name}.npz" for p in pairs])
     ev = None
     if fmt == "colmap":
         from .colmap import pycolmap_module
@@ -152,10 +192,17 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
             items.append(item)
     if not items:
         raise ValueError(f"{run_dir}: no matched pairs in its cache to export")
-    if fmt == "hloc":
-        from .hloc import write_hloc
+    merged = layout = None
+    if fmt in MERGING:
+        from .tracks import merge_keypoints
 
-        written = write_hloc(out, items, origin)
+        merged = merge_keypoints(((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1)
+                                  for item in items), merge_px)
+    if fmt == "hloc":
+        from .hloc import hloc_layout, write_hloc
+
+        layout = hloc_layout(items, merged)
+        written = write_hloc(out, items, origin, merge_px, layout=layout)
     elif fmt == "npz":
         from .npz import write_npz
 
@@ -163,7 +210,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
     elif fmt == "colmap":
         from .colmap import write_colmap
 
-        written = write_colmap(out, items, origin)
+        written = write_colmap(out, items, origin, merge_px, merged=merged)
     else:
         from .gluefactory import write_gluefactory
 
@@ -176,8 +223,34 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
         verified = sum(item.geometry is not None for item in items)
         console.print(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)",
                       markup=False, highlight=False)
-    return {"format": fmt, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
-            "pixel_origin": origin}
+    found = {"format": fmt, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
+             "pixel_origin": origin}
+    if merged is not None:
+        found.update(_merge_figures(items, merged, layout, merge_px))
+        how = "exact repeats merged" if merge_px == 0 else f"exact repeats and points within {merge_px:g} px merged"
+        console.print(f"export: one keypoint list per image: {2 * n_matches} matched keypoints -> "
+                      f"{found['n_keypoints_merged']} ({how}); {found['n_tracks']} tracks, "
+                      f"{found['mean_track_length']:.2f} images each on average", markup=False, highlight=False,
+                      soft_wrap=True)
+        if layout is not None:
+            console.print(f"export: {found['n_keypoints_appended']} keypoints appended where a pair matched one keypoint "
+                          "of its first image more than once (hloc's matches0 holds one match per keypoint)",
+                          markup=False, highlight=False, soft_wrap=True)
+    return found
+
+
+def _merge_figures(items, merged, layout, merge_px: float) -> dict:
+    """What the one-keypoint-list-per-image export did: keypoints kept, tracks and their mean
+    length (images per track), and hloc's appended keypoints."""
+    from .tracks import track_lengths
+
+    keypoints, indices = merged
+    lengths = track_lengths({n: len(k) for n, k in keypoints.items()}, [(i.name0, i.name1) for i in items], indices)
+    found = {"merge_px": merge_px, "n_keypoints_merged": int(sum(len(k) for k in keypoints.values())),
+             "n_tracks": int(len(lengths)), "mean_track_length": float(np.mean(lengths)) if len(lengths) else 0.0}
+    if layout is not None:
+        found["n_keypoints_appended"] = int(sum(len(k) for k in layout[0].values())) - found["n_keypoints_merged"]
+    return found
 
 
 def _size(path: Path) -> tuple[int, int]:

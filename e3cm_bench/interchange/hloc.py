@@ -13,11 +13,24 @@ extract_features.py, match_features.py).
 
 Export writes float32 keypoints and float32 scores (hloc writes float16 under its default
 ``as_half`` and ``matching_scores0`` in float16: exact values would not survive that) and
-``matches0`` as int16 (hloc's ``.short()``) while the image's keypoints fit, else int32.
-A run's matches are per pair and may be many-to-one, which one keypoint list per image with
-``matches0`` cannot hold if keypoints are shared; so each pair's matched keypoints are
-appended to its two images' lists (the same location may appear once per pair), which keeps
-every match and its order.
+``matches0`` as int16 (hloc's ``.short()``) while the second image's keypoints fit, else int32.
+
+One keypoint list per image, as hloc's own extractors give: a location that several pairs
+matched is listed once (tracks.merge_keypoints: exact repeats, or within ``--merge-px``), so
+that hloc's triangulation and reconstruction chain the pairs into tracks. ``matches0`` holds
+one match per keypoint of the first image, while a run's matches may be many-to-one (SIFT
+lists one location once per orientation; a radius merges near points): where a pair matches
+one keypoint of its first image twice, the later match gets a keypoint of its own, appended
+to that image's list at the match's coordinates, so that no match is lost.
+
+hloc's readers return a pair's matches in the order of the first image's keypoints, which is
+not the run's order once keypoints are shared; each pair's group therefore also holds
+``e3cm_order`` (ORDER_KEY): the first image's keypoint index of each match in the run's order.
+hloc reads only the datasets it names and ignores it; import reads the matches in that order
+where it is present, so that a round trip gives the run's per_pair.csv byte for byte.
+
+``pairs.txt`` beside them lists the pairs, ``name0 name1`` a line in the run's order: the
+pairs file hloc's match_features, triangulation and reconstruction take.
 """
 
 from __future__ import annotations
@@ -33,6 +46,8 @@ from .base import MissingPair, source_identity, check_declared, image_name, inde
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "center"
+# A pair group's dataset of our own (module docstring): the run's order of its matches.
+ORDER_KEY = "e3cm_order"
 
 
 def hloc_pair_key(name0: str, name1: str, separator: str = "/") -> str:
@@ -107,19 +122,52 @@ class HlocSource:
             if "matching_scores0" in group:
                 what_s = f"{self.matches}: {group.name}/matching_scores0"
                 scores = score_array(read_dataset(group["matching_scores0"], what_s), what_s, len(index))
+            what_o = f"{self.matches}: {group.name}/{ORDER_KEY}"
+            order = read_dataset(group[ORDER_KEY], what_o) if ORDER_KEY in group else None
         valid = matched(index, len(points[1]), what)
+        if order is not None:
+            valid = run_order(order, valid, what_o)
         k0, k1 = from_origin(points[0][valid], self.origin), from_origin(points[1][index[valid]], self.origin)
         s = scores[valid] if scores is not None else None
         return Matches(k1, k0, s) if swapped else Matches(k0, k1, s)
 
 
-def write_hloc(out: Path, items, origin: str = DEFAULT_ORIGIN) -> list[Path]:
-    """features.h5 and matches.h5 in OUT for export.ExportItem's (module docstring)."""
-    from ..files import write_atomically
+def run_order(values: np.ndarray, valid: np.ndarray, what: str) -> np.ndarray:
+    """The matched rows of matches0 in the run's order, as a pair's ORDER_KEY lists them: each
+    matched row exactly once, else the file is refused."""
+    order = index_array(values, what)
+    if len(order) != len(valid) or not np.array_equal(np.sort(order), valid):
+        raise MatchesError(f"{what}: not the {len(valid)} matched keypoints of matches0, each once")
+    return order
 
-    lists: dict[str, list[np.ndarray]] = {}
-    sizes: dict[str, tuple[int, int]] = {}
-    offsets = []  # per item: (offset in image 0's list, offset in image 1's list)
+
+def hloc_layout(items, merged) -> tuple[dict[str, np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """(per image its keypoints, per pair the (first, second) image's keypoint index of each
+    match in the run's order) from tracks.merge_keypoints' result, with a keypoint appended for
+    each later match of a first-image keypoint that the pair already matched (module docstring)."""
+    keypoints, indices = merged
+    lists = {name: [points] for name, points in keypoints.items()}
+    counts = {name: len(points) for name, points in keypoints.items()}
+    pairs = []
+    for item, index in zip(items, indices):
+        first = index[:, 0].copy()
+        repeat = np.ones(len(first), bool)
+        repeat[np.unique(first, return_index=True)[1]] = False  # a keypoint's first match keeps it
+        if repeat.any():
+            n = int(repeat.sum())
+            first[repeat] = counts[item.name0] + np.arange(n)
+            lists[item.name0].append(np.asarray(item.matches.keypoints0, np.float64).reshape(-1, 2)[repeat])
+            counts[item.name0] += n
+        pairs.append((first, index[:, 1]))
+    return {name: np.concatenate(listed) for name, listed in lists.items()}, pairs
+
+
+def write_hloc(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0, layout=None) -> list[Path]:
+    """features.h5, matches.h5 and pairs.txt in OUT for export.ExportItem's (module docstring).
+    layout: hloc_layout's result where the caller has it, else made here with merge_px."""
+    from ..files import write_atomically
+    from .tracks import merge_keypoints
+
     keys: dict[str, str] = {}
     for item in items:
         key = hloc_pair_key(item.name0, item.name1)
@@ -127,34 +175,37 @@ def write_hloc(out: Path, items, origin: str = DEFAULT_ORIGIN) -> list[Path]:
             raise ValueError(f"pairs {keys.get(key) or keys[hloc_pair_key(item.name1, item.name0)]} and {item.name} "
                              f"join the same images ({item.name0}, {item.name1}); hloc keys a pair by its images")
         keys[key] = item.name
-        offset = []
-        for name, points, size in ((item.name0, item.matches.keypoints0, item.size0),
-                                   (item.name1, item.matches.keypoints1, item.size1)):
-            listed = lists.setdefault(name, [])
-            offset.append(sum(len(p) for p in listed))
-            listed.append(to_origin(points, origin).astype(np.float32) if origin != "center" else points)
-            sizes[name] = size
-        offsets.append(tuple(offset))
-    counts = {name: sum(len(p) for p in listed) for name, listed in lists.items()}
+        spaced = next((n for n in (item.name0, item.name1) if len(n.split()) != 1 or n != n.strip()), None)
+        if spaced is not None:
+            raise ValueError(f"image name {spaced!r} holds white space, which hloc's pairs file cannot hold")
+    if layout is None:
+        layout = hloc_layout(items, merge_keypoints(
+            ((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1) for item in items), merge_px))
+    keypoints, pairs = layout
+    sizes = {name: size for item in items for name, size in ((item.name0, item.size0), (item.name1, item.size1))}
 
     def features(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
-            for name, listed in lists.items():
+            for name, points in keypoints.items():
                 group = f.create_group(name)
-                group.create_dataset("keypoints", data=np.concatenate(listed).astype(np.float32).reshape(-1, 2))
+                group.create_dataset("keypoints", data=to_origin(points, origin).astype(np.float32).reshape(-1, 2))
                 group.create_dataset("image_size", data=np.asarray(sizes[name], np.int64))
 
     def matches(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
-            for item, (at0, at1) in zip(items, offsets):
-                n = len(item.matches)
-                rows = counts[item.name0]
-                matches0 = np.full(rows, -1, np.int16 if counts[item.name1] <= np.iinfo(np.int16).max else np.int32)
+            for item, (first, second) in zip(items, pairs):
+                rows, columns = len(keypoints[item.name0]), len(keypoints[item.name1])
+                matches0 = np.full(rows, -1, np.int16 if columns <= np.iinfo(np.int16).max else np.int32)
                 scores0 = np.zeros(rows, np.float32)
-                matches0[at0:at0 + n] = at1 + np.arange(n)
-                scores0[at0:at0 + n] = item.matches.scores
+                matches0[first] = second
+                scores0[first] = item.matches.scores
                 group = f.create_group(hloc_pair_key(item.name0, item.name1))
                 group.create_dataset("matches0", data=matches0)
                 group.create_dataset("matching_scores0", data=scores0)
+                group.create_dataset(ORDER_KEY, data=first.astype(np.int64))
 
-    return [write_atomically(out / "features.h5", features), write_atomically(out / "matches.h5", matches)]
+    def pair_list(tmp: Path) -> None:
+        tmp.write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
+
+    return [write_atomically(out / "features.h5", features), write_atomically(out / "matches.h5", matches),
+            write_atomically(out / "pairs.txt", pair_list)]
