@@ -235,11 +235,13 @@ def test_compare_finds_the_run_with_the_smaller_errors(sift_run, tmp_path):
 
     result = ok("compare", sift_run, shifted, "--out", tmp_path / "cmp")
     table = pd.read_csv(tmp_path / "cmp" / "compare.csv").set_index("metric")
-    assert table.loc["h_error", "verdict"] == "A better" and table.loc["h_error", "d_mean"] == pytest.approx(2.0)
-    assert table.loc["h_error", "d_mean_lo"] == pytest.approx(2.0) and table.loc["h_error", "test"] == "wilcoxon"
-    assert table.loc["mma@3", "verdict"].startswith("no difference detectable")  # mma untouched
+    # h_error: the median, every pair moved by 2 px (the failures stay +inf): exactly +2
+    assert table.loc["h_error", "verdict"] == "A better" and table.loc["h_error", "d"] == pytest.approx(2.0)
+    assert table.loc["h_error", "d_lo"] == pytest.approx(2.0) and table.loc["h_error", "statistic"] == "median"
+    assert table.loc["mma@3", "verdict"] == "no difference detectable"  # mma untouched
     assert set(table.index) == {"mma@3", "h_error", "h_acc@1", "h_acc@3", "h_acc@5"}
-    assert (table.loc[["h_acc@1", "h_acc@3", "h_acc@5"], "test"] == "mcnemar").all()
+    assert (table.loc[["mma@3", "h_acc@1", "h_acc@3", "h_acc@5"], "statistic"] == "mean").all()
+    assert (table["n"] == len(per_pair)).all()
     markdown = (tmp_path / "cmp" / "compare.md").read_text()
     assert "A better" in markdown and markdown.count("\n|") >= 6 and "A: sift" in markdown and "B: shifted" in markdown
     assert "compare.csv" in result.output
@@ -257,7 +259,7 @@ def test_compare_of_a_run_with_its_copy_detects_nothing(sift_run, tmp_path):
     n = len(pd.read_csv(sift_run / "per_pair.csv"))
     assert [r.metric for r in comparison.results][:2] == ["mma@1", "mma@3"]
     for r in comparison.results:
-        assert r.verdict == f"no difference detectable with {n} pairs" and r.mean_diff == 0 and r.p_value == 1
+        assert r.verdict == "no difference detectable" and r.n == n and r.diff == 0 and r.p_value == 1
     assert "mma@10" in result.output
 
 
@@ -275,7 +277,8 @@ def test_compare_pose_runs_on_the_pairs_both_hold(tmp_path):
     verdicts = {r.metric: r.verdict for r in comparison.results}
     assert list(verdicts) == ["err_pose", "err_pose<5", "err_pose<10", "err_pose<20", "precision@1e-4"]
     assert verdicts["err_pose"] == "B better" and verdicts["err_pose<10"] == "B better"
-    assert verdicts["precision@1e-4"] == "no difference detectable with 27 pairs"
+    assert verdicts["precision@1e-4"] == "no difference detectable"
+    assert [r.statistic for r in comparison.results] == ["median", "mean", "mean", "mean", "mean"]
 
 
 def test_compare_refuses_runs_of_two_benchmarks(sift_run, tmp_path):

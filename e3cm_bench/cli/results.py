@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.text import Text
 
 from ..reporting import check as regression
 from ..demo import METHODS as DEMO_METHODS
@@ -167,25 +168,22 @@ def check(
                       f"{metric_alpha:.2g} per metric)", highlight=False, markup=False)
     limits = regression.Tolerances.load(tolerance, tolerances)
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
+    problems += regression.consistency_problems(runs, baseline)
     checked += len(findings)
     notes = regression.environment_notes(runs, baseline)
     if findings or problems or others is runs:
         text += regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
     if summary is not None:
         regression.write_summary(text, summary)
+    # Each finding wrapped at the console's width (80 columns in a CI log), words kept whole.
     for note in notes:
-        console.print(note, highlight=False, markup=False, soft_wrap=True)  # one line, however long
-    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim"}
-    for status, line in lines:
-        console.print(f"[{styles[status]}]{status}[/]: ", end="", highlight=False)
-        console.print(line, highlight=False, markup=False, soft_wrap=True)
-    for f in findings:
-        if f.status != "ok":
-            style = "bold red" if f.status == "regression" else "yellow"
-            console.print(f"[{style}]{f.status}[/]: {f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> "
-                          f"{f.measured:.4g} (tolerance {f.tolerance:g})", highlight=False)
-    for problem in problems:
-        console.print(f"[bold red]problem[/]: {problem}", highlight=False)
+        console.print(note, highlight=False, markup=False)
+    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim", "problem": "bold red"}
+    said = [*lines, *((f.status, f"{f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> {f.measured:.4g} "
+                                 f"(tolerance {f.tolerance:g})") for f in findings if f.status != "ok"),
+            *(("problem", problem) for problem in problems)]
+    for status, line in said:
+        console.print(Text.assemble((status, styles[status]), f": {line}"), highlight=False)
     bad += sum(f.status == "regression" for f in findings) + len(problems)
     console.print(f"check: {checked} metrics of {len(runs)} runs against {baseline}: "
                   + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))

@@ -417,14 +417,13 @@ def _comparison_section(comparison) -> str:
     if comparison is None:
         return ""
     header, body = comparison.display()
-    head = "".join(f"<th class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
-    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(cell)}</td>"
+    text = (0, 1, 2, 8)  # metric, statistic, better, verdict: left-aligned
+    head = "".join(f"<th class=\"{'t' if k in text else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
+    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in text else ''}\">{html.escape(cell)}</td>"
                                     for k, cell in enumerate(row)) + "</tr>" for row in body)
     return (f"<h2>Paired comparison</h2>\n<p>{html.escape(comparison.heading())}</p>\n"
             f"<table id=\"comparison\"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>\n"
-            f"<p class=\"muted\">B - A: the mean difference over the pairs where both values are finite, with its "
-            f"paired-bootstrap interval ({comparison.n_samples} resamples, seed {comparison.seed}); p: Wilcoxon or sign "
-            f"test on the values, exact McNemar on pass/fail (e3cm-bench compare).</p>")
+            f"<p class=\"muted\">{html.escape(comparison.explanation())} (e3cm-bench compare)</p>")
 
 
 def script_json(data) -> str:
