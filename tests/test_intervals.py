@@ -155,8 +155,10 @@ def test_print_summary_shows_each_number_with_its_interval(sift_run):
 
 def test_a_paper_number_outside_the_interval_is_flagged(tmp_path):
     """Every pair under 1 px: h_acc@t = 1 with the interval [1, 1], so the paper's SIFT+NN numbers
-    (0.36, 0.76, 0.85) all lie outside it; a number whose interval holds the paper's is not flagged."""
-    flagged = write_run(tmp_path / "sift", "hpatches", hpatches_rows([0.5] * 8))
+    (0.36, 0.76, 0.85) all lie outside it; a number whose interval holds the paper's is not flagged.
+    Runs of the paper's size (540 pairs): on fewer pairs the sets differ and nothing is flagged
+    (test_compare_check.py)."""
+    flagged = write_run(tmp_path / "sift", "hpatches", hpatches_rows([0.5] * 540))
     table = report.paper_table([report.load_run(flagged)], "hpatches", PAPER_DIR / "table1.csv")
     row = table[table["source"] == "measured"].iloc[0]
     assert row["vs_paper"] == "SIFT+NN" and (row["h_acc@1_lo"], row["h_acc@1_hi"]) == (1.0, 1.0)
@@ -167,9 +169,9 @@ def test_a_paper_number_outside_the_interval_is_flagged(tmp_path):
     paper_line = next(line for line in markdown.splitlines() if line.startswith("| SIFT+NN "))
     assert "[" not in paper_line and "outside" not in paper_line  # the paper's rows have no interval
 
-    # half the pairs under 1 px, the other half between 1 and 3: h_acc@1 0.5 with an interval around
+    # 194 of 540 pairs under 1 px, the others between 1 and 3: h_acc@1 0.359 with an interval around
     # it that holds the paper's 0.36; h_acc@3 = h_acc@5 = 1, which the paper's 0.76 and 0.85 are outside
-    inside = write_run(tmp_path / "sift2", "hpatches", hpatches_rows([0.5, 2.0] * 10))
+    inside = write_run(tmp_path / "sift2", "hpatches", hpatches_rows([0.5] * 194 + [2.0] * 346))
     row = report.paper_table([report.load_run(inside)], "hpatches", PAPER_DIR / "table1.csv").iloc[-1]
     assert row["h_acc@1_lo"] <= 0.36 <= row["h_acc@1_hi"]
     assert row["outside_ci"] == "h_acc@3, h_acc@5"

@@ -155,6 +155,9 @@ def check(
         return
     if not 0 < alpha < 1:
         raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
+    from ..reporting.formats import text_width
+
+    width = text_width(console)  # 80 columns in a CI log or a pipe
     bad, lines, text = 0, [], ""
     others, checked = runs, 0
     if regression.has_noise_model(baseline):
@@ -165,7 +168,7 @@ def check(
         bad += sum(g.status == "regression" for v in verdicts for g in v.gates)
         text += regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
         console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
-                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False)
+                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False, width=width)
     limits = regression.Tolerances.load(tolerance, tolerances)
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
     problems += regression.consistency_problems(runs, baseline)
@@ -177,16 +180,17 @@ def check(
         regression.write_summary(text, summary)
     # Each finding wrapped at the console's width (80 columns in a CI log), words kept whole.
     for note in notes:
-        console.print(note, highlight=False, markup=False)
+        console.print(note, highlight=False, markup=False, width=width)
     styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim", "problem": "bold red"}
     said = [*lines, *((f.status, f"{f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> {f.measured:.4g} "
                                  f"(tolerance {f.tolerance:g})") for f in findings if f.status != "ok"),
             *(("problem", problem) for problem in problems)]
     for status, line in said:
-        console.print(Text.assemble((status, styles[status]), f": {line}"), highlight=False)
+        console.print(Text.assemble((status, styles[status]), f": {line}"), highlight=False, width=width)
     bad += sum(f.status == "regression" for f in findings) + len(problems)
-    console.print(f"check: {checked} metrics of {len(runs)} runs against {baseline}: "
-                  + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
+    # The verdict first, so that a wrapped line never splits it (CI logs are searched for it).
+    console.print(("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
+                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False)
     if bad:
         raise typer.Exit(1)
 

@@ -26,7 +26,7 @@ from rich.table import Table
 from .. import metrics, stats
 from ..benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
 from ..files import write_atomically, write_csv
-from .formats import format_interval, format_number
+from .formats import format_interval, format_number, text_width
 from .tables import Run
 
 HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
@@ -243,11 +243,16 @@ def print_comparison(comparison: Comparison, console: Console | None = None) -> 
     the labels on lines of their own, the narrow table, then what its columns mean; no cell is
     cut (one that cannot fit folds onto a second line)."""
     console = console or Console()
+    width = text_width(console)
     header, body = comparison.display(wide=False)
-    console.print(f"{comparison.benchmark}: {comparison.n_common} pairs in both runs are compared", markup=False,
-                  highlight=False)
+    same_n = all(r.n == comparison.n_common for r in comparison.results)
+    if same_n:  # the n column would repeat the heading's number on every row: room for the verdict
+        header, body = [h for k, h in enumerate(header) if k != 1], [[c for k, c in enumerate(row) if k != 1] for row in body]
+    every = ", each row over all of them (n)" if same_n else ""
+    console.print(f"{comparison.benchmark}: {comparison.n_common} pairs in both runs are compared{every}", markup=False,
+                  highlight=False, width=width)
     for side, label, n in (("A", comparison.label_a, comparison.n_a), ("B", comparison.label_b, comparison.n_b)):
-        console.print(f"  {side} = {label} ({n} pairs)", markup=False, highlight=False)
+        console.print(f"  {side} = {label} ({n} pairs)", markup=False, highlight=False, width=width)
     # No vertical lines, one space of padding: columns two apart, so the table needs about 76
     # columns where rich's default box needed 100 and cut the names to fit 80.
     table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, padding=(0, 1, 0, 0))
@@ -256,8 +261,8 @@ def print_comparison(comparison: Comparison, console: Console | None = None) -> 
                          no_wrap=k != len(header) - 1)
     for row in body:
         table.add_row(*(escape(cell) for cell in row))
-    console.print(table)
-    console.print(comparison.explanation(), markup=False, highlight=False)
+    console.print(table, width=width)
+    console.print(comparison.explanation(), markup=False, highlight=False, width=width)
 
 
 def to_markdown(comparison: Comparison) -> str:

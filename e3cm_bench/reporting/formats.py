@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
+
+# The width of text written to a log or a pipe: what a CI log or a terminal's default shows.
+PIPE_WIDTH = 80
 
 
 def format_number(value, key: str, decimals: int = 2, fraction_decimals: int = 2) -> str:
@@ -74,3 +78,17 @@ def fit_columns(columns: list[str], rows: list[list[str]], right: list[bool], wi
             lines.append("")
         lines += [line(columns), "  ".join("-" * widths[j] for j in shown), *(line(row) for row in rows)]
     return lines
+
+
+def text_width(console) -> int:
+    """The width a table or message is laid out for: the terminal's where the console writes to
+    one; else COLUMNS where set, else 80. (rich alone takes the width of whichever of stdin,
+    stdout and stderr is a terminal, so `cmd > log` from a wide terminal wrote lines as wide.)"""
+    try:
+        terminal = console.file.isatty()
+    except (AttributeError, ValueError, OSError):
+        terminal = False
+    if terminal:
+        return console.width
+    columns = os.environ.get("COLUMNS", "")
+    return int(columns) if columns.isdigit() and int(columns) > 0 else PIPE_WIDTH

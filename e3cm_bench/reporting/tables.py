@@ -20,7 +20,7 @@ from rich.table import Table
 from ..benchmarks import Benchmark, get_benchmark
 from .. import intervals
 from ..files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
-from .formats import fit_columns, format_interval, format_number
+from .formats import fit_columns, format_interval, format_number, text_width
 from ..paper import PAPER_DIR
 from ..run import RunFolder
 
@@ -335,7 +335,7 @@ def paper_set_notes(table: pd.DataFrame) -> list[str]:
             n, _, paper = other.partition("; the paper: ")
             notes.append(f"{record['method']} is measured on {n}, {record['vs_paper']} in the paper on {paper}: "
                          f"its d_ columns compare two different pair sets, so they show neither a regression nor "
-                         f"an improvement, and its interval (over its own pairs) does not test them.")
+                         f"an improvement (its interval, over its own pairs, says nothing about them).")
     return notes
 
 
@@ -399,16 +399,29 @@ def table_to_markdown(df: pd.DataFrame) -> str:
 
 
 def print_paper_table(df: pd.DataFrame, console: Console | None = None) -> None:
-    """The table on the terminal as the Markdown file shows it, but within the console's width
-    (80 columns in a log or a pipe): the columns that do not fit side by side follow in blocks
-    that repeat the method, so no row wraps and no cell is cut; then the notes on pair sets."""
+    """The table on the terminal with the Markdown file's cells, but within the console's width
+    (80 columns in a log or a pipe): the paper's rows, then the measured rows, each with the
+    columns it fills; columns that do not fit side by side follow in blocks that repeat the
+    method, so no row wraps and no cell is cut; then the notes on pair sets."""
     console = console or Console()
     columns, body, numeric = display_cells(df)
-    lines = fit_columns(columns, body, numeric, console.width, keep=1)
+    width = text_width(console)
+    # The paper's rows and the measured ones apart, each with only the columns it fills: the
+    # paper's rows have no interval, count or difference, and need no block of '-' for them.
+    groups = [[row for row, source in zip(body, df["source"]) if source == kind] for kind in ("paper", "measured")]
+    lines: list[str] = []
+    for rows in groups:
+        if not rows:
+            continue
+        shown = [k for k in range(len(columns)) if k == 0 or any(row[k] not in ("-", "") for row in rows)]
+        if lines:
+            lines.append("")
+        lines += fit_columns([columns[k] for k in shown], [[row[k] for k in shown] for row in rows],
+                             [numeric[k] for k in shown], width, keep=1)
     # soft_wrap: the lines already fit; rich must not rewrap them (or pad them) a second time.
     console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
     for note in paper_set_notes(df):
-        console.print(f"Note: {note}", markup=False, highlight=False)
+        console.print(f"Note: {note}", markup=False, highlight=False, width=width)
 
 
 def write_paper_table(df: pd.DataFrame, out_path: str | Path) -> tuple[Path, Path]:
