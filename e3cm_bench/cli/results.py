@@ -55,9 +55,9 @@ def compare_command(
     mma: Annotated[Optional[str], typer.Option("--mma", help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")] = None,
     alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of each test; intervals at 1 - alpha.")] = 0.05,
 ) -> None:
-    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric the mean
-    difference B - A with its paired-bootstrap interval, a paired test (Wilcoxon or sign;
-    McNemar for pass/fail) and a verdict."""
+    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric B - A of one
+    statistic (the mean; the median of an error, a failure counting as +inf) with its
+    paired-bootstrap interval, and the verdict read from that interval."""
     from ..reporting.compare import compare_runs, parse_mma, print_comparison, write_comparison
     from ..reporting.tables import load_run
 
@@ -158,6 +158,8 @@ def check(
     from ..reporting.formats import text_width
 
     width = text_width(console)  # 80 columns in a CI log or a pipe
+    # First: a broken per-pair baseline is refused before the noise gate reads it.
+    consistency = regression.consistency_problems(runs, baseline)
     bad, lines, text = 0, [], ""
     others, checked = runs, 0
     if regression.has_noise_model(baseline):
@@ -171,7 +173,7 @@ def check(
                       f"{metric_alpha:.2g} per metric)", highlight=False, markup=False, width=width)
     limits = regression.Tolerances.load(tolerance, tolerances)
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
-    problems += regression.consistency_problems(runs, baseline)
+    problems += consistency
     checked += len(findings)
     notes = regression.environment_notes(runs, baseline)
     if findings or problems or others is runs:
