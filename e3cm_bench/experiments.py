@@ -266,7 +266,6 @@ def write_table(
         table = report.without_comparison(table)
     csv_path, md_path = report.write_paper_table(table, out_path)
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
-    # markup=False: labels such as 'e3cm [efficientnet_lite0]' are text, not rich style tags.
-    console.print(md_path.read_text(), markup=False, highlight=False)
+    report.print_paper_table(table, console)  # the Markdown's cells, within the terminal's width
     console.print(f"table: {csv_path}, {md_path}", markup=False)
     return csv_path, md_path

@@ -65,7 +65,19 @@ def runs(tmp_path) -> tuple[Path, Path]:
 
 
 def notes_in(output: str) -> list[str]:
-    return [line for line in output.splitlines() if line.startswith(NOTE)]
+    """The environment notes, each one logical line (check wraps them at the console's width,
+    80 columns in a log: issue 51.5)."""
+    notes, current = [], None
+    for line in output.splitlines():
+        if line.startswith(NOTE):
+            current = len(notes)
+            notes.append(line.rstrip())
+        elif current is not None and line.strip() and not line.startswith(("check:", "regression:", "improvement:",
+                                                                             "problem:", "moved:", "noise model:")):
+            notes[current] += " " + line.strip()
+        else:
+            current = None
+    return notes
 
 
 # --------------------------------------------------------------------------- environment
@@ -112,7 +124,7 @@ def test_a_different_environment_is_one_line_and_no_failure(runs, tmp_path):
     result = invoke("check", root, "--baseline", baseline, "--summary", report)
     assert result.exit_code == 0 and "no regression" in flat(result.output)
     line = f"{NOTE} torch 2.14.1+cu130 -> 2.15.0+cpu, cpu AVX512 -> AVX2, ONEDNN_MAX_CPU_ISA unset -> AVX2"
-    assert notes_in(result.output) == [line]  # one line for both runs, unwrapped
+    assert notes_in(result.output) == [line]  # one note for both runs
     assert f"- {line}\n" in report.read_text()
 
     # A difference of one run only names that run; runs that differ alike share a line.

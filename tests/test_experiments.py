@@ -53,7 +53,8 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
         "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5",
-        "outside_ci", *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3") for b in ("lo", "hi")), "confidence",
+        "outside_ci", "other_pairs", *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3") for b in ("lo", "hi")),
+        "confidence",
     ]
     assert (table["source"] == "paper").sum() == PAPER_ROWS
     measured = table[table["source"] == "measured"].set_index("method")
@@ -63,6 +64,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     summary = pd.read_csv(sift / "summary.csv").iloc[0]
     assert measured.loc["sift", "d_h_acc@3"] == pytest.approx(summary["h_acc@3"] - 0.76)
     assert pd.isna(measured.loc["direct-efficientnet_lite0", "d_h_acc@3"])
+    assert measured.loc["sift", "other_pairs"].startswith("2 pairs; the paper: the full HPatches")  # issue 51.7
     md = (tmp_path / "t1.md").read_text()
     assert md.startswith("| method") and "SIFT+NN" in md and "direct-efficientnet_lite0" in md
     assert (tmp_path / "t1_mma.png").stat().st_size > 0

@@ -155,8 +155,10 @@ def test_print_summary_shows_each_number_with_its_interval(sift_run):
 
 def test_a_paper_number_outside_the_interval_is_flagged(tmp_path):
     """Every pair under 1 px: h_acc@t = 1 with the interval [1, 1], so the paper's SIFT+NN numbers
-    (0.36, 0.76, 0.85) all lie outside it; a number whose interval holds the paper's is not flagged."""
-    flagged = write_run(tmp_path / "sift", "hpatches", hpatches_rows([0.5] * 8))
+    (0.36, 0.76, 0.85) all lie outside it; a number whose interval holds the paper's is not flagged.
+    Runs of the paper's size (540 pairs): on fewer pairs the sets differ and nothing is flagged
+    (test_compare_check.py)."""
+    flagged = write_run(tmp_path / "sift", "hpatches", hpatches_rows([0.5] * 540))
     table = report.paper_table([report.load_run(flagged)], "hpatches", PAPER_DIR / "table1.csv")
     row = table[table["source"] == "measured"].iloc[0]
     assert row["vs_paper"] == "SIFT+NN" and (row["h_acc@1_lo"], row["h_acc@1_hi"]) == (1.0, 1.0)
@@ -167,9 +169,9 @@ def test_a_paper_number_outside_the_interval_is_flagged(tmp_path):
     paper_line = next(line for line in markdown.splitlines() if line.startswith("| SIFT+NN "))
     assert "[" not in paper_line and "outside" not in paper_line  # the paper's rows have no interval
 
-    # half the pairs under 1 px, the other half between 1 and 3: h_acc@1 0.5 with an interval around
+    # 194 of 540 pairs under 1 px, the others between 1 and 3: h_acc@1 0.359 with an interval around
     # it that holds the paper's 0.36; h_acc@3 = h_acc@5 = 1, which the paper's 0.76 and 0.85 are outside
-    inside = write_run(tmp_path / "sift2", "hpatches", hpatches_rows([0.5, 2.0] * 10))
+    inside = write_run(tmp_path / "sift2", "hpatches", hpatches_rows([0.5] * 194 + [2.0] * 346))
     row = report.paper_table([report.load_run(inside)], "hpatches", PAPER_DIR / "table1.csv").iloc[-1]
     assert row["h_acc@1_lo"] <= 0.36 <= row["h_acc@1_hi"]
     assert row["outside_ci"] == "h_acc@3, h_acc@5"
@@ -235,11 +237,13 @@ def test_compare_finds_the_run_with_the_smaller_errors(sift_run, tmp_path):
 
     result = ok("compare", sift_run, shifted, "--out", tmp_path / "cmp")
     table = pd.read_csv(tmp_path / "cmp" / "compare.csv").set_index("metric")
-    assert table.loc["h_error", "verdict"] == "A better" and table.loc["h_error", "d_mean"] == pytest.approx(2.0)
-    assert table.loc["h_error", "d_mean_lo"] == pytest.approx(2.0) and table.loc["h_error", "test"] == "wilcoxon"
-    assert table.loc["mma@3", "verdict"].startswith("no difference detectable")  # mma untouched
+    # h_error: the median, every pair moved by 2 px (the failures stay +inf): exactly +2
+    assert table.loc["h_error", "verdict"] == "A better" and table.loc["h_error", "d"] == pytest.approx(2.0)
+    assert table.loc["h_error", "d_lo"] == pytest.approx(2.0) and table.loc["h_error", "statistic"] == "median"
+    assert table.loc["mma@3", "verdict"] == "no difference detectable"  # mma untouched
     assert set(table.index) == {"mma@3", "h_error", "h_acc@1", "h_acc@3", "h_acc@5"}
-    assert (table.loc[["h_acc@1", "h_acc@3", "h_acc@5"], "test"] == "mcnemar").all()
+    assert (table.loc[["mma@3", "h_acc@1", "h_acc@3", "h_acc@5"], "statistic"] == "mean").all()
+    assert (table["n"] == len(per_pair)).all()
     markdown = (tmp_path / "cmp" / "compare.md").read_text()
     assert "A better" in markdown and markdown.count("\n|") >= 6 and "A: sift" in markdown and "B: shifted" in markdown
     assert "compare.csv" in result.output
@@ -257,7 +261,7 @@ def test_compare_of_a_run_with_its_copy_detects_nothing(sift_run, tmp_path):
     n = len(pd.read_csv(sift_run / "per_pair.csv"))
     assert [r.metric for r in comparison.results][:2] == ["mma@1", "mma@3"]
     for r in comparison.results:
-        assert r.verdict == f"no difference detectable with {n} pairs" and r.mean_diff == 0 and r.p_value == 1
+        assert r.verdict == "no difference detectable" and r.n == n and r.diff == 0 and r.p_value == 1
     assert "mma@10" in result.output
 
 
@@ -275,7 +279,8 @@ def test_compare_pose_runs_on_the_pairs_both_hold(tmp_path):
     verdicts = {r.metric: r.verdict for r in comparison.results}
     assert list(verdicts) == ["err_pose", "err_pose<5", "err_pose<10", "err_pose<20", "precision@1e-4"]
     assert verdicts["err_pose"] == "B better" and verdicts["err_pose<10"] == "B better"
-    assert verdicts["precision@1e-4"] == "no difference detectable with 27 pairs"
+    assert verdicts["precision@1e-4"] == "no difference detectable"
+    assert [r.statistic for r in comparison.results] == ["median", "mean", "mean", "mean", "mean"]
 
 
 def test_compare_refuses_runs_of_two_benchmarks(sift_run, tmp_path):

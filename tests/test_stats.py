@@ -280,6 +280,17 @@ def test_resample_aggregate_picks_each_value_of_a_pair():
 
 
 # ---------------------------------------------------------------- compare_paired
+# One rule (stats/paired.py): a statistic over the same pairs, its paired-bootstrap interval,
+# the verdict read from that interval and the bootstrap's p, so that none contradicts another.
+
+def agrees(r: PairedResult, alpha: float = 0.05) -> None:
+    """Verdict, interval and p of one result say the same thing."""
+    excludes = r.lo > 0 or r.hi < 0
+    assert (r.verdict != "no difference detectable") == excludes, r
+    assert (r.p_value < alpha) == excludes, r
+    if excludes:
+        assert r.lo <= r.diff <= r.hi or math.isinf(r.diff), r
+
 
 def test_shifted_copy_higher_is_better():
     rng = np.random.default_rng(21)
@@ -287,10 +298,11 @@ def test_shifted_copy_higher_is_better():
     b = a + 0.05 + rng.normal(0, 0.03, 200)
     r = compare_paired(a, b, "AUC@10", higher_is_better=True)
     assert isinstance(r, PairedResult)
-    assert (r.test, r.n, r.verdict) == ("wilcoxon", 200, "B better")
-    assert r.p_value < 1e-6 and r.lo < 0.05 < r.hi
-    assert math.isclose(r.mean_diff, float(np.mean(b - a)), rel_tol=1e-12)
-    assert math.isclose(r.mean_b - r.mean_a, r.mean_diff, rel_tol=1e-9)
+    assert (r.statistic, r.n, r.verdict) == ("mean", 200, "B better")
+    assert r.p_value < 0.001 and r.lo < 0.05 < r.hi and r.lo > 0
+    assert math.isclose(r.diff, float(np.mean(b - a)), rel_tol=1e-9)
+    assert math.isclose(r.b - r.a, r.diff, rel_tol=1e-9) and math.isclose(r.a, float(a.mean()))
+    agrees(r)
 
 
 def test_shifted_copy_lower_is_better():
@@ -298,7 +310,7 @@ def test_shifted_copy_lower_is_better():
     a = rng.exponential(2.0, 150)
     b = a + 0.4 + rng.normal(0, 0.5, 150)  # B's errors are larger: A is better
     r = compare_paired(a, b, "error px", higher_is_better=False)
-    assert r.verdict == "A better" and r.lo < 0.4 < r.hi and r.p_value < 1e-6
+    assert r.verdict == "A better" and r.lo < 0.4 < r.hi and r.p_value < 0.001
     # The same data read with higher_is_better names the other method.
     assert compare_paired(a, b, "x", higher_is_better=True).verdict == "B better"
 
@@ -309,88 +321,97 @@ def test_independent_noise_no_difference():
     a = truth + rng.normal(0, 0.5, 120)
     b = truth + rng.normal(0, 0.5, 120)
     r = compare_paired(a, b, "error px", higher_is_better=False)
-    assert r.verdict == "no difference detectable with 120 pairs"
+    assert r.verdict == "no difference detectable" and r.n == 120
     assert r.p_value > 0.05 and r.lo < 0 < r.hi
 
 
-def test_nan_pairs_dropped_and_infinities_ranked():
+def test_a_failure_is_the_worst_error_and_the_median_sees_it():
+    """Issue 51.3: sift vs e3cm had h_error means over the 13 finite pairs of 15, an interval
+    across 0 and yet a winner. A failure is +inf, the median ranks it worst, n is every pair."""
     rng = np.random.default_rng(24)
-    a = rng.uniform(1, 3, 60)
-    b = a - 0.3 + rng.normal(0, 0.1, 60)
-    a[:5] = np.nan      # A failed to produce a value: the pair is dropped
-    b[5:8] = np.nan
-    a[8:20] = np.inf    # A failed (infinite error), B did not: B better on those pairs too
-    r = compare_paired(a, b, "error px", higher_is_better=False)
-    assert r.n == 52 and r.test == "wilcoxon"
-    assert r.verdict == "B better"
-    # Mean and interval over the 40 finite pairs only.
-    fin = np.isfinite(a) & np.isfinite(b)
-    assert math.isclose(r.mean_diff, float(np.mean(b[fin] - a[fin])), rel_tol=1e-12)
-    assert math.isfinite(r.lo) and r.hi < 0
-    # Infinities decide the rank test even against a finite mean that says the opposite:
-    # finite pairs slightly worse for B, but B never fails where A fails on most pairs.
-    a2 = np.r_[np.full(30, np.inf), np.linspace(1, 2, 10)]
-    b2 = np.r_[np.linspace(1, 2, 30), np.linspace(1, 2, 10) + 0.01]
-    r2 = compare_paired(a2, b2, "error px", higher_is_better=False)
-    assert r2.verdict == "B better" and r2.mean_diff > 0
-    # One infinity each way: the median difference is -inf/+inf's nan, which must not break the verdict.
-    r4 = compare_paired(np.array([np.inf, 1.0]), np.array([1.0, np.inf]), "error px")
-    assert r4.test == "sign" and r4.p_value == 1.0 and math.isnan(r4.mean_diff)
-    assert r4.verdict == "no difference detectable with 2 pairs"
-    # Equal infinities are ties, not NaN differences.
-    r3 = compare_paired(np.full(10, np.inf), np.full(10, np.inf), "error px", higher_is_better=False)
-    assert r3.n == 10 and r3.p_value == 1.0 and r3.verdict == "no difference detectable with 10 pairs"
+    a = rng.uniform(0.5, 2.0, 40)
+    b = a + rng.normal(0, 0.05, 40)
+    b[:15] = np.inf  # B fails on 15 of 40 pairs, A on none
+    r = compare_paired(a, b, "h_error", higher_is_better=False, statistic="median")
+    assert r.n == 40 and r.statistic == "median"
+    assert r.a == pytest.approx(float(np.median(a))) and r.b == pytest.approx(float(np.median(b)))
+    assert r.verdict == "A better" and r.lo > 0
+    agrees(r)
+    # More than half failed: B's median is +inf, so is the difference; still A better.
+    b[:25] = np.inf
+    r = compare_paired(a, b, "h_error", higher_is_better=False, statistic="median")
+    assert math.isinf(r.b) and r.diff == math.inf and r.verdict == "A better"
+    agrees(r)
+    # NaN (no value at all) drops the pair; both failed is a tie, not NaN.
+    a2, b2 = np.r_[np.nan, np.inf, np.inf, a[:20]], np.r_[1.0, np.inf, np.inf, a[:20]]
+    r = compare_paired(a2, b2, "h_error", higher_is_better=False, statistic="median")
+    assert r.n == 22 and r.diff == 0 and (r.lo, r.hi) == (0.0, 0.0) and r.verdict == "no difference detectable"
+    # A mean over infinite values does not exist: refused, not silently dropped.
+    with pytest.raises(ValueError, match="median"):
+        compare_paired(a, b, "h_error", statistic="mean")
 
 
-def test_significant_test_but_interval_across_zero():
-    # Most pairs a little better for B, a few much worse: the signed-rank test is significant for B,
-    # but the mean difference's interval straddles 0, so no winner is named.
-    rng = np.random.default_rng(27)
-    a = rng.uniform(0, 1, 55)
-    d = np.r_[0.1 + rng.normal(0, 0.02, 50), -1.5 + rng.normal(0, 0.3, 5)]
-    r = compare_paired(a, a + d, "m")
-    assert r.test == "wilcoxon" and r.p_value < 0.001 and r.lo < 0 < r.hi
-    assert r.verdict == "no difference detectable with 55 pairs"
+@pytest.mark.parametrize("seed", range(12))
+def test_verdict_interval_and_p_agree_on_random_data(seed):
+    """The property of the rule, on values of every kind: bounded, 0/1, errors with failures."""
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(3, 80))
+    kind = seed % 3
+    if kind == 0:
+        a = rng.uniform(0, 1, n)
+        b, statistic = np.clip(a + rng.normal(rng.normal(0, 0.05), 0.1, n), 0, 1), "mean"
+    elif kind == 1:
+        a = (rng.random(n) < 0.6).astype(float)
+        b, statistic = (rng.random(n) < rng.uniform(0.3, 0.9)).astype(float), "mean"
+    else:
+        a = rng.exponential(2, n)
+        b = a * rng.uniform(0.5, 2.0)
+        a[rng.random(n) < 0.2], b[rng.random(n) < 0.3] = np.inf, np.inf
+        statistic = "median"
+    for alpha in (0.05, 0.2):
+        agrees(compare_paired(a, b, "m", higher_is_better=kind != 2, statistic=statistic, alpha=alpha), alpha)
 
 
-def test_sign_test_fallback_and_all_ties():
-    a = np.arange(20, dtype=float)
-    b = a.copy()
-    b[:4] += 1.0
-    r = compare_paired(a, b, "m")
-    assert r.test == "sign" and r.n == 20
-    assert math.isclose(r.p_value, 0.125)  # 4 of 4 positive: 2 * 0.5^4
-    assert r.verdict == "no difference detectable with 20 pairs"
-    r = compare_paired(a, a.copy(), "m")
-    assert r.p_value == 1.0 and r.mean_diff == 0.0 and (r.lo, r.hi) == (0.0, 0.0)
-    assert r.verdict == "no difference detectable with 20 pairs"
-    r = compare_paired(np.array([np.nan]), np.array([1.0]), "m")
-    assert r.n == 0 and r.verdict == "no difference detectable with 0 pairs"
-
-
-def test_mcnemar():
-    # 100 pairs: B alone passes on 25, A alone on 5 (discordance mostly one way), 70 concordant.
+def test_pass_fail_difference_is_the_accuracy_difference():
+    # 100 pairs: B alone passes on 25, A alone on 5, 70 concordant.
     a = np.r_[np.zeros(25), np.ones(5), np.ones(40), np.zeros(30)]
     b = np.r_[np.ones(25), np.zeros(5), np.ones(40), np.zeros(30)]
-    r = compare_paired(a, b, "error < 3px", binary=True)
-    from scipy.stats import binomtest
-    assert r.test == "mcnemar" and r.n == 100
-    assert math.isclose(r.p_value, binomtest(25, 30, 0.5).pvalue, rel_tol=1e-12) and r.p_value < 0.001
-    assert r.verdict == "B better" and math.isclose(r.mean_diff, 0.2) and r.lo > 0
-    # Swapped methods: A alone passes on 25.
-    swapped = compare_paired(b, a, "error < 3px", binary=True)
-    assert swapped.verdict == "A better" and swapped.hi < 0 and swapped.p_value == r.p_value
-    # A binary "failure" flag: B fails more, so A is better.
-    assert compare_paired(a, b, "failed", binary=True, higher_is_better=False).verdict == "A better"
+    r = compare_paired(a, b, "error < 3px")
+    assert r.n == 100 and math.isclose(r.diff, 0.2) and r.lo > 0 and r.verdict == "B better"
+    assert (r.a, r.b) == (0.45, 0.65)
+    swapped = compare_paired(b, a, "error < 3px")
+    assert swapped.verdict == "A better" and swapped.hi < 0 and math.isclose(swapped.p_value, r.p_value, abs_tol=0.01)
+    assert compare_paired(a, b, "failed", higher_is_better=False).verdict == "A better"
     # Symmetric discordance: 15 each way.
     a = np.r_[np.zeros(15), np.ones(15), np.ones(40), np.zeros(30)]
     b = np.r_[np.ones(15), np.zeros(15), np.ones(40), np.zeros(30)]
-    r = compare_paired(a, b, "error < 3px", binary=True)
-    assert r.p_value == 1.0 and r.verdict == "no difference detectable with 100 pairs"
-    # No discordant pair.
-    assert compare_paired(np.ones(8), np.ones(8), "x", binary=True).p_value == 1.0
-    with pytest.raises(ValueError):
-        compare_paired(np.array([0.0, 0.5]), np.array([1.0, 0.0]), "x", binary=True)
+    r = compare_paired(a, b, "error < 3px")
+    assert r.diff == 0 and r.lo < 0 < r.hi and r.p_value > 0.5 and r.verdict == "no difference detectable"
+
+
+def test_ties_constants_and_no_pairs():
+    a = np.arange(20, dtype=float)
+    r = compare_paired(a, a.copy(), "m")
+    assert r.p_value == 1.0 and r.diff == 0.0 and (r.lo, r.hi) == (0.0, 0.0)
+    assert r.verdict == "no difference detectable"
+    r = compare_paired(a, a + 2.0, "m")  # every pair moved by exactly 2: the interval is a point
+    assert r.lo == pytest.approx(2.0) and r.hi == pytest.approx(2.0) and r.p_value == 0.0 and r.verdict == "B better"
+    r = compare_paired(np.array([np.nan]), np.array([1.0]), "m")
+    assert r.n == 0 and r.verdict == "no difference detectable" and math.isnan(r.diff)
+
+
+def test_bootstrap_p_is_the_interval_inverted():
+    from e3cm_bench.stats.bootstrap import percentile_interval
+    from e3cm_bench.stats.paired import bootstrap_p
+
+    rng = np.random.default_rng(5)
+    for samples in (rng.normal(0.3, 0.2, 1000), np.r_[np.zeros(400), np.full(600, 0.1)],
+                    np.r_[rng.normal(-1, 1, 900), np.full(100, np.inf)], np.r_[np.full(30, -np.inf), rng.normal(1, 1, 970)]):
+        p = bootstrap_p(samples)
+        for c in np.linspace(0.5, 0.999, 60):
+            lo, hi = percentile_interval(samples, c)
+            if abs((1 - c) - p) > 1e-9:
+                assert (lo > 0 or hi < 0) == (1 - c > p), (c, p, lo, hi)
 
 
 def test_compare_paired_deterministic_and_checked():
@@ -399,6 +420,8 @@ def test_compare_paired_deterministic_and_checked():
     assert compare_paired(a, b, "m", seed=3) == compare_paired(a, b, "m", seed=3)
     with pytest.raises(ValueError):
         compare_paired(a, b[:-1], "m")
+    with pytest.raises(ValueError):
+        compare_paired(a, b, "m", statistic="mode")
 
 
 def test_verdict_line():
@@ -407,6 +430,6 @@ def test_verdict_line():
     r = compare_paired(a, a + 0.1 + rng.normal(0, 0.02, 80), "AUC@5")
     line = verdict_line(r)
     assert "\n" not in line
-    for part in ("AUC@5", "n=80", "wilcoxon", "p=", "B better", f"{r.mean_a:.4g}", f"{r.mean_b:.4g}",
-                 f"{r.mean_diff:+.4g}", f"{r.lo:+.4g}", f"{r.hi:+.4g}"):
+    for part in ("AUC@5", "mean", "n=80", "p=", "B better", f"{r.a:.4g}", f"{r.b:.4g}",
+                 f"{r.diff:+.4g}", f"{r.lo:+.4g}", f"{r.hi:+.4g}"):
         assert part in line, (part, line)

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.text import Text
 
 from ..reporting import check as regression
 from ..demo import METHODS as DEMO_METHODS
@@ -55,9 +56,9 @@ def compare_command(
     mma: Annotated[Optional[str], typer.Option("--mma", help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")] = None,
     alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of each test; intervals at 1 - alpha.")] = 0.05,
 ) -> None:
-    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric the mean
-    difference B - A with its paired-bootstrap interval, a paired test (Wilcoxon or sign;
-    McNemar for pass/fail) and a verdict."""
+    """Two runs of one benchmark, pair by pair on the pairs both hold: per metric B - A of one
+    statistic (the mean; the median of an error, a failure counting as +inf) with its
+    paired-bootstrap interval, and the verdict read from that interval."""
     from ..reporting.compare import compare_runs, parse_mma, print_comparison, write_comparison
     from ..reporting.tables import load_run
 
@@ -163,6 +164,11 @@ def check(
         return
     if not 0 < alpha < 1:
         raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
+    from ..reporting.formats import text_width
+
+    width = text_width(console)  # 80 columns in a CI log or a pipe
+    # First: a broken per-pair baseline is refused before the noise gate reads it.
+    consistency = regression.consistency_problems(runs, baseline)
     bad, lines, text = 0, [], ""
     others, checked = runs, 0
     if regression.has_noise_model(baseline):
@@ -173,31 +179,29 @@ def check(
         bad += sum(g.status == "regression" for v in verdicts for g in v.gates)
         text += regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
         console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
-                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False)
+                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False, width=width)
     limits = regression.Tolerances.load(tolerance, tolerances)
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
+    problems += consistency
     checked += len(findings)
     notes = regression.environment_notes(runs, baseline)
     if findings or problems or others is runs:
         text += regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
     if summary is not None:
         regression.write_summary(text, summary)
+    # Each finding wrapped at the console's width (80 columns in a CI log), words kept whole.
     for note in notes:
-        console.print(note, highlight=False, markup=False, soft_wrap=True)  # one line, however long
-    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim"}
-    for status, line in lines:
-        console.print(f"[{styles[status]}]{status}[/]: ", end="", highlight=False)
-        console.print(line, highlight=False, markup=False, soft_wrap=True)
-    for f in findings:
-        if f.status != "ok":
-            style = "bold red" if f.status == "regression" else "yellow"
-            console.print(f"[{style}]{f.status}[/]: {f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> "
-                          f"{f.measured:.4g} (tolerance {f.tolerance:g})", highlight=False)
-    for problem in problems:
-        console.print(f"[bold red]problem[/]: {problem}", highlight=False)
+        console.print(note, highlight=False, markup=False, width=width)
+    styles = {"regression": "bold red", "improvement": "yellow", "moved": "dim", "problem": "bold red"}
+    said = [*lines, *((f.status, f"{f.method} on {f.benchmark}: {f.metric} {f.baseline:.4g} -> {f.measured:.4g} "
+                                 f"(tolerance {f.tolerance:g})") for f in findings if f.status != "ok"),
+            *(("problem", problem) for problem in problems)]
+    for status, line in said:
+        console.print(Text.assemble((status, styles[status]), f": {line}"), highlight=False, width=width)
     bad += sum(f.status == "regression" for f in findings) + len(problems)
-    console.print(f"check: {checked} metrics of {len(runs)} runs against {baseline}: "
-                  + ("no regression" if not bad else f"{bad} regression(s)/problem(s)"))
+    # The verdict first, so that a wrapped line never splits it (CI logs are searched for it).
+    console.print(("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
+                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False)
     if bad:
         raise typer.Exit(1)
 

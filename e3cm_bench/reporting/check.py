@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -347,10 +348,91 @@ def read_baseline(path: Path) -> pd.DataFrame:
 
 
 def _baseline_value(value, path: Path, key: tuple[str, str], metric: str) -> float:
+    """A baseline cell as a number: NaN (empty) passes, for the callers to judge; an infinity is
+    refused, since every measured value would then be a change in the same direction
+    (-inf: "improvement" whatever the run gives)."""
     try:
-        return float(value)
+        number = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{path}: {metric} of {key[1]} on {key[0]} is {value!r}, not a number") from None
+    if math.isinf(number):
+        raise ValueError(f"{path}: column {metric}, {key[1]} on {key[0]}: {value} is not a finite number; "
+                         "a baseline holds measured values (rewrite it with check --update)")
+    return number
+
+
+# How closely a summary.csv value must equal the one its per-pair rows give: the CSVs hold 8
+# significant digits (as intervals.recompute).
+AGREE_RTOL, AGREE_ATOL = 1e-6, 1e-9
+
+
+def _disagreements(benchmark, rows: list[dict], values: Mapping[str, float], ev, where: str = "in the summary") -> list[str]:
+    """'metric X from the pairs, Y <where>' for each checked metric the rows do not give."""
+    try:
+        point = benchmark.summarize(rows, ev)
+    except (KeyError, TypeError, ValueError) as error:
+        return [f"its pairs cannot be summarised ({type(error).__name__}: {error})"]
+    out = []
+    for metric, value in values.items():
+        column = benchmark.table_metrics.get(metric, metric)
+        if column not in point or not np.isfinite(value):
+            continue
+        got = float(point[column])
+        if not np.isclose(got, value, rtol=AGREE_RTOL, atol=AGREE_ATOL):
+            out.append(f"{metric} {got:.6g} from the pairs, {value:.6g} {where}")
+    return out
+
+
+def consistency_problems(runs: list[Run], baseline_path: Path) -> list[str]:
+    """What makes a check's numbers unreliable, one line each: a run whose per_pair.csv does not
+    give the summary.csv that check reads, and a per-pair baseline (<baseline>.pairs.csv) whose
+    rows do not give the aggregate baseline's values. A per-pair baseline that exists but cannot
+    be read (not a file, not a CSV, no key columns) is a ValueError naming it: check --update
+    writes both, so a broken one means the baseline was damaged.
+
+    Runs evaluated with --repeats K > 1 are left out of the first test: their summary is the mean
+    over K evaluations, their per_pair.csv the first."""
+    from .tables import eval_settings_of
+
+    problems = []
+    settings = {}
+    for run in runs:
+        ev = eval_settings_of(run)
+        settings[(run.benchmark.name, run.label)] = ev
+        repeats = run.summary.get("repeats")
+        if run.per_pair.empty or ev is None or (repeats is not None and repeats == repeats and int(repeats) > 1):
+            continue
+        differ = _disagreements(run.benchmark, run.per_pair.to_dict("records"), baseline_metrics(run), ev)
+        if differ:
+            problems.append(f"{run.folder.per_pair_path} and {run.folder.summary_path} disagree: {'; '.join(differ)} "
+                            "(one of them was changed after the run; rerun it with --eval-only)")
+    pairs = noise_gate.pairs_path(baseline_path)
+    if not os.path.lexists(pairs):
+        return problems
+    if not pairs.is_file():
+        raise ValueError(f"{pairs}: the per-pair baseline is not a regular file; rewrite it with check --update")
+    pair_rows = noise_gate.read_pair_baseline(pairs)
+    if pair_rows.empty:
+        raise ValueError(f"{pairs}: the per-pair baseline holds no pair; rewrite it with check --update")
+    baseline = read_baseline(baseline_path)
+    metrics = [c for c in baseline.columns if c not in NOT_METRICS]
+    runs_by_key = {(run.benchmark.name, run.label): run for run in runs}
+    for (bench, method), rows in pair_rows.groupby(["benchmark", "method"], sort=False):
+        key = (str(bench), str(method))
+        row = baseline[(baseline["benchmark"].astype(str) == key[0]) & (baseline["method"].astype(str) == key[1])]
+        if row.empty:
+            problems.append(f"{pairs}: {key[1]} on {key[0]} has pairs but no row in {baseline_path}")
+            continue
+        run = runs_by_key.get(key)
+        if run is None or settings.get(key) is None:
+            continue  # its evaluation settings come from the run; a missing run is named by compare
+        values = {m: _baseline_value(row.iloc[0][m], baseline_path, key, m) for m in metrics}
+        records = rows.drop(columns=["benchmark", "method"]).dropna(axis=1, how="all").to_dict("records")
+        differ = _disagreements(run.benchmark, records, values, settings[key], where="in the aggregate baseline")
+        if differ:
+            problems.append(f"{pairs} and {baseline_path} disagree on {key[1]} on {key[0]}: {'; '.join(differ)} "
+                            "(rewrite both with check --update)")
+    return problems
 
 
 def compare(runs: list[Run], baseline_path: Path, tolerances: Tolerances | Mapping[str, float],

@@ -2,10 +2,12 @@
 report page's comparison section.
 
 Only the pairs both runs hold take part (matched by per_pair.csv's ``pair`` column), so each
-pair is its own control: per metric, the mean difference B - A with its paired-bootstrap
-interval, a paired test (Wilcoxon or sign on values, exact McNemar on pass/fail) and a verdict,
-all from `stats.compare_paired`. Which per-pair values are compared, and which way is better,
-is said once here per kind of benchmark (`paired_metrics`).
+pair is its own control. Per metric, one statistic over the same pairs (the mean of bounded
+values, the median of an error where a failure is +inf), B - A with its paired-bootstrap
+interval, the bootstrap's p and the verdict read from that interval, all from
+`stats.compare_paired` (its docstring states the rule). Which per-pair values are compared, by
+which statistic, and which way is better, is said once here per kind of benchmark
+(`paired_metrics`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from rich import box
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
@@ -23,7 +26,7 @@ from rich.table import Table
 from .. import metrics, stats
 from ..benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
 from ..files import write_atomically, write_csv
-from .formats import format_interval, format_number
+from .formats import format_interval, format_number, text_width
 from .tables import Run
 
 HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
@@ -37,7 +40,7 @@ class PairedMetric:
     name: str
     values: Callable[[pd.DataFrame], np.ndarray]
     higher_is_better: bool
-    binary: bool = False
+    statistic: str = "mean"  # "median" where a value can be +inf (a failed pair's error)
 
 
 @dataclass
@@ -57,36 +60,72 @@ class Comparison:
     seed: int
 
     def table(self) -> pd.DataFrame:
-        """compare.csv: one row per metric; d_mean = mean(B - A) over the pairs finite in both."""
+        """compare.csv: one row per metric; a, b: the statistic of A's and B's values over the n
+        pairs; d = b - a with its interval [d_lo, d_hi]; p_value and verdict from that interval."""
         rows = []
         for metric, r in zip(self.metrics, self.results):
             rows.append({
-                "metric": r.metric, "better": "higher" if metric.higher_is_better else "lower", "n": r.n,
-                "mean_a": r.mean_a, "mean_b": r.mean_b, "d_mean": r.mean_diff, "d_mean_lo": r.lo, "d_mean_hi": r.hi,
-                "test": r.test, "p_value": r.p_value, "verdict": r.verdict,
-                "confidence": self.confidence, "bootstrap_samples": self.n_samples, "bootstrap_seed": self.seed,
+                "metric": r.metric, "statistic": r.statistic, "better": "higher" if metric.higher_is_better else "lower",
+                "n": r.n, "a": r.a, "b": r.b, "d": r.diff, "d_lo": r.lo, "d_hi": r.hi, "p_value": r.p_value,
+                "verdict": r.verdict, "confidence": self.confidence, "bootstrap_samples": self.n_samples,
+                "bootstrap_seed": self.seed,
             })
         return pd.DataFrame(rows)
 
-    def display(self) -> tuple[list[str], list[list[str]]]:
-        """The table as people read it (terminal, Markdown, report page): header and text rows."""
-        header = ["metric", "better", "n", f"A: {self.label_a}", f"B: {self.label_b}",
-                  f"B - A [{self.confidence:.0%} CI]", "test", "p", "verdict"]
+    def display(self, wide: bool = True) -> tuple[list[str], list[list[str]]]:
+        """The table as people read it: header and text rows. wide (Markdown, report page): with
+        the statistic, the better direction and p; otherwise (the terminal, 80 columns) metric,
+        n, A, B, B - A with its interval and the verdict, the rest said once below the table."""
+        interval = f"B - A [{self.confidence:.0%} CI]"
+        if wide:
+            header = ["metric", "statistic", "better", "n", f"A: {self.label_a}", f"B: {self.label_b}", interval, "p",
+                      "verdict"]
+        else:
+            header = ["metric", "n", "A", "B", interval, "verdict"]
         body = []
         for row in self.table().to_dict("records"):
-            body.append([row["metric"], row["better"], str(row["n"]), _value(row["mean_a"]), _value(row["mean_b"]),
-                         format_interval(row["d_mean"], row["d_mean_lo"], row["d_mean_hi"], "d_mean", decimals=3,
-                                         fraction_decimals=3),
-                         row["test"], f"{row['p_value']:.3g}", row["verdict"]])
+            cells = {"metric": row["metric"], "statistic": row["statistic"], "better": row["better"], "n": str(row["n"]),
+                     "a": _value(row["a"]), "b": _value(row["b"]),
+                     "d": _difference(row),
+                     "p": _p_value(row["p_value"], self.n_samples), "verdict": row["verdict"]}
+            keys = (["metric", "statistic", "better", "n", "a", "b", "d", "p", "verdict"] if wide
+                    else ["metric", "n", "a", "b", "d", "verdict"])
+            body.append([cells[k] for k in keys])
         return header, body
 
     def heading(self) -> str:
         return (f"{self.benchmark}: A = {self.label_a} ({self.n_a} pairs), B = {self.label_b} ({self.n_b} pairs); "
                 f"{self.n_common} pairs in both are compared")
 
+    def explanation(self) -> str:
+        """What the numbers are, said once (below the terminal's table and the report's)."""
+        medians = [m.name for m in self.metrics if m.statistic == "median"]
+        lower = [m.name for m in self.metrics if not m.higher_is_better]
+        text = "A, B: the mean over the n pairs"
+        if medians:
+            text += (f", but {', '.join(medians)}: the median, a failed pair counting as +inf (the worst)")
+        text += (f". Lower is better for {', '.join(lower)}, higher for the others. " if lower
+                 else ". Higher is better. ")
+        text += (f"B - A: its paired-bootstrap interval ({self.n_samples} resamples, seed {self.seed}); the verdict "
+                 f"names a winner when the interval excludes 0 (bootstrap p < {1 - self.confidence:.2g}).")
+        return text
+
 
 def _value(value: float) -> str:
-    return format_number(value, "", decimals=3, fraction_decimals=3)
+    return format_number(value, "", decimals=2, fraction_decimals=3)
+
+
+def _difference(row: dict) -> str:
+    """B - A [lo, hi], signed, with the decimals of the values it is the difference of (three
+    for fractions, whose differences are small; two for pixels and degrees)."""
+    fraction = all(abs(v) < 1.5 for v in (row["a"], row["b"]) if np.isfinite(v))
+    places = 3 if fraction else 2
+    return format_interval(row["d"], row["d_lo"], row["d_hi"], "d_", decimals=places)
+
+
+def _p_value(p: float, n_samples: int) -> str:
+    """A bootstrap p below one resample's worth is written as a bound, not as 0."""
+    return f"<{1 / n_samples:.2g}" if p < 1 / n_samples else f"{p:.2g}"
 
 
 def _column(name: str, failure_is_inf: bool = False) -> Callable[[pd.DataFrame], np.ndarray]:
@@ -126,29 +165,32 @@ def parse_mma(option: str | None, available: Sequence[str] = ()) -> tuple[int, .
 def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEFAULT) -> list[PairedMetric]:
     """The per-pair values compared for a benchmark, in the order they are shown.
 
-    Homography: mma@k (each k of `mma`), h_error (lower is better; no estimate = +inf), and
-    whether h_error <= t for t = 1, 3, 5 px (each pair's part of h_acc@t; McNemar).
-    Pose: err_pose (lower is better; no pose = +inf), whether err_pose < t for t = 5, 10, 20
-    degrees (the AUC's thresholds; McNemar), and the table's precision column.
+    Homography: mma@k (each k of `mma`; mean), h_error (median, lower is better; no estimate =
+    +inf), and whether h_error <= t for t = 1, 3, 5 px (0/1 per pair; its mean is h_acc@t).
+    Pose: err_pose (median, lower is better; no pose = +inf), whether err_pose < t for t = 5, 10,
+    20 degrees (the AUC's thresholds; 0/1, mean), and the table's precision column (mean).
     """
     if isinstance(benchmark, HomographyBenchmark):
         return [
             *(PairedMetric(f"mma@{t}", _column(f"mma@{t}"), higher_is_better=True) for t in mma),
-            PairedMetric("h_error", _column("h_error", failure_is_inf=True), higher_is_better=False),
-            *(PairedMetric(f"h_acc@{t}", _passes("h_error", t, inclusive=True), higher_is_better=True, binary=True)
+            PairedMetric("h_error", _column("h_error", failure_is_inf=True), higher_is_better=False, statistic="median"),
+            *(PairedMetric(f"h_acc@{t}", _passes("h_error", t, inclusive=True), higher_is_better=True)
               for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS),
         ]
     if isinstance(benchmark, PoseBenchmark):
         precision = benchmark.table_metrics.get("P", metrics.precision_key(metrics.PRECISION_THRESHOLDS[0]))
         return [
-            PairedMetric("err_pose", _column("err_pose", failure_is_inf=True), higher_is_better=False),
-            *(PairedMetric(f"err_pose<{t}", _passes("err_pose", t, inclusive=False), higher_is_better=True, binary=True)
+            PairedMetric("err_pose", _column("err_pose", failure_is_inf=True), higher_is_better=False,
+                         statistic="median"),
+            *(PairedMetric(f"err_pose<{t}", _passes("err_pose", t, inclusive=False), higher_is_better=True)
               for t in POSE_ERROR_THRESHOLDS),
             PairedMetric(precision, _column(precision), higher_is_better=True),
         ]
-    generic = [PairedMetric(name, _column(name, failure_is_inf=not higher), higher_is_better=higher)
+    # A lower-is-better column is an error, +inf where the pair failed: compared by its median.
+    generic = [PairedMetric(name, _column(name, failure_is_inf=not higher), higher_is_better=higher,
+                            statistic="mean" if higher else "median")
                for name, higher in benchmark.paired_columns]
-    generic += [PairedMetric(metric, _passes(column, threshold, inclusive=True), higher_is_better=True, binary=True)
+    generic += [PairedMetric(metric, _passes(column, threshold, inclusive=True), higher_is_better=True)
                 for metric, (column, threshold) in benchmark.count_metrics.items()]
     if generic:
         return generic
@@ -187,7 +229,7 @@ def compare_runs(
         except KeyError as missing:
             raise ValueError(f"compare: {metric.name} needs per_pair.csv column {missing} in both runs") from None
         results.append(stats.compare_paired(values_a, values_b, metric.name, higher_is_better=metric.higher_is_better,
-                                            binary=metric.binary, alpha=alpha, n_samples=n_samples, seed=seed))
+                                            statistic=metric.statistic, alpha=alpha, n_samples=n_samples, seed=seed))
     label_a, label_b = run_a.label, run_b.label
     if label_a == label_b:  # two folders of one method: name them by folder instead
         named = (run_a.dir.name, run_b.dir.name)
@@ -197,27 +239,43 @@ def compare_runs(
 
 
 def print_comparison(comparison: Comparison, console: Console | None = None) -> None:
-    header, body = comparison.display()
-    table = Table(title=escape(comparison.heading()))
+    """The comparison on the terminal, within the console's width (80 columns in a log or a pipe):
+    the labels on lines of their own, the narrow table, then what its columns mean; no cell is
+    cut (one that cannot fit folds onto a second line)."""
+    console = console or Console()
+    width = text_width(console)
+    header, body = comparison.display(wide=False)
+    same_n = all(r.n == comparison.n_common for r in comparison.results)
+    if same_n:  # the n column would repeat the heading's number on every row: room for the verdict
+        header, body = [h for k, h in enumerate(header) if k != 1], [[c for k, c in enumerate(row) if k != 1] for row in body]
+    every = ", each row over all of them (n)" if same_n else ""
+    console.print(f"{comparison.benchmark}: {comparison.n_common} pairs in both runs are compared{every}", markup=False,
+                  highlight=False, width=width)
+    for side, label, n in (("A", comparison.label_a, comparison.n_a), ("B", comparison.label_b, comparison.n_b)):
+        console.print(f"  {side} = {label} ({n} pairs)", markup=False, highlight=False, width=width)
+    # No vertical lines, one space of padding: columns two apart, so the table needs about 76
+    # columns where rich's default box needed 100 and cut the names to fit 80.
+    table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, padding=(0, 1, 0, 0))
     for k, column in enumerate(header):
-        table.add_column(escape(column), justify="left" if k in (0, 1, 6, 8) else "right")
+        table.add_column(escape(column), justify="left" if k in (0, len(header) - 1) else "right", overflow="fold",
+                         no_wrap=k != len(header) - 1)
     for row in body:
         table.add_row(*(escape(cell) for cell in row))
-    table.caption = (f"B - A: mean over the pairs where both values are finite, with its paired-bootstrap interval "
-                     f"({comparison.n_samples} resamples, seed {comparison.seed}); p: the paired test")
-    (console or Console()).print(table)
+    console.print(table, width=width)
+    console.print(comparison.explanation(), markup=False, highlight=False, width=width)
 
 
 def to_markdown(comparison: Comparison) -> str:
     header, body = comparison.display()
     widths = [max(len(h), *(len(row[k]) for row in body)) for k, h in enumerate(header)]
-    right = {2, 3, 4, 5, 7}
+    right = {3, 4, 5, 6, 7}
 
     def line(cells: Sequence[str]) -> str:
         return "| " + " | ".join(c.rjust(w) if k in right else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths))) + " |"
 
     rule = "| " + " | ".join("-" * (w - 1) + ":" if k in right else "-" * w for k, w in enumerate(widths)) + " |"
-    return f"{comparison.heading()}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)]) + "\n"
+    return (f"{comparison.heading()}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)])
+            + f"\n\n{comparison.explanation()}\n")
 
 
 def write_comparison(comparison: Comparison, out: Path) -> tuple[Path, Path]:

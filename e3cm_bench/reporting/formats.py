@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
+
+# The width of text written to a log or a pipe: what a CI log or a terminal's default shows.
+PIPE_WIDTH = 80
 
 
 def format_number(value, key: str, decimals: int = 2, fraction_decimals: int = 2) -> str:
@@ -46,3 +50,45 @@ def format_interval(value, lo, hi, key: str, decimals: int = 2, fraction_decimal
     places = fraction_decimals if abs(float(value)) < 1.5 and not key.startswith("d_") else decimals
     sign = "+" if key.startswith("d_") else ""
     return f"{text} [{lo:{sign}.{places}f}, {hi:{sign}.{places}f}]"
+
+
+def fit_columns(columns: list[str], rows: list[list[str]], right: list[bool], width: int, keep: int = 1) -> list[str]:
+    """A text table as lines no wider than `width`, no cell cut: the columns two spaces apart
+    (numbers right-aligned where `right` says so); where they do not fit side by side, they are
+    shown in consecutive blocks, each repeating the first `keep` columns (the method) so that
+    every row reads on one line. A single column wider than `width` still gets a block of its
+    own (its lines are then as wide as that column)."""
+    widths = [max([len(c), *(len(row[k]) for row in rows)]) for k, c in enumerate(columns)]
+    keep = min(keep, len(columns))
+    fixed = sum(widths[:keep]) + 2 * keep
+    blocks: list[list[int]] = []
+    for k in range(keep, len(columns)):
+        if blocks and fixed + sum(widths[j] + 2 for j in blocks[-1]) + widths[k] <= width:
+            blocks[-1].append(k)
+        else:
+            blocks.append([k])
+    lines: list[str] = []
+    for n, block in enumerate(blocks or [[]]):
+        shown = [*range(keep), *block]
+
+        def line(cells: list[str]) -> str:
+            return "  ".join(cells[j].rjust(widths[j]) if right[j] else cells[j].ljust(widths[j]) for j in shown).rstrip()
+
+        if n:
+            lines.append("")
+        lines += [line(columns), "  ".join("-" * widths[j] for j in shown), *(line(row) for row in rows)]
+    return lines
+
+
+def text_width(console) -> int:
+    """The width a table or message is laid out for: the terminal's where the console writes to
+    one; else COLUMNS where set, else 80. (rich alone takes the width of whichever of stdin,
+    stdout and stderr is a terminal, so `cmd > log` from a wide terminal wrote lines as wide.)"""
+    try:
+        terminal = console.file.isatty()
+    except (AttributeError, ValueError, OSError):
+        terminal = False
+    if terminal:
+        return console.width
+    columns = os.environ.get("COLUMNS", "")
+    return int(columns) if columns.isdigit() and int(columns) > 0 else PIPE_WIDTH

@@ -36,7 +36,7 @@ import pandas as pd
 from rich.console import Console
 
 from ..files import create_new, writable_folder, write_atomically
-from .tables import Run, display_cells, load_run, paper_reference, paper_table, without_comparison
+from .tables import Run, display_cells, load_run, paper_reference, paper_set_notes, paper_table, without_comparison
 
 N_WORST = 8          # pairs drawn because most methods fail there
 N_SAMPLE = 8         # pairs drawn as an even sample of the rest
@@ -106,7 +106,7 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
     table = paper_table(runs, benchmark, reference)
     if not compare:
         table = without_comparison(table, vs_paper=True)
-    notes: list[str] = []
+    notes: list[str] = paper_set_notes(table)  # a run on other pairs than the paper's: said first
     comparison = _comparison(runs, notes)
     plots = [p.relative_to(out).as_posix() for p in
              benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, out / "img" / "comparison")]
@@ -367,7 +367,9 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
                         else f"<td>{html.escape(text)}</td>" for c, text in zip(shown, cells_text))
         rows.append(f"<tr class=\"{html.escape(str(source))}\">{cells}</tr>")
     intervals_note = ("[lo, hi]: the bootstrap interval over the pairs (95% unless the run recorded another), "
-                      "where the run has one; \"outside CI\": the paper's number lies outside it.")
+                      "where the run has one; \"outside CI\": the paper's number lies outside it (a run on the paper's "
+                      "pairs); \"other pairs\": the run's pairs are not the paper's, so the difference is no regression "
+                      "and no improvement (the note above says which pairs each side holds).")
     run_items = []
     for k, (run, links) in enumerate(zip(runs, run_links), start=1):
         items = " · ".join(f"<a href=\"{html.escape(path)}\">{html.escape(name)}</a>" for name, path in links.items())
@@ -417,14 +419,13 @@ def _comparison_section(comparison) -> str:
     if comparison is None:
         return ""
     header, body = comparison.display()
-    head = "".join(f"<th class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
-    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in (0, 1, 6, 8) else ''}\">{html.escape(cell)}</td>"
+    text = (0, 1, 2, 8)  # metric, statistic, better, verdict: left-aligned
+    head = "".join(f"<th class=\"{'t' if k in text else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
+    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in text else ''}\">{html.escape(cell)}</td>"
                                     for k, cell in enumerate(row)) + "</tr>" for row in body)
     return (f"<h2>Paired comparison</h2>\n<p>{html.escape(comparison.heading())}</p>\n"
             f"<table id=\"comparison\"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>\n"
-            f"<p class=\"muted\">B - A: the mean difference over the pairs where both values are finite, with its "
-            f"paired-bootstrap interval ({comparison.n_samples} resamples, seed {comparison.seed}); p: Wilcoxon or sign "
-            f"test on the values, exact McNemar on pass/fail (e3cm-bench compare).</p>")
+            f"<p class=\"muted\">{html.escape(comparison.explanation())} (e3cm-bench compare)</p>")
 
 
 def script_json(data) -> str:

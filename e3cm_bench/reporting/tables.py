@@ -20,12 +20,23 @@ from rich.table import Table
 from ..benchmarks import Benchmark, get_benchmark
 from .. import intervals
 from ..files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
-from .formats import format_interval, format_number
+from .formats import fit_columns, format_interval, format_number, text_width
 from ..paper import PAPER_DIR
 from ..run import RunFolder
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
+# A table's column saying, for a measured row compared with a paper row on other pairs than the
+# paper's, which pairs each side holds (empty where the pair sets are the same, or no paper row).
+OTHER_PAIRS = "other_pairs"
+OTHER_PAIRS_MARK = "other pairs"  # beside such a row's differences, instead of "outside CI"
+
+# The pair sets the paper's tables were measured on: the pair counts that are that set, and its name.
+PAPER_SETS = {
+    "table1.csv": ((540, 580), "the full HPatches sequences (540 or 580 pairs; the paper does not say which)"),
+    "table2.csv": ((1500,), "MegaDepth-1500 (1500 pairs)"),
+    "table3.csv": ((4000,), "the YFCC100M test list (4000 pairs)"),
+}
 
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
@@ -244,6 +255,11 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
     Then the intervals: ``outside_ci`` (the metrics whose paper number lies outside the measured
     interval, comma-separated), ``<col>_lo`` and ``<col>_hi`` for every measured column but the
     counts (NaN where the run has none, `run_intervals`), and their ``confidence``.
+
+    A run on fewer or other pairs than the paper's set (`PAPER_SETS`: the shared samples, a
+    --limit) is compared with the paper's number all the same, but its ``other_pairs`` says
+    which pairs each side holds and ``outside_ci`` stays empty: an interval over these pairs
+    says nothing of the distance to a number measured on others (`paper_set_notes`).
     """
     benchmark = get_benchmark(benchmark)
     for run in runs:
@@ -274,26 +290,59 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
         row["protocol"] = protocol
         for metric in table_metrics:
             row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
+        other_pairs = _other_pairs(run, benchmark) if reference_row is not None else ""
+        row[OTHER_PAIRS] = other_pairs
         bounds = run_intervals(run)
         outside = []
         for column, summary_column in sources.items():
             interval = intervals.interval_of(bounds, summary_column)
             row[intervals.lo_key(column)], row[intervals.hi_key(column)] = interval or (np.nan, np.nan)
             paper_value = reference_row.get(column) if reference_row is not None else None
-            if interval is not None and paper_value is not None and not interval[0] <= paper_value <= interval[1]:
+            if (interval is not None and paper_value is not None and not other_pairs
+                    and not interval[0] <= paper_value <= interval[1]):
                 outside.append(column)
         row[OUTSIDE] = ", ".join(outside)
         row["confidence"] = float(bounds["confidence"]) if bounds else np.nan
         measured_rows.append(row)
 
     columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics),
-               OUTSIDE, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
+               OUTSIDE, OTHER_PAIRS, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
+
+
+def _other_pairs(run: Run, benchmark: Benchmark) -> str:
+    """'15 pairs; the paper: <its set>' where the run's pairs are not the paper's set, else ''."""
+    counts, name = PAPER_SETS.get(benchmark.paper_table or "", ((), ""))
+    n = run.summary.get("n_pairs")
+    try:
+        n = int(n) if n is not None and n == n else len(run.per_pair)
+    except (TypeError, ValueError):
+        n = len(run.per_pair)
+    if not counts or n in counts:
+        return ""
+    return f"{n} pairs; the paper: {name}"
+
+
+def paper_set_notes(table: pd.DataFrame) -> list[str]:
+    """One line per measured row compared with a paper number measured on other pairs: which
+    pairs each side holds, and that the difference is therefore no regression (nor a gain)."""
+    if OTHER_PAIRS not in table.columns:
+        return []
+    notes = []
+    for record in table.to_dict("records"):
+        other = record.get(OTHER_PAIRS)
+        if isinstance(other, str) and other:
+            n, _, paper = other.partition("; the paper: ")
+            notes.append(f"{record['method']} is measured on {n}, {record['vs_paper']} in the paper on {paper}: "
+                         f"its d_ columns compare two different pair sets, so they show neither a regression nor "
+                         f"an improvement (its interval, over its own pairs, says nothing about them).")
+    return notes
 
 
 def without_comparison(table: pd.DataFrame, vs_paper: bool = False) -> pd.DataFrame:
     """The table without its measured - paper columns (and `vs_paper` too if asked)."""
-    drop = [c for c in table.columns if c.startswith("d_") or c == OUTSIDE or (vs_paper and c == "vs_paper")]
+    drop = [c for c in table.columns
+            if c.startswith("d_") or c in (OUTSIDE, OTHER_PAIRS) or (vs_paper and c == "vs_paper")]
     return table.drop(columns=drop)
 
 
@@ -304,12 +353,13 @@ def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list
     columns = [str(c) for c in table.columns]
     folded = {c for c in columns if intervals.lo_key(c) in columns and intervals.hi_key(c) in columns}
     hidden = {key for c in folded for key in (intervals.lo_key(c), intervals.hi_key(c))}
-    hidden |= {c for c in (OUTSIDE, "confidence") if c in columns}
+    hidden |= {c for c in (OUTSIDE, OTHER_PAIRS, "confidence") if c in columns}
     shown = [c for c in columns if c not in hidden]
     body = []
     for record in table.to_dict("records"):
         listed = record.get(OUTSIDE)
         outside = {m.strip() for m in listed.split(",")} if isinstance(listed, str) else set()
+        other_pairs = isinstance(record.get(OTHER_PAIRS), str) and bool(record.get(OTHER_PAIRS))
         cells = []
         for c in shown:
             value = record[c]
@@ -317,7 +367,9 @@ def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list
                 text = format_interval(value, record[intervals.lo_key(c)], record[intervals.hi_key(c)], c)
             else:
                 text = format_number(value, c)
-            if c.startswith("d_") and c[2:] in outside:
+            if c.startswith("d_") and other_pairs and text != "-":
+                text += f" ({OTHER_PAIRS_MARK})"
+            elif c.startswith("d_") and c[2:] in outside:
                 confidence = record.get("confidence")
                 level = f"{float(confidence):.0%} " if isinstance(confidence, float) and confidence == confidence else ""
                 text += f" (outside {level}CI)"
@@ -342,7 +394,34 @@ def table_to_markdown(df: pd.DataFrame) -> str:
         return "| " + " | ".join(padded) + " |"
 
     rule = "| " + " | ".join("-" * (w - 1) + ":" if is_num else "-" * w for w, is_num in zip(widths, numeric)) + " |"
-    return "\n".join([line(columns), rule, *(line(row) for row in body)]) + "\n"
+    notes = "".join(f"\nNote: {note}\n" for note in paper_set_notes(df))
+    return "\n".join([line(columns), rule, *(line(row) for row in body)]) + "\n" + notes
+
+
+def print_paper_table(df: pd.DataFrame, console: Console | None = None) -> None:
+    """The table on the terminal with the Markdown file's cells, but within the console's width
+    (80 columns in a log or a pipe): the paper's rows, then the measured rows, each with the
+    columns it fills; columns that do not fit side by side follow in blocks that repeat the
+    method, so no row wraps and no cell is cut; then the notes on pair sets."""
+    console = console or Console()
+    columns, body, numeric = display_cells(df)
+    width = text_width(console)
+    # The paper's rows and the measured ones apart, each with only the columns it fills: the
+    # paper's rows have no interval, count or difference, and need no block of '-' for them.
+    groups = [[row for row, source in zip(body, df["source"]) if source == kind] for kind in ("paper", "measured")]
+    lines: list[str] = []
+    for rows in groups:
+        if not rows:
+            continue
+        shown = [k for k in range(len(columns)) if k == 0 or any(row[k] not in ("-", "") for row in rows)]
+        if lines:
+            lines.append("")
+        lines += fit_columns([columns[k] for k in shown], [[row[k] for k in shown] for row in rows],
+                             [numeric[k] for k in shown], width, keep=1)
+    # soft_wrap: the lines already fit; rich must not rewrap them (or pad them) a second time.
+    console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
+    for note in paper_set_notes(df):
+        console.print(f"Note: {note}", markup=False, highlight=False, width=width)
 
 
 def write_paper_table(df: pd.DataFrame, out_path: str | Path) -> tuple[Path, Path]:

@@ -2,7 +2,7 @@
 
 bootstrap: percentile-bootstrap intervals over pairs (`bootstrap_interval`, `bootstrap_mean_interval`).
 aggregate: the Poisson-binomial count of successes and resampled aggregates over rerun ensembles.
-paired: two methods on the same pairs, a paired test with an interval and a verdict (`compare_paired`).
+paired: two methods on the same pairs, one statistic's paired-bootstrap interval, its p and verdict (`compare_paired`).
 """
 
 from .aggregate import (

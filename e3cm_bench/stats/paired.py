@@ -1,9 +1,22 @@
-"""Paired comparison of two methods on the same pairs: a test, an interval and a verdict.
+"""Paired comparison of two methods on the same pairs: one statistic, its interval, its p and a verdict.
 
-The two methods ran on the same pairs, so each pair is its own control: the test works on the
-per-pair differences (Wilcoxon signed-rank, or the sign test when there are too few of them) or,
-for a pass/fail metric, on the pairs where exactly one method passed (exact McNemar). The size of
-the difference is the mean of B - A with a paired-bootstrap interval (pairs resampled as units).
+The two methods ran on the same pairs, so each pair is its own control. One rule holds for every
+metric, so that the numbers shown beside each other cannot contradict each other:
+
+- the statistic is the mean of the per-pair values (bounded values: a fraction of matches, a
+  0/1 pass, a precision), or their median where a value can be infinite (an error where the
+  pair failed counts as +inf, worse than any error; a mean over it would not exist, and dropping
+  the pair would hide the failure);
+- B - A is the statistic of B minus that of A, over the same n pairs (those where neither value
+  is NaN); its interval is the percentile interval of the same difference over paired bootstrap
+  resamples (the pairs resampled as units, A and B together);
+- the verdict is read from that interval: "B better" or "A better" when it excludes 0 (which
+  side is better: `higher_is_better`), else "no difference detectable";
+- p is the same bootstrap's two-sided p: the smallest 1 - confidence at which that interval
+  excludes 0, so p < alpha exactly when the verdict names a winner.
+
+A percentile bootstrap is optimistic with few pairs (its interval is narrower than its nominal
+level below a few dozen pairs); docs/results.md says so where the verdicts are read.
 """
 
 from __future__ import annotations
@@ -13,68 +26,110 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats as sps
 
-from .bootstrap import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, bootstrap_mean_interval
+from .bootstrap import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, percentile_interval, resample_indices
 
-# Below this many non-zero differences the signed-rank test's distribution is too coarse to be
-# worth its assumptions (symmetric differences); the sign test needs none.
-MIN_WILCOXON = 6
+STATISTICS = ("mean", "median")
+NO_DIFFERENCE = "no difference detectable"
+# The resampled pair indices are built in blocks of this many resamples (memory: block x n ints).
+_BLOCK = 256
 
 
 @dataclass(frozen=True)
 class PairedResult:
-    """One metric compared between method A and method B on the same pairs.
+    """One metric compared between method A and method B on the same n pairs.
 
-    mean_diff = mean(b - a) (B minus A) over the pairs with finite values of both, [lo, hi] its
-    paired-bootstrap interval at confidence 1 - alpha; mean_a and mean_b are over those same pairs.
-    n is the number of pairs the test used; test is "wilcoxon", "sign" or "mcnemar".
+    a, b: the statistic (mean or median) of A's and B's values over those pairs; diff = b - a;
+    [lo, hi]: its paired-bootstrap interval at confidence 1 - alpha; p_value: the smallest
+    1 - confidence at which that interval excludes 0; verdict: "A better", "B better" or
+    "no difference detectable" (read from the interval).
     """
 
     metric: str
+    statistic: str
     n: int
-    mean_a: float
-    mean_b: float
-    mean_diff: float
+    a: float
+    b: float
+    diff: float
     lo: float
     hi: float
-    test: str
     p_value: float
     verdict: str
 
 
-def _binomial_p(k: int, m: int) -> float:
-    """Two-sided exact binomial p of k successes in m fair trials; 1 with no trial."""
-    if m == 0:
-        return 1.0
-    return float(sps.binomtest(int(k), int(m), 0.5, alternative="two-sided").pvalue)
+def _statistic(values: np.ndarray, statistic: str, axis: int | None = None) -> np.ndarray | float:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # +inf and -inf averaged by a median: nan
+        return np.mean(values, axis=axis) if statistic == "mean" else np.median(values, axis=axis)
 
 
-def _differences(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """b - a per pair, with equal values (the same infinity included) a zero difference.
-
-    An infinity against anything else gives an infinite difference of the right sign: +inf lies
-    above every finite value, so it ranks above every finite difference in the signed-rank test.
-    """
+def _difference(a, b):
+    """b - a, with equal values (the same infinity included) a difference of 0."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     with np.errstate(invalid="ignore"):
         d = b - a
-    d[a == b] = 0.0
-    return d
+    return np.where(a == b, 0.0, d)
 
 
-def _rank_ready(d: np.ndarray) -> np.ndarray:
-    """Differences with each infinity replaced by a finite stand-in beyond every finite |d|.
+def _crossing(sorted_d: np.ndarray, strict: bool) -> float:
+    """Where the 'linear' percentile curve of sorted samples reaches 0, as a position in [0, N-1].
 
-    The signed-rank test only uses the signs and the ranks of |d|; one common magnitude for all
-    infinities keeps them tied with each other and above every finite difference.
+    strict=False: the largest position at which the curve is still <= 0 (-1 if it starts above 0);
+    strict=True: the smallest position at which it is >= 0 (N if it never gets there). Positions
+    are those of `percentile_interval`'s interpolation (q/100 * (N - 1)), infinities included.
     """
-    inf = np.isinf(d)
-    if not inf.any():
-        return d
-    finite_abs = np.abs(d[~inf])
-    big = 2.0 * (float(finite_abs.max()) if finite_abs.size else 1.0) + 1.0
-    out = d.copy()
-    out[inf] = np.sign(d[inf]) * big
+    n = sorted_d.size
+    if strict:
+        k = int(np.searchsorted(sorted_d, 0.0, side="left"))  # samples < 0
+        if k == 0:
+            return 0.0
+        if k == n:
+            return float(n)
+        left, right = float(sorted_d[k - 1]), float(sorted_d[k])
+        if math.isinf(left):  # the curve stays -inf until it reaches sample k
+            return float(k)
+        return (k - 1) + (0.0 - left) / (right - left) if math.isfinite(right) else float(k - 1)
+    k = int(np.searchsorted(sorted_d, 0.0, side="right"))  # samples <= 0
+    if k == 0:
+        return -1.0
+    if k == n:
+        return float(n - 1)
+    left, right = float(sorted_d[k - 1]), float(sorted_d[k])
+    if math.isinf(left):  # the curve stays -inf until it reaches sample k
+        return float(k)
+    if math.isinf(right) or left == 0.0:  # above 0 (or +inf) right after sample k - 1
+        return float(k - 1)
+    return (k - 1) + (0.0 - left) / (right - left)
+
+
+def bootstrap_p(samples: np.ndarray) -> float:
+    """The two-sided p of 'no difference' from bootstrap samples of a difference: the smallest
+    1 - c at which `percentile_interval(samples, c)` excludes 0 (1 when it never does; 0 when
+    every sample lies on one side of 0). NaN samples are ignored, as there."""
+    d = np.sort(np.asarray(samples, dtype=float).ravel())
+    d = d[~np.isnan(d)]
+    if d.size == 0:
+        return 1.0
+    if d[0] == d[-1]:  # a constant: the interval is that value at every confidence
+        return 1.0 if d[0] == 0 else 0.0
+    last = d.size - 1
+    below = _crossing(d, strict=False)  # lo > 0  <=>  (alpha/2) * last > below
+    above = _crossing(d, strict=True)  # hi < 0  <=>  (1 - alpha/2) * last < above
+    p_low = 2.0 * max(below, 0.0) / last if below >= 0 else 0.0
+    p_high = 2.0 * (1.0 - min(above, last) / last) if above <= last else 0.0
+    return float(min(1.0, p_low, p_high))
+
+
+def bootstrap_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_samples: int = BOOTSTRAP_SAMPLES,
+                          seed: int = BOOTSTRAP_SEED) -> np.ndarray:
+    """statistic(b[idx]) - statistic(a[idx]) for the paired resamples idx of `resample_indices`
+    (both methods drawn with the same pairs), equal values a difference of 0."""
+    idx = resample_indices(a.size, n_samples, seed)
+    out = np.empty(int(n_samples))
+    for start in range(0, int(n_samples), _BLOCK):
+        block = idx[start:start + _BLOCK]
+        out[start:start + len(block)] = _difference(_statistic(a[block], statistic, axis=1),
+                                                    _statistic(b[block], statistic, axis=1))
     return out
 
 
@@ -83,27 +138,19 @@ def compare_paired(
     b: np.ndarray,
     metric: str,
     higher_is_better: bool = True,
-    binary: bool = False,
+    statistic: str = "mean",
     alpha: float = 0.05,
     n_samples: int = BOOTSTRAP_SAMPLES,
     seed: int = BOOTSTRAP_SEED,
 ) -> PairedResult:
-    """Compare per-pair values a (method A) and b (method B) of the same pairs, in the same order.
-
-    Pairs where either value is NaN are dropped. binary (0/1 values): exact McNemar, the two-sided
-    binomial test on the discordant pairs (p = 1 without any). Otherwise the two-sided Wilcoxon
-    signed-rank test on the non-zero differences b - a (p = 1 if all are zero), or the sign test
-    when fewer than 6 differences are non-zero. Infinite values take part in the test (+inf above
-    every finite value); the mean difference and its bootstrap interval (at confidence 1 - alpha,
-    `n_samples` resamples, `seed`) use the pairs where both values are finite.
-
-    Verdict: a winner when p < alpha and the interval excludes 0 on the side of the direction the
-    test found (the median non-zero difference, or the discordance); when some value is infinite,
-    or no pair is finite, the test alone decides. The direction then names "A better" or "B better"
-    by `higher_is_better`; otherwise "no difference detectable with {n} pairs".
-    """
+    """Compare per-pair values a (method A) and b (method B) of the same pairs, in the same order
+    (the rule of this module's docstring). Pairs where either value is NaN are dropped; +inf is a
+    failure, the worst value of a lower-is-better metric, and only a median may hold one
+    (ValueError for a mean over infinite values)."""
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie strictly between 0 and 1, got {alpha!r}")
+    if statistic not in STATISTICS:
+        raise ValueError(f"statistic must be one of {', '.join(STATISTICS)}, got {statistic!r}")
     a = np.asarray(a, dtype=float).ravel()
     b = np.asarray(b, dtype=float).ravel()
     if a.shape != b.shape:
@@ -111,60 +158,24 @@ def compare_paired(
     keep = ~(np.isnan(a) | np.isnan(b))
     a, b = a[keep], b[keep]
     n = int(a.size)
-
-    if binary:
-        if not np.isin(a, (0.0, 1.0)).all() or not np.isin(b, (0.0, 1.0)).all():
-            raise ValueError(f"{metric}: binary values must be 0 or 1")
-        b_only = int(np.sum((a == 0) & (b == 1)))  # pairs only B passed
-        a_only = int(np.sum((a == 1) & (b == 0)))  # pairs only A passed
-        test = "mcnemar"
-        p_value = _binomial_p(b_only, b_only + a_only)
-        direction = int(np.sign(b_only - a_only))
-    else:
-        d = _differences(a, b)
-        nonzero = d[d != 0]
-        if nonzero.size < MIN_WILCOXON:
-            test = "sign"
-            p_value = _binomial_p(int(np.sum(nonzero > 0)), nonzero.size)
-        else:
-            test = "wilcoxon"
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                res = sps.wilcoxon(_rank_ready(nonzero), zero_method="wilcox", alternative="two-sided")
-            p_value = float(res.pvalue)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            median = float(np.median(nonzero)) if nonzero.size else 0.0
-        # The median of -inf and +inf is nan: no direction from it, as for an exact 0.
-        direction = 0 if math.isnan(median) else int(np.sign(median))
-        if direction == 0 and nonzero.size:
-            # An even count split around zero: fall back on which side carries the larger ranks.
-            ranks = sps.rankdata(np.abs(_rank_ready(nonzero)))
-            direction = int(np.sign(ranks[nonzero > 0].sum() - ranks[nonzero < 0].sum()))
-
-    finite = np.isfinite(a) & np.isfinite(b)
-    fa, fb = a[finite], b[finite]
-    if fa.size:
-        mean_a, mean_b = float(fa.mean()), float(fb.mean())
-        mean_diff = float((fb - fa).mean())
-        lo, hi = bootstrap_mean_interval(fb - fa, n_samples=n_samples, confidence=1.0 - alpha, seed=seed)
-    else:
-        mean_a = mean_b = mean_diff = lo = hi = math.nan
-
-    significant = p_value < alpha and direction != 0
-    if significant and finite.all() and fa.size:
-        # The interval must exclude 0 on the side the test points to.
-        significant = lo > 0 if direction > 0 else hi < 0
-    if significant:
-        b_wins = (direction > 0) == higher_is_better
+    if statistic == "mean" and not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise ValueError(f"{metric}: infinite values have no mean; compare them by their median")
+    if n == 0:
+        return PairedResult(metric, statistic, 0, math.nan, math.nan, math.nan, math.nan, math.nan, 1.0, NO_DIFFERENCE)
+    stat_a, stat_b = float(_statistic(a, statistic)), float(_statistic(b, statistic))
+    diff = float(_difference(stat_a, stat_b))
+    samples = bootstrap_differences(a, b, statistic, n_samples, seed)
+    lo, hi = percentile_interval(samples, 1.0 - alpha)
+    if lo > 0 or hi < 0:
+        b_wins = (lo > 0) == higher_is_better
         verdict = "B better" if b_wins else "A better"
     else:
-        verdict = f"no difference detectable with {n} pairs"
-    return PairedResult(metric, n, mean_a, mean_b, mean_diff, float(lo), float(hi), test, float(p_value), verdict)
+        verdict = NO_DIFFERENCE
+    return PairedResult(metric, statistic, n, stat_a, stat_b, diff, float(lo), float(hi), bootstrap_p(samples), verdict)
 
 
 def verdict_line(result: PairedResult) -> str:
-    """One readable line: metric, n, both means, B - A with its interval, the test and p, the verdict."""
+    """One readable line: metric, statistic, n, A and B, B - A with its interval, p, the verdict."""
     r = result
-    return (f"{r.metric}: n={r.n}, A {r.mean_a:.4g}, B {r.mean_b:.4g}, "
-            f"B-A {r.mean_diff:+.4g} [{r.lo:+.4g}, {r.hi:+.4g}], {r.test} p={r.p_value:.3g}: {r.verdict}")
+    return (f"{r.metric} ({r.statistic}): n={r.n}, A {r.a:.4g}, B {r.b:.4g}, "
+            f"B-A {r.diff:+.4g} [{r.lo:+.4g}, {r.hi:+.4g}], bootstrap p={r.p_value:.3g}: {r.verdict}")
