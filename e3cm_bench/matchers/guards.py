@@ -227,25 +227,25 @@ def _send(sock: socket.socket, data: bytes, deadline: float | None) -> None:
     view = memoryview(data)
     while view:  # sendall's timeout is per call: the deadline is checked between chunks
         _timeout(sock, deadline)
-        sent = sock.send(view[:1 << 22])
+        sent = sock.send(view[:1 << 24])
         view = view[sent:]
 
 
-def _receive(sock: socket.socket, deadline: float | None) -> bytes:
+def _receive(sock: socket.socket, deadline: float | None) -> bytearray:
     header = _exactly(sock, _LENGTH.size, deadline)
     return _exactly(sock, _LENGTH.unpack(header)[0], deadline)
 
 
-def _exactly(sock: socket.socket, n: int, deadline: float | None) -> bytes:
+def _exactly(sock: socket.socket, n: int, deadline: float | None) -> bytearray:
     buffer = bytearray(n)
     view, got = memoryview(buffer), 0
     while got < n:
         _timeout(sock, deadline)
-        k = sock.recv_into(view[got:], min(n - got, 1 << 22))
+        k = sock.recv_into(view[got:], min(n - got, 1 << 24))
         if k == 0:
             raise EOFError("the other end closed")
         got += k
-    return bytes(buffer)
+    return buffer  # pickle reads a bytearray as it is: no copy
 
 
 def _timeout(sock: socket.socket, deadline: float | None) -> None:
