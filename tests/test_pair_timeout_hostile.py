@@ -14,7 +14,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import pytest
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.guards import PairTimeout, StoppableWorker, pair_time_limit
+from e3cm_bench.matches import Matches
 from e3cm_bench.run import FAILED_ATTR, RunFolder
 from helpers import assert_same_arrays, flat, invoke, one_line_error
 
@@ -298,3 +298,42 @@ def test_a_run_under_an_address_space_limit_ends_in_one_line_or_finishes_and_res
     code, stdout, stderr = command(args, tmp_path, timeout=300)
     assert code == 0, stderr
     assert len(pd.read_csv(RunFolder(out).per_pair_path)) == 3
+
+
+class CatchesTheTimeout:
+    """Catches the in-process timeout and returns its matches late."""
+
+    name = "catches-timeout"
+
+    def match(self, image0, image1):
+        try:
+            time.sleep(3)
+        except PairTimeout:
+            time.sleep(0.5)
+        h, w = image0.shape[:2]
+        points = np.array([[w * 0.25, h * 0.25], [w * 0.5, h * 0.5], [w * 0.75, h * 0.25], [w * 0.3, h * 0.7]], np.float32)
+        return Matches(points, points.copy(), np.ones(4, np.float32))
+
+
+def test_where_cuda_is_in_use_the_limit_runs_in_process_says_so_and_refuses_a_late_result(boat, tmp_path, monkeypatch):
+    import types
+
+    from e3cm_bench.matchers import MatcherEntry, register, unregister
+    from e3cm_bench.run import stage
+
+    fake_torch = types.SimpleNamespace(cuda=types.SimpleNamespace(is_initialized=lambda: True))
+    monkeypatch.setitem(sys.modules, "torch", fake_torch)
+    assert not stage.isolates(stage.MatchOptions(pair_timeout=1))  # a forked child cannot use CUDA
+    monkeypatch.undo()  # the real torch back; the stage below takes the in-process path
+    monkeypatch.setattr(stage, "isolates", lambda options: False)
+    register(MatcherEntry("catches-timeout", "returns late", build=lambda s: CatchesTheTimeout(), origin="test"))
+    try:
+        out = tmp_path / "run"
+        result = invoke("hpatches", "--root", boat, "--out", out, "--matcher", "catches-timeout", "--limit", 2,
+                        "--pair-timeout", 1, "--on-matcher-error", "fail-pair")
+        assert result.exit_code == 0, flat(result.output)
+        assert "the limit runs in this process" in flat(result.output)
+        failures = pd.read_csv(RunFolder(out).failures_path)
+        assert len(failures) == 2 and failures["error"].str.contains("it returned after").all()
+    finally:
+        unregister("catches-timeout")
