@@ -157,7 +157,7 @@ class StoppableWorker:
         deadline = None if seconds is None else time.monotonic() + float(seconds)
         try:
             _send(self.sock, pickle.dumps(args, protocol=pickle.HIGHEST_PROTOCOL), deadline)
-            kind, value = pickle.loads(_receive(self.sock, deadline))
+            answer = _receive(self.sock, deadline)
         except (TimeoutError, socket.timeout):
             self.stop()
             raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s "
@@ -165,6 +165,10 @@ class StoppableWorker:
         except (OSError, EOFError, pickle.UnpicklingError, struct.error) as exc:
             status = self.stop()
             raise WorkerDied(f"{what}: its process ended without a result ({status or type(exc).__name__})") from None
+        try:
+            kind, value = pickle.loads(answer)
+        except Exception as exc:  # noqa: BLE001 - e.g. an exception class whose __init__ wants other arguments
+            raise WorkerDied(f"{what}: its answer could not be read back ({type(exc).__name__}: {exc})") from None
         if kind == "error":
             raise value
         return value
