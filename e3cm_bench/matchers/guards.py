@@ -8,18 +8,31 @@ A matcher is someone else's code called in our process. Three helpers keep its f
   that the caller reports as that matcher's failure.
 - ``describe_matcher(matcher)``: the matcher's ``config()`` as a dict YAML can write, or a
   one-line ValueError (it raised, exited, or returned an object YAML cannot represent).
-- ``pair_time_limit(seconds, what)``: a per-pair bound on a matcher's ``match``
-  (``--pair-timeout``). It uses SIGALRM, so it works in the main thread on POSIX, where the
-  runner matches; the matcher is interrupted when control next returns to Python (a call
-  into C that never returns cannot be interrupted in-process).
+- ``StoppableWorker(target, what)``: the per-pair bound of ``--pair-timeout`` where it must
+  hold against code that does not cooperate. ``target`` runs in a forked child process, in a
+  process group of its own; a call with no answer by its deadline kills that whole group
+  (the child and whatever it forked), and the next call forks a fresh child. A matcher that
+  catches the timeout, ignores or blocks SIGALRM, forks, or sits in C code is stopped all
+  the same, and a result that comes after the deadline is never read.
+- ``pair_time_limit(seconds, what)``: the in-process bound, for where a forked child cannot
+  run the matcher (CUDA cannot be used in a forked child). It uses SIGALRM in the main
+  thread; the matcher is interrupted when control next returns to Python, and a result
+  returned after the deadline (a matcher that caught the timeout) is a timeout all the same.
+  Code that blocks the signal or sits in C is not stopped by it: StoppableWorker is.
 """
 
 from __future__ import annotations
 
+import os
+import pickle
 import signal
+import socket
+import struct
+import sys
 import threading
+import time
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
 import yaml
 
@@ -91,6 +104,7 @@ def pair_time_limit(seconds: float | None, what: str) -> Iterator[None]:
         raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s")
 
     previous = signal.signal(signal.SIGALRM, expired)
+    started = time.monotonic()
     signal.setitimer(signal.ITIMER_REAL, float(seconds))
     try:
         yield
@@ -98,3 +112,194 @@ def pair_time_limit(seconds: float | None, what: str) -> Iterator[None]:
         signal.setitimer(signal.ITIMER_REAL, 0)
         # None: a handler installed outside Python, which cannot be put back; the default then
         signal.signal(signal.SIGALRM, previous if previous is not None else signal.SIG_DFL)
+    if time.monotonic() - started > seconds:  # it caught the timeout and returned late: not a result
+        raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s (it returned after "
+                          f"{time.monotonic() - started:.3g} s)")
+
+
+# --------------------------------------------------------------------------- a stoppable child
+
+_LENGTH = struct.Struct("!Q")
+
+
+class WorkerDied(RuntimeError):
+    """The child running a matcher ended without an answer (killed by a signal, os._exit, a crash)."""
+
+
+def can_fork() -> bool:
+    return hasattr(os, "fork") and hasattr(os, "killpg") and hasattr(socket, "socketpair")
+
+
+class StoppableWorker:
+    """``target(*args)`` run in a forked child that can be stopped, one call at a time.
+
+    The child is forked on the first call (it inherits everything built so far: the matcher,
+    its model) and answers calls until it is closed or stopped. Each call has a deadline; a
+    child without an answer by then is killed with its whole process group (SIGKILL: no
+    handler can delay it), reaped, and the call raises PairTimeout; the next call forks a
+    fresh child. Only a process that leaves the group on purpose (setsid) escapes the kill.
+    The child dies with its parent (PR_SET_PDEATHSIG on Linux). What the target raises is
+    raised in the caller as it was (an exception that cannot be pickled: a RuntimeError
+    with its type and message).
+    """
+
+    def __init__(self, target: Callable[..., Any], what: str) -> None:
+        self.target, self.what = target, what
+        self.pid: int | None = None
+        self.sock: socket.socket | None = None
+        self.forks = 0  # children started (the first, and one after each stop)
+
+    # ---- the parent's side
+
+    def call(self, args: tuple, seconds: float | None, what: str | None = None) -> Any:
+        what = what or self.what
+        self.start()
+        deadline = None if seconds is None else time.monotonic() + float(seconds)
+        try:
+            _send(self.sock, pickle.dumps(args, protocol=pickle.HIGHEST_PROTOCOL), deadline)
+            answer = _receive(self.sock, deadline)
+        except (TimeoutError, socket.timeout):
+            self.stop()
+            raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s "
+                              "(its process was stopped, with every process it started)") from None
+        except (OSError, EOFError, pickle.UnpicklingError, struct.error) as exc:
+            status = self.stop()
+            raise WorkerDied(f"{what}: its process ended without a result ({status or type(exc).__name__})") from None
+        try:
+            kind, value = pickle.loads(answer)
+        except Exception as exc:  # noqa: BLE001 - e.g. an exception class whose __init__ wants other arguments
+            raise WorkerDied(f"{what}: its answer could not be read back ({type(exc).__name__}: {exc})") from None
+        if kind == "error":
+            raise value
+        return value
+
+    def start(self) -> None:
+        """Fork the child, unless it is running."""
+        if self.pid is not None:
+            return
+        parent_sock, child_sock = socket.socketpair()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # the child: never returns
+            parent_sock.close()
+            _child_main(self.target, child_sock, os.getppid())
+        child_sock.close()
+        self.pid, self.sock = pid, parent_sock
+        self.forks += 1
+        try:  # set here too: the parent's kill must find the group even if the child has not yet run
+            os.setpgid(pid, pid)
+        except OSError:
+            pass
+
+    def stop(self) -> str | None:
+        """Kill the child's process group and reap the child; how it ended, in words."""
+        if self.pid is None:
+            return None
+        pid, self.pid = self.pid, None
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        for kill in (lambda: os.killpg(pid, signal.SIGKILL), lambda: os.kill(pid, signal.SIGKILL)):
+            try:
+                kill()
+            except OSError:  # already gone (a group with no member left)
+                pass
+        try:
+            _, status = os.waitpid(pid, 0)
+        except ChildProcessError:
+            return None
+        if os.WIFSIGNALED(status):
+            return f"signal {os.WTERMSIG(status)}"
+        return f"exit code {os.WEXITSTATUS(status)}" if os.WIFEXITED(status) else None
+
+    def close(self) -> None:
+        """End the child (and anything it left in its group)."""
+        self.stop()
+
+    def __enter__(self) -> "StoppableWorker":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _send(sock: socket.socket, data: bytes, deadline: float | None) -> None:
+    _timeout(sock, deadline)
+    sock.sendall(_LENGTH.pack(len(data)))
+    _timeout(sock, deadline)
+    view = memoryview(data)
+    while view:  # sendall's timeout is per call: the deadline is checked between chunks
+        _timeout(sock, deadline)
+        sent = sock.send(view[:1 << 24])
+        view = view[sent:]
+
+
+def _receive(sock: socket.socket, deadline: float | None) -> bytearray:
+    header = _exactly(sock, _LENGTH.size, deadline)
+    return _exactly(sock, _LENGTH.unpack(header)[0], deadline)
+
+
+def _exactly(sock: socket.socket, n: int, deadline: float | None) -> bytearray:
+    buffer = bytearray(n)
+    view, got = memoryview(buffer), 0
+    while got < n:
+        _timeout(sock, deadline)
+        k = sock.recv_into(view[got:], min(n - got, 1 << 24))
+        if k == 0:
+            raise EOFError("the other end closed")
+        got += k
+    return buffer  # pickle reads a bytearray as it is: no copy
+
+
+def _timeout(sock: socket.socket, deadline: float | None) -> None:
+    if deadline is None:
+        sock.settimeout(None)
+        return
+    left = deadline - time.monotonic()
+    if left <= 0:
+        raise TimeoutError
+    sock.settimeout(left)
+
+
+def _child_main(target: Callable[..., Any], sock: socket.socket, parent: int) -> None:
+    """The child's loop: a call's arguments in, ("ok", value) or ("error", exception) out."""
+    code = 0
+    try:
+        os.setpgid(0, 0)  # its own group: the parent's kill reaches whatever it forks
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG: die with the parent
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != parent:
+            os._exit(1)
+        # The parent's console (a progress bar may have replaced sys.stdout) and its handlers
+        # are not the child's: it prints to the real streams, and Ctrl-C is the parent's to handle.
+        sys.stdout, sys.stderr = sys.__stdout__, sys.__stderr__
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if "torch" in sys.modules:
+            # GNU OpenMP (torch's CPU thread pool) hangs in a forked child once the parent has
+            # used it (measured: the child's first parallel op never returns); one thread runs
+            # no parallel region.
+            sys.modules["torch"].set_num_threads(1)
+        while True:
+            try:
+                args = pickle.loads(_receive(sock, None))
+            except (EOFError, OSError):
+                break
+            try:
+                answer = ("ok", target(*args))
+            except BaseException as exc:  # noqa: BLE001 - carried to the parent, SystemExit included
+                answer = ("error", exc)
+            try:
+                data = pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception:  # noqa: BLE001 - an exception (or result) that cannot be pickled
+                exc = answer[1]
+                data = pickle.dumps(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+            _send(sock, data, None)
+    except BaseException:  # noqa: BLE001 - nothing of the child may run on in the parent's code
+        code = 1
+    finally:
+        os._exit(code)

@@ -14,12 +14,19 @@ it gives that error in one line. Models load when a matcher is built, never at l
 Entry points are imported only when they are needed: when a name that is not a built-in is
 asked for, or when every matcher is listed (`e3cm-bench matchers`, `entries()`). A run of
 `--matcher sift` imports no plugin, so a broken one cannot touch it. Each import (with the
-call of its object) runs in a daemon thread bounded by PLUGIN_IMPORT_SECONDS (environment:
-E3CM_BENCH_PLUGIN_TIMEOUT): a plugin that hangs at import is listed as not loaded, and the
-thread is left behind (Python cannot stop a thread). A thread rather than a subprocess,
-because the import must happen in this process for its classes to be used; a consequence
-is that a plugin cannot install signal handlers at import. ``sys.exit`` at import, or in a
-factory, is that plugin's failure in one line, never the tool's exit.
+call of its object) is bounded by PLUGIN_IMPORT_SECONDS (environment:
+E3CM_BENCH_PLUGIN_TIMEOUT): it is first tried in a forked child process, which is killed at
+the bound (a C call that holds the interpreter lock, such as a regular expression that never
+ends, cannot be interrupted inside this process: no thread of it runs meanwhile); a plugin
+whose child does not finish in time, or crashes, is listed as not loaded and never imported
+here. Then it is imported here, in a daemon thread bounded the same way (the import must
+happen in this process for its classes to be used; a consequence is that a plugin cannot
+install signal handlers at import). ``sys.exit`` at import, or in a factory, is that
+plugin's failure in one line, never the tool's exit; so is a factory that raises.
+
+``--matcher package.module:factory`` resolves as ``python -m`` would: the current folder is
+searched first. The names the user gave this way are passed to the processes this one starts
+(--workers, SLURM shards: USER_MATCHERS_ENV), which may then import them too.
 """
 
 from __future__ import annotations
@@ -28,7 +35,10 @@ import dataclasses
 import importlib
 import importlib.metadata
 import os
+import signal
+import sys
 import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -46,6 +56,10 @@ _plugins_loaded = False
 # How long one plugin's import may take. Generous: a plugin importing torch and a model zoo
 # takes seconds on a cold disk; one that never returns must not hang every command.
 PLUGIN_IMPORT_SECONDS = 60.0
+
+# The package.module:factory names given by the user (--matcher, an experiment config), for the
+# worker processes this one starts: set in the environment they inherit.
+USER_MATCHERS_ENV = "E3CM_BENCH_USER_MATCHERS"
 
 
 def register(entry: MatcherEntry, replace: bool = False) -> MatcherEntry:
@@ -95,9 +109,10 @@ def get_matcher(name: str, allow_import: bool = False) -> MatcherEntry:
         return _REGISTRY[name]
     if name in _BROKEN:
         raise ValueError(f"matcher {name!r}: {_BROKEN[name]}")
-    if isinstance(name, str) and ":" in name and allow_import:
+    if isinstance(name, str) and ":" in name and (allow_import or name in user_named()):
         entry = _from_module(name)
         _REGISTRY[name] = entry
+        _remember_user_named(name)
         return entry
     if isinstance(name, str) and ":" in name:
         raise ValueError(f"matcher {name!r} is not registered here; a package.module:factory is imported only when "
@@ -176,11 +191,30 @@ def build_matcher(
 
 def _built(entry: MatcherEntry, build: Callable[[], Matcher]) -> Matcher:
     """entry.build(...), where a factory that calls sys.exit is that matcher's failure in one
-    line (other exceptions pass as they are: the callers already say what they mean)."""
+    line, and so is a plugin's factory that raises (the built-ins' exceptions pass as they
+    are: the callers already say what they mean). E3CM_BENCH_DEBUG=1 shows its traceback."""
     try:
         return build()
     except SystemExit as exc:
         raise ValueError(f"matcher {entry.name} ({entry.origin}): building it called {_exit_text(exc)}") from None
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - a plugin's factory may raise anything
+        if entry.origin == "built-in":
+            raise
+        reason = " ".join(str(exc).split()) or "(no message)"
+        raise ValueError(f"matcher {entry.name} ({entry.origin}): its factory raised {type(exc).__name__}: "
+                         f"{reason}") from exc
+
+
+def user_named() -> set[str]:
+    """The package.module:factory names the user gave, here or in the process that started this one."""
+    return {n for n in os.environ.get(USER_MATCHERS_ENV, "").split(",") if n}
+
+
+def _remember_user_named(name: str) -> None:
+    # a module name holds no comma; a factory's neither
+    os.environ[USER_MATCHERS_ENV] = ",".join(sorted(user_named() | {name}))
 
 
 # --------------------------------------------------------------------------- loading
@@ -219,10 +253,56 @@ class _TimedOut(Exception):
     pass
 
 
+def _probe(call: Callable[[], object], what: str, seconds: float) -> None:
+    """call() in a forked child, in a process group of its own, killed with that group after
+    `seconds`: _TimedOut then, or where the child crashed. Whatever call() raises there is not
+    looked at: the import here gives the same error, in one line."""
+    if not (hasattr(os, "fork") and hasattr(os, "killpg")):
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # the child: quiet, never returns
+        code = 0
+        try:
+            os.setpgid(0, 0)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            call()
+        except BaseException:  # noqa: BLE001 - an error is the import's own, reported by the import here
+            pass
+        finally:
+            os._exit(code)
+    try:
+        os.setpgid(pid, pid)
+    except OSError:
+        pass
+    deadline, pause = time.monotonic() + seconds, 0.001
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() >= deadline:
+            for kill in (lambda: os.killpg(pid, signal.SIGKILL), lambda: os.kill(pid, signal.SIGKILL)):
+                try:
+                    kill()
+                except OSError:
+                    pass
+            os.waitpid(pid, 0)
+            raise _TimedOut(f"did not finish importing within {seconds:g} s (E3CM_BENCH_PLUGIN_TIMEOUT sets the bound)")
+        time.sleep(pause)
+        pause = min(pause * 2, 0.05)
+    if os.WIFSIGNALED(status):
+        raise _TimedOut(f"crashed while importing (signal {os.WTERMSIG(status)}); not imported here")
+
+
 def _bounded(call: Callable[[], object], what: str):
-    """call() in a daemon thread, waited for at most plugin_import_seconds(); _TimedOut after
-    that. Whatever call() raises, SystemExit included, is raised here in the caller."""
+    """call() first in a forked child (_probe: killed after plugin_import_seconds()), then here
+    in a daemon thread, waited for as long; _TimedOut where either does not finish. Whatever
+    call() raises, SystemExit included, is raised here in the caller."""
     seconds = plugin_import_seconds()
+    _probe(call, what, seconds)
     done: dict = {}
 
     def target() -> None:
@@ -285,6 +365,9 @@ def _entries_of(obj, where: str) -> list[MatcherEntry]:
 
 def _from_module(name: str) -> MatcherEntry:
     module_name, _, attr = name.partition(":")
+    here = os.getcwd()
+    if here not in sys.path and "" not in sys.path:  # as `python -m` finds it: the current folder first
+        sys.path.insert(0, here)
     try:
         module = _bounded(lambda: importlib.import_module(module_name), module_name)
     except KeyboardInterrupt:

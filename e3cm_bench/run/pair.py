@@ -13,7 +13,7 @@ from ..datasets.base import Pair
 from ..devices import is_out_of_memory
 from ..images import load_image, resize_max_side, to_original_pixels
 from ..matchers.base import Matcher
-from ..matchers.guards import no_exit, pair_time_limit
+from ..matchers.guards import PairTimeout, StoppableWorker, WorkerDied, no_exit, pair_time_limit
 from ..matches import Matches, MatchesError, check_in_image
 from ..method import MethodSpec
 
@@ -24,7 +24,7 @@ PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 def match_pair(
     matcher: Matcher, image0: str | Path | np.ndarray, image1: str | Path | np.ndarray,
     max_side: int | None = None, seed: int = 0, rotations: tuple[int, int] = (0, 0),
-    resize: str = "shrink", time_limit: float | None = None,
+    resize: str = "shrink", time_limit: float | None = None, worker: StoppableWorker | None = None,
 ) -> Matches:
     """Match two images (paths or H x W x 3 RGB uint8 arrays); keypoints in original pixels.
 
@@ -36,14 +36,19 @@ def match_pair(
     keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
     matchers with a RANSAC inside give the same matches every time. ``info`` holds the
     matcher's diagnostics plus size0/size1 (original w, h), match_size0/1 and match_seconds.
+    worker: a StoppableWorker made by `match_worker(matcher)`: the matcher runs in its child
+    process, which is killed when `time_limit` passes (--pair-timeout); else in this process.
     """
     image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
     image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
     small0, scale0 = matcher_input(image0, rotations[0], max_side, resize)
     small1, scale1 = matcher_input(image1, rotations[1], max_side, resize)
-    cv2.setRNGSeed(int(seed))
     t = time.perf_counter()
-    m = checked_match(matcher, small0, small1, time_limit)
+    if worker is not None:
+        m = stoppable_match(worker, matcher, small0, small1, seed, time_limit)
+    else:
+        cv2.setRNGSeed(int(seed))
+        m = checked_match(matcher, small0, small1, time_limit)
     info = {
         **m.info,
         "size0": (image0.shape[1], image0.shape[0]),
@@ -94,6 +99,33 @@ def checked_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, time
                        bounded=getattr(matcher, "keypoints_in_image", True))
     except MatchesError as error:
         raise MatcherError(f"matcher {name} returned bad matches: {error}") from None
+    return m
+
+
+def match_worker(matcher: Matcher) -> StoppableWorker:
+    """A child process that runs `matcher` (forked when first used: it holds the matcher as
+    built here) and can be killed with all it started (matchers/guards.py)."""
+    name = getattr(matcher, "name", type(matcher).__name__)
+    return StoppableWorker(lambda small0, small1, seed: _seeded_match(matcher, small0, small1, seed), f"matcher {name}")
+
+
+def _seeded_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, seed: int) -> Matches:
+    # In the child: its OpenCV RNG is its own, so the seed is set there, as match_pair does here.
+    cv2.setRNGSeed(int(seed))
+    return checked_match(matcher, image0, image1)
+
+
+def stoppable_match(worker: StoppableWorker, matcher: Matcher, image0: np.ndarray, image1: np.ndarray, seed: int,
+                    time_limit: float | None) -> Matches:
+    """checked_match in the worker's child, bounded by time_limit: a child without an answer
+    by then is killed (with whatever it forked) and the pair fails as a MatcherError."""
+    name = getattr(matcher, "name", type(matcher).__name__)
+    try:
+        m = worker.call((image0, image1, int(seed)), time_limit, f"matcher {name}")
+    except (PairTimeout, WorkerDied) as error:
+        raise MatcherError(f"matcher {name} raised {type(error).__name__}: {error}") from None
+    if not isinstance(m, Matches):  # checked in the child; what comes back is checked for its kind
+        raise MatcherError(f"matcher {name} returned {type(m).__name__}, expected e3cm_bench.Matches")
     return m
 
 

@@ -4,10 +4,14 @@ reused across the pairs that share an image). Nothing here changes a result."""
 
 from __future__ import annotations
 
+import concurrent.futures
+import re
+import resource
 import shutil
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -20,22 +24,26 @@ from ..datasets.base import Pair
 from ..devices import is_out_of_memory
 from ..images import ImageError, load_image
 from ..matchers.base import Matcher
+from ..matchers.guards import StoppableWorker, can_fork
 from ..method import MethodSpec
 from ..pair_order import most_alive, reuse_order
 from .folder import FAILED_ATTR, RunFolder
-from .pair import PAIR_ATTRS, MatcherError, match_pair, matcher_input, pair_rotations
+from .pair import PAIR_ATTRS, MatcherError, match_pair, match_worker, matcher_input, pair_rotations
 
 
 def match_cached_pair(
     matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache,
     images: tuple[np.ndarray, np.ndarray] | None = None, time_limit: float | None = None,
+    worker: StoppableWorker | None = None,
 ) -> None:
     """Match one pair of a benchmark and store it (the step an interrupted run repeats).
 
-    images: the pair's images already decoded (the match stage decodes ahead), else read here."""
+    images: the pair's images already decoded (the match stage decodes ahead), else read here.
+    worker: the matcher's stoppable child process (run/pair.py match_worker), where
+    --pair-timeout runs it."""
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
-                         pair_rotations(pair, method), method.resize, time_limit)
+                         pair_rotations(pair, method), method.resize, time_limit, worker)
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
 
 
@@ -116,7 +124,10 @@ class MatchOptions:
     None of these changes a result. on_matcher_error: `stop` ends the stage at a pair whose
     matcher raises (the pairs before it are kept); `fail-pair` stores that pair with no matches
     and its message (FAILED_ATTR), so that it counts as a failure, and goes on. pair_timeout:
-    seconds a matcher may take on one pair before it fails on it (None: no limit).
+    seconds a matcher may take on one pair before it fails on it (None: no limit). With a
+    limit, each matcher runs in a child process of its own that is killed, with every process
+    it started, when a pair takes longer (`isolates`); the feature cache is then off (each
+    child computes its own maps), which changes no result.
     """
 
     feature_cache_mb: float | None = None
@@ -175,6 +186,7 @@ class _Shared:
     disk: float
     batch: int
     alive: int = 0  # the most images alive at once in the stage's order (pair_order.most_alive)
+    workers: list | None = None  # each matcher's StoppableWorker, where --pair-timeout isolates them
 
     @property
     def feature_caches(self) -> list:
@@ -195,32 +207,92 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, options: Mat
     if spill_root is not None:
         shutil.rmtree(spill_root, ignore_errors=True)  # what an interrupted stage left
     shared = _build_matchers(jobs, device, options, spill_root)
+    todo = sum(len(job.todo) for job in jobs)
     try:
+        if todo:
+            check_address_space("before matching", 0)
+        if shared.workers is None and options.pair_timeout is not None:
+            console.print(f"--pair-timeout: CUDA is in use, and it cannot run in a forked child, so the limit runs in this "
+                          "process: a matcher that blocks SIGALRM or never returns from C code is not stopped by it",
+                          markup=False)
         _pass_over_pairs(jobs, shared, console, options)
     finally:
+        for worker in shared.workers or []:
+            worker.close()
         for feature_cache in shared.feature_caches:
             feature_cache.close()
         if spill_root is not None:
             shutil.rmtree(spill_root, ignore_errors=True)
+    if todo:
+        check_address_space("after matching", todo)
     _report_reuse(jobs, shared, console)
+
+
+# OpenCV's wheel brings its own OpenBLAS, which reserves its work buffer with mmap at its first
+# use (the evaluation's first cv2.findHomography); where an address-space limit (ulimit -v)
+# makes that mmap fail, it calls a null pointer: a segmentation fault, no message, after the
+# matching. Measured: that first call needs between 128 and 160 MiB of address space; the rest
+# leaves room for a thread's malloc arena (64 MiB) and stacks.
+ADDRESS_SPACE_NEEDED_MB = 320
+
+
+def address_space_left_mb() -> float | None:
+    """MiB of address space this process may still map under its RLIMIT_AS (None: no limit)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        size_kb = int(re.search(r"VmSize:\s+(\d+)", open("/proc/self/status").read()).group(1))
+    except (OSError, AttributeError):
+        return None
+    return (soft - size_kb * 1024) / 2**20
+
+
+def check_address_space(when: str, pairs: int) -> None:
+    """A one-line ValueError where the address-space limit leaves too little for the libraries
+    still to run (ADDRESS_SPACE_NEEDED_MB), instead of their crash."""
+    left = address_space_left_mb()
+    if left is None or left >= ADDRESS_SPACE_NEEDED_MB:
+        return
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    kept = f"; the {pairs} pair(s) matched are kept and the same command resumes" if pairs else "; nothing was matched"
+    raise ValueError(f"{when}: the address-space limit (ulimit -v {soft // 1024}) leaves {max(left, 0):.0f} MiB in this "
+                     f"process, and matching and evaluating need about {ADDRESS_SPACE_NEEDED_MB} MiB more (OpenCV's BLAS "
+                     f"crashes without them): raise the limit, e.g. ulimit -v unlimited{kept}")
+
+
+def isolates(options: MatchOptions) -> bool:
+    """Whether the matchers run in stoppable child processes: with --pair-timeout, where this
+    process can fork and has not started CUDA (which cannot be used in a forked child)."""
+    if options.pair_timeout is None or not can_fork():
+        return False
+    torch = sys.modules.get("torch")
+    return torch is None or not torch.cuda.is_initialized()
 
 
 def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, spill_root) -> _Shared:
     """Each job's matcher (one backbone, one weights load, per setting), joined to the feature
-    cache of its backbone's group."""
-    from ..matchers.deep import auto_backbone_batch
-    from ..matchers.feature_cache import SpillStore, auto_cache_mb, auto_spill_mb  # torch: loaded when matching
-
-    budget = auto_cache_mb(device) if options.feature_cache_mb is None else float(options.feature_cache_mb)
-    batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
-    disk = 0.0
-    if budget and spill_root is not None:
-        disk = auto_spill_mb(spill_root) if options.spill_mb is None else float(options.spill_mb)
-    shared = _Shared([], {}, budget, disk, batch)
+    cache of its backbone's group; each in its stoppable child where `isolates`."""
     loaded: dict = {}
-    for job in jobs:
-        matcher = job.method.build(device, loaded=loaded)
+    built = [job.method.build(device, loaded=loaded) for job in jobs]
+    isolated = isolates(options)
+    if isolated:  # a child's feature maps stay in the child: no cache shared through this process
+        options = replace(options, feature_cache_mb=0, backbone_batch=options.backbone_batch or 1)
+    budget, batch, disk = 0.0, int(options.backbone_batch or 1), 0.0
+    if any(getattr(matcher, "uses_feature_cache", False) for matcher in built):
+        # torch: imported only for a matcher on a backbone (a classical run's address space stays small)
+        from ..matchers.deep import auto_backbone_batch
+        from ..matchers.feature_cache import auto_cache_mb, auto_spill_mb
+
+        budget = auto_cache_mb(device) if options.feature_cache_mb is None else float(options.feature_cache_mb)
+        batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
+        if budget and spill_root is not None:
+            disk = auto_spill_mb(spill_root) if options.spill_mb is None else float(options.spill_mb)
+    shared = _Shared([], {}, budget, disk, batch)
+    for job, matcher in zip(jobs, built):
         if budget and getattr(matcher, "uses_feature_cache", False):
+            from ..matchers.feature_cache import SpillStore
+
             identity = matcher.feature_identity()
             if identity not in shared.groups:
                 spill = SpillStore(spill_root / str(len(shared.groups)), disk) if disk > 0 else None
@@ -233,6 +305,8 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
             job.on_matcher(matcher)
         shared.matchers.append(matcher)
         job.stats.update(match_seconds=0.0, pairs_matched=0)
+    if isolated:
+        shared.workers = [match_worker(matcher) for matcher in shared.matchers]
     return shared
 
 
@@ -266,8 +340,15 @@ def _pass_over_pairs(jobs: list[MatchJob], shared: _Shared, console: Console, op
                     lead = group["lead"]
                     group["batches"] += batch_ahead(jobs[lead], shared.matchers[lead], batch, (pair, images), coming,
                                                     wanted, lead)
+            if shared.workers and any(worker.pid is None for worker in shared.workers):
+                # A child is forked here (the first, or one after a stop): with the decoding
+                # thread idle, so that no lock it holds is copied into the child held.
+                concurrent.futures.wait([images, *(future for _, future in coming)])
+                for i in wanted[pair.name]:
+                    shared.workers[i].start()
             for i in wanted[pair.name]:
-                _match_one(jobs[i], shared.matchers[i], pair, images, options)
+                _match_one(jobs[i], shared.matchers[i], pair, images, options,
+                           shared.workers[i] if shared.workers else None)
                 progress.advance(task)
             for file in dict.fromkeys(files):
                 if last_use[file] == k:  # no pair left: its maps are not needed again
@@ -291,12 +372,13 @@ def _report_reuse(jobs: list[MatchJob], shared: _Shared, console: Console) -> No
                       f"{stats.get('read_from_disk', 0)} read back from disk")
 
 
-def _match_one(job: MatchJob, matcher: Matcher, pair: Pair, images, options: MatchOptions | None = None) -> None:
+def _match_one(job: MatchJob, matcher: Matcher, pair: Pair, images, options: MatchOptions | None = None,
+               worker: StoppableWorker | None = None) -> None:
     """One method's match of one pair, into its cache; errors in one line naming the pair."""
     t = time.perf_counter()
     try:
         options = options or MatchOptions()
-        match_cached_pair(matcher, pair, job.method, job.cache, images.result(), options.pair_timeout)
+        match_cached_pair(matcher, pair, job.method, job.cache, images.result(), options.pair_timeout, worker)
         job.stats["pairs_matched"] += 1
     except (RuntimeError, MemoryError) as error:
         if not (isinstance(error, MemoryError) or is_out_of_memory(error)):
