@@ -204,11 +204,10 @@ def check_inside(corrs: np.ndarray, sizes, path: Path) -> None:
     """Refuse ground truth that lies off its images (more than EDGE_TOLERANCE_PX outside
     [0, w] x [0, h]): no F brings such a point near its epipolar line, so the pair would score
     0 whatever the method, without a word. sizes: each image's (w, h), None where its header
-    cannot be read (the image check that follows names that problem)."""
-    for side, size in enumerate(sizes):
-        if size is None:
-            continue
-        w, h = size
+    cannot be read: then nothing is checked, and the image check that follows names the image."""
+    if any(size is None for size in sizes):
+        return
+    for side, (w, h) in enumerate(sizes):
         x, y = corrs[:, 2 * side], corrs[:, 2 * side + 1]
         off = (x < -EDGE_TOLERANCE_PX) | (y < -EDGE_TOLERANCE_PX) | (x > w + EDGE_TOLERANCE_PX) | (y > h + EDGE_TOLERANCE_PX)
         if off.any():
