@@ -14,10 +14,16 @@
 - Unpacking: into a temporary folder beside the target, renamed into place at the end;
   members with absolute paths, ``..``, links or device files are refused (tar: Python's
   ``data`` filter; zip: checked here), nothing is written outside the target.
-- Bounded: a body is cut off past the size a source expects (Part.size with a margin), an
-  archive whose members would unpack to more than UNPACK_RATIO times its size is refused, a
-  download has an overall deadline scaled to its size, and the disk is never filled below
-  FREE_RESERVE (the free disk is also checked before fetching: twice the size for archives).
+- Bounded: a body is cut off past the size a source expects (Part.size with a margin; a part
+  that declares none, past UNKNOWN_SIZE_CAP), an archive whose members would unpack to more
+  than UNPACK_RATIO times its size is refused, and the disk is never filled below FREE_RESERVE
+  (the free disk is also checked before fetching: twice the size for archives).
+- Deadlines that a slow server cannot stretch: each file has an overall deadline, from the
+  connection to the last byte (scaled to its size, or E3CM_BENCH_DOWNLOAD_DEADLINE seconds),
+  the server's answer (status and headers) must arrive within HEADERS_S, and a body that
+  delivers fewer than STALL_BYTES in STALL_S is given up on. A watchdog thread shuts the
+  connection's socket at the deadline, so that no read (a header trickled a byte at a time,
+  a read waiting on a silent server) outlives it. What arrived is kept and resumed from.
 - One download at a time per data folder: the folder is locked like a run folder (FolderLock).
 """
 
@@ -32,14 +38,16 @@ import lzma
 import os
 import re
 import shutil
+import socket
 import stat
 import tarfile
+import threading
 import time
 import zipfile
 import zlib
 from pathlib import Path, PurePosixPath
 from urllib.error import HTTPError, URLError
-from urllib.request import Request, urlopen
+from urllib.request import HTTPHandler, HTTPSHandler, Request, build_opener
 
 from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
@@ -64,6 +72,15 @@ FREE_RESERVE = 64 << 20  # never written below: the lock, logs and other program
 DEADLINE_BASE_S = 600
 MIN_RATE = 100_000
 UNKNOWN_SIZE_DEADLINE_S = 4 * 3600
+DEADLINE_ENV = "E3CM_BENCH_DOWNLOAD_DEADLINE"  # seconds for one file, replacing the scaled deadline
+# A part that declares no size is still cut off here (the largest source file is 1.3 GB).
+UNKNOWN_SIZE_CAP = 4 << 30
+# The server's status line and headers: a few hundred bytes, which a sound server sends at once.
+HEADERS_S = 120
+# A body delivering fewer bytes than this in STALL_S seconds is given up on (resumed later):
+# 0.5 kB/s, where a 1 byte per 2 s trickle would otherwise hold a download for hours.
+STALL_S = 120
+STALL_BYTES = 64 << 10
 SHA256 = re.compile(r"[0-9a-f]{64}")
 _JSON_KINDS = {bool: "true or false", int: "a number", float: "a number", str: "a string", list: "a list"}
 
@@ -158,22 +175,25 @@ def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, 
         part.unlink()
         offset = 0
     check_free_space(dest.parent, (size or 0) * (2 if archive else 1) - offset)
-    response, refused = _open(url, offset)
-    if refused is not None:  # 416: the server has no byte from `offset` on
-        if offset == _whole_length(refused):
-            os.replace(part, dest)  # the server's own size says the part already holds it all
-            return dest
-        # A part longer than the file, or a server that does not say the file's size: the part
-        # cannot be shown to be the file's beginning, so it is dropped and the file fetched whole.
-        part.unlink()
-        offset = 0
-        response, _ = _open(url, 0)
-    with response:
-        start, end, total = _body_range(url, response, offset, part)
-        if total is not None and total > cap:
-            raise DownloadError(f"{url}: announces {total} bytes, more than the {cap} this file may have "
-                                f"(about {size} expected); nothing was written: check the URL or the mirror")
-        got = _receive(url, response, part, start, end, cap, size or total, console, dest.name)
+    with Deadline(url, part, None if size is None else max(0, size - offset)) as deadline:
+        response, refused = _open(url, offset, deadline)
+        if refused is not None:  # 416: the server has no byte from `offset` on
+            if offset == _whole_length(refused):
+                os.replace(part, dest)  # the server's own size says the part already holds it all
+                return dest
+            # A part longer than the file, or a server that does not say the file's size: the part
+            # cannot be shown to be the file's beginning, so it is dropped and the file fetched whole.
+            part.unlink()
+            offset = 0
+            response, _ = _open(url, 0, deadline)
+        with response:
+            start, end, total = _body_range(url, response, offset, part)
+            if total is not None and total > cap:
+                raise DownloadError(f"{url}: announces {total} bytes, more than the {cap} this file may have "
+                                    f"(about {size} expected); nothing was written: check the URL or the mirror")
+            if size is None and total is not None:
+                deadline.expect(total - start)
+            got = _receive(url, response, part, start, end, cap, deadline, console, dest.name)
     if (end is not None and got != end) or (total is not None and got != total):
         raise DownloadError(f"{url}: the connection dropped at {got} of {total if total is not None else end} bytes; "
                             f"{part} is kept, rerun the same command to resume")
@@ -181,19 +201,128 @@ def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, 
     return dest
 
 
-def _open(url: str, offset: int):
+def _open(url: str, offset: int, deadline: Deadline):
     """(the server's answer to a GET from byte `offset`, None), or (None, the HTTPError) for a
-    416 to a resumed request, whose Content-Range may say the file's length."""
+    416 to a resumed request, whose Content-Range may say the file's length. The answer must
+    come within HEADERS_S (and the overall deadline): the watchdog shuts the socket otherwise."""
     request = Request(url, headers={"Range": f"bytes={offset}-"} if offset else {})
+    opener = build_opener(_WatchedHTTP(deadline), _WatchedHTTPS(deadline))
+    deadline.phase(HEADERS_S, "sent no complete answer (status line and headers)")
     try:
-        return urlopen(request, timeout=TIMEOUT_S), None  # noqa: S310 - the URLs come from sources.py or --from
+        response = opener.open(request, timeout=min(TIMEOUT_S, max(deadline.left(), 0.1)))  # noqa: S310 - sources.py or --from
+        return response, None
     except HTTPError as error:
         if error.code == 416 and offset:
             return None, error
         raise DownloadError(f"{url}: HTTP {error.code} {error.reason}") from None
     except (URLError, OSError, http.client.HTTPException) as error:
+        deadline.check()  # a socket the watchdog shut: the deadline's line, not "cannot connect"
         reason = getattr(error, "reason", error)
         raise DownloadError(f"{url}: cannot connect ({reason}); check the network or pass --from MIRROR_OR_FILE") from None
+    finally:
+        deadline.phase(None)
+
+
+class Deadline:
+    """A file's overall deadline (and a shorter one for a phase, the server's answer), held by
+    a watchdog thread that shuts every socket the download opened once one passes: a read
+    blocked on a server that trickles or says nothing then returns at once, and check()
+    raises the deadline's one line. A context manager: leaving it stops the watchdog."""
+
+    def __init__(self, url: str, part: Path, expected: int | None) -> None:
+        self.url, self.part = url, part
+        self.started = time.monotonic()
+        self.seconds = deadline_seconds(expected)
+        self._phase: tuple[float, str, float] | None = None
+        self._sockets: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self.passed = ""  # why the watchdog shut the sockets
+
+    def __enter__(self) -> Deadline:
+        threading.Thread(target=self._watch, name="download-deadline", daemon=True).start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._done.set()
+
+    def expect(self, remaining: int) -> None:
+        """The size became known (Content-Length): the scaled deadline from it, unless set by hand."""
+        if not os.environ.get(DEADLINE_ENV):
+            self.seconds = deadline_seconds(remaining)
+
+    def phase(self, seconds: float | None, what: str = "") -> None:
+        self._phase = None if seconds is None else (time.monotonic() + seconds, what, seconds)
+
+    def left(self) -> float:
+        return self.started + self.seconds - time.monotonic()
+
+    def watch(self, sock: socket.socket) -> None:
+        with self._lock:
+            self._sockets.append(sock)
+        if self.passed:
+            _shut(sock)
+
+    def reason(self) -> str:
+        if self.left() < 0:
+            how = "set by " + DEADLINE_ENV if os.environ.get(DEADLINE_ENV) else \
+                f"{MIN_RATE // 1000} kB/s on average; {DEADLINE_ENV}=SECONDS sets another"
+            return f"not finished after {self.seconds:.0f} s (the deadline: {how})"
+        if self._phase is not None and time.monotonic() > self._phase[0]:
+            return f"{self._phase[1]} within {self._phase[2]:.0f} s"
+        return ""
+
+    def check(self, got: int | None = None) -> None:
+        """The deadline's one line where one has passed (the watchdog's, or found here first)."""
+        reason = self.passed or self.reason()
+        if reason:
+            arrived = f" ({got} bytes arrived)" if got is not None else ""
+            kept = f"{self.part} is kept: rerun the same command to resume" if self.part.exists() else \
+                "nothing was written: rerun the same command"
+            raise DownloadError(f"{self.url}: {reason}{arrived}; {kept}, or pass --from a faster mirror")
+
+    def _watch(self) -> None:
+        while not self._done.wait(0.1):
+            reason = self.reason()
+            if reason:
+                self.passed = reason
+                with self._lock:
+                    for sock in self._sockets:
+                        _shut(sock)
+                return
+
+
+def _shut(sock: socket.socket) -> None:
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass  # already closed
+
+
+def _watched(connection_class, deadline: Deadline):
+    class Watched(connection_class):
+        def connect(self) -> None:
+            super().connect()
+            deadline.watch(self.sock)
+    return Watched
+
+
+class _WatchedHTTP(HTTPHandler):
+    def __init__(self, deadline: Deadline) -> None:
+        super().__init__()
+        self.deadline = deadline
+
+    def http_open(self, req):
+        return self.do_open(_watched(http.client.HTTPConnection, self.deadline), req)
+
+
+class _WatchedHTTPS(HTTPSHandler):
+    def __init__(self, deadline: Deadline) -> None:
+        super().__init__()
+        self.deadline = deadline
+
+    def https_open(self, req):
+        return self.do_open(_watched(http.client.HTTPSConnection, self.deadline), req, context=self._context)
 
 
 def _whole_length(error: HTTPError) -> int | None:
@@ -225,31 +354,37 @@ def _body_range(url: str, response, offset: int, part: Path) -> tuple[int, int |
     return first, last + 1, total
 
 
-def _receive(url: str, response, part: Path, start: int, end: int | None, cap: int, expected: int | None,
+def _receive(url: str, response, part: Path, start: int, end: int | None, cap: int, deadline: Deadline,
              console: Console | None, label: str) -> int:
     """The body written into `part` from byte `start` on; returns the part's length. Stops at
-    `cap`, at the deadline and at FREE_RESERVE, each with one line; a dropped connection ends
-    the loop quietly (the caller compares the length with what was announced)."""
+    `cap`, at the deadline, on a stalled body and at FREE_RESERVE, each with one line; a dropped
+    connection ends the loop quietly (the caller compares the length with what was announced)."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_APPEND if start else os.O_TRUNC)
-    seconds = deadline_s(None if expected is None else max(0, expected - start))
-    deadline = time.monotonic() + seconds
     got = start
+    window = (time.monotonic(), got)  # when the current stall window began, and the bytes then
     fd = os.open(part, flags, 0o666)
     try:
         with _progress(console) as progress:
             task = progress.add_task(label, total=end, completed=start)
             while True:
-                if time.monotonic() > deadline:
-                    raise DownloadError(f"{url}: not finished after {seconds:.0f} s ({got} bytes arrived; the deadline "
-                                        f"allows {MIN_RATE // 1000} kB/s on average); {part} is kept: rerun the same "
-                                        "command to resume, or pass --from a faster mirror")
+                deadline.check(got)
+                now = time.monotonic()
+                if now - window[0] >= STALL_S:
+                    if got - window[1] < STALL_BYTES:
+                        raise DownloadError(f"{url}: {got - window[1]} bytes in the last {now - window[0]:.0f} s "
+                                            f"(fewer than {STALL_BYTES} in {STALL_S} s: stalled; {got} bytes arrived); "
+                                            f"{part} is kept: rerun the same command to resume, or pass --from a "
+                                            "faster mirror")
+                    window = (now, got)
                 try:
                     # read1: whatever has arrived, so that a trickling server cannot hold one
                     # call past the deadline (read(n) waits for all n bytes)
                     chunk = response.read1(CHUNK)
                 except (OSError, http.client.HTTPException):
+                    deadline.check(got)  # the watchdog shut the socket
                     break  # the connection dropped: what arrived is kept
                 if not chunk:
+                    deadline.check(got)
                     break
                 if got + len(chunk) > min(cap, end if end is not None else cap):
                     os.close(fd)
@@ -279,14 +414,29 @@ def _write_all(fd: int, data: bytes) -> None:
 
 def max_bytes(size: int | None) -> int:
     """The most bytes a part may have: its expected size with a margin; where none is known,
-    what the disk can spare (the free-space floor in _receive bounds it as it fills)."""
+    UNKNOWN_SIZE_CAP (and the free-space floor in _receive, as the disk fills)."""
     if size is None:
-        return 1 << 62
+        return UNKNOWN_SIZE_CAP
     return int(size * SIZE_MARGIN) + SIZE_SLACK
 
 
 def deadline_s(expected: int | None) -> float:
     return UNKNOWN_SIZE_DEADLINE_S if expected is None else DEADLINE_BASE_S + expected / MIN_RATE
+
+
+def deadline_seconds(expected: int | None) -> float:
+    """One file's overall deadline: E3CM_BENCH_DOWNLOAD_DEADLINE where set, else scaled to the
+    bytes expected (deadline_s)."""
+    text = os.environ.get(DEADLINE_ENV)
+    if not text:
+        return deadline_s(expected)
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not (seconds > 0 and seconds != float("inf")):
+        raise DownloadError(f"{DEADLINE_ENV}={text!r}: expected a positive number of seconds")
+    return seconds
 
 
 def check_free_space(folder: Path, needed: int) -> None:

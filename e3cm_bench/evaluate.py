@@ -166,6 +166,8 @@ def evaluate_and_report(
     if repeats:
         console.print(f"{repeats} repeated correspondence(s) in {int((per_pair[DUPLICATES] > 0).sum())} pair(s) "
                       f"counted once (per_pair.csv: {DUPLICATES})", markup=False)
+    for note in benchmark.notes(pairs, per_pair, ev):
+        console.print(f"warning: {note}", markup=False, soft_wrap=True)
     drawings = [(pair, cache.read(pair.name)) for pair in pairs[:max(viz, 0)]]
     check_free_space(out, report_bytes(per_pair, summary, skipped, failures, drawings), "the run's reports")
     write_skipped(skipped, folder.skipped_path, console)

@@ -313,7 +313,7 @@ def test_sources_unpack_the_release_zips_into_the_layouts_the_loaders_read(tmp_p
         for pair in ("WGABS/kremlin", "WGABS/petrzin", "WGSBS/kettle"):
             zf.writestr(f"{pair}/01.png", _PNG)
             zf.writestr(f"{pair}/02.png", _PNG)
-            zf.writestr(f"{pair}/corrs.txt", "1 2 3 4\n")
+            zf.writestr(f"{pair}/corrs.txt", "0.5 0.5 0.5 0.5\n")  # on the 1 x 1 px images
             zf.writestr(f"{pair}/crossval_errors.txt", "0.5\n")
     with zipfile.ZipFile(tmp_path / "EVD.zip", "w") as zf:
         for name in ("adam", "fox"):

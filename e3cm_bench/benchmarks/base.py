@@ -245,6 +245,10 @@ class Benchmark:
         rows = list(rows)
         return lambda idx: self.summarize([rows[i] for i in idx], ev)
 
+    def notes(self, pairs: Sequence[Pair], per_pair: pd.DataFrame, ev: EvalSettings) -> list[str]:
+        """What a run should say once about its ground truth and how it was scored (one line each)."""
+        return []
+
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:  # pragma: no cover
         """Which matches the ground truth calls right (green in --viz drawings)."""
         raise NotImplementedError

@@ -17,6 +17,7 @@ from ..datasets.megadepth import MegaDepth1500
 from ..datasets.yfcc import YFCC100M
 from ..matches import Matches
 from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from .protocols import rotation_error
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,14 @@ class PoseBenchmark(Benchmark):
             pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=self.ransac_px(pair, matches, ev),
             confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds, estimator=ev.estimator,
             sizes=(tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None,
+            rotation_error=rotation_error(ev.protocol),
         )
         return {"pair": pair.name, **row}
+
+    def notes(self, pairs: Sequence[Pair], per_pair: pd.DataFrame, ev: EvalSettings) -> list[str]:
+        rotations = [np.asarray(pair.T_0to1, dtype=np.float64)[:3, :3] for pair in pairs]
+        note = metrics.rotation_note(rotations, per_pair["err_R"], rotation_error(ev.protocol))
+        return [note] if note else []
 
     @staticmethod
     def ransac_px(pair: Pair, matches: Matches, ev: EvalSettings) -> float:

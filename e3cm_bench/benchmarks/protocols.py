@@ -21,7 +21,9 @@ class Protocol:
     could not be estimated leave the AUC (instead of counting with error inf). upright:
     turn images upright by the pair list's rot0/rot1 before matching (keypoints are mapped
     back to the stored images). evaluation: {benchmark: EvalSettings fields the reference's
-    evaluation sets}. standard: False flags every table row it produced."""
+    evaluation sets}. standard: False flags every table row it produced. rotation_error: how
+    the pose benchmarks measure the rotation's error (geometry.ROTATION_ERRORS): the presets of
+    reference code keep its formula, the default measures to the nearest rotation."""
 
     name: str
     description: str
@@ -33,6 +35,7 @@ class Protocol:
     upright: bool = True
     evaluation: dict = field(default_factory=dict)
     standard: bool = True
+    rotation_error: str = "nearest-rotation"
 
     def resize_mode(self, benchmark: str) -> str:
         return self.resize.get(benchmark, "shrink")
@@ -66,13 +69,13 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
         "loftr", "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "
         "floored to a multiple of 8, bilinear",
-        ("megadepth",), max_side={"megadepth": 840}, resize={"megadepth": "exact-div8"},
+        ("megadepth",), max_side={"megadepth": 840}, resize={"megadepth": "exact-div8"}, rotation_error="reference",
     ),
     Protocol(
         "superglue", "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
         "longer side resized to 1600 px (enlarged too), bilinear; essential-matrix RANSAC at 1 px of the resized images",
         ("yfcc",), max_side={"yfcc": 1600}, resize={"yfcc": "exact"},
-        evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
+        evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}}, rotation_error="reference",
     ),
     Protocol(
         "gluefactory", "glue-factory's evaluation. MegaDepth-1500 (its official LightGlue configs): longer side resized "
@@ -85,6 +88,7 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"},
                     "hpatches": {"homography_pixel_origin": "corner", "match_precision_px": (1.0, 3.0),
                                  "estimator": "poselib", "homography_ransac_px": 1.0}},
+        rotation_error="reference",
     ),
     Protocol(
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
@@ -96,9 +100,15 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
             "megadepth": {"channel_order": "bgr", "num_levels": 4},
             "yfcc": {"channel_order": "bgr", "num_levels": 4},
         },
-        drop_failures=True, standard=False,
+        drop_failures=True, standard=False, rotation_error="reference",
     ),
 ]}
+
+
+def rotation_error(protocol: str) -> str:
+    """How a run under `protocol` (its evaluation.protocol) measures rotation errors; an unknown
+    name (a record from elsewhere) gets the default's."""
+    return PROTOCOLS.get(protocol, PROTOCOLS["default"]).rotation_error
 
 
 def get_protocol(name: str, benchmark: str) -> Protocol:

@@ -1,11 +1,12 @@
 """What every format shares: the missing-pair error, image names, and the checks an array
 read from another tool's file passes before it is used (its kind, its shape and its declared
-size, checked before a byte of it is read)."""
+size, checked before a byte of it is read; an HDF5 file, that it holds all its data itself)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..matches import MatchesError
@@ -44,6 +45,46 @@ def check_declared(what: str, shape: tuple, itemsize: int) -> None:
         size = int(np.prod(shape, dtype=np.int64)) * int(itemsize)
         raise MatchesError(f"{what} declares shape {tuple(shape)} ({size / 2**20:.0f} MiB); more than the "
                            f"{MAX_POINTS} rows an import reads")
+
+
+def check_self_contained(path: Path) -> None:
+    """Refuse an HDF5 file that reads anything from elsewhere or by another name: a soft or
+    external link, or a dataset whose values live outside the file (a virtual dataset, or
+    external raw storage). hloc and glue-factory write none of these (h5py's create_group and
+    create_dataset make hard links to data stored in the file). Followed, they would read a
+    pair from a file the import's identity (the named file's sha256) never hashed, read a
+    virtual dataset whose source is missing as its fill value without a word, or loop
+    ("too many links"); refused, what is imported is exactly the bytes that were hashed.
+    Hard links stay: they are the file's own structure and its own bytes."""
+    try:
+        with h5py.File(path, "r") as file:
+            problem = file.visititems_links(_link_problem) or file.visititems(_storage_problem)
+    except (OSError, RuntimeError, KeyError, ValueError) as error:  # h5py's errors for a damaged file
+        raise ValueError(f"{path}: not a readable HDF5 file ({' '.join(str(error).split())})") from None
+    if problem:
+        raise ValueError(f"{path}: {problem}; an imported file must hold its data itself (hloc and glue-factory "
+                         "write neither links nor virtual datasets): write the values into the file")
+
+
+def _link_problem(name: str, link) -> str | None:
+    if isinstance(link, h5py.SoftLink):
+        return f"/{name} is a soft link to {link.path}"
+    if isinstance(link, h5py.ExternalLink):
+        return f"/{name} is an external link to {link.filename}:{link.path}"
+    if not isinstance(link, h5py.HardLink):
+        return f"/{name} is a user-defined link"
+    return None
+
+
+def _storage_problem(name: str, item) -> str | None:
+    if not isinstance(item, h5py.Dataset):
+        return None
+    if item.is_virtual:
+        sources = sorted({source.file_name for source in item.virtual_sources()})
+        return f"/{name} is a virtual dataset (its values are read from {', '.join(sources)})"
+    if item.id.get_create_plist().get_external_count() > 0:
+        return f"/{name} stores its values in external raw files"
+    return None
 
 
 def real_points(values, what: str) -> np.ndarray:

@@ -22,6 +22,7 @@ mapper can run without its own verification. A pair whose estimate failed gets n
 from __future__ import annotations
 
 import shutil
+import sqlite3
 import tempfile
 from pathlib import Path
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, check_declared, image_name, real_points
+from .base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "corner"
@@ -127,6 +128,54 @@ def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float
     return [write_atomically(out / "database.db", write)]
 
 
+# COLMAP's array tables: (table, key column, bytes per entry (descriptors: uint8 or float32),
+# widths a row may have). Each row declares rows x cols, and COLMAP allocates that before it
+# reads the blob: a row declaring 2e9 matches takes 16 GB whatever the blob holds.
+BLOB_TABLES = (("keypoints", "image_id", (4,), (2, 4, 6)), ("descriptors", "image_id", (1, 4), None),
+               ("matches", "pair_id", (4,), (2,)), ("two_view_geometries", "pair_id", (4,), (2,)))
+PAIR_ID_BASE = 2147483647  # COLMAP's kMaxNumImages: pair_id = id1 * this + id2
+
+
+def check_blob_sizes(copy: Path, database: Path) -> None:
+    """Every array a COLMAP database declares, checked against its bytes and against MAX_POINTS
+    rows before pycolmap allocates it (any table, read or not: pycolmap may touch them all).
+    `copy`: the private copy read here; `database`: the user's file, named in the error."""
+    try:
+        connection = sqlite3.connect(f"file:{copy}?mode=ro", uri=True)
+    except sqlite3.Error as error:
+        raise ValueError(f"{database}: not a readable COLMAP database ({error})") from None
+    try:
+        tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        for table, key, itemsizes, widths in BLOB_TABLES:
+            if table not in tables:
+                continue
+            size = "coalesce(length(data), 0)"
+            fits = " OR ".join(f"rows * cols * {n} = {size}" for n in itemsizes)
+            wide = f" OR cols NOT IN ({', '.join(map(str, widths))})" if widths else ""
+            bad = connection.execute(
+                f"SELECT {key}, rows, cols, {size} FROM {table} WHERE rows < 0 OR cols < 0 OR rows > ? OR cols > 4096"
+                f"{wide} OR NOT ({fits}) LIMIT 1", (MAX_POINTS,)).fetchone()
+            if bad is not None:
+                raise ValueError(f"{database}: table {table}, {_row_name(connection, key, bad[0])}, declares "
+                                 f"{bad[1]} x {bad[2]} entries and holds {bad[3]} bytes; "
+                                 f"{'more rows than the ' + str(MAX_POINTS) + ' an import reads' if bad[1] > MAX_POINTS else 'a damaged row'}"
+                                 ": refused before reading it")
+    except sqlite3.Error as error:
+        raise ValueError(f"{database}: not a readable COLMAP database ({error})") from None
+    finally:
+        connection.close()
+
+
+def _row_name(connection, key: str, value: int) -> str:
+    """'image NAME' or 'images NAME0 and NAME1' for a row of an array table."""
+    ids = [value] if key == "image_id" else [value // PAIR_ID_BASE, value % PAIR_ID_BASE]
+    names = []
+    for image_id in ids:
+        found = connection.execute("SELECT name FROM images WHERE image_id = ?", (image_id,)).fetchone()
+        names.append(found[0] if found else f"#{image_id}")
+    return f"image {names[0]}" if len(names) == 1 else f"images {names[0]} and {names[1]}"
+
+
 class ColmapSource:
     """A COLMAP database: images found by name (relative to the dataset root), keypoints in
     COLMAP's corner convention, the raw matches of each pair (not only the verified ones:
@@ -168,12 +217,22 @@ class ColmapSource:
         hash, the import's identity)."""
         if self._db is None:
             pycolmap = pycolmap_module()
+            wal = Path(f"{self.database}-wal")
+            if wal.is_file() and wal.stat().st_size:
+                # what COLMAP has not yet written back: the copy and the sha256 would miss it
+                raise ValueError(f"{self.database}: holds changes in {wal} not yet written into it (a COLMAP or "
+                                 "sqlite3 still has it open?): close that program, then import")
             self._copy = Path(tempfile.mkdtemp(prefix="e3cm-colmap-")) / "database.db"
-            shutil.copyfile(self.database, self._copy)
             try:
+                shutil.copyfile(self.database, self._copy)
+                check_blob_sizes(self._copy, self.database)
                 self._db = pycolmap.Database.open(str(self._copy))
                 self._ids = {image.name: image.image_id for image in self._db.read_all_images()}
+            except ValueError:
+                shutil.rmtree(self._copy.parent, ignore_errors=True)
+                raise
             except Exception as error:  # pycolmap raises its own types for a damaged file
+                shutil.rmtree(self._copy.parent, ignore_errors=True)
                 raise ValueError(f"{self.database}: not a readable COLMAP database ({error})") from None
         return self._db
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, image_name, index_array, matched, real_points, score_array
+from .base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
 from .hloc import hloc_pair_key, read_dataset
 from .pixels import check_origin, from_origin, to_origin
 
@@ -108,6 +108,7 @@ class GluefactorySource:
             raise ValueError(f"{self.predictions}: not found")
         if not h5py.is_hdf5(self.predictions):
             raise ValueError(f"{self.predictions}: not an HDF5 file")
+        check_self_contained(self.predictions)
         self._hpatches: dict[tuple[str, int], str] | None = None
 
     def files(self, pairs) -> dict[str, str]:

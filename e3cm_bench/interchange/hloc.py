@@ -42,7 +42,7 @@ import numpy as np
 
 from ..files import file_sha256
 from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, check_declared, image_name, index_array, matched, real_points, score_array
+from .base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
 from .pixels import check_origin, from_origin, to_origin
 
 DEFAULT_ORIGIN = "center"
@@ -87,6 +87,7 @@ class HlocSource:
                 raise ValueError(f"{path}: not found")
             if not h5py.is_hdf5(path):
                 raise ValueError(f"{path}: not an HDF5 file")
+            check_self_contained(path)
 
     def files(self, pairs) -> dict[str, str]:
         return {"features": file_sha256(self.features), "matches": file_sha256(self.matches)}
