@@ -21,7 +21,7 @@ from .images import load_image
 from .intervals import metric_keys, summary_intervals
 from .matches import Matches, distinct
 from .run import FAILED_ATTR, RunFolder
-from .viz import draw_matches, save_image
+from .viz import draw_matches, drawn_pairs, save_image
 
 
 def evaluate_stage(
@@ -94,11 +94,12 @@ def write_reports(
     benchmark: Benchmark, folder: RunFolder, label: str, per_pair: pd.DataFrame, summary: dict,
     pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
 ) -> None:
-    """per_pair.csv, summary.csv, the run's plot, and drawings of the first `viz` pairs."""
+    """per_pair.csv, summary.csv, the run's plot, and drawings of `viz` pairs spread over the run's
+    (viz.drawn_pairs)."""
     write_csv(per_pair, folder.per_pair_path)
     write_csv(pd.DataFrame([summary]), folder.summary_path)
     benchmark.plot_run(label, summary, per_pair, folder.path)
-    for pair in pairs[:viz]:
+    for pair in drawn_pairs(pairs, viz):
         matches = drawn(cache.read(pair.name))
         canvas = draw_matches(
             load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
@@ -168,7 +169,7 @@ def evaluate_and_report(
                       f"counted once (per_pair.csv: {DUPLICATES})", markup=False)
     for note in benchmark.notes(pairs, per_pair, ev):
         console.print(f"warning: {note}", markup=False, soft_wrap=True)
-    drawings = [(pair, cache.read(pair.name)) for pair in pairs[:max(viz, 0)]]
+    drawings = [(pair, cache.read(pair.name)) for pair in drawn_pairs(pairs, viz)]
     check_free_space(out, report_bytes(per_pair, summary, skipped, failures, drawings), "the run's reports")
     write_skipped(skipped, folder.skipped_path, console)
     write_failures(failures, folder.failures_path, console)

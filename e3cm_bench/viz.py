@@ -13,6 +13,16 @@ RED = (255, 0, 0)
 BANNER_TEXT = (255, 255, 255)
 BANNER_BACKGROUND = (0, 0, 0)
 SUBPIXEL_BITS = 4  # cv2 drawing "shift": endpoints at 1/16 pixel instead of rounded
+VIZ_SEED = 0  # the drawn pairs are the same in every run of a dataset, so drawings can be compared
+
+
+def drawn_pairs(pairs: list, n: int) -> list:
+    """The `n` pairs that --viz draws: a spread over the run's categories, scenes or sequences
+    (datasets.base.stratified_sample with a fixed seed), not the first n, which in a dataset
+    sorted by sequence are all of one kind (HPatches' first pairs are all illumination)."""
+    from .datasets.base import stratified_sample
+
+    return stratified_sample(pairs, n, VIZ_SEED) if n > 0 else []
 
 
 def draw_matches(

@@ -17,19 +17,49 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def demo_out(tmp_path_factory) -> Path:
-    """The quick demo (1 viewpoint sequence, 2 scene pairs) with one deep method and SIFT."""
+def demo_run(tmp_path_factory) -> tuple[Path, str]:
+    """The quick demo (1 viewpoint and 1 illumination sequence, 2 scene pairs) with one deep
+    method and SIFT, and what it printed."""
     out = tmp_path_factory.mktemp("demo") / "e3cm-demo"
     result = invoke("demo", "--out", out, "--quick", "--methods", "e3cm-ransac,sift")
     assert result.exit_code == 0, (result.output, result.exception)
-    return out
+    return out, result.output
+
+
+@pytest.fixture(scope="module")
+def demo_out(demo_run) -> Path:
+    return demo_run[0]
+
+
+def test_demo_prints_a_short_account_and_logs_the_rest(demo_run):
+    """Issue 51: a line per set and per method with its headline numbers, at most 80 columns;
+    the runs' own tables go to demo.log."""
+    out, output = demo_run
+    lines = output.splitlines()
+    assert len(lines) <= 30 and max(map(len, lines)) <= 80, output
+    assert "10 pairs (5 illumination, 5 viewpoint)" in output
+    table = pd.read_csv(out / "hpatches_table.csv").set_index("method")
+    for method in ("e3cm-ransac", "sift"):
+        hpatches_line, scenes_line = [line for line in lines if line.split()[:1] == [method]]
+        lo, hi = table.loc[method, "h_acc@1_lo"], table.loc[method, "h_acc@1_hi"]
+        assert hpatches_line.split()[1:3] == [f"{table.loc[method, 'h_acc@1']:.2f}", f"[{lo:.2f},{hi:.2f}]"]
+    log = (out / "demo.log").read_text()
+    assert "hpatches - sift (10 pairs)" in log and "| method" in log  # each run's table, the Markdown table
+    assert "hpatches - sift" not in output
+
+
+def test_demo_help_names_every_method_it_runs():
+    result = invoke("demo", "--help", terminal_width=200)
+    assert result.exit_code == 0
+    description = flat(result.output.split("Options")[0])  # the command's help, not --methods' choices
+    assert all(method in description for method in DEMO_METHODS), description
 
 
 def test_demo_writes_data_runs_tables_and_pictures(demo_out):
     # The data, in the real layouts.
-    assert sorted(p.name for p in (demo_out / "data" / "hpatches").iterdir()) == ["v_hopper1"]
+    assert sorted(p.name for p in (demo_out / "data" / "hpatches").iterdir()) == ["i_hopper1", "v_hopper1"]
     assert (demo_out / "data" / "scenes" / "pairs_with_gt.txt").read_text().count("\n") == 2
-    for set_name, n_pairs, metric in (("hpatches", 5, "h_acc@3"), ("scenes", 2, "auc@10")):
+    for set_name, n_pairs, metric in (("hpatches", 10, "h_acc@3"), ("scenes", 2, "auc@10")):
         table = pd.read_csv(demo_out / f"{set_name}_table.csv")
         assert list(table["method"]) == ["e3cm-ransac", "sift"] and set(table["source"]) == {"measured"}
         assert (table["n_pairs"] == n_pairs).all() and table[metric].notna().all()
@@ -38,9 +68,12 @@ def test_demo_writes_data_runs_tables_and_pictures(demo_out):
         for method in ("e3cm-ransac", "sift"):
             run = demo_out / set_name / method
             assert (run / "summary.csv").is_file() and len(list((run / "viz").glob("*.png"))) == 2
+    # --viz 2 draws a spread: an illumination and a viewpoint pair, not the first two of one sequence
+    assert sorted(p.name[0] for p in (demo_out / "hpatches" / "sift" / "viz").glob("*.png")) == ["i", "v"]
     hpatches = pd.read_csv(demo_out / "hpatches_table.csv").set_index("method")
     assert hpatches.loc["e3cm-ransac", "mma@3"] > 0.5 and hpatches.loc["sift", "mma@3"] > 0.5
     assert (demo_out / "hpatches_table_mma.png").is_file() and (demo_out / "scenes_table_pose_auc.png").is_file()
+    assert (demo_out / "hpatches_table_h_acc.png").is_file()
     # Orderings that need e3cm, direct or dfm are not claimed when those did not run.
     assert (demo_out / "orderings.md").read_text().startswith("- none judged")
 
@@ -48,7 +81,8 @@ def test_demo_writes_data_runs_tables_and_pictures(demo_out):
 def test_demo_rerun_reuses_data_and_matches(demo_out):
     result = invoke("demo", "--out", demo_out, "--quick", "--methods", "sift")
     assert result.exit_code == 0
-    assert flat(result.output).count("found in") == 2 and "matching (" not in result.output
+    log = (demo_out / "demo.log").read_text()  # this run's
+    assert flat(log).count("found in") == 2 and "matching (" not in log
 
 
 def test_runs_record_their_environment_which_does_not_block_a_resume(demo_out, tmp_path):
@@ -66,7 +100,8 @@ def test_runs_record_their_environment_which_does_not_block_a_resume(demo_out, t
         old["versions"] = {**old["versions"], "torch": "1.0.0", "numpy": "1.0.0"}
         path.write_text(yaml.safe_dump(old, sort_keys=False))
     result = invoke("demo", "--out", out, "--quick", "--methods", "sift")
-    assert result.exit_code == 0 and flat(result.output).count("found in") == 2 and "matching (" not in result.output
+    log = (out / "demo.log").read_text()
+    assert result.exit_code == 0 and flat(log).count("found in") == 2 and "matching (" not in log
     for set_name in ("hpatches", "scenes"):
         config = yaml.safe_load((out / set_name / "sift" / "config.yaml").read_text())
         assert config["environment"]["torch"] == torch.__version__ and config["versions"]["numpy"] != "1.0.0"

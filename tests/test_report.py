@@ -343,7 +343,7 @@ def test_plot_pose_auc_bars(tmp_path, pose_runs):
     assert heights == pytest.approx(expected)  # bars are drawn run by run
     assert [bar.get_height() for bar in precision_ax.patches] == pytest.approx([r.summary["precision@1e-4"] for r in pose_runs])
     assert [t.get_text() for t in precision_ax.get_xticklabels()] == [run.label for run in pose_runs]
-    assert fig._suptitle.get_text() == "MegaDepth-1500"
+    assert fig._suptitle.get_text().startswith("MegaDepth-1500; bars: 95% bootstrap interval")
 
 
 # --------------------------------------------------------------------------- transcribed paper tables

@@ -168,3 +168,38 @@ def test_the_filter_works_in_the_browser(site):
     first = data["pairs"][0]["pair"]
     dom = browse("--virtual-time-budget=3000", "--dump-dom", f"{(site / 'index.html').as_uri()}#q={first}").stdout
     assert f"{sum(first in p['pair'] for p in data['pairs'])} of {len(data['pairs'])} pairs" in dom
+
+
+@pytest.fixture(scope="module")
+def site_with_paper(demo, tmp_path_factory) -> Path:
+    """The same runs reported against the paper's Table 1: its rows and the difference columns."""
+    out = tmp_path_factory.mktemp("report") / "site"
+    result = invoke("report", demo / "hpatches" / "sift", demo / "hpatches" / "e3cm-release", "--out", out)
+    assert result.exit_code == 0
+    return out
+
+
+@pytest.mark.parametrize("which", ["site", "site_with_paper"])
+def test_the_layout_fits_a_1400_px_window_and_plots_are_readable(which, request):
+    """Issue 51: the plots are shown about as large as they were drawn (not two to a row at
+    about 600 px), the summary table fits the page at 1400 px, and the page never scrolls
+    sideways. Measured in Chromium on a copy of the page with a script that writes the layout."""
+    site = request.getfixturevalue(which)
+    probe = site / "layout-probe.html"
+    measure = """<script>window.addEventListener('load', () => {
+      const width = el => el.getBoundingClientRect().width;
+      const table = document.getElementById('summary');
+      document.body.setAttribute('data-layout', JSON.stringify({
+        page: document.documentElement.scrollWidth, window: window.innerWidth,
+        table: width(table), box: width(table.parentElement), area: width(document.querySelector('.plots')),
+        plots: [...document.querySelectorAll('.plots img')].map(i => [width(i), i.naturalWidth])}));
+    });</script></body>"""
+    probe.write_text((site / "index.html").read_text().replace("</body>", measure))
+    dom = browse("--virtual-time-budget=5000", "--window-size=1400,1000", "--dump-dom", probe.as_uri()).stdout
+    layout = json.loads(html.unescape(re.search(r'data-layout="([^"]*)"', dom).group(1)))
+    assert layout["page"] <= layout["window"], layout  # nothing overflows the window
+    assert layout["table"] <= layout["box"] + 1, layout  # the table fits: no scrolling inside its box either
+    assert len(layout["plots"]) >= 2  # the headline h_acc and the MMA curves
+    for shown, natural in layout["plots"]:
+        assert natural > 0 and shown >= min(natural, layout["area"]) - 1, layout  # full size, or the page's width
+        assert shown >= 900, layout

@@ -157,6 +157,9 @@ class Benchmark:
     # higher is better (a lower-is-better error the run could not compute counts as +inf); each
     # count metric is compared too, as pass/fail. Homography and pose benchmarks have their own.
     paired_columns: tuple[tuple[str, bool], ...] = ()
+    # The protocol a run gets when none is named (benchmarks/protocols.py): the reference code's
+    # where the benchmark has one (WxBS, EVD: wxbs-benchmark's), else e3cm-bench's own.
+    default_protocol: str = "default"
 
     @property
     def option_names(self) -> tuple[str, ...]:
@@ -167,10 +170,14 @@ class Benchmark:
         return tuple(o for o in self.dataset_options if isinstance(o, DatasetOption))
 
     def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
+        # --sample N [--sample-seed S] holds for every benchmark (datasets/base.py stratified_sample);
+        # kept among the options so that dataset_load reloads the same sample (shards, export).
+        sample, sample_seed = options.pop("sample", None), options.pop("sample_seed", None)
         unknown = set(options) - set(self.option_names)
         if unknown:
             raise ValueError(f"dataset option(s) {', '.join(sorted(unknown))} do not apply to {self.name}")
-        return self.dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if v is not None})
+        dataset = self.dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if v is not None})
+        return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
 
     def max_side(self, option: int | None) -> int | None:
         """The resize of a run: the option as given (0 = full size), or this benchmark's default."""
@@ -187,11 +194,11 @@ class Benchmark:
 
     # ---- what a command's options mean here: shared by the command line and experiment configs
     def resolve_method(
-        self, matcher: str, *, protocol: str = "default", backbone: str = "vgg19", weights=None,
+        self, matcher: str, *, protocol: str | None = None, backbone: str = "vgg19", weights=None,
         estimator: str | None = None, sampson_px=None, ratio=None, max_side: int | None = None, seed: int = 0,
         label: str | None = None, settings: Mapping | None = None, available: bool = True,
     ):
-        """The MethodSpec of a matcher on this benchmark under `protocol`.
+        """The MethodSpec of a matcher on this benchmark under `protocol` (None: its default_protocol).
 
         max_side: None takes the protocol's side for this benchmark, else the benchmark's
         default; 0 is full size. The protocol's matcher settings (num_levels, channel order)
@@ -201,7 +208,7 @@ class Benchmark:
         from ..method import MethodSpec
         from .protocols import get_protocol
 
-        preset = get_protocol(protocol, self.name)
+        preset = get_protocol(protocol or self.default_protocol, self.name)
         if max_side is None and self.name in preset.max_side:
             max_side = preset.max_side[self.name] or 0
         options = dict(settings or {})
@@ -212,12 +219,12 @@ class Benchmark:
             options=options, upright=preset.upright, resize=preset.resize_mode(self.name), available=available,
         )
 
-    def resolve_eval(self, protocol: str = "default", seed: int = 0, ransac_px: float | None = None,
+    def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:
         """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
         from .protocols import get_protocol
 
-        values = get_protocol(protocol, self.name).eval_fields(self.name)
+        values = get_protocol(protocol or self.default_protocol, self.name).eval_fields(self.name)
         if estimator:
             values["estimator"] = estimator
         if repeats != 1:

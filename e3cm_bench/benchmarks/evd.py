@@ -197,10 +197,12 @@ class EVDBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        curves = {f"{label} (mAA {float(s[MAA]):.3f})": [float(s[accuracy_key(t)]) for t in THRESHOLDS]
-                  for label, s in summaries.items()}
+        names = {label: f"{label} (mAA {float(s[MAA]):.3f})" for label, s in summaries.items()}
+        curves = {names[label]: [float(s[accuracy_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
+        bands = {names[label]: [plots.interval(s, accuracy_key(t)) for t in THRESHOLDS] for label, s in summaries.items()}
         fig = threshold_curves_figure(curves, THRESHOLDS, "mean visible-part reprojection error threshold [px]",
-                                      "fraction of pairs", "EVD: H from the matches", log_x=True)
+                                      "fraction of pairs", f"EVD: H from the matches; bands: {plots.interval_note(summaries)}",
+                                      log_x=True, bands=bands)
         return plots._save_figure(fig, path)
 
 
@@ -208,5 +210,6 @@ EVD_BENCHMARK = EVDBenchmark(
     name="evd", dataset=EVD, dataset_options=(),
     summary="EVD: H from the matches; accuracy of the visible-part reprojection error at 10 thresholds 1..20 px, mAA.",
     default_max_side=DEFAULT_MAX_SIDE,  # wxbs.py says why
+    default_protocol="wxbs",  # the reference's estimator; --protocol default is e3cm-bench's own
 )
 BENCHMARKS = (EVD_BENCHMARK,)

@@ -51,7 +51,7 @@ class Protocol:
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
-        "default", "e3cm-bench's own: PROTOCOLS.md (MegaDepth/YFCC longer side at most 1200, HPatches full size; "
+        "default", "e3cm-bench's own (docs/benchmarks.md, Protocols; MegaDepth/YFCC longer side at most 1200, HPatches full size; "
         "failures count with error inf; YFCC images turned upright)",
         (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
     ),

@@ -232,12 +232,17 @@ def _stored_size(path: Path) -> tuple[int, int] | None:
 
 
 def threshold_curves_figure(curves: Mapping[str, Sequence[float]], thresholds: Sequence[float],
-                            xlabel: str, ylabel: str, title: str, log_x: bool = False) -> Figure:
-    """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy)."""
+                            xlabel: str, ylabel: str, title: str, log_x: bool = False,
+                            bands: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Figure:
+    """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy), with
+    its bootstrap interval at each threshold as a band (bands: label -> (lo, hi) per threshold)."""
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.subplots()
     for label, curve in curves.items():
-        ax.plot(thresholds, curve, "-o", markersize=3, label=label)
+        line, = ax.plot(thresholds, curve, "-o", markersize=3, label=label)
+        lo, hi = np.array((bands or {}).get(label, [(np.nan, np.nan)] * len(thresholds)), dtype=float).T
+        if not np.all(np.isnan(lo)):
+            ax.fill_between(thresholds, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
     if log_x:
         ax.set_xscale("log")
     ax.set_ylim(0, 1.02)
@@ -336,10 +341,12 @@ class WxBSBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        curves = {f"{label} (mAA@10px {float(s[MAA]):.3f})": [float(s[recall_key(t)]) for t in THRESHOLDS]
-                  for label, s in summaries.items()}
+        names = {label: f"{label} (mAA@10px {float(s[MAA]):.3f})" for label, s in summaries.items()}
+        curves = {names[label]: [float(s[recall_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
+        bands = {names[label]: [plots.interval(s, recall_key(t)) for t in THRESHOLDS] for label, s in summaries.items()}
         fig = threshold_curves_figure(curves, THRESHOLDS, "symmetric epipolar distance threshold [px]",
-                                      "recall of the ground-truth correspondences", "WxBS: F from the matches")
+                                      "recall of the ground-truth correspondences",
+                                      f"WxBS: F from the matches; bands: {plots.interval_note(summaries)}", bands=bands)
         return plots._save_figure(fig, path)
 
 
@@ -349,5 +356,6 @@ WXBS = WxBSBenchmark(
                                    "validation pairs) or all."),),
     summary="WxBS v1.1: F from the matches; recall of the hand-labelled correspondences at 0..19 px, mAA@10px, per category.",
     default_max_side=DEFAULT_MAX_SIDE,
+    default_protocol="wxbs",  # the reference's estimator; --protocol default is e3cm-bench's own
 )
 BENCHMARKS = (WXBS,)

@@ -61,18 +61,22 @@ class Scale:
 
 
 def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path | None, matcher: str, backbone: str,
-                weights: Path | None, max_side: int | None, limit: int | None, device: str, seed: int,
+                weights: Path | None, max_side: int | None, limit: int | None, sample: int | None, sample_seed: int,
+                device: str, seed: int,
                 overwrite: bool, eval_only: bool, viz: int, estimator: str | None, sampson_px: str | None,
-                ratio: str | None, label: str | None, settings: list[str] | None, protocol: str, precision: str,
+                ratio: str | None, label: str | None, settings: list[str] | None, protocol: str | None, precision: str,
                 channel_order: str, feature_cache_mb: float | None, backbone_batch: int | None, skip_bad: bool,
                 ransac_px: float | None, pose_estimator: str | None, repeats: int, on_matcher_error: str,
                 pair_timeout: float | None,
                 shard: str | None, workers: int, devices: str | None, launcher: str, shards: int) -> None:
     """What every benchmark command does with its options (the commands are made by benchmark_command)."""
+    protocol = protocol or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
     method = _method(bench, matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings,
                      protocol, precision, channel_order, device)
     scale = Scale(shard, workers, devices, launcher, shards)
     scale.check()
+    if sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
+        dataset_options = {**dataset_options, "sample": sample, "sample_seed": sample_seed}
     console.print(get_protocol(protocol, bench.name).line(), markup=False)
     ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator, repeats)
     run = dict(benchmark=bench.name, out=out, method=method, root=find_root(bench.name, root),
@@ -90,6 +94,8 @@ def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path |
 
 
 # Options of the benchmark commands.
+SampleOpt = Annotated[Optional[int], typer.Option("--sample", help="A stratified sample of N pairs: spread over the categories, scenes or sequences (--limit takes the first N).")]
+SampleSeedOpt = Annotated[int, typer.Option("--sample-seed", help="Seed of --sample's draw (recorded in config.yaml).")]
 
 # Every benchmark command's options, in the order --help lists them; the benchmark's own
 # dataset options (Benchmark.dataset_options) come between the two groups.
@@ -97,10 +103,10 @@ _NO_DEFAULT = inspect.Parameter.empty
 COMMON_BEFORE = (
     ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), ("matcher", MatcherOpt, "e3cm"),
     ("backbone", BackboneOpt, "vgg19"), ("weights", WeightsOpt, None), ("max_side", MaxSideOpt, None),
-    ("limit", LimitOpt, None), ("device", DeviceOpt, "cpu"), ("seed", SeedOpt, 0), ("overwrite", OverwriteOpt, False),
+    ("limit", LimitOpt, None), ("sample", SampleOpt, None), ("sample_seed", SampleSeedOpt, 0), ("device", DeviceOpt, "cpu"), ("seed", SeedOpt, 0), ("overwrite", OverwriteOpt, False),
     ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0), ("estimator", EstimatorOpt, None),
     ("sampson_px", SampsonOpt, None), ("ratio", RatioOpt, None), ("label", LabelOpt, None), ("settings", SetOpt, None),
-    ("protocol", ProtocolOpt, "default"), ("precision", PrecisionOpt, "fp32"), ("channel_order", ChannelOrderOpt, "rgb"),
+    ("protocol", ProtocolOpt, None), ("precision", PrecisionOpt, "fp32"), ("channel_order", ChannelOrderOpt, "rgb"),
     ("feature_cache_mb", FeatureCacheOpt, None), ("backbone_batch", BackboneBatchOpt, None),
 )
 COMMON_AFTER = (

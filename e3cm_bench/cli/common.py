@@ -43,7 +43,7 @@ PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precisi
 ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
 BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", show_default="8 on a GPU, 1 on a CPU", help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the feature cache lacks go through the network with it (for GPUs; needs the cache).")]
 FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
-ProtocolOpt = Annotated[str, typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)} (docs/benchmarks.md: Protocols).")]
+ProtocolOpt = Annotated[Optional[str], typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)}; default: wxbs on WxBS and EVD (their reference's), else default (docs/benchmarks.md: Protocols).")]
 
 
 def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:

@@ -71,7 +71,7 @@ def import_matches(
     seed: SeedOpt = 0,
     ransac_px: RansacOpt = None,
     pose_estimator: PoseEstimatorOpt = None,
-    protocol: ProtocolOpt = "default",
+    protocol: ProtocolOpt = None,  # None: the benchmark's default_protocol
     **dataset_options,
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""

@@ -128,14 +128,16 @@ def merge(
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Folder for the data, the runs, the tables and the plots.")] = Path("e3cm-demo"),
     seed: Annotated[int, typer.Option("--seed", help="Seed of every robust estimator (the data is always the same).")] = 0,
-    quick: Annotated[bool, typer.Option("--quick", help="Fewer pairs of the same kinds (a smoke test).")] = False,
+    quick: Annotated[bool, typer.Option("--quick", help="Fewer pairs of the same kinds: 10 HPatches-format (viewpoint and illumination), 2 scene pairs.")] = False,
     methods: Annotated[Optional[str], typer.Option("--methods", help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")] = None,
     device: DeviceOpt = "cpu",
 ) -> None:
-    """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-ransac, direct, dfm and sift
-    (EfficientNet-Lite0) on HPatches-format sequences and a non-planar scene, prints both tables."""
+    """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-release, e3cm-ransac, e3cm-plus,
+    direct, dfm and sift (deep ones on EfficientNet-Lite0) on HPatches-format sequences and a non-planar
+    scene, prints each method's headline numbers (the runs' full output: OUT/demo.log)."""
     run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device, console=console)
-    console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)")
+    console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)",
+                  markup=False, highlight=False)
 
 
 @app.command()

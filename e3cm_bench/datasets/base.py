@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,12 +103,75 @@ class PairList:
         return {}
 
     def describe(self) -> dict:
-        return {
+        described = {
             **self.settings(),
             "skip_bad": self.skip_bad,
             "n_pairs": len(self.pairs),
             "n_skipped": self.n_skipped,
         }
+        sample = getattr(self, "sample", None)
+        if sample is not None:  # only a sampled list says so: unsampled runs keep their old record
+            described["sample"] = dict(sample)
+        return described
+
+    def sampled(self, n: int, seed: int = 0) -> PairList:
+        """A stratified sample of `n` pairs (`stratified_sample`), in this list's order; the
+        sample (its size, seed, and the number of pairs drawn from) is in `describe()`."""
+        if n < 1:
+            raise ValueError(f"--sample must be at least 1, got {n}")
+        chosen = stratified_sample(self.pairs, n, seed)
+        subset = copy.copy(self)
+        subset.pairs = chosen
+        subset.sample = {"n": n, "seed": seed, "from": len(self.pairs), "strata": len({stratum(p) for p in self.pairs})}
+        return subset
+
+
+# --------------------------------------------------------------------------- sampling
+
+def stratum(pair: Pair) -> tuple[str, ...]:
+    """The group a pair is drawn from, coarse to fine: its category (WxBS), scene (MegaDepth,
+    YFCC) and sequence (HPatches, with the sequence's kind, the `i`/`v` of `i_leuven`, above
+    it so that a sample holds both kinds). A pair with none of these is in the one group ()."""
+    levels = [str(pair.meta[key]) for key in ("category", "scene") if pair.meta.get(key)]
+    sequence = str(pair.meta.get("sequence") or "")
+    if sequence:
+        if "_" in sequence:
+            levels.append(sequence.split("_", 1)[0])
+        levels.append(sequence)
+    return tuple(levels)
+
+
+def stratified_sample(pairs: Sequence[Pair], n: int, seed: int = 0) -> list[Pair]:
+    """`n` of `pairs` spread over their strata (`stratum`), deterministic given `seed`.
+
+    Round robin over a tree of groups: at each level the groups are visited in a seeded random
+    order, one pair from each in turn, so that `n` pairs cover min(n, groups) groups at every
+    level before any group gives a second pair; within a group the pairs come in a seeded
+    random order. The chosen pairs are returned in the order of `pairs` (a run's pair order
+    stays the dataset's). n >= len(pairs) returns every pair.
+    """
+    pairs = list(pairs)
+    if n >= len(pairs):
+        return pairs
+    rng = np.random.default_rng(seed)
+    keys = [stratum(p) for p in pairs]
+    depth = max((len(k) for k in keys), default=0)
+
+    def order(indices: list[int], level: int) -> list[int]:
+        if level >= depth or len(indices) <= 1:
+            return [indices[i] for i in rng.permutation(len(indices))]
+        groups: dict[str, list[int]] = {}
+        for i in indices:
+            groups.setdefault(keys[i][level] if level < len(keys[i]) else "", []).append(i)
+        names = sorted(groups)
+        streams = [order(groups[names[g]], level + 1) for g in rng.permutation(len(names))]
+        merged = []
+        for rank in range(max(len(s) for s in streams)):
+            merged.extend(s[rank] for s in streams if rank < len(s))
+        return merged
+
+    chosen = set(order(list(range(len(pairs))), 0)[:n])
+    return [pair for i, pair in enumerate(pairs) if i in chosen]
 
 
 MISSING = "image file not found"  # what images.image_file_problem says of a missing file

@@ -1,4 +1,9 @@
-"""Plots of benchmark runs: MMA curves (paper Fig. 5), pose-error CDF, pose AUC bars.
+"""Plots of benchmark runs: MMA curves (paper Fig. 5), homography accuracy bars (HPatches'
+headline), pose-error CDF, pose AUC bars.
+
+Every number a plot shows from summary.csv is drawn with its bootstrap interval (the ``m_lo``,
+``m_hi`` columns, intervals.py): a band around a curve, an error bar on a bar. Empirical
+cumulative curves are drawn as steps, as they are: a curve over 2 pairs has 2 steps.
 
 Drawn on ``matplotlib.figure.Figure`` objects (saved through the Agg canvas) rather than
 pyplot, so that importing this module never switches the backend of the caller's process.
@@ -27,6 +32,37 @@ def _save_figure(fig: Figure, path: str | Path) -> Path:
     return write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150, bbox_inches="tight"))
 
 
+def interval(summary: Mapping, key: str) -> tuple[float, float]:
+    """(lo, hi) of `key`'s bootstrap interval in a summary; NaN where the run has none."""
+    bounds = []
+    for suffix in ("_lo", "_hi"):
+        try:
+            bounds.append(float(summary.get(key + suffix, np.nan)))
+        except (TypeError, ValueError):
+            bounds.append(np.nan)
+    return bounds[0], bounds[1]
+
+
+def error_bars(values: Sequence[float], bounds: Sequence[tuple[float, float]]) -> np.ndarray | None:
+    """matplotlib's yerr (2, n): the distances from each value down to lo and up to hi; None where
+    no value has an interval (a bar without one is drawn without a bar, not with a zero bar)."""
+    values = np.asarray(values, dtype=np.float64)
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in zip(*bounds)) if len(bounds) else (values, values)
+    if np.all(np.isnan(lo)) or np.all(np.isnan(hi)):
+        return None
+    # A bound on the wrong side of its value cannot come from a percentile interval of the mean of a
+    # set that holds the value, but a summary written by hand may hold one: draw nothing there.
+    below, above = np.clip(values - lo, 0, None), np.clip(hi - values, 0, None)
+    return np.nan_to_num(np.vstack([below, above]), nan=0.0)
+
+
+def interval_note(runs: Mapping[str, Mapping]) -> str:
+    """What the bands and bars are, at the confidence the runs recorded (95% by default)."""
+    levels = {float(s.get("confidence", 0.95)) for s in runs.values() if s.get("confidence") == s.get("confidence")}
+    level = f"{levels.pop():.0%}" if len(levels) == 1 else "95%" if not levels else "per-run"
+    return f"{level} bootstrap interval over the pairs"
+
+
 def _run_colors(labels: Sequence[str]) -> dict[str, tuple]:
     """One colour per run label, stable across the plots of one report."""
     palette = colormaps["tab10"].colors
@@ -53,6 +89,9 @@ def mma_figure(runs: Mapping[str, Mapping]) -> Figure:
             if np.all(np.isnan(values)):
                 continue
             ax.plot(thresholds, values, marker="o", markersize=3, color=colors[label], label=label)
+            lo, hi = np.array([interval(summary, f"mma@{t}{suffix}") for t in thresholds]).T
+            if not np.all(np.isnan(lo)):
+                ax.fill_between(thresholds, lo, hi, color=colors[label], alpha=0.15, linewidth=0)
             plotted = True
         if not plotted:
             ax.text(0.5, 0.5, "no pairs", ha="center", va="center", transform=ax.transAxes, color="gray")
@@ -66,12 +105,55 @@ def mma_figure(runs: Mapping[str, Mapping]) -> Figure:
     # Build the legend from the runs, not from one panel, so runs missing a split still appear.
     handles = [Line2D([], [], marker="o", markersize=3, color=colors[label]) for label in runs]
     legend_labels = [f"{label} ({format_number(summary.get('n_matches'), 'n_matches', decimals=0)} matches)" for label, summary in runs.items()]
-    fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 3), frameon=False)
+    fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 3), frameon=False,
+               title=f"bands: {interval_note(runs)}", title_fontsize=8)
     return fig
 
 
 def plot_mma_curves(runs: Mapping[str, Mapping], path: str | Path) -> Path:
     return _save_figure(mma_figure(runs), path)
+
+
+def grouped_bars(ax, runs: Mapping[str, Mapping], keys: Sequence[str], colors: Mapping[str, tuple], fmt: str,
+                 scale: float = 1.0) -> None:
+    """Bars of summary values `keys` (one group per key, one bar per run) with their intervals as
+    error bars and the value written above the bar."""
+    labels = list(runs)
+    width = 0.8 / len(labels)
+    groups = np.arange(len(keys))
+    for i, label in enumerate(labels):
+        values = [float(runs[label].get(k, np.nan)) * scale for k in keys]
+        bounds = [tuple(b * scale for b in interval(runs[label], k)) for k in keys]
+        yerr = error_bars(values, bounds)
+        bars = ax.bar(groups + (i - (len(labels) - 1) / 2) * width, values, width, color=colors[label], label=label,
+                      yerr=yerr, error_kw={"elinewidth": 1, "capsize": 2, "ecolor": "#333"})
+        ax.bar_label(bars, fmt=fmt, fontsize=7, padding=1 if yerr is None else 3)
+
+
+def h_acc_figure(runs: Mapping[str, Mapping], thresholds: Sequence[int] = (1, 3, 5)) -> Figure:
+    """HPatches' headline: homography accuracy h_acc@1/3/5 (the fraction of pairs whose corner
+    error is within t px), one bar per run with its bootstrap interval."""
+    if not runs:
+        raise ValueError("h_acc plot: no runs to plot")
+    colors = _run_colors(list(runs))
+    fig = Figure(figsize=(9, 4.6), layout="constrained")
+    ax = fig.subplots()
+    keys = [f"h_acc@{t}" for t in thresholds]
+    grouped_bars(ax, runs, keys, colors, "%.2f")
+    ax.set_xticks(np.arange(len(keys)), [f"h_acc@{t} px" for t in thresholds])
+    ax.set_ylabel("fraction of pairs (corner error <= t)")
+    ax.set_ylim(0, 1.12)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_axisbelow(True)
+    n_pairs = {int(float(s.get("n_pairs", 0) or 0)) for s in runs.values()}
+    pairs = f"{n_pairs.pop()} pairs" if len(n_pairs) == 1 else "pairs differ between runs"
+    ax.set_title(f"homography accuracy ({pairs}); bars: {interval_note(runs)}")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=min(len(runs), 4), frameon=False)
+    return fig
+
+
+def plot_h_acc_bars(runs: Mapping[str, Mapping], path: str | Path) -> Path:
+    return _save_figure(h_acc_figure(runs), path)
 
 
 def pose_error_cdf_figure(runs: Mapping[str, pd.DataFrame], max_error: float = 30.0) -> Figure:
@@ -93,14 +175,19 @@ def pose_error_cdf_figure(runs: Mapping[str, pd.DataFrame], max_error: float = 3
         # Hold the last recall flat to the right edge, as the AUC does up to its threshold.
         x, y = np.append(x, max(max_error, x[-1])), np.append(y, y[-1])
         n_failed = int(np.sum(~np.isfinite(errors)))
-        ax.plot(x, y, color=colors[label], label=f"{label} ({len(errors)} pairs, {n_failed} failed)")
+        # The fraction of pairs with error <= x is a step function: it rises at each pair's error.
+        ax.step(x, y, where="post", color=colors[label], label=f"{label} ({len(errors)} pairs, {n_failed} failed)")
+        # The AUC integrates the same points joined by straight lines (PROTOCOLS: the reference
+        # codes' trapezoid rule), drawn faintly so that the area the numbers measure is visible.
+        ax.plot(x, y, color=colors[label], linewidth=0.8, linestyle="--", alpha=0.5)
     for threshold in AUC_THRESHOLDS:
         ax.axvline(threshold, color="gray", linestyle=":", linewidth=1)
         ax.text(threshold, 1.0, f" AUC@{threshold}", color="gray", fontsize=8, va="top", ha="left")
     ax.set_xlim(0, max_error)
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("pose error [deg]  (max of rotation and translation angle)")
-    ax.set_ylabel("fraction of pairs")
+    ax.set_ylabel("fraction of pairs with error <= x")
+    ax.set_title("steps: the pairs' errors; dashed: the curve the AUC integrates", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     return fig
@@ -122,15 +209,14 @@ def pose_auc_figure(runs: Mapping[str, Mapping], title: str) -> Figure:
     colors = _run_colors(labels)
     fig = Figure(figsize=(11, 4.4), layout="constrained")
     auc_ax, precision_ax = fig.subplots(1, 2, width_ratios=(3, 1.3))
-    width = 0.8 / len(labels)
     groups = np.arange(len(AUC_THRESHOLDS))
+    grouped_bars(auc_ax, runs, [f"auc@{t}" for t in AUC_THRESHOLDS], colors, "%.1f")
     for i, label in enumerate(labels):
-        values = [float(runs[label].get(f"auc@{t}", np.nan)) for t in AUC_THRESHOLDS]
-        bars = auc_ax.bar(groups + (i - (len(labels) - 1) / 2) * width, values, width, color=colors[label], label=label)
-        auc_ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=1)
         precision = float(runs[label].get("precision@1e-4", np.nan))
-        bars = precision_ax.bar(i, precision, 0.7, color=colors[label])
-        precision_ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=1)
+        yerr = error_bars([precision], [interval(runs[label], "precision@1e-4")])
+        bars = precision_ax.bar(i, precision, 0.7, color=colors[label], yerr=yerr,
+                                error_kw={"elinewidth": 1, "capsize": 2, "ecolor": "#333"})
+        precision_ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=1 if yerr is None else 3)
     auc_ax.set_xticks(groups, [f"AUC@{t}°" for t in AUC_THRESHOLDS])
     auc_ax.set_ylabel("percent")
     auc_ax.set_ylim(0, 100)
@@ -141,7 +227,7 @@ def pose_auc_figure(runs: Mapping[str, Mapping], title: str) -> Figure:
     for ax in (auc_ax, precision_ax):
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
-    fig.suptitle(title)
+    fig.suptitle(f"{title}; bars: {interval_note(runs)}")
     return fig
 
 

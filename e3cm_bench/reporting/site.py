@@ -331,7 +331,9 @@ body{font:14px/1.45 system-ui,sans-serif;margin:1.5em auto;max-width:1400px;padd
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em}table{border-collapse:collapse;margin:.5em 0}
 th,td{border:1px solid #ccc;padding:2px 6px;text-align:right;white-space:nowrap}th{background:#f3f3f3;cursor:pointer}
 td.t,th.t{text-align:left}td.fail{background:#fbdada}tr.paper td{color:#777}img{max-width:100%}
-.plots img{max-width:48%;margin-right:1%}.controls{margin:.5em 0}.drawing{margin:1em 0}.muted{color:#777}
+.controls{margin:.5em 0}.drawing{margin:1em 0}.muted{color:#777}
+.plots img{display:block;max-width:100%;height:auto;margin:.8em 0}
+.wide{overflow-x:auto;max-width:100%}#summary td{white-space:normal;min-width:4.5em}
 """
 
 
@@ -394,7 +396,7 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
 <p class="muted">Every number comes from the runs' own summary.csv and per_pair.csv; nothing is recomputed.</p>
 {''.join(f'<p class="muted">note: {html.escape(n)}</p>' for n in notes)}
 <h2>Table</h2>
-<table id="summary"><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>
+<div class="wide"><table id="summary"><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table></div>
 <p class="muted">{html.escape(intervals_note)}</p>
 {_comparison_section(comparison)}
 <h2>Plots</h2>
@@ -408,7 +410,7 @@ def _index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: lis
  name contains <input id="q" size="16"> · <span id="count"></span> · {failure}; click a column to sort;
  linked pairs have drawings.
 </div>
-<table id="pairs"><thead></thead><tbody></tbody></table>
+<div class="wide"><table id="pairs"><thead></thead><tbody></tbody></table></div>
 <script type="application/json" id="pair-data">{payload}</script>
 """
     return _page(f"e3cm-bench report: {benchmark}", body, SCRIPT)

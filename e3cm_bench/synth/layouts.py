@@ -23,6 +23,7 @@ from .scene import intrinsics, look_at, relative_pose, render, room_scene
 from .textures import procedural_scene, sample_photo
 
 GENERATOR_VERSION = 1  # bump when the generated data changes, so cached copies are rebuilt
+QUICK_VERSION = 2  # 2: the quick set holds an illumination sequence too
 CROP = (384, 448)  # width, height of the HPatches-format images, cut from the 512 x 600 photo
 
 
@@ -150,16 +151,20 @@ def write_scene_pairs(root: str | Path, seed: int = 0, n_pairs: int = 6) -> Path
 def write_demo_data(root: str | Path, seed: int = 0, quick: bool = False) -> dict[str, Path]:
     """Both sets under `root`, reused when already written with the same seed and size.
 
-    quick: 1 viewpoint sequence and 2 scene pairs (tests); else 2 viewpoint + 1 illumination
-    sequences (15 pairs) and 6 scene pairs.
+    quick: 1 viewpoint + 1 illumination sequence (10 pairs) and 2 scene pairs (the quick demo,
+    tests); else 2 viewpoint + 1 illumination sequences (15 pairs) and 6 scene pairs.
     """
     root = Path(root)
+    # The quick set's version is its own: bumping it rebuilds quick data only, so that the full
+    # demo's data (and the committed results made from it) stay as they are.
     stamp = {"generator": GENERATOR_VERSION, "seed": seed, "quick": quick}
+    if quick:
+        stamp["quick_version"] = QUICK_VERSION
     stamp_file = root / "generated.json"
     paths = {"hpatches": root / "hpatches", "scenes": root / "scenes"}
     if stamp_file.is_file() and json.loads(stamp_file.read_text()) == stamp:
         return paths
-    write_hpatches(paths["hpatches"], seed, n_viewpoint=1 if quick else 2, n_illumination=0 if quick else 1)
+    write_hpatches(paths["hpatches"], seed, n_viewpoint=1 if quick else 2, n_illumination=1)
     write_scene_pairs(paths["scenes"], seed + 1, n_pairs=2 if quick else 6)
     write_atomically(stamp_file, lambda tmp: tmp.write_text(json.dumps(stamp)))
     return paths
