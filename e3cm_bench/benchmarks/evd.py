@@ -27,7 +27,6 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..datasets.hpatches import read_homography
 from ..estimators import homography
@@ -201,6 +200,8 @@ class EVDBenchmark(Benchmark):
                   for label, s in summaries.items()}
         fig = threshold_curves_figure(curves, THRESHOLDS, "mean visible-part reprojection error threshold [px]",
                                       "fraction of pairs", "EVD: H from the matches", log_x=True)
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         return plots._save_figure(fig, path)
 
 

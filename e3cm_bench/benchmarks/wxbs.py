@@ -23,17 +23,19 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
-from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..estimators import fundamental
 from ..geometry import to_homogeneous
 from ..matches import Matches
 from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 VERSION = "v1.1"
 THRESHOLDS = tuple(range(20))  # px: the reference's np.arange(20)
@@ -201,6 +203,8 @@ def read_correspondences(path: Path) -> np.ndarray:
 def threshold_curves_figure(curves: Mapping[str, Sequence[float]], thresholds: Sequence[float],
                             xlabel: str, ylabel: str, title: str, log_x: bool = False) -> Figure:
     """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy)."""
+    from matplotlib.figure import Figure  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.subplots()
     for label, curve in curves.items():
@@ -307,6 +311,8 @@ class WxBSBenchmark(Benchmark):
                   for label, s in summaries.items()}
         fig = threshold_curves_figure(curves, THRESHOLDS, "symmetric epipolar distance threshold [px]",
                                       "recall of the ground-truth correspondences", "WxBS: F from the matches")
+        from ..reporting import plots
+
         return plots._save_figure(fig, path)
 
 
