@@ -132,3 +132,16 @@ def test_an_imported_run_carries_the_source_name(shared_data, tmp_path):
     assert result.exit_code == 0, (result.output, result.exception)
     assert yaml.safe_load((back / "config.yaml").read_text())["method"] == "sift-exported"
     assert not (back / ".lock").exists()
+
+
+def test_the_runs_below_a_folder_are_not_the_copies_inside_a_report(tmp_path):
+    from e3cm_bench.reporting.site import MARKER
+
+    assert RunFolder.REPORT_MARKER == MARKER
+    for run in ("table1/sift", "table1/report/runs/01"):
+        (tmp_path / run).mkdir(parents=True)
+        (tmp_path / run / "config.yaml").write_text("{}")
+        (tmp_path / run / "summary.csv").write_text("n_pairs\n1\n")
+    (tmp_path / "table1" / "report" / MARKER).write_text("")
+    assert [f.path for f in RunFolder.find(tmp_path / "table1")] == [tmp_path / "table1" / "sift"]
+    assert [f.path for f in RunFolder.find(tmp_path)] == [tmp_path / "table1" / "sift"]

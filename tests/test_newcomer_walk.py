@@ -20,6 +20,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,9 +107,9 @@ def bounded(words: list[str]) -> list[str] | None:
     if command == "demo":
         words += ["--quick", "--methods", "sift,e3cm"]
     if words[:2] == ["synth", "stereo"]:
-        words = set_option(words, "--frames", "4")
+        words = set_option(words, "--frames", "2")
     if command == "calibrate":
-        words += ["--frames", "1", "--frames", "3", "--max-side", "240"]
+        words += ["--frames", "1", "--frames", "2", "--max-side", "160"]
     expanded = []
     for word in words:  # the shell's glob (report runs/table1/*), in the walk's folder
         expanded += sorted(glob.glob(word)) if "*" in word and glob.glob(word) else [word]
@@ -168,8 +169,9 @@ def walk(shared_data, tmp_path_factory) -> list[Step]:
             if run is None:
                 print(f"skipped ({skip or 'its data is not in ../shared/data'}): e3cm-bench {' '.join(words)}")
                 continue
-            print(f"$ e3cm-bench {' '.join(run)}    [{source}]")
+            start = time.perf_counter()
             done = subprocess.run([entry, *run], cwd=here, env=env, capture_output=True, text=True, timeout=900)
+            print(f"$ e3cm-bench {' '.join(run)}    [{source}; {time.perf_counter() - start:.1f} s]")
             print(done.stdout + done.stderr)
             steps.append(Step(source, run, done.returncode, done.stdout, done.stderr))
     finally:

@@ -166,13 +166,26 @@ class RunFolder:
         """A finished (or evaluated) run: its config and summary are there."""
         return self.config_path.is_file() and self.summary_path.is_file()
 
+    # The file every report site holds (reporting/site.py MARKER): the copies of runs inside a
+    # report (REPORT/runs/NN/) are not runs, and `reproduce` writes its report among its runs.
+    REPORT_MARKER = ".e3cm-bench-report"
+
     @classmethod
     def find(cls, path: str | Path) -> list[RunFolder]:
-        """The run folder at `path`, or the finished ones below it."""
+        """The run folder at `path`, or the finished ones below it (not those inside a report)."""
         here = cls(path)
         if here.config_path.is_file():
             return [here]
-        return [cls(p.parent) for p in sorted(Path(path).rglob(cls.CONFIG)) if cls(p.parent).is_run()]
+        top = Path(path)
+
+        def in_report(folder: Path) -> bool:  # a report's marker in it or in a folder between it and `top`
+            while not (folder / cls.REPORT_MARKER).exists():
+                if folder == top:
+                    return False
+                folder = folder.parent
+            return True
+
+        return [cls(p.parent) for p in sorted(top.rglob(cls.CONFIG)) if cls(p.parent).is_run() and not in_report(p.parent)]
 
     def lock(self) -> FolderLock:
         """The folder's exclusive lock (a context manager), taken before anything in it is read
