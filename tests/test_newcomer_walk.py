@@ -209,8 +209,24 @@ def test_compare_table_and_check_read_at_80_columns(walk):
     assert not wide, "\n".join(wide)
 
 
+def broken_rows(text: str) -> list[str]:
+    """The lines of a Markdown table row wrapped over several lines."""
+    return [line for line in text.splitlines()
+            if " | " in line and not (line.strip().startswith("|") and line.strip().endswith("|"))]
+
+
+def test_compare_table_and_check_cut_no_cell_and_break_no_row(walk):
+    # Fitting 80 columns by cutting words ("h_acc…", "no differe…") or by wrapping a Markdown
+    # row over several lines is no better than overflowing: the reader loses the same text.
+    narrow = [s for s in walk if s.words[0] in NARROW]
+    cut = [f"{s.words[0]}: {line!r}" for s in narrow for line in s.stdout.splitlines() if "\u2026" in line]
+    broken = [f"{s.words[0]}: {line!r}" for s in narrow for line in broken_rows(s.stdout)]
+    assert not cut and not broken, "\n".join(cut[:10] + broken[:10])
+
+
 def test_the_walk_finds_what_it_checks():
     # The width check would pass on empty output; the line reader would pass on no commands.
     assert commands("e3cm-bench a b  # note\ne3cm-bench c [--x 1] \\\n  --y 2\nls") == [["a", "b"], ["c", "--y", "2"]]
     assert bounded(["match", "a.jpg", "b.jpg"])[1] == str(SHARED / IMAGES["a.jpg"])
     assert bounded(["hpatches", "--out", "r", "--limit", "5"]).count("--limit") == 1
+    assert broken_rows("| method | h_acc@1 |  \nh_acc@5 | n_pairs |\n| a | b |") == ["h_acc@5 | n_pairs |"]
