@@ -17,6 +17,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 COMMANDS = (["--help"], ["hpatches", "--help"], ["--version"], ["hpatchez"])
@@ -50,8 +51,10 @@ def main() -> None:
               f"(min {min(times):.2f}, max {max(times):.2f}; exit {', '.join(map(str, sorted(codes)))})")
     probe = ("import sys, time; t = time.perf_counter(); import e3cm_bench.cli; "
              "print(round(time.perf_counter() - t, 2), [m for m in %r if m in sys.modules])" % (HEAVY,))
-    seconds, loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                                     check=True).stdout.split(" ", 1)
+    # From a neutral folder: `python -c` puts the current folder first on sys.path, which would
+    # import a checkout found there instead of the installed (or PYTHONPATH's) package.
+    seconds, loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                                     cwd=tempfile.gettempdir()).stdout.split(" ", 1)
     print(f"  import e3cm_bench.cli: {seconds} s; heavy libraries it loads: {loaded.strip()}")
 
 
