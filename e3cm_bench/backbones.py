@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .backbone_names import BACKBONES, OFFLINE_BACKBONE
 from .perturb import perturb_map
 from .files import file_sha256
 from .matchers.base import MEMORY_FORMATS, PRECISIONS
@@ -190,7 +191,9 @@ SPECS: dict[str, BackboneSpec] = {
         ),
     ]
 }
-BACKBONES = tuple(SPECS)
+# The names live in backbone_names.py (torch-free, for the command line's help); one spec each.
+if tuple(SPECS) != BACKBONES:  # a backbone added in one place only
+    raise RuntimeError(f"backbone_names.BACKBONES {BACKBONES} and backbones.SPECS {tuple(SPECS)} differ")
 
 
 class Backbone(nn.Module):
@@ -455,7 +458,8 @@ def _imagenet_weights(spec: BackboneSpec) -> tuple[dict, Path]:
         reason = getattr(exc, "reason", None) or type(exc).__name__
         raise BackboneError(
             f"{spec.name}: ImageNet weights not found at {path} and the download from {url} failed "
-            f"({reason}); put the file there (or set TORCH_HOME) or pass --weights FILE"
+            f"({reason}); put the file there (or set TORCH_HOME), pass --weights FILE, or use "
+            f"--backbone {OFFLINE_BACKBONE} (its weights come with the package: no download)"
         ) from exc
     return state, path
 

@@ -19,10 +19,8 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import EvalSettings, get_benchmark
-from .experiments import write_table
 from .files import write_atomically
 from .method import MethodSpec
-from .runner import run_methods
 from .synth.layouts import write_demo_data
 
 BACKBONE = "efficientnet_lite0"  # the ImageNet backbone that needs no download
@@ -60,6 +58,9 @@ def run_demo(
     and 2 scene pairs), for a first look and the tests.
     console: the short account; the runs' own output goes to OUT/demo.log.
     """
+    from .experiments import write_table  # here, not at the top: the command line's help reads METHODS
+    from .runner import run_methods  # without loading scipy (cli/common.py, Startup)
+
     console = console or Console()
     out = Path(out)
     methods = methods or list(METHODS)

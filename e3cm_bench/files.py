@@ -321,7 +321,10 @@ class FolderLock:
 
     flock on ``<folder>/.lock``: the OS releases it when the process ends, however it ends,
     so a killed run never leaves a stale lock. The holder (pid, host, start, command) is
-    written into the file, so a second run can say who holds the folder.
+    written into the file, so a second run can say who holds the folder. The file is removed
+    when the lock is released (a finished folder holds no holder's record; a killed run's file
+    stays, unlocked, and the next run takes it); a run that opened the file just before it
+    was removed finds its lock on a file no longer in the folder, and opens the new one.
     """
 
     def __init__(self, folder: str | Path, option: str = "--out") -> None:
@@ -331,6 +334,11 @@ class FolderLock:
 
     def __enter__(self) -> FolderLock:
         writable_folder(self.path.parent)
+        while not self._take():  # the file was removed by its last holder between open and flock
+            pass
+        return self
+
+    def _take(self) -> bool:
         # O_NOFOLLOW: a `.lock` that is a link (to a user's file, or dangling) is refused, never
         # truncated or created through; a file with other names (hard links) likewise.
         try:
@@ -352,15 +360,26 @@ class FolderLock:
             os.close(fd)
             raise ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
                              f"wait for it to finish or choose another {self.option}") from None
+        try:
+            now = os.stat(self.path, follow_symlinks=False)
+        except FileNotFoundError:
+            now = None
+        if now is None or (now.st_dev, now.st_ino) != (info.st_dev, info.st_ino):
+            os.close(fd)
+            return False
         os.ftruncate(fd, 0)
         holder = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                   "command": " ".join(sys.argv)}
         os.write(fd, json.dumps(holder).encode())
         self._fd = fd
-        return self
+        return True
 
     def __exit__(self, *exc) -> None:
         if self._fd is not None:
+            try:
+                self.path.unlink()  # while still held: whoever opens it next checks that it is still there
+            except OSError:
+                pass  # a folder that became read-only or vanished: the lock is released all the same
             os.close(self._fd)  # closing releases the flock
             self._fd = None
 

@@ -62,7 +62,7 @@ def import_run(
     pairs = list(dataset)[:limit] if limit else list(dataset)
     files = source.files(pairs)
     identity = {"imported": source.identity(files)}
-    label = label or f"imported-{source.format}"
+    label = label or source_label(source)
     folder = RunFolder(out)
     with folder.lock():
         if overwrite:
@@ -70,8 +70,11 @@ def import_run(
         cache, todo = folder.resume(pairs)
         done = {p.name for p in pairs} - {p.name for p in todo}
         previous = folder.read_config()
-        if previous is not None:
+        if previous is not None and done:
             _check_resume(previous, folder.config_path, benchmark, identity, files if source.per_pair else None, done)
+        elif previous is not None and previous.get("identity") != identity:  # nothing imported: nothing to mix with
+            console.print(f"{out}: holds no matches of its earlier sources; importing these", markup=False,
+                          highlight=False, soft_wrap=True)
         config = RunConfig(
             benchmark=benchmark.name, method=label, identity=identity,
             matcher={"imported": source.format, **source.location()}, device=None,
@@ -100,6 +103,33 @@ def import_run(
     print_summary(summary, f"{benchmark.name} - {label} ({len(pairs_done)} pairs, imported from {source.format}) -> {out}",
                   console=console)
     return summary
+
+
+# File names that say nothing of the method (the formats' usual names, and what `export`
+# writes): a source so named is labelled by the folder that holds it.
+GENERIC_STEMS = ("matches", "features", "predictions", "database")
+# The source attribute whose name labels an import: the file (or folder) that holds the matches.
+NAMED_BY = {"hloc": "matches", "npz": "folder", "colmap": "database", "gluefactory": "predictions"}
+
+
+def source_label(source) -> str:
+    """An imported run's method label when --label is not given: the name its maker gave the
+    source, since no format records the method. npz: the folder's name (my_matches/ ->
+    my_matches); hloc: the matches file's name without hloc's "matches-" prefix
+    (matches-superpoint-lightglue.h5 -> superpoint-lightglue); COLMAP, glue-factory: the file's
+    name; a generic file name (matches.h5, predictions.h5, database.db) gives the name of the
+    folder holding it (glue-factory's results/<experiment>/predictions.h5 -> the experiment)."""
+    attribute = NAMED_BY.get(source.format)
+    if attribute is None:  # a source of another kind (the Python API): its format
+        return f"imported-{source.format}"
+    path = Path(getattr(source, attribute))
+    if source.format == "npz":
+        name = path.resolve().name
+    else:
+        name = path.stem.removeprefix("matches-") if source.format == "hloc" else path.stem
+        if name in GENERIC_STEMS or not name:
+            name = path.resolve().parent.name
+    return name or f"imported-{source.format}"
 
 
 def _import_pairs(source, pairs: list[Pair], done: set[str], root: Path, cache: MatchCache, skip_bad: bool,

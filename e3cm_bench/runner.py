@@ -234,7 +234,7 @@ def _open_run(
         folder.clear()
     out.mkdir(parents=True, exist_ok=True)
     previous = folder.previous(None if method is None else method.identity(), benchmark.name, eval_only,
-                               changes=identity_changes)
+                               changes=identity_changes, console=console)
     pairs = list(dataset)[:limit] if limit else list(dataset)
     if shard is not None:
         pairs = pairs[shard_slice(len(pairs), shard)]

@@ -27,7 +27,6 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..datasets.hpatches import read_homography
 from ..estimators import homography
@@ -197,6 +196,8 @@ class EVDBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         names = {label: f"{label} (mAA {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[accuracy_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
         bands = {names[label]: [plots.interval(s, accuracy_key(t)) for t in THRESHOLDS] for label, s in summaries.items()}

@@ -11,7 +11,6 @@ import pandas as pd
 
 from .. import metrics
 
-from ..reporting import plots
 from ..datasets.base import Pair
 from ..datasets.hpatches import HPatches
 from ..geometry import warp_points
@@ -99,9 +98,13 @@ class HomographyBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *(f"mma@{t}" for t in metrics.MMA_THRESHOLDS), *self.table_metrics.values()]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         plots.plot_mma_curves({label: summary}, out / "mma.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         summaries = {label: summary for label, (summary, _) in runs.items()}
         # The headline (h_acc, the table's columns) first, then the MMA curves of the paper's Fig. 5.
         return [plots.plot_h_acc_bars(summaries, stem.with_name(stem.stem + "_h_acc.png")),

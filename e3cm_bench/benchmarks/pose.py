@@ -11,7 +11,6 @@ import pandas as pd
 
 from .. import metrics
 
-from ..reporting import plots
 from ..datasets.base import Pair
 from ..datasets.megadepth import MegaDepth1500
 from ..datasets.yfcc import YFCC100M
@@ -106,9 +105,13 @@ class PoseBenchmark(Benchmark):
         return distances < ev.precision_thresholds[0]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        from ..reporting import plots
+
         bars = stem.with_name(stem.stem + "_pose_auc.png")
         cdf = stem.with_name(stem.stem + "_pose_cdf.png")
         return [

@@ -23,17 +23,19 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
-from ..reporting import plots
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..estimators import fundamental
 from ..geometry import to_homogeneous
 from ..matches import Matches
 from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 VERSION = "v1.1"
 THRESHOLDS = tuple(range(20))  # px: the reference's np.arange(20)
@@ -236,6 +238,8 @@ def threshold_curves_figure(curves: Mapping[str, Sequence[float]], thresholds: S
                             bands: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Figure:
     """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy), with
     its bootstrap interval at each threshold as a band (bands: label -> (lo, hi) per threshold)."""
+    from matplotlib.figure import Figure  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.subplots()
     for label, curve in curves.items():
@@ -341,6 +345,8 @@ class WxBSBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         names = {label: f"{label} (mAA@10px {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[recall_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
         bands = {names[label]: [plots.interval(s, recall_key(t)) for t in THRESHOLDS] for label, s in summaries.items()}

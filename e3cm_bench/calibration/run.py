@@ -125,7 +125,7 @@ def run_calibration(
                                sequence=sequence.describe(), calibration=asdict(settings))
             if overwrite:
                 folder.clear()
-            before = folder.previous(config.identity, None, changes=identity_changes)
+            before = folder.previous(config.identity, None, changes=identity_changes, console=console)
             if before is not None and (before.get("sequence") or {}).get("root") != str(sequence.root):
                 raise ValueError(f"{folder.config_path}: the matches in this folder were made from other frames "
                                  f"({(before.get('sequence') or {}).get('root')}); pass --overwrite or choose another --out")

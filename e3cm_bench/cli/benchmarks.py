@@ -10,15 +10,9 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..backbone_names import DEFAULT_BACKBONE
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from ..matchers import get_matcher
-from ..method import MethodSpec, parse_numbers
-from ..run.stage import MatchOptions
-from ..runner import run_benchmark
-from ..download import find_root
-from ..run.launch import check_workers, run_shards
-from ..run.shards import parse_shard
 from .common import app, console, MatcherOpt, BackboneOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, LabelOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, BackboneBatchOpt, FeatureCacheOpt, ProtocolOpt, parse_settings, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, SeedOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
 
 
@@ -27,6 +21,9 @@ def _method(bench: Benchmark, matcher: str, backbone: str, weights: Path | None,
             settings: list[str] | None, protocol: str, precision: str = "fp32",
             channel_order: str = "rgb", device: str = "cpu") -> MethodSpec:
     """The method of a benchmark command (Benchmark.resolve_method, as experiment configs get theirs)."""
+    from ..matchers import get_matcher
+    from ..method import parse_numbers
+
     deep = get_matcher(matcher, allow_import=True).needs_backbone
     # precision and channel order concern deep matchers only
     options = parse_settings(settings, precision, channel_order, device) if deep else parse_settings(settings)
@@ -55,6 +52,8 @@ class Scale:
         if len(several) > 1:
             raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
         if not self.devices:
+            from ..run.launch import check_workers
+
             check_workers(self.workers)
         if self.launcher == "slurm" and not self.shards:
             raise ValueError("--launcher slurm needs --shards N")
@@ -70,6 +69,12 @@ def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path |
                 pair_timeout: float | None,
                 shard: str | None, workers: int, devices: str | None, launcher: str, shards: int) -> None:
     """What every benchmark command does with its options (the commands are made by benchmark_command)."""
+    from ..download import find_root
+    from ..run.launch import run_shards
+    from ..run.shards import parse_shard
+    from ..run.stage import MatchOptions
+    from ..runner import run_benchmark
+
     protocol = protocol or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
     method = _method(bench, matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings,
                      protocol, precision, channel_order, device)
@@ -102,7 +107,7 @@ SampleSeedOpt = Annotated[int, typer.Option("--sample-seed", help="Seed of --sam
 _NO_DEFAULT = inspect.Parameter.empty
 COMMON_BEFORE = (
     ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), ("matcher", MatcherOpt, "e3cm"),
-    ("backbone", BackboneOpt, "vgg19"), ("weights", WeightsOpt, None), ("max_side", MaxSideOpt, None),
+    ("backbone", BackboneOpt, DEFAULT_BACKBONE), ("weights", WeightsOpt, None), ("max_side", MaxSideOpt, None),
     ("limit", LimitOpt, None), ("sample", SampleOpt, None), ("sample_seed", SampleSeedOpt, 0), ("device", DeviceOpt, "cpu"), ("seed", SeedOpt, 0), ("overwrite", OverwriteOpt, False),
     ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0), ("estimator", EstimatorOpt, None),
     ("sampson_px", SampsonOpt, None), ("ratio", RatioOpt, None), ("label", LabelOpt, None), ("settings", SetOpt, None),

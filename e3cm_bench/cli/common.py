@@ -1,23 +1,30 @@
 """What every command shares: the application, its consoles, the options used by several
-commands, the settings parser, and the one-line error wrapper."""
+commands, the settings parser, and the one-line error wrapper.
+
+Startup: every invocation, `--help` and a mistyped command included, imports this package
+before typer reads a word of the command line, so the modules of the command line import at
+their top only what their help needs (typer, rich, the benchmark registry and torch-free name
+lists: backbone_names, matching's estimators, the protocols); torch, scipy and the run
+machinery are imported inside the command that uses them. tests/test_startup.py holds this;
+scripts/startup_time.py measures it.
+"""
 
 from __future__ import annotations
 
 import functools
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
 
-from ..backbones import BACKBONES, BackboneError
-from ..cache import DiskFullError
+from .. import __version__
+from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from ..benchmarks import BENCHMARKS
 from ..benchmarks.protocols import PROTOCOLS
-from ..files import load_yaml_text
-from ..datasets.base import DatasetError
 from ..matching import ESTIMATORS
 
 
@@ -29,9 +36,23 @@ app = typer.Typer(
 console = Console()
 err_console = Console(stderr=True)
 
+
+def _print_version(given: bool) -> None:
+    if given:
+        console.print(f"e3cm-bench {__version__}", markup=False, highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_print_version,
+                                          help="Print the version and exit.")] = False,
+) -> None:
+    """Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / WxBS / EVD benchmarks."""
+
 # Options shared by `match` and the benchmark commands.
 MatcherOpt = Annotated[str, typer.Option("--matcher", help="A matcher's name (e3cm-bench matchers lists them: built-ins and installed plugins) or package.module:factory.")]
-BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)}.")]
+BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)} ({DEFAULT_BACKBONE}: the paper's, downloads its ImageNet weights once; {OFFLINE_BACKBONE}: no download).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", help="Local state-dict file for the backbone (instead of the ImageNet download).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
 EstimatorOpt = Annotated[Optional[str], typer.Option("--estimator", "--cascade-estimator", help=f"e3cm: how the cascade estimates F per level: {', '.join(ESTIMATORS)} (default top8 = the paper).")]
@@ -57,6 +78,8 @@ def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_ord
         precision, warning = resolve_precision(precision, device)
         if warning:
             err_console.print(f"[yellow]warning[/]: {warning}", highlight=False, soft_wrap=True)
+    from ..files import load_yaml_text
+
     settings = {} if precision == "fp32" else {"precision": precision}
     if channel_order != "rgb":
         settings["channel_order"] = channel_order
@@ -80,7 +103,8 @@ def os_error_line(exc: OSError, resumes: bool = False) -> str:
 
     where = exc.filename or ""
     text = exc.strerror or str(exc)
-    if isinstance(exc, DiskFullError) or exc.errno != errno.ENOSPC:
+    disk_full = getattr(sys.modules.get("e3cm_bench.cache"), "DiskFullError", ())  # raised only once imported
+    if isinstance(exc, disk_full) or exc.errno != errno.ENOSPC:
         return f"{where}: {text}" if where and where not in text else text
     # The free space of the filesystem that filled: the nearest existing folder of the file
     # named. A failed write() names no file: then nothing is quoted, not some other disk's space.
@@ -94,6 +118,19 @@ def os_error_line(exc: OSError, resumes: bool = False) -> str:
             "command" + (": every pair already written resumes" if resumes else ""))
 
 
+def _bad_input_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions that mean bad input (one line, exit 2): ValueError, FileNotFoundError,
+    KeyError, and the package's own DatasetError and BackboneError. Those two are looked up
+    only in modules already imported (an exception of a module never imported cannot have been
+    raised), so that the wrapper needs neither torch nor OpenCV to exist."""
+    found: list[type[BaseException]] = [ValueError, FileNotFoundError, KeyError]
+    for module, name in (("e3cm_bench.datasets.base", "DatasetError"), ("e3cm_bench.backbones", "BackboneError")):
+        cls = getattr(sys.modules.get(module), name, None)
+        if cls is not None:
+            found.append(cls)
+    return tuple(found)
+
+
 def friendly_errors(command):
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback.
 
@@ -104,7 +141,7 @@ def friendly_errors(command):
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
-        except (DatasetError, BackboneError, ValueError, FileNotFoundError, KeyError) as exc:
+        except _bad_input_errors() as exc:  # evaluated when an exception comes, after the command's imports
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -150,5 +187,7 @@ RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Thresho
 RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
 OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.")]
 PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the pair fails as --on-matcher-error says (POSIX, main thread; default: no limit).")]
-PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench[poselib]'); --eval-only may change it.")]
+# Help texts are Rich markup: a literal "[word]" needs its backslash, else Rich takes it for a
+# style and drops it (tests/test_startup.py reads every help as Rich renders it).
+PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench\\[poselib]'); --eval-only may change it.")]
 

@@ -9,9 +9,6 @@ from typing import Annotated, Optional
 import typer
 
 from ..benchmarks import BENCHMARKS, get_benchmark
-from ..synth.stereo import write_stereo_sequence
-from ..run import RunConfig
-from ..download import find_root
 from .benchmarks import option_parameter
 from .common import app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
 
@@ -76,6 +73,8 @@ def import_matches(
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
     from ..imported import ColmapSource, GluefactorySource, HlocSource, NpzSource, import_run
+    from ..download import find_root
+    from ..run import RunConfig
 
     given = [name for name, value in (("--hloc", hloc), ("--npz", npz), ("--colmap", colmap),
                                       ("--gluefactory", gluefactory)) if value is not None]
@@ -142,6 +141,8 @@ def synth_stereo(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the scene, the rig's drift and its path.")] = 0,
 ) -> None:
     """A stereo rig with a drifted extrinsic (about 1 degree each angle) moving through the demo's room scene."""
+    from ..synth.stereo import write_stereo_sequence
+
     root = write_stereo_sequence(out, frames=frames, seed=seed)
     console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)")
 

@@ -8,19 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..backbones import BACKBONES
-from ..benchmarks import get_benchmark
-from ..files import save_npz, writable_folder
-from ..benchmarks import EvalSettings
-from ..datasets.base import Pair
-from ..devices import keep_freed_memory
-from ..synth.textures import demo_pair
-from ..images import load_image
-from ..matchers import get_matcher
-from ..method import MethodSpec, parse_numbers
-from ..runner import match_pair
-from ..evaluate import drawn
-from ..viz import draw_matches, save_image
+from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from .common import app, console, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, parse_settings, friendly_errors
 
 
@@ -30,7 +18,7 @@ def match(
     image0: Annotated[Optional[Path], typer.Argument(help="First image (omit both for the built-in demo pair).")] = None,
     image1: Annotated[Optional[Path], typer.Argument(help="Second image.")] = None,
     matcher: MatcherOpt = "e3cm",
-    backbone: Annotated[Optional[str], typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)} (default vgg19; the demo uses efficientnet_lite0, which needs no download).")] = None,
+    backbone: Annotated[Optional[str], typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)} (default {DEFAULT_BACKBONE}, the paper's: its ImageNet weights download once; {OFFLINE_BACKBONE} needs no download, and the demo pair uses it).")] = None,
     weights: WeightsOpt = None,
     max_side: Annotated[Optional[int], typer.Option("--max-side", help="Resize so the longer side is at most N px.")] = None,
     device: DeviceOpt = "cpu",
@@ -42,19 +30,32 @@ def match(
     settings: SetOpt = None,
     precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb",
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also print how the memory allocator was set up (a run folder's config.yaml records it as environment.allocator).")] = False,
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
+    from ..benchmarks import EvalSettings, get_benchmark
+    from ..datasets.base import Pair
+    from ..devices import keep_freed_memory
+    from ..evaluate import drawn
+    from ..files import save_npz, writable_folder
+    from ..images import load_image
+    from ..matchers import get_matcher
+    from ..method import MethodSpec, parse_numbers
+    from ..runner import match_pair
+    from ..synth.textures import demo_pair
+    from ..viz import draw_matches, save_image
+
     if (image0 is None) != (image1 is None):
         raise ValueError("give two images, or none for the built-in demo pair")
     writable_folder(out, create=False)  # before any work: a folder that cannot take the results is one line now
     H = None
     if image0 is None:
         img0, img1, H = demo_pair()
-        backbone = backbone or "efficientnet_lite0"
+        backbone = backbone or OFFLINE_BACKBONE
         console.print(f"demo: a procedural 640x480 scene and its warp by a known homography; backbone {backbone}")
     else:
         img0, img1 = load_image(image0), load_image(image1)
-        backbone = backbone or "vgg19"
+        backbone = backbone or DEFAULT_BACKBONE
     method = MethodSpec.create(
         matcher, backbone, weights, estimator, parse_numbers(sampson_px, "--sampson-px"),
         parse_numbers(ratio, "--ratio"), max_side or None, seed,
@@ -89,6 +90,7 @@ def match(
                 console.print(f"level {level}: rejection {note}")
     timings = {"model load": t_load, **info.get("timings", {})}
     console.print("time per stage (s): " + ", ".join(f"{k} {v:.3f}" for k, v in timings.items()))
-    console.print(f"allocator: {kept}", markup=False)
+    if verbose:  # a developer's detail (docs/speed.md), not a user's: runs keep it in config.yaml
+        console.print(f"allocator: {kept}", markup=False)
 
 

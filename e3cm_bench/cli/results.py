@@ -9,15 +9,9 @@ from typing import Annotated, Optional
 import typer
 from rich.text import Text
 
-from ..reporting import check as regression
 from ..demo import METHODS as DEMO_METHODS
-from ..demo import run_demo
-from ..experiments import reproduce as reproduce_experiment
-from ..experiments import EXPERIMENT_COPY, merge_experiment, write_table
 from ..paper import config_names, resolve_config
-from ..download import find_root
-from ..run.launch import run_experiment_shards
-from ..run.shards import merge_run, parse_shard
+from ..stats.noise import CHECK_ALPHA
 from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt
 
 
@@ -30,6 +24,8 @@ def table(
     compare: CompareOpt = True,
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
+    from ..experiments import write_table
+
     write_table(list(run_dirs), out, reference, compare, console)
 
 
@@ -92,6 +88,11 @@ def reproduce(
     shards: ShardsOpt = 0,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
+    from ..download import find_root
+    from ..experiments import reproduce as reproduce_experiment
+    from ..run.shards import parse_shard
+    from ..run.launch import run_experiment_shards
+
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
@@ -117,6 +118,9 @@ def merge(
     compare: CompareOpt = True,
 ) -> None:
     """Merge the shards of a run (or of every method of a reproduce) into the usual CSVs, plots and config.yaml."""
+    from ..experiments import EXPERIMENT_COPY, merge_experiment
+    from ..run.shards import merge_run
+
     if (run_dir / EXPERIMENT_COPY).is_file():
         merge_experiment(run_dir, compare=compare, console=console)
     else:
@@ -135,6 +139,8 @@ def demo(
     """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-release, e3cm-ransac, e3cm-plus,
     direct, dfm and sift (deep ones on EfficientNet-Lite0) on HPatches-format sequences and a non-planar
     scene, prints each method's headline numbers (the runs' full output: OUT/demo.log)."""
+    from ..demo import run_demo
+
     run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device, console=console)
     console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)",
                   markup=False, highlight=False)
@@ -150,7 +156,7 @@ def check(
     update: Annotated[bool, typer.Option("--update", help="Write the baseline from these runs (aggregate + per-pair values, each run's identity and environment) instead of checking.")] = False,
     ensemble: Annotated[int, typer.Option("--ensemble", help="With --update: rerun every run K times under CPU-scale perturbations and store the draws beside the baseline (the noise model check then gates with).")] = 0,
     ensemble_dir: Annotated[Optional[Path], typer.Option("--ensemble-dir", help="Work folder of the ensemble's reruns (resumable; default .e3cm-ensemble/BASELINE_NAME).")] = None,
-    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of the whole check under the noise model (split over its metrics).")] = regression.CHECK_ALPHA,
+    alpha: Annotated[float, typer.Option("--alpha", help="False-alarm rate of the whole check under the noise model (split over its metrics).")] = CHECK_ALPHA,
     summary: Annotated[Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
 ) -> None:
     """Compare runs with a baseline: exit 1 naming each metric that fell beyond its noise (or its tolerance).
@@ -160,6 +166,8 @@ def check(
     rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
     the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
     settings differ from its baseline row's, one line names each difference (information)."""
+    from ..reporting import check as regression
+
     runs = regression.find_runs(run_dirs)
     if update:
         _update_baseline(runs, baseline, ensemble, ensemble_dir)
@@ -210,6 +218,7 @@ def check(
 
 def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:
     """check --update: the baseline files, and with --ensemble K its noise draws."""
+    from ..reporting import check as regression
     from ..reporting.ensemble import build_ensemble, write_noise
 
     if ensemble < 0:

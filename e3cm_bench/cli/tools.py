@@ -7,9 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..calibration.run import CalibrationSettings, run_calibration
-from ..matchers import get_matcher
-from ..method import MethodSpec
+from ..backbone_names import DEFAULT_BACKBONE
 from .common import app, console, BackboneOpt, WeightsOpt, DeviceOpt, parse_settings, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
 
 
@@ -19,7 +17,7 @@ def calibrate(
     root: Annotated[Path, typer.Option("--root", help="Stereo sequence: KITTI odometry (image_0/, image_1/, calib.txt) or raw (image_00/data, image_01/data, calib_cam_to_cam.txt) layout.")],
     out: OutOpt,
     matcher: Annotated[list[str], typer.Option("--matcher", help="Matcher(s) to compare (repeatable), as for the benchmarks (e3cm-bench matchers).")] = ["e3cm"],  # noqa: B006
-    backbone: BackboneOpt = "vgg19",
+    backbone: BackboneOpt = DEFAULT_BACKBONE,
     weights: WeightsOpt = None,
     frames: Annotated[list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")] = [1, 3, 5, 10],  # noqa: B006
     max_side: Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (default: full resolution).")] = None,
@@ -30,13 +28,17 @@ def calibrate(
     settings: Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.")] = None,
 ) -> None:
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
+    from ..calibration.run import CalibrationSettings, run_calibration
+    from ..matchers import get_matcher
+    from ..method import MethodSpec
+
     options = parse_settings(settings)
     given = " ".join(item.strip() for item in settings or [])
     methods = []
     for name in matcher:
         deep = get_matcher(name, allow_import=True).needs_backbone
         label = f"{name} {given}".strip() if deep and given else name
-        label = label if backbone == "vgg19" or not deep else f"{label} [{backbone}]"
+        label = label if backbone == DEFAULT_BACKBONE or not deep else f"{label} [{backbone}]"
         methods.append(MethodSpec.create(name, backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
                                          label=label, options=options if deep else None))
     run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
@@ -50,7 +52,7 @@ def matchers(
     names: Annotated[Optional[list[str]], typer.Argument(help="Only these matchers (names or package.module:factory).")] = None,
 ) -> None:
     """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings and defaults."""
-    from ..matchers import broken_plugins, entries
+    from ..matchers import broken_plugins, entries, get_matcher
 
     shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
     for line in describe_matchers(shown):

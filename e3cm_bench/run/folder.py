@@ -14,7 +14,7 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
     OUT/skipped.csv      pairs skipped for bad input;  OUT/failures.csv: pairs a matcher failed on
     OUT/viz/             match drawings (--viz)
     OUT/shards/K-of-N/   the shards of a sharded run, each a run folder of its own
-    OUT/.lock            held while a process uses the folder (files.FolderLock)
+    OUT/.lock            held while a process uses the folder, removed when it is done (files.FolderLock)
     OUT/.feature-spill/  feature maps memory could not hold, while matching
 """
 
@@ -166,13 +166,26 @@ class RunFolder:
         """A finished (or evaluated) run: its config and summary are there."""
         return self.config_path.is_file() and self.summary_path.is_file()
 
+    # The file every report site holds (reporting/site.py MARKER): the copies of runs inside a
+    # report (REPORT/runs/NN/) are not runs, and `reproduce` writes its report among its runs.
+    REPORT_MARKER = ".e3cm-bench-report"
+
     @classmethod
     def find(cls, path: str | Path) -> list[RunFolder]:
-        """The run folder at `path`, or the finished ones below it."""
+        """The run folder at `path`, or the finished ones below it (not those inside a report)."""
         here = cls(path)
         if here.config_path.is_file():
             return [here]
-        return [cls(p.parent) for p in sorted(Path(path).rglob(cls.CONFIG)) if cls(p.parent).is_run()]
+        top = Path(path)
+
+        def in_report(folder: Path) -> bool:  # a report's marker in it or in a folder between it and `top`
+            while not (folder / cls.REPORT_MARKER).exists():
+                if folder == top:
+                    return False
+                folder = folder.parent
+            return True
+
+        return [cls(p.parent) for p in sorted(top.rglob(cls.CONFIG)) if cls(p.parent).is_run() and not in_report(p.parent)]
 
     def lock(self) -> FolderLock:
         """The folder's exclusive lock (a context manager), taken before anything in it is read
@@ -196,10 +209,14 @@ class RunFolder:
         shutil.rmtree(self.viz_dir, ignore_errors=True)
 
     def previous(self, identity: dict | None, benchmark: str, eval_only: bool = False,
-                 changes=None) -> dict | None:
+                 changes=None, console=None) -> dict | None:
         """The config of the matches already here, or None for a new folder; a ValueError when
         they were made otherwise (another benchmark, or an identity that `changes(before, now)`
-        finds different: method.identity_changes) and this is not --eval-only."""
+        finds different: method.identity_changes) and this is not --eval-only.
+
+        Settings are refused only where they would mix with matches: a folder whose run wrote
+        none (it failed before its first pair: weights not found, a plugin that did not load)
+        takes the new settings, its old record is removed, and `console` is told so."""
         previous = self.read_config()
         if previous is None:
             return None
@@ -214,10 +231,22 @@ class RunFolder:
         changed = list(changes(before, identity)) if changes is not None else ([] if before == identity else ["identity"])
         if previous.get("benchmark") != benchmark:
             changed.insert(0, "benchmark")
+        if changed and not self.holds_matches():
+            if console is not None:
+                console.print(f"{self.path}: holds no matches of its earlier settings ({', '.join(changed)}); "
+                              "starting anew with these", markup=False, highlight=False, soft_wrap=True)
+            self.clear()
+            return None
         if changed:
             raise ValueError(f"{self.config_path}: the matches in this folder were made with other settings "
                              f"({', '.join(changed)}); pass --overwrite to replace them or choose another --out")
         return previous
+
+    def holds_matches(self) -> bool:
+        """Whether any pair's matches (or a matcher's failure on it) were written here; a block of
+        the cache that cannot be read counts as holding some."""
+        cache = self.cache()
+        return bool(cache.names()) or bool(cache.damaged)
 
     def resume(self, pairs, console=None) -> tuple[MatchCache, list]:
         """The cache and the pairs it still lacks (an interrupted run resumes at them); a block of

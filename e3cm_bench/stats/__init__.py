@@ -20,7 +20,20 @@ from .bootstrap import (
     bootstrap_mean_interval,
     resample_indices,
 )
-from .paired import PairedResult, compare_paired, verdict_line
+
+# paired.py needs scipy (2-3 s to import on a small machine): its names load on first use
+# (PEP 562), so that reading a constant of this package (the command line's help reads
+# noise.CHECK_ALPHA) does not import scipy.
+_PAIRED = ("PairedResult", "compare_paired", "verdict_line")
+
+
+def __getattr__(name: str):
+    if name in _PAIRED:
+        from . import paired
+
+        return getattr(paired, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "BOOTSTRAP_SAMPLES", "BOOTSTRAP_SEED", "CONFIDENCE", "PairedResult", "bootstrap_interval",

