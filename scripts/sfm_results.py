@@ -6,8 +6,8 @@ into OUT/SET/METHOD, then the set's table in OUT/SET/table.{csv,md}.
     python scripts/sfm_results.py synth --out /tmp/sfm-results
 
 kitti: the shared KITTI 00 frames (../shared/data/megadepth_test_1500, kitti00_seq.npz), pair
-graph a sequential window of 3. synth: the room scene rendered from 12 views
-(e3cm_bench/synth/multiview.py, written under OUT/data), every pair.
+synth: the room scene rendered from 10 views (e3cm_bench/synth/multiview.py, written under
+OUT/data). Both with the pair graph a sequential window of 3 (each image with the next 3).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ def main() -> None:
     parser.add_argument("set", choices=("kitti", "synth"))
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--methods", nargs="*", default=list(METHODS))
-    parser.add_argument("--window", type=int, default=3, help="kitti's pair graph (default 3)")
-    parser.add_argument("--views", type=int, default=12, help="synth's number of views (default 12)")
+    parser.add_argument("--window", type=int, default=3, help="the pair graph's window (default 3)")
+    parser.add_argument("--views", type=int, default=10, help="synth's number of views (default 10)")
     args = parser.parse_args()
     bench = get_benchmark("sfm")
     if args.set == "kitti":
@@ -39,7 +39,7 @@ def main() -> None:
         from e3cm_bench.synth.multiview import write_multiview
 
         root = args.out / "data" / "room"
-        options = {"scene_info": write_multiview(root, n_views=args.views)}
+        options = {"scene_info": write_multiview(root, n_views=args.views), "window": str(args.window)}
     dataset = bench.load_dataset(root, **options)
     out = args.out / args.set
     runs = [(out / label, MethodSpec.create(backbone=BACKBONE, max_side=bench.max_side(None), seed=0, label=label,

@@ -16,7 +16,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pandas as pd
 
@@ -60,7 +59,6 @@ class SfMBenchmark(Benchmark):
         for m in matches:
             k, repeats = distinct(m)
             kept.append((k, repeats))
-        cv2.setRNGSeed(int(ev.seed))
         with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
             where = Path(workdir) / WORKDIR if workdir is not None else Path(tmp) / WORKDIR
             found, geometries = reconstruct(pairs, [k for k, _ in kept], ev, where)

@@ -27,6 +27,9 @@ import numpy as np
 #   has 12 views) and the shared KITTI frames' sub-models;
 # - intrinsics fixed (no focal, principal point or extra parameter refinement): the set's K
 #   is the ground truth, so a model is judged on its poses alone;
+# - init_min_tri_angle 4 degrees (COLMAP's 16): the initial pair must see its points under this
+#   angle, which a photo collection's wide baselines give and a video's forward motion does not
+#   (8 KITTI frames, each with the next 2: no model at 16, 8 of 8 registered at 4);
 # - extract_colors off: colours need the images decoded again and change no number here;
 # - num_threads 1 (with the seed): deterministic models.
 MAPPER_OPTIONS = {
@@ -37,8 +40,8 @@ MAPPER_OPTIONS = {
     "extract_colors": False,
     "num_threads": 1,
 }
-MAPPER_SUB_OPTIONS = {"mapper": {"abs_pose_refine_focal_length": False, "abs_pose_refine_extra_params": False,
-                                 "num_threads": 1}}
+MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0, "abs_pose_refine_focal_length": False,
+                                 "abs_pose_refine_extra_params": False, "num_threads": 1}}
 DATABASE, MODELS = "database.db", "models"
 
 
@@ -119,7 +122,10 @@ def geometry(pair, matches, ev) -> dict | None:
     from .. import estimators
     from ..benchmarks.pose import PoseBenchmark
 
+    import cv2
+
     k0, k1 = matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64)
+    cv2.setRNGSeed(int(ev.seed))  # before each estimate, as the pose benchmarks seed theirs
     sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
     found = estimators.relative_pose(k0, k1, pair.K0, pair.K1, PoseBenchmark.ransac_px(pair, matches, ev),
                                      ev.pose_confidence, estimator=ev.estimator, seed=ev.seed, sizes=sizes)
@@ -165,8 +171,13 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
     models_dir = workdir / MODELS
     models_dir.mkdir()
     pycolmap.set_random_seed(int(ev.seed))
-    found_models = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root or workdir), str(models_dir),
-                                                options=mapper_options(ev.seed))
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 1  # its progress log is thousands of lines; warnings and errors still show
+    try:
+        found_models = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root or workdir), str(models_dir),
+                                                    options=mapper_options(ev.seed))
+    finally:
+        pycolmap.logging.minloglevel = level
     models = []
     for index, model in sorted(found_models.items()):
         poses = {}
