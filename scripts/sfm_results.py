@@ -4,6 +4,7 @@ into OUT/SET/METHOD, then the set's table in OUT/SET/table.{csv,md}.
 
     python scripts/sfm_results.py kitti --out /tmp/sfm-results
     python scripts/sfm_results.py synth --out /tmp/sfm-results
+    python scripts/sfm_results.py kitti --eval-only --merge-px 2 --out /tmp/sfm-results  # after copying
     python scripts/sfm_results.py side --out /tmp/sfm-results --to results/sfm
 
 side: each run's two-view numbers beside its multi-view ones, in TO/two_view_vs_multi_view.csv,
@@ -39,6 +40,9 @@ def main() -> None:
     parser.add_argument("--to", type=Path, default=Path("results/sfm"))
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--eval-only", action="store_true", help="reconstruct and evaluate the cached matches again")
+    parser.add_argument("--merge-px", type=float, default=0.0,
+                        help="the sets' keypoint merge radius; above 0 the runs go to OUT/SET-mergeR/")
     parser.add_argument("--window", type=int, default=3, help="the pair graph's window (default 3)")
     parser.add_argument("--views", type=int, default=10, help="synth's number of views (default 10)")
     args = parser.parse_args()
@@ -53,14 +57,21 @@ def main() -> None:
 
         root = args.out / "data" / "room"
         options = {"scene_info": write_multiview(root, n_views=args.views), "window": str(args.window)}
+    if args.merge_px:
+        options["merge_px"] = str(args.merge_px)
     dataset = bench.load_dataset(root, **options)
-    out = args.out / args.set
+    out = args.out / (args.set + (f"-merge{args.merge_px:g}" if args.merge_px else ""))
     runs = [(out / label, MethodSpec.create(backbone=BACKBONE, max_side=bench.max_side(None), seed=0, label=label,
                                             **METHODS[label]))
             for label in args.methods]
-    run_methods(bench, runs, dataset, ev=EvalSettings(seed=0),
-                dataset_load={"root": str(Path(root).resolve()), "skip_bad": False,
-                              "options": {k: str(v) for k, v in options.items()}})
+    load = {"root": str(Path(root).resolve()), "skip_bad": False, "options": {k: str(v) for k, v in options.items()}}
+    if args.eval_only:  # the reconstruction and metrics again, from the cached matches
+        from e3cm_bench.runner import run_benchmark
+
+        for run_dir, _ in runs:
+            run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=EvalSettings(seed=0), eval_only=True)
+    else:
+        run_methods(bench, runs, dataset, ev=EvalSettings(seed=0), dataset_load=load)
     write_table([run_dir for run_dir, _ in runs], out / "table", paper_rows=False, compare=False)
 
 
@@ -90,7 +101,9 @@ def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
     import shutil
 
     rows = []
-    for set_name in ("kitti", "synth"):
+    sets = sorted((p.name for p in out.iterdir() if p.is_dir() and p.name.split("-")[0] in ("kitti", "synth")),
+                  key=lambda name: (name.split("-")[0], name))
+    for set_name in sets:
         for label in methods:
             run_dir = out / set_name / label
             if not (run_dir / "summary.csv").is_file():

@@ -146,6 +146,12 @@ def test_window_and_exhaustive_graphs(shared_data):
     window = bench.load_dataset(root, scene_info=scene_info, window="3")
     assert len(window) == 19 + 18 + 17
     assert window[0].name == "kitti00_seq/000100--000101"
+    merged = bench.load_dataset(root, scene_info=scene_info, window="1", merge_px="1.5")
+    assert merged.describe()["merge_px"] == 1.5 and merged[0].meta["merge_px"] == 1.5
+    for bad, match in ((dict(window="0"), "--window must be at least 1"), (dict(merge_px="-1"), "--merge-px"),
+                       (dict(window="2", graph=scene_info), "two pair graphs")):
+        with pytest.raises(DatasetError, match=match):
+            bench.load_dataset(root, scene_info=scene_info, **bad)
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -231,10 +237,11 @@ def test_mapper_without_a_model_is_a_recorded_result(shared_data, tmp_path):
             T = scene["poses"][j] @ np.linalg.inv(scene["poses"][i])
             pairs.append(Pair(f"s/{i}--{j}", root / names[i], root / names[j], K0=scene["intrinsics"][i],
                               K1=scene["intrinsics"][j], T_0to1=T, meta={"view0": names[i], "view1": names[j]}))
-            points = rng.uniform([0, 0], [1240, 375], (2, 200, 2))
+            points = rng.uniform([0, 0], [1240, 375], (2, 0 if (i, j) == (0, 1) else 200, 2))  # one pair: no match
             matches.append(Matches(points[0], points[1], None, {"size0": (1241, 376), "size1": (1241, 376)}))
     rows, numbers = get_benchmark("sfm").evaluate_set(pairs, matches, EvalSettings(), tmp_path)
     assert numbers["registered_images"] == 0 and numbers["n_models"] == 0 and numbers["points"] == 0
     assert all(row["err_pose"] == float("inf") and row["model"] == -1 for row in rows)
+    assert rows[0]["n_matches"] == 0 and rows[0]["n_inliers"] == 0
     summary = get_benchmark("sfm").summarize(rows, EvalSettings())
     assert summary["n_failures"] == 6 and summary["auc@10"] == 0 and summary["maa"] == 0

@@ -61,10 +61,12 @@ class SfMBenchmark(Benchmark):
             kept.append((k, repeats))
         with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
             where = Path(workdir) / WORKDIR if workdir is not None else Path(tmp) / WORKDIR
-            found, geometries = reconstruct(pairs, [k for k, _ in kept], ev, where)
+            # the set's keypoint merge radius travels with its pairs (the dataset's --merge-px)
+            merge_px = max((float(p.meta.get("merge_px") or 0.0) for p in pairs), default=0.0)
+            found, geometries = reconstruct(pairs, [k for k, _ in kept], ev, where, merge_px=merge_px)
         rows = []
         for pair, (k, repeats), geometry in zip(pairs, kept, geometries):
-            placed0, placed1 = found.where(pair.meta["view0"]), found.where(pair.meta["view1"])
+            placed0, placed1 = found.placed(pair.meta["view0"], pair.meta["view1"])
             rows.append({"pair": pair.name, "n_matches": len(k),
                          "n_inliers": int(np.count_nonzero(geometry["inliers"])) if geometry else 0,
                          "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
@@ -115,6 +117,8 @@ SFM = SfMBenchmark(
         DatasetOption("window", "text", "Pair graph: each image with the next K in the set's order "
                       "(default: every pair)."),
         DatasetOption("graph", "path", "Pair graph: a file of image-name pairs to match (name0 name1 per line)."),
+        DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
+                      "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
     ),
     summary="Multi-view: the matches of a set's pair graph reconstructed by pycolmap's incremental mapper; pose "
             "AUC@5/10/20 and IMC mAA of the pairs from the models, images registered, models, points.",

@@ -25,7 +25,7 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
                  pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
-                 skip_bad: bool = False) -> None:
+                 merge_px: str | float | None = None, skip_bad: bool = False) -> None:
         self.root = require_directory(root, "image set")
         given = [flag for flag, value in (("--scene-info", scene_info), ("--colmap-model", colmap_model),
                                            ("--pairs", pairs)) if value is not None]
@@ -33,6 +33,7 @@ class MultiViewSet(PairList):
             raise DatasetError(f"{self.root}: give exactly one of --scene-info, --colmap-model and --pairs "
                                f"(given: {', '.join(given) or 'none'})")
         self.window = _window(window)
+        self.merge_px = _radius(merge_px)
         self.graph = Path(graph) if graph is not None else None
         if self.window is not None and self.graph is not None:
             raise DatasetError(f"{self.graph}: --window and --graph are two pair graphs; give one")
@@ -69,7 +70,8 @@ class MultiViewSet(PairList):
                 bad.append((name, str(error)))
                 continue
             built.append(Pair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
-                              meta={"scene": set_name, "view0": item.view0, "view1": item.view1}))
+                              meta={"scene": set_name, "view0": item.view0, "view1": item.view1,
+                                    "merge_px": self.merge_px}))
         super().__init__(built, self.source, skip_bad, bad)
 
     def settings(self) -> dict:
@@ -79,7 +81,7 @@ class MultiViewSet(PairList):
         # they decide every number the evaluation gives, as the set does.
         return {"dataset": self.name, "root": str(self.root), self.kind: str(self.source), "window": self.window,
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
-                "n_views": len(self.views), "reconstruction": mapper_settings()}
+                "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
 
 
 def _window(value) -> int | None:
@@ -92,3 +94,15 @@ def _window(value) -> int | None:
     if k < 1:
         raise DatasetError(f"--window must be at least 1, got {k}")
     return k
+
+
+def _radius(value) -> float:
+    if value is None:
+        return 0.0
+    try:
+        radius = float(str(value))
+    except ValueError:
+        raise DatasetError(f"--merge-px must be a radius in pixels, got {value!r}") from None
+    if not radius >= 0:
+        raise DatasetError(f"--merge-px must be 0 or more pixels, got {value}")
+    return radius

@@ -56,7 +56,8 @@ def mapper_settings() -> dict:
     return {"method": "pycolmap.incremental_mapping", "pycolmap": version, "options": dict(MAPPER_OPTIONS),
             **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()}, "seed": "evaluation.seed",
             "two_view_geometry": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
-            "keypoints": "merged per image, exact repeats (interchange.tracks.merge_keypoints)"}
+            "keypoints": "merged per image (interchange.tracks.merge_keypoints): exact repeats, and within "
+                         "dataset.merge_px pixels where it is above 0"}
 
 
 def mapper_options(seed: int):
@@ -104,13 +105,23 @@ class Reconstruction:
                 return model.index, model.poses[name]
         return None
 
+    def placed(self, name0: str, name1: str) -> tuple:
+        """Where a pair's images are: ((model, pose0), (model, pose1)) from the largest model that
+        registered both (COLMAP's models may share images: max_model_overlap), else each
+        image's own (model, pose) or None; the models then differ, or an image is unregistered."""
+        for model in self.models:
+            if name0 in model.poses and name1 in model.poses:
+                return (model.index, model.poses[name0]), (model.index, model.poses[name1])
+        return self.where(name0), self.where(name1)
+
     def numbers(self) -> dict:
         """The set's numbers: images, registered, models, points, mean track length and mean
         reprojection error (both over all models' observations; NaN without a point)."""
         registered = {name for model in self.models for name in model.poses}
         points = sum(m.points for m in self.models)
         observations = sum(m.observations for m in self.models)
-        error = (sum(m.mean_reprojection_error * m.observations for m in self.models) / observations
+        # a model without a point (COLMAP keeps one whose points were all filtered) adds nothing
+        error = (sum(m.mean_reprojection_error * m.observations for m in self.models if m.observations) / observations
                  if observations else float("nan"))
         return {"n_images": len(self.images), "registered_images": len(registered), "n_models": len(self.models),
                 "points": points, "mean_track_length": observations / points if points else float("nan"),
@@ -145,7 +156,8 @@ def image_size(pair, matches, side: int) -> tuple[int, int]:
     return int(image.shape[1]), int(image.shape[0])
 
 
-def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None) -> tuple[Reconstruction, list]:
+def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None,
+                merge_px: float = 0.0) -> tuple[Reconstruction, list]:
     """Write the database of `pairs` (each with meta view0/view1) and their `matches` (each
     correspondence once) under workdir, run the mapper, and read its models back. Returns the
     reconstruction and each pair's two-view geometry (None where the estimate failed)."""
@@ -167,7 +179,7 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
         geometries.append(found)
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m,
                                 pair.K0, pair.K1, found))
-    write_colmap(workdir, items)
+    write_colmap(workdir, items, merge_px=merge_px)
     models_dir = workdir / MODELS
     models_dir.mkdir()
     pycolmap.set_random_seed(int(ev.seed))
