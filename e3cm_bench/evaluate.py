@@ -25,7 +25,7 @@ from .viz import draw_matches, drawn_pairs, save_image
 
 
 def evaluate_stage(
-    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings
+    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings, workdir: Path | None = None
 ) -> tuple[pd.DataFrame, dict, list[tuple[str, str]]]:
     """Every pair's row from its cached matches and ground truth, the summary of the rows, and
     (pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair),
@@ -34,17 +34,24 @@ def evaluate_stage(
     The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
     """
-    rows, failures = [], []
+    rows, failures, read = [], [], []
     for pair in pairs:
         matches = cache.read(pair.name)
-        rows.append(evaluate_pair(benchmark, pair, matches, ev))
+        if benchmark.evaluates_set:  # scored together below, from every pair's matches
+            read.append(matches)
+        else:
+            rows.append(evaluate_pair(benchmark, pair, matches, ev))
         if FAILED_ATTR in matches.info:
             failures.append((pair.name, str(matches.info[FAILED_ATTR])))
+    set_numbers = {}
+    if benchmark.evaluates_set:
+        rows, set_numbers = benchmark.evaluate_set(pairs, read, ev, workdir)
     if ev.repeats > 1:
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
         summary = benchmark.summarize(rows, ev)
         summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
+    summary.update(set_numbers)  # after the intervals: facts of the one set, not resampled
     # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
     return pd.DataFrame(rows, columns=with_duplicates(benchmark.pair_columns(ev))), summary, failures
 
@@ -158,7 +165,7 @@ def evaluate_and_report(
     pairs = [p for p in pairs if p.name not in failed]
     if not pairs:
         raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev)
+    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out)
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
     if failures:  # scored as failures (no matches); the count says how many were the matcher's

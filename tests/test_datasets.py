@@ -25,9 +25,11 @@ def touch(path: Path) -> Path:
 def test_registry_names():
     from e3cm_bench.benchmarks.evd import EVD
     from e3cm_bench.benchmarks.wxbs import WxBS
+    from e3cm_bench.sfm.dataset import MultiViewSet
 
     assert {name: b.dataset for name, b in BENCHMARKS.items()} == {
-        "hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M, "wxbs": WxBS, "evd": EVD}
+        "hpatches": HPatches, "megadepth": MegaDepth1500, "yfcc": YFCC100M, "wxbs": WxBS, "evd": EVD,
+        "sfm": MultiViewSet}
     assert list(BENCHMARKS)[:3] == ["hpatches", "megadepth", "yfcc"]  # the paper's first (commands, --help)
 
 

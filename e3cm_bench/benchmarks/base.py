@@ -242,6 +242,17 @@ class Benchmark:
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:  # pragma: no cover
         raise NotImplementedError
 
+    # A benchmark that scores the pairs together (sfm: one reconstruction from all of them) sets
+    # this and defines evaluate_set; the others are scored pair by pair through evaluate_pair.
+    evaluates_set = False
+
+    def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
+                     workdir: Path | None) -> tuple[list[dict], dict]:  # pragma: no cover
+        """Every pair's row from all the pairs' matches at once, and the set's own numbers
+        (summary columns that no pair bootstrap can resample: they get no interval). workdir:
+        a folder of the run the benchmark may write its products in (None: a temporary one)."""
+        raise NotImplementedError
+
     def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
         """`summarize` of rows picked by index: f(idx) == summarize([rows[i] for i in idx], ev).
 

@@ -1,0 +1,127 @@
+"""sfm: a matcher measured by the reconstruction its matches give (docs/sfm.md).
+
+The pairs of a multi-view set's graph are matched as any pose pairs are (the match stage, its
+cache, resume, shards, feature reuse, --on-matcher-error); the evaluation then scores them
+together: one COLMAP database from all their matches, pycolmap's incremental mapper
+(sfm/reconstruct.py), and each pair's pose error read from the models (sfm/metrics.py), with
+AUC@5/10/20 and IMC 2020's mAA over the pairs (bootstrap intervals) and the set's own
+numbers: images registered, models, points, mean track length, mean reprojection error.
+The reconstruction's files stay in the run folder, under ``sfm/`` (database.db, models/N/).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import metrics
+from ..datasets.base import Pair
+from ..matches import Matches, distinct
+from ..reporting import plots
+from ..sfm import metrics as sfm_metrics
+from ..sfm.dataset import MultiViewSet
+from .base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
+
+WORKDIR = "sfm"  # the run folder's subfolder of the reconstruction
+
+
+@dataclass(frozen=True)
+class SfMBenchmark(Benchmark):
+    ransac_field: str = "pose_ransac_px"
+    table_metrics: Mapping[str, str] = field(default_factory=lambda: {
+        **{f"auc@{t}": f"auc@{t}" for t in metrics.POSE_AUC_THRESHOLDS}, "mAA": sfm_metrics.MAA})
+    table_extras: tuple[str, ...] = ("n_pairs", "n_failures", "registered_images", "n_images", "n_models", "points",
+                                     "mean_track_length", "mean_reprojection_error")
+    report_columns: tuple[str, ...] = ("n_matches", "n_inliers", "model", "err_pose")
+    failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
+    paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
+    evaluates_set = True
+
+    def pair_columns(self, ev: EvalSettings) -> list[str]:
+        return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
+                                "err_R", "err_t", "err_pose"])
+
+    def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+        raise ValueError("sfm scores the pairs of a set together (evaluate_set), not one at a time")
+
+    def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
+                     workdir: Path | None) -> tuple[list[dict], dict]:
+        from ..sfm.reconstruct import reconstruct
+
+        if ev.repeats > 1:
+            raise ValueError("--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model")
+        kept = []
+        for m in matches:
+            k, repeats = distinct(m)
+            kept.append((k, repeats))
+        with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
+            where = Path(workdir) / WORKDIR if workdir is not None else Path(tmp) / WORKDIR
+            # the set's keypoint merge radius travels with its pairs (the dataset's --merge-px)
+            merge_px = max((float(p.meta.get("merge_px") or 0.0) for p in pairs), default=0.0)
+            found, geometries = reconstruct(pairs, [k for k, _ in kept], ev, where, merge_px=merge_px)
+        rows = []
+        for pair, (k, repeats), geometry in zip(pairs, kept, geometries):
+            placed0, placed1 = found.placed(pair.meta["view0"], pair.meta["view1"])
+            rows.append({"pair": pair.name, "n_matches": len(k),
+                         "n_inliers": int(np.count_nonzero(geometry["inliers"])) if geometry else 0,
+                         "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
+                         **sfm_metrics.pair_errors(pair.T_0to1, placed0, placed1), DUPLICATES: repeats})
+        return rows, found.numbers()
+
+    def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
+        rows = list(rows)
+        return sfm_metrics.summarize_sfm(np.asarray([float(r["err_pose"]) for r in rows], np.float64),
+                                         np.asarray([float(r["n_matches"]) for r in rows], np.float64))
+
+    def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
+        # summarize on arrays read once: the same function on the same values, so equal bit for bit
+        rows = list(rows)
+        errors = np.asarray([float(r["err_pose"]) for r in rows], np.float64)
+        n_matches = np.asarray([float(r["n_matches"]) for r in rows], np.float64)
+
+        def summarize(idx: Sequence[int]) -> dict:
+            idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+            return sfm_metrics.summarize_sfm(errors[idx], n_matches[idx])
+
+        return summarize
+
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
+        distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)
+        return distances < ev.precision_thresholds[0]
+
+    def required_summary_columns(self) -> list[str]:
+        return ["n_pairs", "n_matches", *self.table_metrics.values(), "registered_images", "n_models"]
+
+    def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
+
+    def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        cdf = stem.with_name(stem.stem + "_pose_cdf.png")
+        return [plots.plot_pose_error_cdf({label: p for label, (_, p) in runs.items()}, cdf)]
+
+
+SFM = SfMBenchmark(
+    name="sfm", dataset=MultiViewSet,
+    dataset_options=(
+        DatasetOption("scene_info", "path", "A MegaDepth scene_info .npz: the set's images (paths under ROOT), "
+                      "intrinsics and absolute poses."),
+        DatasetOption("colmap_model", "path", "A COLMAP sparse model folder (cameras and images, .bin or .txt) "
+                      "as ground truth; its images under ROOT."),
+        DatasetOption("pairs", "path", "A SuperGlue-format pair list: these pairs are matched, reconstructed "
+                      "together and evaluated against their relative poses."),
+        DatasetOption("window", "text", "Pair graph: each image with the next K in the set's order "
+                      "(default: every pair)."),
+        DatasetOption("graph", "path", "Pair graph: a file of image-name pairs to match (name0 name1 per line)."),
+        DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
+                      "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
+    ),
+    summary="Multi-view: the matches of a set's pair graph reconstructed by pycolmap's incremental mapper; pose "
+            "AUC@5/10/20 and IMC mAA of the pairs from the models, images registered, models, points.",
+    default_max_side=1200,
+)
+BENCHMARKS = (SFM,)
