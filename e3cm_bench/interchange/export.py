@@ -78,7 +78,7 @@ def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
     """The evaluation's own estimate on these matches (the same estimator, threshold and seed,
     on each correspondence once, as the evaluation counts them); the inliers are given for every
     match written, a repeat of an inlier being an inlier."""
-    found = _estimate(benchmark, pair, distinct(matches)[0], ev)
+    found = estimate_geometry(benchmark, pair, distinct(matches)[0], ev)
     if found is None or len(found["inliers"]) == len(matches):
         return found
     both = np.concatenate([matches.keypoints0, matches.keypoints1], axis=1)
@@ -88,7 +88,9 @@ def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
     return {**found, "inliers": np.asarray(found["inliers"], bool)[rank[np.ravel(inverse)]]}
 
 
-def _estimate(benchmark, pair, matches: Matches, ev) -> dict | None:
+def estimate_geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
+    """The evaluation's own estimate on these matches (H where the pair has one, else the relative
+    pose where the benchmark has a RANSAC threshold) and its inliers; None where it fails."""
     from .. import estimators
     from ..geometry import warp_points
 

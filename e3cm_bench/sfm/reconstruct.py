@@ -129,21 +129,12 @@ class Reconstruction:
 
 
 def geometry(pair, matches, ev) -> dict | None:
-    """The evaluation's own relative pose on these matches and its inliers (export's rule)."""
-    from .. import estimators
+    """The evaluation's own relative pose on these matches and its inliers (export's rule, with
+    the pose benchmarks' RANSAC threshold)."""
     from ..benchmarks.pose import PoseBenchmark
+    from ..interchange.export import estimate_geometry
 
-    import cv2
-
-    k0, k1 = matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64)
-    cv2.setRNGSeed(int(ev.seed))  # before each estimate, as the pose benchmarks seed theirs
-    sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
-    found = estimators.relative_pose(k0, k1, pair.K0, pair.K1, PoseBenchmark.ransac_px(pair, matches, ev),
-                                     ev.pose_confidence, estimator=ev.estimator, seed=ev.seed, sizes=sizes)
-    if found is None:
-        return None
-    R, t, inliers = found
-    return {"R": np.asarray(R, np.float64), "t": np.asarray(t, np.float64).ravel(), "inliers": np.asarray(inliers, bool)}
+    return estimate_geometry(PoseBenchmark, pair, matches, ev)
 
 
 def image_size(pair, matches, side: int) -> tuple[int, int]:
