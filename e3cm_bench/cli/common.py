@@ -131,6 +131,12 @@ def _bad_input_errors() -> tuple[type[BaseException], ...]:
     return tuple(found)
 
 
+def _out_of_address_space(exc: ImportError) -> bool:
+    """The dynamic loader's words for a shared object it had no room to map."""
+    text = str(exc)
+    return "failed to map segment" in text or "cannot allocate memory" in text.lower()
+
+
 def friendly_errors(command):
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback.
 
@@ -152,6 +158,16 @@ def friendly_errors(command):
                 raise
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "not enough memory"
             err_console.print(f"[bold red]error:[/] out of memory: {detail}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+        except ImportError as exc:
+            # A library that cannot be mapped into memory (the commands import torch only when they
+            # match, so under `ulimit -v` this is where the limit is met first) is the memory case
+            # above, not a bug; any other ImportError keeps its traceback.
+            if os.environ.get("E3CM_BENCH_DEBUG") or not _out_of_address_space(exc):
+                raise
+            err_console.print(f"[bold red]error:[/] out of memory: a library could not be loaded ({exc}); "
+                              "raise the address-space or memory limit (ulimit -v) and rerun: matches already "
+                              "written are kept", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except OSError as exc:  # a full disk, a folder that cannot be written: what and where, in one line
             if os.environ.get("E3CM_BENCH_DEBUG"):
@@ -186,7 +202,7 @@ CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Differ
 RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
 RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
 OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.")]
-PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the pair fails as --on-matcher-error says (POSIX, main thread; default: no limit).")]
+PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the matcher is stopped with every process it started and the pair fails as --on-matcher-error says (POSIX; default: no limit).")]
 # Help texts are Rich markup: a literal "[word]" needs its backslash, else Rich takes it for a
 # style and drops it (tests/test_startup.py reads every help as Rich renders it).
 PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench\\[poselib]'); --eval-only may change it.")]
