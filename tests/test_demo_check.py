@@ -44,7 +44,9 @@ def test_demo_prints_a_short_account_and_logs_the_rest(demo_run):
         lo, hi = table.loc[method, "h_acc@1_lo"], table.loc[method, "h_acc@1_hi"]
         assert hpatches_line.split()[1:3] == [f"{table.loc[method, 'h_acc@1']:.2f}", f"[{lo:.2f},{hi:.2f}]"]
     log = (out / "demo.log").read_text()
-    assert "hpatches - sift (10 pairs)" in log and "| method" in log  # each run's table, the Markdown table
+    # each run's table, then the set's table (in column blocks that fit 80 columns) with its files
+    assert "hpatches - sift (10 pairs)" in log and "hpatches_table.md" in log
+    assert any(line.split()[:2] == ["method", "source"] for line in log.splitlines())
     assert "hpatches - sift" not in output
 
 
