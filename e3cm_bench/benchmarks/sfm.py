@@ -22,7 +22,6 @@ import pandas as pd
 from .. import metrics
 from ..datasets.base import Pair
 from ..matches import Matches, distinct
-from ..reporting import plots
 from ..sfm import metrics as sfm_metrics
 from ..sfm.dataset import MultiViewSet
 from .base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
@@ -98,9 +97,13 @@ class SfMBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *self.table_metrics.values(), "registered_images", "n_models"]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
+        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+
         cdf = stem.with_name(stem.stem + "_pose_cdf.png")
         return [plots.plot_pose_error_cdf({label: p for label, (_, p) in runs.items()}, cdf)]
 
