@@ -18,66 +18,32 @@ from .reporting import tables as report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
 from .benchmarks.protocols import get_protocol
 from .files import absolute_paths, load_yaml, save_yaml
+from .backbone_names import DEFAULT_BACKBONE
 from .matchers import get_matcher
 from .method import MethodSpec
+from .options import KINDS, config_keys
 from .paper import resolve_config
 from .run import RunFolder
 from .runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
-METHOD_KEYS = {"label", "matcher", "backbone", "weights", "estimator", "sampson_px", "ratio", "max_side", "settings"}
-EXPERIMENT_KEYS = {"name", "benchmark", "dataset", "seed", "max_side", "backbone", "methods", "protocol"}
-
-
-# What each key's value must be, checked before anything reads it, so that a value of the wrong
-# kind is one line naming the file and the key instead of a traceback deep in a run (a label of
-# 123 used as a folder name, a max_side of "big" compared with 0). YAML reads `no` and `"no"`
-# differently; a flag takes true/false only, since a quoted "no" would be truthy.
-def _text(value) -> bool:
-    return isinstance(value, str) and value.strip() != ""
-
-
-def _whole(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _numbers(value) -> bool:
-    return _number(value) or isinstance(value, list) and bool(value) and all(_number(v) for v in value)
-
-
-def _texts(value) -> bool:
-    return _text(value) or isinstance(value, list) and bool(value) and all(_text(v) for v in value)
-
-
-_KINDS = {
-    "text": (_text, "non-empty text"),
-    "whole": (_whole, "a whole number >= 0"),
-    "numbers": (_numbers, "a number or a list of numbers"),
-    "mapping": (lambda v: isinstance(v, dict), "a mapping of NAME: VALUE"),
-    "flag": (lambda v: isinstance(v, bool), "true or false"),
-    "texts": (_texts, "text or a list of texts"),
-}
-EXPERIMENT_TYPES = {"name": "text", "benchmark": "text", "seed": "whole", "max_side": "whole", "backbone": "text",
-                    "protocol": "text", "dataset": "mapping"}
-METHOD_TYPES = {"matcher": "text", "label": "text", "backbone": "text", "weights": "text", "estimator": "text",
-                "sampson_px": "numbers", "ratio": "numbers", "max_side": "whole", "settings": "mapping"}
-# a dataset option's kind (benchmarks.base.OPTION_KINDS) -> what its value in a config must be
-DATASET_TYPES = {"flag": "flag", "path": "text", "paths": "texts", "names": "texts", "text": "text"}
+# The keys of a config and the kind of each value (options.KINDS), made from the method options'
+# declarations (options.METHOD_OPTIONS: where a config takes each); the experiment's own besides.
+METHOD_TYPES = config_keys("method")
+EXPERIMENT_TYPES = {"name": "text", "benchmark": "text", "dataset": "mapping", **config_keys("experiment")}
+METHOD_KEYS = set(METHOD_TYPES)
+EXPERIMENT_KEYS = set(EXPERIMENT_TYPES) | {"methods"}
 
 
 def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = ()) -> None:
-    """A one-line ValueError naming the file and the first key whose value is not of its kind
-    (`nullable` keys may also be null: the default)."""
+    """A one-line ValueError naming the file and the first key whose value is not of its kind,
+    checked before anything reads it (a label of 123 used as a folder name, a max_side of "big"
+    compared with 0); `nullable` keys may also be null: the default."""
     for key, kind in types.items():
         if key not in values or values[key] is None and key in nullable:
             continue
-        test, wanted = _KINDS[kind]
-        if not test(values[key]):
-            raise ValueError(f"{path}: {where}{key!r} must be {wanted}, got {values[key]!r}")
+        if not KINDS[kind].test(values[key]):
+            raise ValueError(f"{path}: {where}{key!r} must be {KINDS[kind].wanted}, got {values[key]!r}")
 
 
 def experiment_method(
@@ -90,7 +56,7 @@ def experiment_method(
     every deep method (reproduce --backbone) is appended in brackets.
     """
     matcher = entry["matcher"]
-    own_backbone = entry.get("backbone", experiment.get("backbone", "vgg19"))
+    own_backbone = entry.get("backbone", experiment.get("backbone", DEFAULT_BACKBONE))
     max_side = max_side_override if max_side_override is not None else entry.get("max_side", experiment.get("max_side"))
     spec = benchmark.resolve_method(
         matcher, protocol=experiment.get("protocol", "default"), backbone=backbone_override or own_backbone,
@@ -118,7 +84,7 @@ def load_experiment(path: Path) -> dict:
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])
-    kinds = {o.name: DATASET_TYPES[o.kind] for o in benchmark.command_options()}
+    kinds = {o.name: o.kind for o in benchmark.command_options()}
     _check_types(path, "dataset: ", config.get("dataset") or {}, kinds, nullable=tuple(kinds))
     methods = config.get("methods")
     if not isinstance(methods, list) or not methods:
@@ -185,20 +151,7 @@ def reproduce(
     protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
     ev = benchmark.resolve_eval(experiment.get("protocol", "default"), seed=int(experiment.get("seed", 0)))
     out = Path(out)
-    entries = experiment["methods"]
-    if only:
-        # the config's own labels (a backbone forced on the deep methods adds to them later)
-        labels = [experiment_method(e, experiment, benchmark, None, max_side, available=False).label for e in entries]
-        unknown = sorted(set(only) - set(labels))
-        if unknown:
-            raise ValueError(f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}")
-        entries = [e for e, label in zip(entries, labels) if label in only]
-    methods = []
-    for i, entry in enumerate(entries):
-        try:
-            methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
-        except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
-            raise ValueError(f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)") from None
+    methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": skip_bad}
@@ -218,6 +171,26 @@ def reproduce(
                       f"(or: e3cm-bench merge {out})", markup=False)
         return None
     return _table_and_report(run_dirs, out, compare, console)
+
+
+def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, backbone: str | None,
+             max_side: int | None, only: list[str] | None) -> list[MethodSpec]:
+    """The methods reproduce runs: every one of the config's, or those labelled in `only`."""
+    entries = experiment["methods"]
+    if only:
+        # the config's own labels (a backbone forced on the deep methods adds to them later)
+        labels = [experiment_method(e, experiment, benchmark, None, max_side, available=False).label for e in entries]
+        unknown = sorted(set(only) - set(labels))
+        if unknown:
+            raise ValueError(f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}")
+        entries = [e for e, label in zip(entries, labels) if label in only]
+    methods = []
+    for entry in entries:
+        try:
+            methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
+        except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
+            raise ValueError(f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)") from None
+    return methods
 
 
 def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None) -> tuple[Path, Path]:

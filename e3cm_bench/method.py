@@ -10,9 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .backbone_names import DEFAULT_BACKBONE
 from .files import file_sha256
 from .images import RESIZE_MODES
 from .matchers import check_settings, get_matcher, resolve
+from .options import check_method_values, resolved_side
 
 
 @dataclass(frozen=True)
@@ -23,7 +25,7 @@ class MethodSpec:
     settings: the matcher's own fields (E3CMSettings / DFMSettings) as sorted (key, value)
     pairs, lists turned into tuples, so that the spec is hashable and compares by value.
     max_side: longer side for matching, None = full resolution (already resolved against
-    the benchmark's default). resize: how images are brought to max_side (images.RESIZE_MODES:
+    the benchmark's default; what config.yaml records, options.resolved_side). resize: how images are brought to max_side (images.RESIZE_MODES:
     shrink, ours; exact, SuperGlue's; exact-div8, LoFTR's). seed: the seed of the matcher's robust estimators, None for
     matchers that draw no random numbers (their matches do not depend on it). upright: match
     images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
@@ -33,7 +35,7 @@ class MethodSpec:
     """
 
     matcher: str = "e3cm"
-    backbone: str | None = "vgg19"
+    backbone: str | None = DEFAULT_BACKBONE
     weights: str | None = None
     weights_sha256: str | None = None
     settings: tuple[tuple[str, object], ...] = ()
@@ -48,7 +50,7 @@ class MethodSpec:
     def create(
         cls,
         matcher: str = "e3cm",
-        backbone: str = "vgg19",
+        backbone: str = DEFAULT_BACKBONE,
         weights: str | Path | None = None,
         estimator: str | None = None,
         sampson_px: tuple[float, ...] | None = None,
@@ -61,60 +63,40 @@ class MethodSpec:
         resize: str = "shrink",
         available: bool = True,
     ) -> MethodSpec:
-        """Options as a user gives them -> a spec. The shorthands ratio, estimator and
-        sampson_px become settings of the matcher where it takes them (its registry entry
-        says) and are ignored where not, never guessed. options: further settings by name
-        (`--set KEY=VALUE`: e.g. dfm's variant, e3cm's ratio_at, num_levels, channel_order);
-        these are checked, and a name the matcher does not have is an error. A preset
-        (e3cm-ransac) becomes its matcher with its settings (the same identity, and the same
-        default label: e3cm + estimator ransac reads e3cm-ransac). available=False checks the
+        """Options as a user gives them -> a spec. Each is checked against its declaration
+        (options.METHOD_OPTIONS: one line naming the first of the wrong kind). The shorthands
+        ratio, estimator and sampson_px become settings of the matcher where it takes them
+        (its registry entry says) and are ignored where not, never guessed. options: further
+        settings by name (`--set KEY=VALUE`: e.g. dfm's variant, e3cm's ratio_at, num_levels,
+        channel_order); these are checked, and a name the matcher does not have is an error. A
+        preset (e3cm-ransac) becomes its matcher with its settings (the same identity, and the
+        same default label: e3cm + estimator ransac reads e3cm-ransac). max_side: 0
+        (options.FULL_RESOLUTION) or None is full resolution. available=False checks the
         options only (a config's validation): a peer's extra and weights are not looked for,
-        and the spec, without their hashes, is not one to run."""
+        and the spec, without their hashes, is not one to run. Commands and configs reach
+        this through options.build_method (Benchmark.resolve_method)."""
+        check_method_values({"matcher": matcher, "backbone": backbone, "weights": weights, "estimator": estimator,
+                             "sampson_px": sampson_px, "ratio": ratio, "max_side": max_side, "seed": seed,
+                             "label": label or None, "settings": options})
+        if resize not in RESIZE_MODES:
+            raise ValueError(f"unknown resize {resize!r}; choose one of {', '.join(RESIZE_MODES)}")
         # a preset's own matcher; `matcher` is the user's choice, so module:factory may be imported
         entry, _ = resolve(matcher, {}, allow_import=True)
-        deep = entry.needs_backbone
-        settings: dict = {}
         shorthands = {"ratio": ratio, "estimator": estimator, "sampson_px": sampson_px}
-        for name in entry.shorthands:
-            value = shorthands[name]
-            if value is None:
-                continue
-            settings[name] = value if name == "estimator" else _numbers(value, name)
-            if name == "ratio" and any(not 0 < r <= 1 for r in settings["ratio"]):
-                raise ValueError(f"--ratio values must be in (0, 1], got {','.join(map(str, value))}")
-        for name, value in (options or {}).items():
-            settings[name] = _numbers(value, name) if isinstance(value, (list, tuple)) else value
-        entry, settings = resolve(matcher, settings)
+        entry, settings = resolve(matcher, _given_settings(entry.shorthands, shorthands, options))
         settings = {**entry.recorded, **settings}
         key = entry.name if get_matcher(matcher).preset_of is not None else matcher
         instance = check_settings(key, settings)
-        if max_side is not None and max_side <= 0:
-            raise ValueError(f"max_side must be positive or None (full resolution), got {max_side}")
-        if resize not in RESIZE_MODES:
-            raise ValueError(f"unknown resize {resize!r}; choose one of {', '.join(RESIZE_MODES)}")
         if available:
             entry.check_requirements()
-        takes_weights = deep or entry.model
-        weights_sha256 = None
-        if takes_weights and weights is not None:
-            path = Path(weights)
-            if not path.is_file():
-                raise ValueError(f"{path}: weights file not found")
-            weights_sha256 = file_sha256(path)
-            if entry.weights_beside is not None and available:
-                beside = entry.weights_beside(instance)
-                weights_sha256 = ", ".join([weights_sha256] + [f"{f.name}={file_sha256(f.fetch())}" for f in beside])
-        elif entry.weights is not None and available:
-            # the files the library loads (fetched into its cache first): names and hashes
-            files = entry.weights(instance)
-            weights_sha256 = ", ".join(f"{f.name}={file_sha256(f.fetch())}" for f in files)
+        takes_weights = entry.needs_backbone or entry.model
         spec = cls(
             matcher=key,
-            backbone=backbone if deep else None,
+            backbone=backbone if entry.needs_backbone else None,
             weights=str(weights) if takes_weights and weights is not None else None,
-            weights_sha256=weights_sha256,
+            weights_sha256=_weights_sha256(entry, instance, weights if takes_weights else None, available),
             settings=tuple(sorted(settings.items())),
-            max_side=max_side,
+            max_side=resolved_side(max_side),
             resize=resize,
             seed=int(seed) if entry.is_random(instance) else None,
             upright=bool(upright),
@@ -148,10 +130,10 @@ class MethodSpec:
         return dict(self.settings)
 
     def default_label(self) -> str:
-        """The matcher's name, then "-backbone" unless vgg19, "-estimator" unless top8, "-variant"
+        """The matcher's name, then "-backbone" unless the default backbone (vgg19), "-estimator" unless top8, "-variant"
         of dfm unless release: e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
         name = get_matcher(self.matcher).name  # package.module:factory -> the factory's matcher name
-        label = name if self.backbone in (None, "vgg19") else f"{name}-{self.backbone}"
+        label = name if self.backbone in (None, DEFAULT_BACKBONE) else f"{name}-{self.backbone}"
         settings = self.settings_dict()
         estimator = settings.get("estimator", "top8")
         label = label if estimator == "top8" else f"{label}-{estimator}"
@@ -168,7 +150,7 @@ class MethodSpec:
         build_matcher)."""
         from .matchers import build_matcher
 
-        return build_matcher(self.matcher, self.backbone or "vgg19", self.weights, device, pretrained, self.settings_dict(),
+        return build_matcher(self.matcher, self.backbone or DEFAULT_BACKBONE, self.weights, device, pretrained, self.settings_dict(),
                              loaded=loaded)
 
     @property
@@ -198,6 +180,40 @@ def identity_changes(before: dict, now: dict) -> list[str]:
     # Records written before resize modes existed were all resized the one way there was.
     before = {"resize": "shrink", **before}
     return [k for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k)]
+
+
+def _given_settings(takes: tuple[str, ...], shorthands: dict, options: dict | None) -> dict:
+    """The matcher's settings from the shorthands it takes (`takes`: its registry entry's
+    shorthands; the others are ignored) and --set's options (lists as tuples)."""
+    settings: dict = {}
+    for name in takes:
+        value = shorthands[name]
+        if value is None:
+            continue
+        settings[name] = value if name == "estimator" else _numbers(value, name)
+        if name == "ratio" and any(not 0 < r <= 1 for r in settings["ratio"]):
+            raise ValueError(f"--ratio values must be in (0, 1], got {','.join(map(str, value))}")
+    for name, value in (options or {}).items():
+        settings[name] = _numbers(value, name) if isinstance(value, (list, tuple)) else value
+    return settings
+
+
+def _weights_sha256(entry, instance, weights, available: bool) -> str | None:
+    """The hash of what the matcher loads: the --weights file (and the files a matcher keeps
+    beside it), else the library's own files (fetched into its cache first); None when
+    `available` is False (a config's validation looks for no file)."""
+    if weights is not None:
+        path = Path(weights)
+        if not path.is_file():
+            raise ValueError(f"{path}: weights file not found")
+        digest = file_sha256(path)
+        if entry.weights_beside is not None and available:
+            beside = entry.weights_beside(instance)
+            digest = ", ".join([digest] + [f"{f.name}={file_sha256(f.fetch())}" for f in beside])
+        return digest
+    if entry.weights is not None and available:
+        return ", ".join(f"{f.name}={file_sha256(f.fetch())}" for f in entry.weights(instance))
+    return None
 
 
 def _numbers(values, name: str) -> tuple[float, ...]:

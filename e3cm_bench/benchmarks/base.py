@@ -131,7 +131,8 @@ class Benchmark:
     the Python API only.
     summary: the command's help line. Where its data comes from (the default --root) is its
     entry in datasets/sources.py, which names the benchmark it serves.
-    default_max_side: longer image side for matching when the user gives none (None = full size).
+    default_max_side: longer image side for matching when the user gives none (0, options.FULL_RESOLUTION:
+    full size; None, the older spelling, too).
     ransac_field: the EvalSettings field that ``--ransac-px`` sets.
     paper_table: the paper's numbers, a file shipped in e3cm_bench/paper/ (None: the paper has none).
     table_metrics: paper-table column -> summary.csv column; table_extras: measured-only columns.
@@ -141,7 +142,7 @@ class Benchmark:
     dataset: type[PairList]
     dataset_options: tuple[str | DatasetOption, ...] = ()
     summary: str = ""
-    default_max_side: int | None = None
+    default_max_side: int | None = 0  # options.FULL_RESOLUTION
     ransac_field: str = "homography_ransac_px"
     paper_table: str | None = None
     table_metrics: Mapping[str, str] = field(default_factory=dict)
@@ -180,12 +181,11 @@ class Benchmark:
         return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
 
     def max_side(self, option: int | None) -> int | None:
-        """The resize of a run: the option as given (0 = full size), or this benchmark's default."""
-        if option is None:
-            return self.default_max_side
-        if option < 0:
-            raise ValueError(f"--max-side must be 0 (full resolution) or positive, got {option}")
-        return option or None
+        """The resize of a run: the option as given (0 = full size), or this benchmark's default
+        (options.resolved_side: None is full size in the spec)."""
+        from ..options import resolved_side
+
+        return resolved_side(self.default_max_side if option is None else option, "--max-side")
 
     def eval_settings(self, seed: int = 0, ransac_px: float | None = None, **values) -> EvalSettings:
         if ransac_px is not None:
@@ -193,31 +193,18 @@ class Benchmark:
         return EvalSettings(seed=seed, **values)
 
     # ---- what a command's options mean here: shared by the command line and experiment configs
-    def resolve_method(
-        self, matcher: str, *, protocol: str | None = None, backbone: str = "vgg19", weights=None,
-        estimator: str | None = None, sampson_px=None, ratio=None, max_side: int | None = None, seed: int = 0,
-        label: str | None = None, settings: Mapping | None = None, available: bool = True,
-    ):
-        """The MethodSpec of a matcher on this benchmark under `protocol` (None: its default_protocol).
+    def resolve_method(self, matcher: str, *, protocol: str | None = None, available: bool = True, **options):
+        """The MethodSpec of a matcher on this benchmark under `protocol` (None: its
+        default_protocol); `options`: the other method options by name (options.METHOD_OPTIONS:
+        backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, ...).
 
-        max_side: None takes the protocol's side for this benchmark, else the benchmark's
-        default; 0 is full size. The protocol's matcher settings (num_levels, channel order)
-        apply to deep matchers where `settings` gives none; its resize and upright rule apply
-        to every matcher."""
-        from ..matchers import get_matcher
-        from ..method import MethodSpec
-        from .protocols import get_protocol
+        The one path, options.build_method: max_side None takes the protocol's side for this
+        benchmark, else the benchmark's default; 0 is full size. The protocol's matcher
+        settings (num_levels, channel order) apply to deep matchers where `settings` gives
+        none; its resize and upright rule apply to every matcher."""
+        from ..options import build_method
 
-        preset = get_protocol(protocol or self.default_protocol, self.name)
-        if max_side is None and self.name in preset.max_side:
-            max_side = preset.max_side[self.name] or 0
-        options = dict(settings or {})
-        if get_matcher(matcher, allow_import=True).needs_backbone:  # --matcher is the user's: it may import
-            options = {**preset.method_options.get(self.name, {}), **options}
-        return MethodSpec.create(
-            matcher, backbone, weights, estimator, sampson_px, ratio, self.max_side(max_side), seed, label,
-            options=options, upright=preset.upright, resize=preset.resize_mode(self.name), available=available,
-        )
+        return build_method({"matcher": matcher, "protocol": protocol, **options}, benchmark=self, available=available)
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..options import FULL_RESOLUTION
+
 
 @dataclass(frozen=True)
 class Protocol:
@@ -94,7 +96,7 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
         "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
         ("hpatches", "megadepth", "yfcc"),
-        max_side={"hpatches": None, "megadepth": None, "yfcc": None},
+        max_side={"hpatches": FULL_RESOLUTION, "megadepth": FULL_RESOLUTION, "yfcc": FULL_RESOLUTION},
         method_options={
             "hpatches": {"channel_order": "bgr"},
             "megadepth": {"channel_order": "bgr", "num_levels": 4},
