@@ -19,12 +19,12 @@ import pandas as pd
 from rich.console import Console
 
 from .benchmarks import EvalSettings, get_benchmark
+from .backbone_names import OFFLINE_BACKBONE
 from .files import write_atomically
-from .method import MethodSpec
 from .synth.layouts import write_demo_data
 
-BACKBONE = "efficientnet_lite0"  # the ImageNet backbone that needs no download
-# label -> MethodSpec.create options; every deep method uses BACKBONE.
+BACKBONE = OFFLINE_BACKBONE  # the ImageNet backbone that needs no download
+# label -> method options (options.METHOD_OPTIONS); every deep method uses BACKBONE.
 METHODS = {
     "e3cm": {"matcher": "e3cm"},
     "e3cm-release": {"matcher": "e3cm-release"},
@@ -58,9 +58,6 @@ def run_demo(
     and 2 scene pairs), for a first look and the tests.
     console: the short account; the runs' own output goes to OUT/demo.log.
     """
-    from .experiments import write_table  # here, not at the top: the command line's help reads METHODS
-    from .runner import run_methods  # without loading scipy (cli/common.py, Startup)
-
     console = console or Console()
     out = Path(out)
     methods = methods or list(METHODS)
@@ -72,34 +69,13 @@ def run_demo(
     for line in (f"demo{' --quick' if quick else ''}: {', '.join(methods)}",
                  f"deep methods on {BACKBONE}; data in {out / 'data'}; the runs' output: {out / LOG}"):
         console.print(line, markup=False, highlight=False)
-    tables = {}
     out.mkdir(parents=True, exist_ok=True)
     with open(out / LOG, "w", encoding="utf-8") as log_file:
         # The runs' own account (settings, progress, each run's table, the Markdown tables): kept
         # whole in the log (this run's: a rerun writes its own), at a width that keeps tables intact.
         log = Console(file=log_file, width=120, force_terminal=False, color_system=None)
-        for step, (set_name, (benchmark_name, description)) in enumerate(SETS.items(), 1):
-            benchmark = get_benchmark(benchmark_name)
-            root, options = roots[set_name]
-            dataset = benchmark.load_dataset(root, **options)
-            log.rule(f"demo {step}/{len(SETS)}: {set_name} - {', '.join(methods)}")
-            console.print(f"{step}/{len(SETS)} {set_name}: {_pairs_text(dataset)}, {description}",
-                          markup=False, highlight=False)
-            runs = [(out / set_name / label,
-                     MethodSpec.create(backbone=BACKBONE, max_side=benchmark.max_side(None), seed=seed, label=label,
-                                       **METHODS[label]))
-                    for label in methods]
-            started = time.monotonic()
-            # All methods matched together: each image goes through the backbone once for all. The
-            # spinner is drawn on a terminal only; a log or a pipe gets the lines below.
-            with console.status(f"{set_name}: matching {len(dataset)} pairs with {len(methods)} methods"):
-                run_methods(benchmark, runs, dataset, ev=EvalSettings(seed=seed), viz=viz, device=device, console=log)
-                run_dirs = [run_dir for run_dir, _ in runs]
-                csv_path, _ = write_table(run_dirs, out / f"{set_name}_table", paper_rows=False, compare=False,
-                                          console=log)
-            tables[set_name] = pd.read_csv(csv_path)
-            for line in headline_lines(tables[set_name], HEADLINES[set_name], time.monotonic() - started):
-                console.print(line, markup=False, highlight=False)
+        tables = {set_name: _run_set(step, set_name, roots[set_name], out, methods, seed, viz, device, console, log)
+                  for step, set_name in enumerate(SETS, 1)}
     lines = orderings(tables) or ["none judged: the orderings compare e3cm, e3cm-ransac, direct and dfm"]
     text = "\n".join(f"- {line}" for line in lines) + "\n"
     write_atomically(out / "orderings.md", lambda tmp: tmp.write_text(text))
@@ -107,6 +83,35 @@ def run_demo(
     for line in lines:
         console.print(f"- {line}", markup=False, highlight=False, soft_wrap=False, overflow="fold")
     return tables
+
+
+def _run_set(step: int, set_name: str, data: tuple, out: Path, methods: list[str], seed: int, viz: int,
+             device: str, console: Console, log: Console) -> pd.DataFrame:
+    """One set of the demo: every method's run (through the benchmark's one path to a method,
+    Benchmark.resolve_method, under its default protocol), then its table; returns the table."""
+    from .experiments import write_table  # here, not at the top: the command line's help reads METHODS
+    from .runner import run_methods  # without loading scipy (cli/common.py, Startup)
+
+    benchmark_name, description = SETS[set_name]
+    benchmark = get_benchmark(benchmark_name)
+    root, options = data
+    dataset = benchmark.load_dataset(root, **options)
+    log.rule(f"demo {step}/{len(SETS)}: {set_name} - {', '.join(methods)}")
+    console.print(f"{step}/{len(SETS)} {set_name}: {_pairs_text(dataset)}, {description}", markup=False, highlight=False)
+    runs = [(out / set_name / label,
+             benchmark.resolve_method(backbone=BACKBONE, seed=seed, label=label, **METHODS[label]))
+            for label in methods]
+    started = time.monotonic()
+    # All methods matched together: each image goes through the backbone once for all. The
+    # spinner is drawn on a terminal only; a log or a pipe gets the lines below.
+    with console.status(f"{set_name}: matching {len(dataset)} pairs with {len(methods)} methods"):
+        run_methods(benchmark, runs, dataset, ev=EvalSettings(seed=seed), viz=viz, device=device, console=log)
+        csv_path, _ = write_table([run_dir for run_dir, _ in runs], out / f"{set_name}_table", paper_rows=False,
+                                  compare=False, console=log)
+    table = pd.read_csv(csv_path)
+    for line in headline_lines(table, HEADLINES[set_name], time.monotonic() - started):
+        console.print(line, markup=False, highlight=False)
+    return table
 
 
 def _pairs_text(dataset) -> str:

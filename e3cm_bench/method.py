@@ -104,6 +104,19 @@ class MethodSpec:
         )
         return spec.with_label(label or spec.default_label())
 
+    @classmethod
+    def from_identity(cls, identity: dict, label: str = "") -> MethodSpec:
+        """The spec a run folder recorded (config.yaml `identity`, as identity() wrote it): a
+        recorded method is read back, not resolved again from options (its weights' hashes and
+        the protocol's choices are in the record). Keys this version does not know are left out."""
+        fields = dict(identity)
+        settings = fields.pop("settings", None) or {}
+        fields["settings"] = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in settings.items()))
+        if fields.get("plugin") is not None:
+            fields["plugin"] = tuple(sorted(dict(fields["plugin"]).items()))
+        known = set(cls.__dataclass_fields__) - {"label"}
+        return cls(**{k: v for k, v in fields.items() if k in known}, label=label)
+
     def with_label(self, label: str) -> MethodSpec:
         return MethodSpec(**{**self.identity_fields(), "label": label})
 

@@ -97,6 +97,10 @@ KINDS: dict[str, Kind] = {
 }
 
 
+# The kinds a benchmark's dataset option may be (benchmarks/base.py DatasetOption).
+DATASET_KINDS = ("flag", "path", "paths", "names", "text")
+
+
 # ---- the method options
 @dataclass(frozen=True)
 class MethodOption:
@@ -214,7 +218,7 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
     values = with_defaults(given)
     check_method_values(values)
     deep = get_matcher(values["matcher"], allow_import=True).needs_backbone  # the user's: it may import
-    settings = _deep_settings(values, device, warn) if deep else {}
+    settings = deep_settings(values, device, warn) if deep else {}
     settings.update(values["settings"] or {})
     side, upright, resize = values["max_side"], True, "shrink"
     if benchmark is not None:
@@ -233,7 +237,7 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
     )
 
 
-def _deep_settings(values: Mapping, device: str, warn) -> dict:
+def deep_settings(values: Mapping, device: str, warn) -> dict:
     """--precision and --channel-order as matcher settings (left out at their defaults)."""
     settings = {}
     precision = values["precision"]

@@ -16,6 +16,7 @@ import pandas as pd
 from .. import metrics
 from ..datasets.base import Pair, PairList
 from ..matches import Matches
+from ..options import DATASET_KINDS
 
 
 @dataclass(frozen=True)
@@ -80,8 +81,8 @@ class EvalSettings:
 
 
 # How a dataset option reads on the command line: a switch, one path, several paths (the option
-# repeated), several names (repeated), or one word.
-OPTION_KINDS = ("flag", "path", "paths", "names", "text")
+# repeated), several names (repeated), or one word (options.KINDS says how each is typed and checked).
+OPTION_KINDS = DATASET_KINDS
 
 # The per_pair.csv column of the correspondences a matcher returned more than once for a pair:
 # the evaluation scores each correspondence once (matches.distinct), and this says how many

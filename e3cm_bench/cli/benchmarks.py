@@ -5,33 +5,15 @@ from __future__ import annotations
 
 import inspect
 from dataclasses import dataclass
-from pathlib import Path
+from types import SimpleNamespace
 from typing import Annotated, Optional
 
 import typer
 
-from ..backbone_names import DEFAULT_BACKBONE
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from .common import app, console, MatcherOpt, BackboneOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, LabelOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, BackboneBatchOpt, FeatureCacheOpt, ProtocolOpt, parse_settings, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, SeedOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
-
-
-def _method(bench: Benchmark, matcher: str, backbone: str, weights: Path | None, estimator: str | None,
-            sampson_px: str | None, ratio: str | None, max_side: int | None, seed: int, label: str | None,
-            settings: list[str] | None, protocol: str, precision: str = "fp32",
-            channel_order: str = "rgb", device: str = "cpu") -> MethodSpec:
-    """The method of a benchmark command (Benchmark.resolve_method, as experiment configs get theirs)."""
-    from ..matchers import get_matcher
-    from ..method import parse_numbers
-
-    deep = get_matcher(matcher, allow_import=True).needs_backbone
-    # precision and channel order concern deep matchers only
-    options = parse_settings(settings, precision, channel_order, device) if deep else parse_settings(settings)
-    return bench.resolve_method(
-        matcher, protocol=protocol, backbone=backbone, weights=weights, estimator=estimator,
-        sampson_px=parse_numbers(sampson_px, "--sampson-px"), ratio=parse_numbers(ratio, "--ratio"),
-        max_side=max_side, seed=seed, label=label, settings=options,
-    )
+from ..options import KINDS, METHOD_OPTIONS
+from .common import app, console, method_option, build_command_method, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
 
 
 @dataclass(frozen=True)
@@ -45,56 +27,62 @@ class Scale:
     launcher: str = "local"
     shards: int = 0
 
-    def check(self) -> None:
+    def check(self, eval_only: bool = False, device: str = "cpu") -> None:
+        from ..run.launch import check_launcher, check_workers
+
+        check_launcher(self.launcher)
         several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
                                                 ("--devices", self.devices), ("--launcher slurm", self.launcher == "slurm"))
                    if given]
         if len(several) > 1:
             raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
+        if eval_only and several and several != ["--shard"]:
+            # the metrics of a merged run are recomputed from its matches.h5 in one process
+            raise ValueError(f"--eval-only recomputes the metrics in this process: drop {several[0]}")
+        if self.devices and device != "cpu":
+            raise ValueError("--device and --devices do not go together: --devices names each shard's device")
         if not self.devices:
-            from ..run.launch import check_workers
-
             check_workers(self.workers)
         if self.launcher == "slurm" and not self.shards:
             raise ValueError("--launcher slurm needs --shards N")
 
+    def device_list(self, device: str) -> list[str]:
+        """The device of each local worker: --devices', else --device for each of --workers."""
+        return self.devices.split(",") if self.devices else [device] * self.workers
 
-def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path | None, matcher: str, backbone: str,
-                weights: Path | None, max_side: int | None, limit: int | None, sample: int | None, sample_seed: int,
-                device: str, seed: int,
-                overwrite: bool, eval_only: bool, viz: int, estimator: str | None, sampson_px: str | None,
-                ratio: str | None, label: str | None, settings: list[str] | None, protocol: str | None, precision: str,
-                channel_order: str, feature_cache_mb: float | None, backbone_batch: int | None, skip_bad: bool,
-                ransac_px: float | None, pose_estimator: str | None, repeats: int, on_matcher_error: str,
-                pair_timeout: float | None,
-                shard: str | None, workers: int, devices: str | None, launcher: str, shards: int) -> None:
-    """What every benchmark command does with its options (the commands are made by benchmark_command)."""
+
+def run_command(bench: Benchmark, given: dict) -> None:
+    """What every benchmark command does with its options (the commands are made by
+    benchmark_command): `given` holds the method options (options.METHOD_OPTIONS), the
+    benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
     from ..download import find_root
     from ..run.launch import run_shards
     from ..run.shards import parse_shard
     from ..run.stage import MatchOptions
     from ..runner import run_benchmark
 
-    protocol = protocol or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
-    method = _method(bench, matcher, backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings,
-                     protocol, precision, channel_order, device)
-    scale = Scale(shard, workers, devices, launcher, shards)
-    scale.check()
-    if sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
-        dataset_options = {**dataset_options, "sample": sample, "sample_seed": sample_seed}
+    dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
+    method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
+    o = SimpleNamespace(**given)
+    protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
+    method = build_command_method(method_given, bench, o.device)
+    scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
+    scale.check(o.eval_only, o.device)
+    if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
+        dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
     console.print(get_protocol(protocol, bench.name).line(), markup=False)
-    ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator, repeats)
-    run = dict(benchmark=bench.name, out=out, method=method, root=find_root(bench.name, root),
-               dataset_options=dataset_options, skip_bad=skip_bad, ev=ev, limit=limit, overwrite=overwrite, viz=viz,
-               options=MatchOptions(feature_cache_mb, backbone_batch=backbone_batch, on_matcher_error=on_matcher_error,
-                                    pair_timeout=pair_timeout))
-    if workers or devices:
-        device_list = devices.split(",") if devices else ["cpu"] * workers
-        run_shards(run, len(device_list), devices=device_list, console=console)
-    elif launcher == "slurm":
-        run_shards(run, shards, launcher="slurm", console=console)
+    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
+    run = dict(benchmark=bench.name, out=o.out, method=method, root=find_root(bench.name, o.root),
+               dataset_options=dataset_options, skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite,
+               viz=o.viz, options=MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch,
+                                               on_matcher_error=o.on_matcher_error, pair_timeout=o.pair_timeout))
+    if o.workers or o.devices:
+        devices = scale.device_list(o.device)
+        run_shards(run, len(devices), devices=devices, console=console)
+    elif o.launcher == "slurm":
+        run_shards(run, o.shards, devices=[o.device], launcher="slurm", console=console)
     else:
-        run_benchmark(**run, eval_only=eval_only, device=device, shard=parse_shard(shard) if shard else None,
+        run_benchmark(**run, eval_only=o.eval_only, device=o.device, shard=parse_shard(o.shard) if o.shard else None,
                       console=console)
 
 
@@ -102,16 +90,20 @@ def run_command(bench: Benchmark, dataset_options: dict, out: Path, root: Path |
 SampleOpt = Annotated[Optional[int], typer.Option("--sample", help="A stratified sample of N pairs: spread over the categories, scenes or sequences (--limit takes the first N).")]
 SampleSeedOpt = Annotated[int, typer.Option("--sample-seed", help="Seed of --sample's draw (recorded in config.yaml).")]
 
+
+def _method(*names: str) -> tuple:
+    """Method options by name, each with its typer option and default from its one declaration."""
+    return tuple((name, method_option(name), METHOD_OPTIONS[name].default) for name in names)
+
+
 # Every benchmark command's options, in the order --help lists them; the benchmark's own
 # dataset options (Benchmark.dataset_options) come between the two groups.
 _NO_DEFAULT = inspect.Parameter.empty
 COMMON_BEFORE = (
-    ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), ("matcher", MatcherOpt, "e3cm"),
-    ("backbone", BackboneOpt, DEFAULT_BACKBONE), ("weights", WeightsOpt, None), ("max_side", MaxSideOpt, None),
-    ("limit", LimitOpt, None), ("sample", SampleOpt, None), ("sample_seed", SampleSeedOpt, 0), ("device", DeviceOpt, "cpu"), ("seed", SeedOpt, 0), ("overwrite", OverwriteOpt, False),
-    ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0), ("estimator", EstimatorOpt, None),
-    ("sampson_px", SampsonOpt, None), ("ratio", RatioOpt, None), ("label", LabelOpt, None), ("settings", SetOpt, None),
-    ("protocol", ProtocolOpt, None), ("precision", PrecisionOpt, "fp32"), ("channel_order", ChannelOrderOpt, "rgb"),
+    ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), *_method("matcher", "backbone", "weights", "max_side"),
+    ("limit", LimitOpt, None), ("sample", SampleOpt, None), ("sample_seed", SampleSeedOpt, 0), ("device", DeviceOpt, "cpu"),
+    *_method("seed"), ("overwrite", OverwriteOpt, False), ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0),
+    *_method("estimator", "sampson_px", "ratio", "label", "settings", "protocol", "precision", "channel_order"),
     ("feature_cache_mb", FeatureCacheOpt, None), ("backbone_batch", BackboneBatchOpt, None),
 )
 COMMON_AFTER = (
@@ -120,15 +112,13 @@ COMMON_AFTER = (
     ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
     ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0),
 )
-# A dataset option's kind (benchmarks/base.py OPTION_KINDS) -> its type and default on the command line.
-OPTION_TYPES = {"flag": (bool, False), "path": (Optional[Path], None), "paths": (Optional[list[Path]], None),
-                "names": (Optional[list[str]], None), "text": (Optional[str], None)}
-
-
 def option_parameter(option, help_text: str) -> inspect.Parameter:
-    """A dataset option as a keyword parameter typer reads as a command-line option."""
-    kind, default = OPTION_TYPES[option.kind]
+    """A dataset option as a keyword parameter typer reads as a command-line option: its kind's
+    type (options.KINDS), a switch off by default, any other kind absent by default."""
+    flag = option.kind == "flag"
+    kind = KINDS[option.kind].cli if flag else Optional[KINDS[option.kind].cli]
     annotation = Annotated[kind, typer.Option(option.flag, help=help_text)]
+    default = False if flag else None
     return inspect.Parameter(option.name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
 
 
@@ -142,8 +132,7 @@ def benchmark_command(bench: Benchmark):
     dataset options (typer reads the signature built here, as it reads a written one)."""
 
     def command(**given) -> None:
-        dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
-        run_command(bench, dataset_options, **given)
+        run_command(bench, given)
 
     common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
                                               annotation=annotation) for name, annotation, default in group]

@@ -22,10 +22,10 @@ import typer
 from rich.console import Console
 
 from .. import __version__
-from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from ..benchmarks import BENCHMARKS
 from ..benchmarks.protocols import PROTOCOLS
 from ..matching import ESTIMATORS
+from ..options import METHOD_OPTIONS
 
 
 app = typer.Typer(
@@ -50,39 +50,71 @@ def main(
 ) -> None:
     """Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / WxBS / EVD benchmarks."""
 
-# Options shared by `match` and the benchmark commands.
-MatcherOpt = Annotated[str, typer.Option("--matcher", help="A matcher's name (e3cm-bench matchers lists them: built-ins and installed plugins) or package.module:factory.")]
-BackboneOpt = Annotated[str, typer.Option("--backbone", help=f"One of: {', '.join(BACKBONES)} ({DEFAULT_BACKBONE}: the paper's, downloads its ImageNet weights once; {OFFLINE_BACKBONE}: no download).")]
-WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", help="Local state-dict file for the backbone (instead of the ImageNet download).")]
+def method_option(name: str, help: str | None = None, flags: tuple[str, ...] | None = None):
+    """The typer option of a method option, made from its one declaration (options.METHOD_OPTIONS):
+    its flags, type and help (`help`, `flags`: a command's own words, where they differ)."""
+    option = METHOD_OPTIONS[name]
+    text = (help or option.help).format(estimators=", ".join(ESTIMATORS), protocols=", ".join(PROTOCOLS))
+    return Annotated[option.cli_type, typer.Option(*(flags or option.flags), help=text)]
+
+
+# Options shared by `match` and the benchmark commands (the benchmark commands list theirs by
+# name: cli/benchmarks.py COMMON_BEFORE).
+MatcherOpt = method_option("matcher")
+BackboneOpt = method_option("backbone")
+WeightsOpt = method_option("weights")
+EstimatorOpt = method_option("estimator")
+SampsonOpt = method_option("sampson_px")
+RatioOpt = method_option("ratio")
+LabelOpt = method_option("label")
+SetOpt = method_option("settings")
+PrecisionOpt = method_option("precision")
+ChannelOrderOpt = method_option("channel_order")
+ProtocolOpt = method_option("protocol")
+MaxSideOpt = method_option("max_side")
+SeedOpt = method_option("seed")
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
-EstimatorOpt = Annotated[Optional[str], typer.Option("--estimator", "--cascade-estimator", help=f"e3cm: how the cascade estimates F per level: {', '.join(ESTIMATORS)} (default top8 = the paper).")]
-SampsonOpt = Annotated[Optional[str], typer.Option("--sampson-px", help="Sampson thresholds in pixels for levels 0,1,2,3, comma-separated.")]
-RatioOpt = Annotated[Optional[str], typer.Option("--ratio", help="Ratio-test thresholds for levels 0..4, comma-separated.")]
-LabelOpt = Annotated[Optional[str], typer.Option("--label", help="Method name in tables and plots (default: matcher[-backbone]).")]
-SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further matcher setting (repeatable), e.g. variant=corrected (dfm), ratio_at=own (e3cm), cascade=false (e3cm-release), num_levels=4, channel_order=bgr.")]
-PrecisionOpt = Annotated[str, typer.Option("--precision", help="Backbone precision: fp32 (exact, default), bf16 (CPUs with AVX-512 BF16/AMX, GPUs), fp16 (GPUs), or auto: bf16 where the device computes it natively, else fp32 (fp16 on a GPU without bf16).")]
-ChannelOrderOpt = Annotated[str, typer.Option("--channel-order", help="rgb (default) or bgr: the channel order fed to the network (the E3CM release's eval scripts feed BGR).")]
 BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", show_default="8 on a GPU, 1 on a CPU", help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the feature cache lacks go through the network with it (for GPUs; needs the cache).")]
 FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
-ProtocolOpt = Annotated[Optional[str], typer.Option("--protocol", help=f"Evaluation preset: {', '.join(PROTOCOLS)}; default: wxbs on WxBS and EVD (their reference's), else default (docs/benchmarks.md: Protocols).")]
+
+
+def method_values(given: dict, device: str = "cpu") -> dict:
+    """A command's method options as typed -> as options.build_method takes them: the
+    comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; a precision that
+    will be emulated on `device` is said on stderr (by build_method)."""
+    from ..method import parse_numbers
+
+    values = dict(given)
+    for name in ("sampson_px", "ratio"):
+        if isinstance(values.get(name), str):
+            values[name] = parse_numbers(values[name], METHOD_OPTIONS[name].flags[0])
+    if "settings" in values and not isinstance(values["settings"], dict):
+        values["settings"] = parse_settings(values["settings"])
+    return values
+
+
+def warn(message: str) -> None:
+    err_console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
+
+
+def build_command_method(given: dict, benchmark=None, device: str = "cpu", available: bool = True):
+    """The MethodSpec of a command's options: method_values, then the one path (options.build_method)."""
+    from ..options import build_method
+
+    return build_method(method_values(given, device), benchmark=benchmark, device=device, available=available,
+                        warn=warn)
 
 
 def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:
     """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
     a precision other than fp32 and a channel order other than rgb join them (the defaults are
-    left out, so that runs with them keep their identity). --precision auto is resolved for
-    `device` here (the identity records what runs); a precision that will be emulated is said."""
-    if precision != "fp32":
-        from ..devices import resolve_precision
-
-        precision, warning = resolve_precision(precision, device)
-        if warning:
-            err_console.print(f"[yellow]warning[/]: {warning}", highlight=False, soft_wrap=True)
+    left out, so that runs with them keep their identity: options.deep_settings). --precision
+    auto is resolved for `device` here (the identity records what runs); a precision that will
+    be emulated is said."""
     from ..files import load_yaml_text
+    from ..options import deep_settings
 
-    settings = {} if precision == "fp32" else {"precision": precision}
-    if channel_order != "rgb":
-        settings["channel_order"] = channel_order
+    settings = deep_settings({"precision": precision, "channel_order": channel_order}, device, warn)
     for item in pairs or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
@@ -191,9 +223,7 @@ LauncherOpt = Annotated[str, typer.Option("--launcher", help="slurm: submit --sh
 ShardsOpt = Annotated[int, typer.Option("--shards", help="Number of shards for --launcher slurm.")]
 RootOpt = Annotated[Optional[Path], typer.Option("--root", help="Dataset root folder (default: the downloaded data under $E3CM_BENCH_DATA, else ./data; e3cm-bench datasets).")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Run folder (config.yaml, matches.h5, CSVs, plots).")]
-MaxSideOpt = Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (0 = full resolution).")]
 LimitOpt = Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs.")]
-SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of every RANSAC (set before each pair).")]
 OverwriteOpt = Annotated[bool, typer.Option("--overwrite", help="Discard matches already in --out.")]
 EvalOnlyOpt = Annotated[bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")]
 VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")]

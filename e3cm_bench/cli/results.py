@@ -91,8 +91,9 @@ def reproduce(
     from ..download import find_root
     from ..experiments import reproduce as reproduce_experiment
     from ..run.shards import parse_shard
-    from ..run.launch import run_experiment_shards
+    from ..run.launch import check_launcher, run_experiment_shards
 
+    check_launcher(launcher)
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
@@ -179,17 +180,7 @@ def check(
     width = text_width(console)  # 80 columns in a CI log or a pipe
     # First: a broken per-pair baseline is refused before the noise gate reads it.
     consistency = regression.consistency_problems(runs, baseline)
-    bad, lines, text = 0, [], ""
-    others, checked = runs, 0
-    if regression.has_noise_model(baseline):
-        verdicts, others, metric_alpha = regression.gate(runs, baseline, alpha)
-        checked += sum(len(v.gates) for v in verdicts)
-        for verdict in verdicts:
-            lines += regression.verdict_lines(verdict)
-        bad += sum(g.status == "regression" for v in verdicts for g in v.gates)
-        text += regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
-        console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
-                      f"{metric_alpha:.2g} per metric)", highlight=False, markup=False, width=width)
+    bad, lines, text, others, checked = _noise_gate(runs, baseline, alpha, width)
     limits = regression.Tolerances.load(tolerance, tolerances)
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
     problems += consistency
@@ -214,6 +205,23 @@ def check(
                   + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False)
     if bad:
         raise typer.Exit(1)
+
+
+def _noise_gate(runs, baseline: Path, alpha: float, width: int) -> tuple[int, list, str, list, int]:
+    """check's gate under the noise ensemble beside the baseline, where there is one: the
+    regressions it found, the lines saying them, its Markdown, the runs it does not hold (left
+    to the tolerances) and how many metrics it checked."""
+    from ..reporting import check as regression
+
+    if not regression.has_noise_model(baseline):
+        return 0, [], "", runs, 0
+    verdicts, others, metric_alpha = regression.gate(runs, baseline, alpha)
+    lines = [line for verdict in verdicts for line in regression.verdict_lines(verdict)]
+    bad = sum(g.status == "regression" for v in verdicts for g in v.gates)
+    text = regression.gate_markdown(verdicts, metric_alpha, alpha, baseline)
+    console.print(f"noise model: {regression.noise_path(baseline)} (false-alarm rate {alpha:g} per check, "
+                  f"{metric_alpha:.2g} per metric)", highlight=False, markup=False, width=width)
+    return bad, lines, text, others, sum(len(v.gates) for v in verdicts)
 
 
 def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:

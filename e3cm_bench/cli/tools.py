@@ -8,7 +8,12 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, BackboneOpt, WeightsOpt, DeviceOpt, parse_settings, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
+from .common import app, console, build_command_method, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
+
+
+# calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
+CalibrateMaxSideOpt = method_option("max_side", help="Longer image side for matching (default: full resolution).")
+CalibrateSetOpt = method_option("settings", help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.")
 
 
 @app.command()
@@ -20,27 +25,26 @@ def calibrate(
     backbone: BackboneOpt = DEFAULT_BACKBONE,
     weights: WeightsOpt = None,
     frames: Annotated[list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")] = [1, 3, 5, 10],  # noqa: B006
-    max_side: Annotated[Optional[int], typer.Option("--max-side", help="Longer image side for matching (default: full resolution).")] = None,
+    max_side: CalibrateMaxSideOpt = None,
     seed: SeedOpt = 0,
     device: DeviceOpt = "cpu",
     unrectified: Annotated[bool, typer.Option("--unrectified", help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).")] = False,
     overwrite: OverwriteOpt = False,
-    settings: Annotated[Optional[list[str]], typer.Option("--set", help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.")] = None,
+    settings: CalibrateSetOpt = None,
 ) -> None:
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
     from ..calibration.run import CalibrationSettings, run_calibration
     from ..matchers import get_matcher
-    from ..method import MethodSpec
 
-    options = parse_settings(settings)
     given = " ".join(item.strip() for item in settings or [])
     methods = []
     for name in matcher:
         deep = get_matcher(name, allow_import=True).needs_backbone
         label = f"{name} {given}".strip() if deep and given else name
         label = label if backbone == DEFAULT_BACKBONE or not deep else f"{label} [{backbone}]"
-        methods.append(MethodSpec.create(name, backbone=backbone, weights=weights, max_side=max_side or None, seed=seed,
-                                         label=label, options=options if deep else None))
+        # no benchmark: the one path without one (the side as given, none: full resolution); --set is the deep matchers'
+        methods.append(build_command_method(dict(matcher=name, backbone=backbone, weights=weights, max_side=max_side,
+                                                 seed=seed, label=label, settings=settings if deep else None)))
     run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
                     unrectified=unrectified, overwrite=overwrite, console=console)
 

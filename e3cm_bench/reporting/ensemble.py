@@ -39,10 +39,7 @@ def method_of(config: dict, where: Path) -> MethodSpec:
     identity = dict(config.get("identity") or {})
     if not identity or identity.get("plugin"):
         raise ValueError(f"{where}: the ensemble reruns built-in matchers only (no identity, or a plugin's)")
-    settings = identity.pop("settings", None) or {}
-    identity["settings"] = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in settings.items()))
-    known = set(MethodSpec.__dataclass_fields__) - {"label", "plugin"}
-    return MethodSpec(**{k: v for k, v in identity.items() if k in known}, label=str(config.get("method") or ""))
+    return MethodSpec.from_identity(identity, label=str(config.get("method") or ""))
 
 
 def eval_settings_of(config: dict, seed: int | None = None) -> EvalSettings:

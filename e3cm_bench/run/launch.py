@@ -34,6 +34,15 @@ def max_cpu_workers() -> tuple[int, str]:
     return max(1, min(cores, by_memory)), why
 
 
+LAUNCHERS = ("local", "slurm")  # --launcher: this machine's processes, or a SLURM array (submitit)
+
+
+def check_launcher(launcher: str) -> None:
+    """A one-line ValueError for a --launcher that is not one of LAUNCHERS."""
+    if launcher not in LAUNCHERS:
+        raise ValueError(f"--launcher {launcher!r}: choose one of {', '.join(LAUNCHERS)}")
+
+
 def check_workers(workers: int) -> None:
     """A one-line ValueError for a --workers the machine cannot hold."""
     if workers < 0:
