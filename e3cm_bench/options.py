@@ -208,7 +208,8 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
     else the benchmark's default one) gives the side when ``max_side`` is not given (else the
     benchmark's default side), the resize mode, the upright rule and, for deep matchers, the
     settings the reference code used (under the user's). Without a benchmark (`match`,
-    `calibrate`): the side as given (None or 0: full resolution), shrink, upright.
+    `calibrate`): the side as given (None or 0: full resolution), shrink, upright. The side goes
+    to MethodSpec.create as written; it records 0 as None (resolved_side).
     precision and channel_order join the settings of deep matchers where they differ from
     fp32 and rgb (so that runs with the defaults keep their identity); precision auto is
     resolved for `device`, and a precision that will be emulated is passed to `warn`."""
@@ -232,7 +233,7 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
         upright, resize = preset.upright, preset.resize_mode(benchmark.name)
     return MethodSpec.create(
         values["matcher"], values["backbone"], values["weights"], values["estimator"], values["sampson_px"],
-        values["ratio"], resolved_side(side, "--max-side"), values["seed"], values["label"], options=settings,
+        values["ratio"], side, values["seed"], values["label"], options=settings,
         upright=upright, resize=resize, available=available,
     )
 

@@ -12,8 +12,8 @@ import typer
 
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from ..options import KINDS, METHOD_OPTIONS
-from .common import app, console, method_option, build_command_method, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
+from ..options import KINDS, METHOD_OPTIONS, build_method
+from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
     o = SimpleNamespace(**given)
     protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
-    method = build_command_method(method_given, bench, o.device)
+    method = build_method(method_values(method_given), bench, o.device, warn=warn)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)

@@ -78,10 +78,9 @@ BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", sho
 FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
 
 
-def method_values(given: dict, device: str = "cpu") -> dict:
+def method_values(given: dict) -> dict:
     """A command's method options as typed -> as options.build_method takes them: the
-    comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; a precision that
-    will be emulated on `device` is said on stderr (by build_method)."""
+    comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; the others as given."""
     from ..method import parse_numbers
 
     values = dict(given)
@@ -94,15 +93,8 @@ def method_values(given: dict, device: str = "cpu") -> dict:
 
 
 def warn(message: str) -> None:
+    """A warning on stderr (options.build_method's `warn`: a precision that will be emulated)."""
     err_console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
-
-
-def build_command_method(given: dict, benchmark=None, device: str = "cpu", available: bool = True):
-    """The MethodSpec of a command's options: method_values, then the one path (options.build_method)."""
-    from ..options import build_method
-
-    return build_method(method_values(given, device), benchmark=benchmark, device=device, available=available,
-                        warn=warn)
 
 
 def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:

@@ -9,7 +9,8 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
-from .common import app, console, method_option, build_command_method, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
+from ..options import build_method
+from .common import app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
 
 
 # match's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -48,9 +49,9 @@ def match(
     writable_folder(out, create=False)  # before any work: a folder that cannot take the results is one line now
     img0, img1, H, backbone = _images(image0, image1, backbone)
     # no benchmark: the one path without one (the side as given, 0 or none: full resolution)
-    method = build_command_method(dict(matcher=matcher, backbone=backbone, weights=weights, max_side=max_side,
+    method = build_method(method_values(dict(matcher=matcher, backbone=backbone, weights=weights, max_side=max_side,
                                        estimator=estimator, sampson_px=sampson_px, ratio=ratio, seed=seed,
-                                       settings=settings, precision=precision, channel_order=channel_order), None, device)
+                                       settings=settings, precision=precision, channel_order=channel_order)), None, device, warn=warn)
     kept = keep_freed_memory()  # the second image's pass reuses the first's pages, as in a run (docs/speed.md)
     t = time.perf_counter()
     m = method.build(device)

@@ -8,7 +8,8 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, build_command_method, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
+from ..options import build_method
+from .common import app, console, method_values, warn, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -43,8 +44,9 @@ def calibrate(
         label = f"{name} {given}".strip() if deep and given else name
         label = label if backbone == DEFAULT_BACKBONE or not deep else f"{label} [{backbone}]"
         # no benchmark: the one path without one (the side as given, none: full resolution); --set is the deep matchers'
-        methods.append(build_command_method(dict(matcher=name, backbone=backbone, weights=weights, max_side=max_side,
-                                                 seed=seed, label=label, settings=settings if deep else None)))
+        methods.append(build_method(method_values(dict(matcher=name, backbone=backbone, weights=weights,
+                                                       max_side=max_side, seed=seed, label=label,
+                                                       settings=settings if deep else None))))
     run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
                     unrectified=unrectified, overwrite=overwrite, console=console)
 
