@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from ..backbone_names import DEFAULT_BACKBONE
 from ..devices import check_device
 from ..files import file_sha256
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
@@ -153,7 +154,7 @@ def check_settings(name: str, settings: dict):
 
 def build_matcher(
     name: str = "e3cm",
-    backbone: str = "vgg19",
+    backbone: str = DEFAULT_BACKBONE,
     weights: str | None = None,
     device: str = "cpu",
     pretrained: bool = True,
