@@ -7,6 +7,7 @@ config.yaml and is compared before a run resumes) and what builds the matcher
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from .backbone_names import DEFAULT_BACKBONE
 from .files import file_sha256
 from .images import RESIZE_MODES
 from .matchers import check_settings, get_matcher, resolve
-from .options import check_method_values, resolved_side
+from .options import check_method_values, resolved_side, with_defaults
 
 
 @dataclass(frozen=True)
@@ -186,6 +187,60 @@ class MethodSpec:
         net = f" ({self.backbone})" if self.backbone else ""
         seed = f"; seed {self.seed}" if self.seed is not None else ""
         return f"matcher {self.matcher}{net}; resize: {self.resize_description}{seed}"
+
+
+def build_method(given: Mapping, benchmark=None, device: str = "cpu", available: bool = True,
+                 warn: Callable[[str], None] | None = None):
+    """The one path from a method's options to its MethodSpec: every command, experiment config
+    and Benchmark.resolve_method comes through here.
+
+    given: method options by name (options.METHOD_OPTIONS; numbers as tuples, settings as a mapping),
+    the rest taken from the table's defaults. benchmark: the run's; its protocol (``protocol``,
+    else the benchmark's default one) gives the side when ``max_side`` is not given (else the
+    benchmark's default side), the resize mode, the upright rule and, for deep matchers, the
+    settings the reference code used (under the user's). Without a benchmark (`match`,
+    `calibrate`): the side as given (None or 0: full resolution), shrink, upright. The side goes
+    to MethodSpec.create as written; it records 0 as None (resolved_side).
+    precision and channel_order join the settings of deep matchers where they differ from
+    fp32 and rgb (so that runs with the defaults keep their identity); precision auto is
+    resolved for `device`, and a precision that will be emulated is passed to `warn`."""
+    values = with_defaults(given)
+    check_method_values(values)
+    deep = get_matcher(values["matcher"], allow_import=True).needs_backbone  # the user's: it may import
+    settings = deep_settings(values, device, warn) if deep else {}
+    settings.update(values["settings"] or {})
+    side, upright, resize = values["max_side"], True, "shrink"
+    if benchmark is not None:
+        from .benchmarks.protocols import get_protocol
+
+        preset = get_protocol(values["protocol"] or benchmark.default_protocol, benchmark.name)
+        if side is None:
+            side = preset.max_side.get(benchmark.name, benchmark.default_max_side)
+        if deep:
+            settings = {**preset.method_options.get(benchmark.name, {}), **settings}
+        upright, resize = preset.upright, preset.resize_mode(benchmark.name)
+    return MethodSpec.create(
+        values["matcher"], values["backbone"], values["weights"], values["estimator"], values["sampson_px"],
+        values["ratio"], side, values["seed"], values["label"], options=settings,
+        upright=upright, resize=resize, available=available,
+    )
+
+
+def deep_settings(values: Mapping, device: str, warn) -> dict:
+    """--precision and --channel-order as matcher settings (left out at their defaults)."""
+    settings = {}
+    precision = values["precision"]
+    if precision != "fp32":
+        from .devices import resolve_precision  # torch: only for a precision other than fp32
+
+        precision, warning = resolve_precision(precision, device)
+        if warning and warn is not None:
+            warn(warning)
+        if precision != "fp32":
+            settings["precision"] = precision
+    if values["channel_order"] != "rgb":
+        settings["channel_order"] = values["channel_order"]
+    return settings
 
 
 def identity_changes(before: dict, now: dict) -> list[str]:

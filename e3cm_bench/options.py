@@ -8,8 +8,9 @@ Each `MethodOption` below is the one declaration of an option a user gives to ch
 - experiment configs: the keys a ``methods:`` entry and an experiment's top level accept, and
   the kind each value must be (`config_keys`, KINDS; experiments.py);
 - MethodSpec's validation: `check_method_values` on every option MethodSpec.create is given;
-- the one path from options to a MethodSpec: `build_method` (Benchmark.resolve_method is it
-  for a benchmark; `match` and `calibrate`, which have none, call it without one).
+- the one path from options to a MethodSpec, method.build_method, starts from `with_defaults`
+  (Benchmark.resolve_method is it for a benchmark; `match` and `calibrate`, which have none,
+  call it without one).
 
 Defaults merged with overrides: `with_defaults` fills what a caller left out from this table,
 so that a command, a config and the Python API start from the same values.
@@ -196,60 +197,3 @@ def check_method_values(values: Mapping) -> None:
         option = METHOD_OPTIONS.get(name)
         if option is not None and value is not None and not KINDS[option.kind].test(value):
             raise ValueError(f"{option.flags[0]} must be {KINDS[option.kind].wanted}, got {value!r}")
-
-
-def build_method(given: Mapping, benchmark=None, device: str = "cpu", available: bool = True,
-                 warn: Callable[[str], None] | None = None):
-    """The one path from a method's options to its MethodSpec: every command, experiment config
-    and Benchmark.resolve_method comes through here.
-
-    given: method options by name (METHOD_OPTIONS; numbers as tuples, settings as a mapping),
-    the rest taken from the table's defaults. benchmark: the run's; its protocol (``protocol``,
-    else the benchmark's default one) gives the side when ``max_side`` is not given (else the
-    benchmark's default side), the resize mode, the upright rule and, for deep matchers, the
-    settings the reference code used (under the user's). Without a benchmark (`match`,
-    `calibrate`): the side as given (None or 0: full resolution), shrink, upright. The side goes
-    to MethodSpec.create as written; it records 0 as None (resolved_side).
-    precision and channel_order join the settings of deep matchers where they differ from
-    fp32 and rgb (so that runs with the defaults keep their identity); precision auto is
-    resolved for `device`, and a precision that will be emulated is passed to `warn`."""
-    from .matchers import get_matcher
-    from .method import MethodSpec
-
-    values = with_defaults(given)
-    check_method_values(values)
-    deep = get_matcher(values["matcher"], allow_import=True).needs_backbone  # the user's: it may import
-    settings = deep_settings(values, device, warn) if deep else {}
-    settings.update(values["settings"] or {})
-    side, upright, resize = values["max_side"], True, "shrink"
-    if benchmark is not None:
-        from .benchmarks.protocols import get_protocol
-
-        preset = get_protocol(values["protocol"] or benchmark.default_protocol, benchmark.name)
-        if side is None:
-            side = preset.max_side.get(benchmark.name, benchmark.default_max_side)
-        if deep:
-            settings = {**preset.method_options.get(benchmark.name, {}), **settings}
-        upright, resize = preset.upright, preset.resize_mode(benchmark.name)
-    return MethodSpec.create(
-        values["matcher"], values["backbone"], values["weights"], values["estimator"], values["sampson_px"],
-        values["ratio"], side, values["seed"], values["label"], options=settings,
-        upright=upright, resize=resize, available=available,
-    )
-
-
-def deep_settings(values: Mapping, device: str, warn) -> dict:
-    """--precision and --channel-order as matcher settings (left out at their defaults)."""
-    settings = {}
-    precision = values["precision"]
-    if precision != "fp32":
-        from .devices import resolve_precision
-
-        precision, warning = resolve_precision(precision, device)
-        if warning and warn is not None:
-            warn(warning)
-        if precision != "fp32":
-            settings["precision"] = precision
-    if values["channel_order"] != "rgb":
-        settings["channel_order"] = values["channel_order"]
-    return settings

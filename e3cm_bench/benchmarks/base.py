@@ -199,11 +199,11 @@ class Benchmark:
         default_protocol); `options`: the other method options by name (options.METHOD_OPTIONS:
         backbone, weights, estimator, sampson_px, ratio, max_side, seed, label, settings, ...).
 
-        The one path, options.build_method: max_side None takes the protocol's side for this
+        The one path, method.build_method: max_side None takes the protocol's side for this
         benchmark, else the benchmark's default; 0 is full size. The protocol's matcher
         settings (num_levels, channel order) apply to deep matchers where `settings` gives
         none; its resize and upright rule apply to every matcher."""
-        from ..options import build_method
+        from ..method import build_method
 
         return build_method({"matcher": matcher, "protocol": protocol, **options}, benchmark=self, available=available)
 

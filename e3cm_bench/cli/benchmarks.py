@@ -12,7 +12,7 @@ import typer
 
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from ..options import KINDS, METHOD_OPTIONS, build_method
+from ..options import KINDS, METHOD_OPTIONS
 from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
 
 
@@ -56,6 +56,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     benchmark_command): `given` holds the method options (options.METHOD_OPTIONS), the
     benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
     from ..download import find_root
+    from ..method import build_method
     from ..run.launch import run_shards
     from ..run.shards import parse_shard
     from ..run.stage import MatchOptions

@@ -79,7 +79,7 @@ FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", 
 
 
 def method_values(given: dict) -> dict:
-    """A command's method options as typed -> as options.build_method takes them: the
+    """A command's method options as typed -> as method.build_method takes them: the
     comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; the others as given."""
     from ..method import parse_numbers
 
@@ -93,18 +93,18 @@ def method_values(given: dict) -> dict:
 
 
 def warn(message: str) -> None:
-    """A warning on stderr (options.build_method's `warn`: a precision that will be emulated)."""
+    """A warning on stderr (method.build_method's `warn`: a precision that will be emulated)."""
     err_console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
 def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:
     """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
     a precision other than fp32 and a channel order other than rgb join them (the defaults are
-    left out, so that runs with them keep their identity: options.deep_settings). --precision
+    left out, so that runs with them keep their identity: method.deep_settings). --precision
     auto is resolved for `device` here (the identity records what runs); a precision that will
     be emulated is said."""
     from ..files import load_yaml_text
-    from ..options import deep_settings
+    from ..method import deep_settings
 
     settings = deep_settings({"precision": precision, "channel_order": channel_order}, device, warn)
     for item in pairs or []:

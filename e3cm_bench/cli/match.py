@@ -9,7 +9,6 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
-from ..options import build_method
 from .common import app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
 
 
@@ -42,6 +41,7 @@ def match(
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     from ..devices import keep_freed_memory
     from ..files import writable_folder
+    from ..method import build_method
     from ..runner import match_pair
 
     if (image0 is None) != (image1 is None):

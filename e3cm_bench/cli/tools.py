@@ -8,7 +8,6 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from ..options import build_method
 from .common import app, console, method_values, warn, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
 
 
@@ -36,6 +35,7 @@ def calibrate(
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
     from ..calibration.run import CalibrationSettings, run_calibration
     from ..matchers import get_matcher
+    from ..method import build_method
 
     given = " ".join(item.strip() for item in settings or [])
     methods = []
