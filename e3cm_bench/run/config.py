@@ -15,7 +15,6 @@ from typing import NamedTuple
 
 from ..files import load_yaml, package_versions, run_environment
 
-CONFIG = "config.yaml"  # a run folder's name for it (RunFolder.CONFIG)
 # What a dataset_load's options may hold besides a benchmark's own options: --sample's draw
 # (Benchmark.load_dataset takes them among the options).
 SAMPLE_OPTIONS = ("sample", "sample_seed")
@@ -78,29 +77,25 @@ class RunConfig:
     def read(cls, path: str | Path) -> RunConfig:
         """A run's config.yaml (or that of the run folder `path`); ValueError in one line naming
         the file when it is missing, unreadable, not a mapping, or records no ``benchmark``."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / CONFIG
-        record = load_yaml(path, what=f"{CONFIG} (every run folder needs one)")
+        path = _config_file(path)
+        record = load_yaml(path, what="config.yaml (every run folder needs one)")
         if "benchmark" not in record:
-            raise ValueError(f"{path}: records no benchmark (not a run's {CONFIG}, or cut short)")
+            raise ValueError(f"{path}: records no benchmark (not a run's config.yaml, or cut short)")
         return cls.from_dict(record, path)
 
     @classmethod
     def read_if_present(cls, path: str | Path) -> RunConfig | None:
         """`read`, or None where the file does not exist (a new folder); its other problems are errors."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / CONFIG
+        path = _config_file(path)
         if not path.exists():
             return None
-        record = load_yaml(path, what=CONFIG)
+        record = load_yaml(path, what="run record (config.yaml)")
         return cls.from_dict(record, path)
 
     @property
     def where(self) -> str:
         """The file named in errors."""
-        return str(self.path) if self.path is not None else CONFIG
+        return str(self.path) if self.path is not None else "the run's config.yaml"
 
     # ---- what readers need
     def benchmark_object(self):
@@ -198,6 +193,14 @@ class RunConfig:
         from ..devices import allocator
 
         return {**run_environment(), "allocator": allocator()}
+
+
+def _config_file(path: str | Path) -> Path:
+    """The config.yaml at `path`, or that of the run folder `path` (RunFolder names the file)."""
+    from .folder import RunFolder
+
+    path = Path(path)
+    return RunFolder(path).config_path if path.is_dir() else path
 
 
 class RunPairs(NamedTuple):

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from ..cache import MatchCache
 from ..files import FolderLock, save_yaml
-from .config import CONFIG, RunConfig
+from .config import RunConfig
 
 # The cache attribute of a pair whose matcher failed (--on-matcher-error fail-pair): the message.
 # The pair is stored with no matches, so that it scores as a failure and a resume keeps it;
@@ -36,7 +36,7 @@ FAILED_ATTR = "matcher_error"
 class RunFolder:
     """One run folder. Its file names are its own; everyone else asks for paths."""
 
-    CONFIG = CONFIG
+    CONFIG = "config.yaml"
     MATCHES = "matches.h5"
     PER_PAIR = "per_pair.csv"
     SUMMARY = "summary.csv"
