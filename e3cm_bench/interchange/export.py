@@ -1,7 +1,7 @@
 """A run's matches out to another tool: ``export_run(RUN, FORMAT, OUT)``.
 
-The run folder's config.yaml names the benchmark and how its pairs were loaded (dataset_load,
-else the dataset block's root and options, as the report reads them); every pair of the run
+The run's pairs are loaded again as the run loaded them (run.config.load_run_pairs: its
+config.yaml's dataset_load, else its dataset block, its skip_bad and --limit); every pair of the run
 with matches in its cache is written (pairs it skipped have none), in the run's pair order.
 COLMAP and hloc get one keypoint list per image (tracks.py; ``merge_px`` merges within a
 radius). OUT is never a run folder nor inside one: export writes beside a run, so that it
@@ -17,9 +17,8 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from ..benchmarks import EvalSettings, get_benchmark
-from ..files import load_yaml, writable_folder
-from ..run import RunFolder
+from ..files import writable_folder
+from ..run import RunFolder, load_run_pairs
 from ..images import load_image
 from ..matches import Matches, distinct
 from .base import image_name
@@ -48,30 +47,6 @@ class ExportItem:
     K0: np.ndarray | None = None
     K1: np.ndarray | None = None
     geometry: dict | None = None
-
-
-def load_run_pairs(run_dir: Path):
-    """(benchmark, config, root, pairs) of a run folder, the pairs as the run loaded them."""
-    config_path = RunFolder(run_dir).config_path
-    config = load_yaml(config_path, what=f"{config_path.name} (every run folder needs one)")
-    try:
-        benchmark = get_benchmark(config.get("benchmark"))
-    except ValueError as error:
-        raise ValueError(f"{config_path}: {error}") from None
-    dataset = config.get("dataset") or {}
-    load = config.get("dataset_load")
-    if isinstance(load, dict) and load.get("root"):
-        root, skip_bad, options = load["root"], bool(load.get("skip_bad")), dict(load.get("options") or {})
-    elif dataset.get("root"):
-        root, skip_bad = dataset["root"], bool(dataset.get("skip_bad"))
-        options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
-    else:
-        raise ValueError(f"{config_path}: records no dataset root; the run's images cannot be named")
-    options = {k: v for k, v in options.items() if k in benchmark.option_names}
-    loaded = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
-    limit = dataset.get("limit")
-    pairs = list(loaded)[:limit] if isinstance(limit, int) and limit > 0 else list(loaded)
-    return benchmark, config, Path(root).resolve(), pairs, options
 
 
 def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
@@ -157,7 +132,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
     origin = check_origin(origin or DEFAULT_ORIGINS[fmt])
     run_dir, out = Path(run_dir), Path(out)
     refuse_run_folder(run_dir, out)
-    benchmark, config, root, pairs, options = load_run_pairs(run_dir)
+    benchmark, config, root, pairs, options, _ = load_run_pairs(run_dir)
     if fmt == "npz":  # a pair's name may hold folders, which could reach into a run under OUT
         refuse_run_folder(run_dir, out, [out / f"{p.name}.npz" for p in pairs])
     ev = None
@@ -165,10 +140,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
         from .colmap import pycolmap_module
 
         pycolmap_module()  # before any work: one line if the extra is not installed
-        try:  # the evaluation's own settings, so that the stored inliers are the ones it found
-            ev = EvalSettings.from_record(config.get("evaluation"))
-        except (TypeError, ValueError) as error:
-            raise ValueError(f"{RunFolder(run_dir).config_path}: its evaluation settings cannot be read ({error})") from None
+        ev = config.eval_settings()  # the evaluation's own, so that the stored inliers are the ones it found
     writable_folder(out)
     if not overwrite:
         taken = [out / name for name in OUTPUTS[fmt] if (out / name).exists()]

@@ -28,7 +28,7 @@ import json
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,39 +36,20 @@ import pandas as pd
 
 from . import noise_gate
 from .ensemble import eval_settings_of, noise_path, read_noise
-from ..files import read_csv, read_keyed_csv, write_atomically, write_csv
+from ..files import read_keyed_csv, write_atomically, write_csv
 from .formats import format_number
 from ..stats.noise import CHECK_ALPHA, metric_alpha
-from .tables import Run, load_run
+from .environment import (ENVIRONMENT_PACKAGES, ISA_KEYS, environment_differences,  # noqa: F401 - their old home
+                          environment_string, parse_environment, run_environment_items)
+from .runs import Run, load_run
+from .tolerances import (ANY, DEFAULT_TOLERANCES, TOLERANCE_FILE_COLUMNS, Tolerances,  # noqa: F401 - their old home
+                         parse_tolerance_options, parse_tolerances, read_tolerance_file)
 from ..run import RunFolder
 
-# Tolerances (absolute, in the metric's own unit: fractions for HPatches, percent for pose),
-# from the spread measured over repeated demo runs (scripts/demo_spread.py; docs/results.md
-# "Regression check"): estimator seeds 0, 1, 2 gave identical numbers (OpenCV 5's RANSAC
-# ignores cv2.setRNGSeed), one CPU thread instead of two moved the deep methods' features
-# by rounding and with them the scene poses: largest differences auc@5 12.1, auc@10 9.2,
-# auc@20 3.3, P 0.066, MMA@3 0.000002, h_acc 0. Each tolerance is twice that, and never
-# below one pair's worth for h_acc (1 of 15 pairs) or one point of MMA.
-DEFAULT_TOLERANCES = {
-    "mma@3": 0.01,
-    "h_acc@1": 0.07,
-    "h_acc@3": 0.07,
-    "h_acc@5": 0.07,
-    "auc@5": 25.0,
-    "auc@10": 19.0,
-    "auc@20": 7.0,
-    "P": 0.15,
-}
 KEYS = ("benchmark", "method")
 ENVIRONMENT_COLUMN = "environment"  # not a metric: where the row's numbers were made
 IDENTITY_COLUMN = "identity"  # not a metric: what made the matches (config.yaml identity, as JSON)
 NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN, IDENTITY_COLUMN)
-# What the environment string records, in its order: the packages the numbers depend on, then
-# the CPU settings (config.yaml's environment; the ISA variables only where they were set).
-ENVIRONMENT_PACKAGES = ("python", "torch", "torchvision", "numpy", "opencv-python-headless")
-ISA_KEYS = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
-TOLERANCE_FILE_COLUMNS = ("benchmark", "method", "metric", "tolerance")
-ANY = "*"
 
 
 def baseline_metrics(run: Run) -> dict[str, float]:
@@ -103,85 +84,10 @@ def write_baseline(runs: list[Run], path: Path) -> Path:
                              "a baseline holds one run per label")
         seen[key] = run.dir
     rows = [{"benchmark": run.benchmark.name, "method": run.label, **baseline_metrics(run),
-             ENVIRONMENT_COLUMN: environment_string(run.config),
-             IDENTITY_COLUMN: json.dumps(run.config.get("identity") or {}, sort_keys=True)} for run in runs]
+             ENVIRONMENT_COLUMN: environment_string(run.run_config),
+             IDENTITY_COLUMN: json.dumps(run.run_config.identity or {}, sort_keys=True)} for run in runs]
     noise_gate.write_pair_baseline(runs, noise_gate.pairs_path(path))
     return write_csv(pd.DataFrame(rows), path)
-
-
-# --------------------------------------------------------------------------- environment
-
-
-def run_environment_items(config: dict) -> dict[str, str]:
-    """What a run's numbers depend on, from its config.yaml, as ordered ``name -> value`` strings.
-
-    Packages (ENVIRONMENT_PACKAGES, from ``versions``), then ``cpu`` (torch's CPU capability),
-    the ISA variables that were set, ``threads`` (from ``environment``). A run written before
-    ``environment`` was recorded has only its packages; one without ``versions`` nothing.
-    """
-    versions = config.get("versions") if isinstance(config.get("versions"), dict) else {}
-    environment = config.get("environment") if isinstance(config.get("environment"), dict) else {}
-    # torch's version with its build tag (environment.torch) where recorded, else the package's
-    packages = {**versions, **({"torch": environment["torch"]} if environment.get("torch") else {})}
-    items = {name: str(packages[name]) for name in ENVIRONMENT_PACKAGES if packages.get(name) is not None}
-    if environment.get("cpu_capability") is not None:
-        items["cpu"] = str(environment["cpu_capability"])
-    items.update({name: str(environment[name]) for name in ISA_KEYS if environment.get(name)})
-    if environment.get("threads") is not None:
-        items["threads"] = str(environment["threads"])
-    return {name: _clean(value) for name, value in items.items()}
-
-
-def _clean(value: str) -> str:
-    """A value that survives the string's syntax (no separators, no spaces)."""
-    return "".join(value.split()).replace(";", ",").replace("=", ":") or "?"
-
-
-def environment_string(config: dict) -> str:
-    """E.g. ``python=3.12.3; torch=2.14.1+cu130; ...; cpu=AVX512; threads=2`` (see run_environment_items)."""
-    return "; ".join(f"{name}={value}" for name, value in run_environment_items(config).items())
-
-
-def parse_environment(value) -> dict[str, str]:
-    """An environment string back into ``name -> value``; empty for a missing cell, and pieces
-    that are no ``name=value`` are ignored (a hand-edited note does not break a check)."""
-    if not isinstance(value, str):
-        return {}
-    items = {}
-    for piece in value.split(";"):
-        name, sep, item = piece.partition("=")
-        if sep and name.strip() and item.strip():
-            items[name.strip()] = item.strip()
-    return items
-
-
-def _same_version(before: str, now: str) -> bool:
-    """Equal, or equal but for a build tag only one side records (``2.14.1`` vs ``2.14.1+cu130``:
-    a package's metadata may lack the tag that torch's own version string has)."""
-    if before == now:
-        return True
-    (b, b_tag), (n, n_tag) = before.partition("+")[::2], now.partition("+")[::2]
-    return b == n and not (b_tag and n_tag)
-
-
-def environment_differences(baseline: dict[str, str], measured: dict[str, str]) -> list[str]:
-    """``name before -> now`` for each setting recorded on both sides that differs, packages first.
-
-    A side that records the CPU settings (``cpu``) but no ISA variable had it unset; a side that
-    records no CPU settings (a run older than them) is compared on its packages only.
-    """
-    both_cpu = "cpu" in baseline and "cpu" in measured
-    order = [*ENVIRONMENT_PACKAGES, "cpu", *ISA_KEYS, "threads"]
-    names = sorted(set(baseline) | set(measured), key=lambda n: (order.index(n) if n in order else len(order), n))
-    changes = []
-    for name in names:
-        before, now = baseline.get(name), measured.get(name)
-        if name in ISA_KEYS and both_cpu:
-            before, now = before or "unset", now or "unset"
-        if before is None or now is None or _same_version(before, now):
-            continue
-        changes.append(f"{name} {before} -> {now}")
-    return changes
 
 
 def environment_notes(runs: list[Run], baseline_path: Path) -> list[str]:
@@ -202,7 +108,7 @@ def environment_notes(runs: list[Run], baseline_path: Path) -> list[str]:
         if key not in rows or not rows[key]:
             continue
         compared += 1
-        changes = environment_differences(rows[key], run_environment_items(run.config))
+        changes = environment_differences(rows[key], run_environment_items(run.run_config))
         if changes:
             groups.setdefault(tuple(changes), []).append(f"{run.label} on {run.benchmark.name}")
     notes = []
@@ -234,113 +140,6 @@ class Finding:
         if np.isnan(self.baseline) or self.delta > self.tolerance:
             return "improvement"
         return "ok"
-
-
-# --------------------------------------------------------------------------- tolerances
-
-
-def _tolerance_value(text, where: str) -> float:
-    """A tolerance: a finite number >= 0 (a NaN one would let every change pass)."""
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: tolerance {text!r} is not a number") from None
-    if not math.isfinite(value) or value < 0:
-        raise ValueError(f"{where}: tolerance must be a finite number >= 0, got {text!r}")
-    return value
-
-
-def parse_tolerance_options(items: list[str] | None) -> dict[tuple[str | None, str], float]:
-    """``--tolerance`` items: ``METRIC=T`` -> (None, metric), ``METHOD:METRIC=T`` -> (method, metric)."""
-    tolerances: dict[tuple[str | None, str], float] = {}
-    for item in items or []:
-        target, sep, value = item.partition("=")
-        method, colon, metric = target.rpartition(":")
-        method, metric = method.strip(), metric.strip()
-        if not sep or not metric or (colon and not method):
-            raise ValueError(f"--tolerance: expected METRIC=VALUE (e.g. auc@10=2.5), got {item!r}")
-        try:
-            float(value)
-        except ValueError:
-            raise ValueError(f"--tolerance: expected METRIC=VALUE (e.g. auc@10=2.5), got {item!r}") from None
-        tolerances[(method or None, metric)] = _tolerance_value(value, f"--tolerance {item}")
-    return tolerances
-
-
-def parse_tolerances(items: list[str] | None) -> dict[str, float]:
-    """DEFAULT_TOLERANCES with the ``METRIC=T`` items applied (per metric, for all methods).
-
-    A ``METHOD:METRIC=T`` item is refused here, since a per-metric table cannot hold it: use
-    `Tolerances.load`, which takes both.
-    """
-    tolerances = dict(DEFAULT_TOLERANCES)
-    for (method, metric), value in parse_tolerance_options(items).items():
-        if method is not None:
-            raise ValueError(f"--tolerance: {method}:{metric} is per method; use Tolerances.load")
-        tolerances[metric] = value
-    return tolerances
-
-
-def read_tolerance_file(path: Path) -> dict[tuple[str, str, str], float]:
-    """A tolerance CSV (benchmark, method, metric, tolerance; other columns ignored; ``*`` = any)
-    as ``(benchmark, method, metric) -> tolerance``; a one-line ValueError naming the file for
-    missing columns, empty keys, a tolerance that is no finite number >= 0, or a repeated row."""
-    path = Path(path)
-    table = read_csv(path, what="tolerance file")
-    table.columns = [str(c).strip() for c in table.columns]
-    missing = [c for c in TOLERANCE_FILE_COLUMNS if c not in table.columns]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected {', '.join(TOLERANCE_FILE_COLUMNS)})")
-    tolerances: dict[tuple[str, str, str], float] = {}
-    lines: dict[tuple[str, str, str], int] = {}
-    for index, row in table.iterrows():
-        line = int(index) + 2  # the header is line 1
-        key = []
-        for column in TOLERANCE_FILE_COLUMNS[:3]:
-            value = row[column]
-            if pd.isna(value) or not str(value).strip():
-                raise ValueError(f"{path}: line {line}: empty {column}")
-            key.append(str(value).strip())
-        key = tuple(key)
-        if key in tolerances:
-            raise ValueError(f"{path}: line {line}: {', '.join(key)} is also on line {lines[key]}")
-        tolerances[key] = _tolerance_value(row["tolerance"], f"{path}: line {line} ({', '.join(key)})")
-        lines[key] = line
-    return tolerances
-
-
-@dataclass
-class Tolerances:
-    """Which tolerance applies to a metric of a method on a benchmark, most specific first:
-
-    1. command line for this method (``--tolerance METHOD:METRIC=T``),
-    2. command line for every method (``--tolerance METRIC=T``),
-    3. file rows: benchmark+method > ``*``+method > benchmark+``*`` > ``*``+``*``,
-    4. DEFAULT_TOLERANCES.
-    """
-
-    defaults: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_TOLERANCES))
-    rows: Mapping[tuple[str, str, str], float] = field(default_factory=dict)
-    options: Mapping[tuple[str | None, str], float] = field(default_factory=dict)
-
-    @classmethod
-    def load(cls, items: list[str] | None = None, path: Path | None = None) -> Tolerances:
-        """From ``--tolerance`` items and a ``--tolerances`` file (either may be absent)."""
-        options = parse_tolerance_options(items)
-        rows = read_tolerance_file(path) if path is not None else {}
-        return cls(rows=rows, options=options)
-
-    def get(self, benchmark: str, method: str, metric: str) -> float | None:
-        candidates = (
-            self.options.get((method, metric)),
-            self.options.get((None, metric)),
-            self.rows.get((benchmark, method, metric)),
-            self.rows.get((ANY, method, metric)),
-            self.rows.get((benchmark, ANY, metric)),
-            self.rows.get((ANY, ANY, metric)),
-            self.defaults.get(metric),
-        )
-        return next((value for value in candidates if value is not None), None)
 
 
 def read_baseline(path: Path) -> pd.DataFrame:
@@ -392,7 +191,7 @@ def consistency_problems(runs: list[Run], baseline_path: Path) -> list[str]:
 
     Runs evaluated with --repeats K > 1 are left out of the first test: their summary is the mean
     over K evaluations, their per_pair.csv the first."""
-    from .tables import eval_settings_of
+    from .runs import eval_settings_of
 
     problems = []
     settings = {}
@@ -545,7 +344,7 @@ def gate(runs: list[Run], baseline_path: Path, check_alpha: float = CHECK_ALPHA
         plans.append((run, values, measured))
     alpha = metric_alpha(sum(len(values) for _, values, _ in plans), check_alpha)
     verdicts = [noise_gate.gate_run(run, models[(run.benchmark.name, run.label)], values, measured, alpha,
-                                    eval_settings_of(run.config)) for run, values, measured in plans]
+                                    eval_settings_of(run.run_config)) for run, values, measured in plans]
     return verdicts, others, alpha
 
 

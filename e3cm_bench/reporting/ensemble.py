@@ -10,6 +10,7 @@ RANSAC seeded with d (estimators.seeded_order), so each draw also sees other RAN
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,7 +22,7 @@ from ..benchmarks import EvalSettings, get_benchmark
 from ..files import read_csv, read_keyed_csv, write_csv
 from ..method import MethodSpec
 from ..perturb import Perturbation, perturbed
-from ..run import RunFolder
+from ..run import RunConfig, RunFolder, load_run_pairs
 
 NOISE_SUFFIX = ".noise.csv"
 DRAW_COLUMNS = ("benchmark", "method", "pair", "draw")
@@ -33,26 +34,32 @@ def noise_path(baseline: Path) -> Path:
     return baseline.with_name(baseline.stem + NOISE_SUFFIX)
 
 
-def method_of(config: dict, where: Path) -> MethodSpec:
-    """The run's MethodSpec from its config.yaml identity. Only built-in matchers: rerunning
-    reads no code that a run folder names (a plugin's run is checked without an ensemble)."""
-    identity = dict(config.get("identity") or {})
-    if not identity or identity.get("plugin"):
-        raise ValueError(f"{where}: the ensemble reruns built-in matchers only (no identity, or a plugin's)")
-    return MethodSpec.from_identity(identity, label=str(config.get("method") or ""))
+def _config_of(config: RunConfig | dict, where: Path) -> RunConfig:
+    """A run's RunConfig (a Run's record given as a dict is read as its folder's config.yaml's)."""
+    if isinstance(config, RunConfig):
+        return config
+    return RunConfig.from_dict(config, RunFolder(where).config_path if Path(where).is_dir() else where)
 
 
-def eval_settings_of(config: dict, seed: int | None = None) -> EvalSettings:
+def method_of(config: RunConfig | dict, where: Path) -> MethodSpec:
+    """The run's MethodSpec from its config.yaml identity (RunConfig.method_spec). Only built-in
+    matchers: rerunning reads no code that a run folder names (a plugin's run is checked without
+    an ensemble)."""
+    return _config_of(config, where).method_spec()
+
+
+def eval_settings_of(config: RunConfig | dict, seed: int | None = None) -> EvalSettings:
     """The run's evaluation settings (config.yaml `evaluation`), with another RANSAC seed if given."""
-    return EvalSettings.from_record(config.get("evaluation"), **({} if seed is None else {"seed": int(seed)}))
+    return _config_of(config, Path(RunFolder.CONFIG)).eval_settings(seed)
 
 
-def _dataset_of(config: dict, benchmark, where: Path):
-    dataset = config.get("dataset") or {}
-    if not dataset.get("root"):
-        raise ValueError(f"{where}: config.yaml records no dataset root to rerun")
-    options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
-    return benchmark.load_dataset(dataset["root"], skip_bad=bool(dataset.get("skip_bad")), **options)
+def _dataset_of(config: RunConfig | dict, benchmark, where: Path):
+    """The run's pairs as it loaded them (run.config.load_run_pairs: dataset_load, skip_bad and
+    --limit as recorded), as a pair list the runner takes."""
+    loaded = load_run_pairs(_config_of(config, where))
+    dataset = copy.copy(loaded.dataset)  # a PairList cut to the run's pairs, as PairList.sampled cuts one
+    dataset.pairs = loaded.pairs
+    return dataset
 
 
 def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Console | None = None,

@@ -1,14 +1,13 @@
-"""Run folders as people read them: loading a finished run, console summaries, paper-style tables.
+"""Run results as people read them: console summaries and paper-style tables (the paper's rows,
+then one measured row per run, with intervals and differences), as CSV, Markdown and text.
 
-A run folder holds ``config.yaml`` (with at least ``benchmark``), ``summary.csv``
-(one row) and ``per_pair.csv``. HPatches values are fractions (0..1); pose AUC and
-precision are percent, as in the paper. Plots are in plots.py; file writing in files.py.
+HPatches values are fractions (0..1); pose AUC and precision are percent, as in the paper.
+Loading a run folder is in runs.py (re-exported here), plots in plots.py, file writing in files.py.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +18,11 @@ from rich.table import Table
 
 from ..benchmarks import Benchmark, get_benchmark
 from .. import intervals
-from ..files import load_yaml, read_csv, read_keyed_csv, write_atomically, write_csv
+from ..files import read_csv, write_atomically, write_csv
 from .formats import fit_columns, format_interval, format_number, text_width
 from ..paper import PAPER_DIR
-from ..run import RunFolder
+from .runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
+                   protocol_of, run_intervals)
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
@@ -40,135 +40,6 @@ PAPER_SETS = {
 
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
-
-
-# --------------------------------------------------------------------------- runs
-
-
-@dataclass
-class Run:
-    """One benchmark run folder, loaded."""
-
-    dir: Path
-    config: dict
-    summary: dict
-    per_pair: pd.DataFrame
-    benchmark: Benchmark
-    label: str
-
-    @property
-    def folder(self) -> RunFolder:
-        return RunFolder(self.dir)
-
-
-def _read_config(path: Path) -> dict:
-    config = load_yaml(path, what="config.yaml (every run folder needs one)")
-    try:
-        get_benchmark(config.get("benchmark"))
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
-    return config
-
-
-# per_pair.csv columns that hold names; every other column of the benchmark's holds numbers.
-TEXT_PAIR_COLUMNS = ("pair", "sequence", "scene", "category")  # category: WxBS (benchmarks/wxbs.py)
-
-
-def _read_per_pair(path: Path, benchmark: Benchmark) -> pd.DataFrame:
-    """A run's per-pair rows, refused in one line naming the file where the report could not
-    use them: a pair with two rows (the tables index rows by pair; one of the two would be
-    taken at random), or a number column holding text."""
-    table = read_keyed_csv(path, "per-pair table", ["pair"])
-    numeric = set(benchmark.pair_columns(benchmark.eval_settings())) | set(benchmark.report_columns)
-    for column in [c for c in table.columns if c in numeric and c not in TEXT_PAIR_COLUMNS]:
-        values = pd.to_numeric(table[column], errors="coerce")
-        bad = values.isna() & table[column].notna()
-        if bad.any():
-            first = int(bad.to_numpy().nonzero()[0][0])
-            raise ValueError(f"{path}: column {column} holds {table[column].iloc[first]!r}, not a number "
-                             f"(pair {table['pair'].iloc[first]}, line {first + 2})")
-        table[column] = values
-    return table
-
-
-def _read_summary(path: Path, benchmark: Benchmark) -> dict:
-    df = read_csv(path, what="summary (the run did not finish or wrote elsewhere)")
-    if len(df) != 1:
-        raise ValueError(f"{path}: expected exactly one row, found {len(df)}")
-    missing = [c for c in benchmark.required_summary_columns() if c not in df.columns]
-    if missing:
-        raise ValueError(f"{path}: missing {benchmark.name} column(s) {', '.join(missing)}")
-    # numpy scalars -> Python numbers, so summaries print and compare naturally.
-    return {key: value.item() if isinstance(value, np.generic) else value for key, value in df.iloc[0].items()}
-
-
-def load_run(run_dir: str | Path) -> Run:
-    """Load a run folder; ``ValueError`` (one line, naming the file) if it is unusable.
-
-    ``per_pair.csv`` is optional: the tables need only the summary, and a missing
-    per-pair file yields an empty DataFrame (the pose CDF plot then refuses that run).
-    """
-    folder = RunFolder(run_dir)
-    run_dir = folder.path
-    config = _read_config(folder.config_path)
-    benchmark = get_benchmark(config["benchmark"])
-    summary = _read_summary(folder.summary_path, benchmark)
-    per_pair_path = folder.per_pair_path
-    per_pair = _read_per_pair(per_pair_path, benchmark) if per_pair_path.is_file() else pd.DataFrame()
-    label = str(config.get("method") or run_dir.resolve().name)
-    return Run(dir=run_dir, config=config, summary=summary, per_pair=per_pair, benchmark=benchmark, label=label)
-
-
-def paper_row_of(run: Run) -> str | None:
-    """The paper row a run compares with: its matcher's registry entry names it (the paper's
-    E3CM numbers came from the authors' released code, e3cm-release; its DFM numbers from
-    the DFM release), when the run was made as the paper's were (the entry says which
-    settings keep it so) on the paper's VGG19. Our variants and ablations have none."""
-    from ..backbone_names import DEFAULT_BACKBONE
-    from ..matchers import get_matcher
-
-    identity = run.config.get("identity") or {}
-    if identity.get("backbone") not in (None, DEFAULT_BACKBONE):
-        return None
-    try:
-        entry = get_matcher(identity.get("matcher"))
-    except (ValueError, TypeError):  # a plugin not installed here, or an imported run
-        return None
-    if entry.paper_row is None or not entry.paper_setting(identity.get("settings") or {}):
-        return None
-    return entry.paper_row
-
-
-def eval_settings_of(run: Run):
-    """The EvalSettings a run was evaluated with (its config.yaml's evaluation block; defaults for
-    fields it lacks); None when the block cannot be read as settings."""
-    from ..benchmarks import EvalSettings
-
-    try:
-        return EvalSettings.from_record(run.config.get("evaluation"))
-    except (TypeError, ValueError):
-        return None
-
-
-def run_intervals(run: Run) -> dict:
-    """The run's intervals: those of its summary.csv; for a run written before intervals, those
-    recomputed from its per_pair.csv when its pairs reproduce its summary (intervals.recompute);
-    else none ({}), and its tables show the numbers alone."""
-    if intervals.has_intervals(run.summary):
-        return run.summary
-    ev = eval_settings_of(run)
-    if ev is None or run.per_pair.empty:
-        return {}
-    return intervals.recompute(run.benchmark, run.summary, run.per_pair, ev) or {}
-
-
-def protocol_of(run: Run) -> tuple[str, bool]:
-    """The run's evaluation protocol and whether it is a standard one."""
-    from ..benchmarks.protocols import PROTOCOLS
-
-    name = (run.config.get("evaluation") or {}).get("protocol", "default")
-    protocol = PROTOCOLS.get(name)
-    return name, bool(protocol and protocol.standard)
 
 
 # --------------------------------------------------------------------------- console
@@ -278,37 +149,41 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
 
     # Every measured number but the counts carries its interval: the summary column it comes from.
     sources = {**table_metrics, **{extra: extra for extra in extras if not extra.startswith(intervals.COUNTS)}}
-    measured_rows = []
-    for run in runs:
-        protocol, standard = protocol_of(run)
-        label = run.label if standard else f"{run.label} (non-standard)"
-        row = {"method": label, "source": "measured"}
-        row.update({metric: float(run.summary[column]) for metric, column in table_metrics.items()})
-        row.update({extra: run.summary.get(extra, np.nan) for extra in extras})
-        paper_row = paper_row_of(run)
-        reference_row = paper_by_key.get(method_key(paper_row)) if paper_row else None
-        row["vs_paper"] = reference_row["method"] if reference_row is not None else ""
-        row["protocol"] = protocol
-        for metric in table_metrics:
-            row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
-        other_pairs = _other_pairs(run, benchmark) if reference_row is not None else ""
-        row[OTHER_PAIRS] = other_pairs
-        bounds = run_intervals(run)
-        outside = []
-        for column, summary_column in sources.items():
-            interval = intervals.interval_of(bounds, summary_column)
-            row[intervals.lo_key(column)], row[intervals.hi_key(column)] = interval or (np.nan, np.nan)
-            paper_value = reference_row.get(column) if reference_row is not None else None
-            if (interval is not None and paper_value is not None and not other_pairs
-                    and not interval[0] <= paper_value <= interval[1]):
-                outside.append(column)
-        row[OUTSIDE] = ", ".join(outside)
-        row["confidence"] = float(bounds["confidence"]) if bounds else np.nan
-        measured_rows.append(row)
-
+    measured_rows = [_measured_row(run, benchmark, paper_by_key, sources) for run in runs]
     columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics),
                OUTSIDE, OTHER_PAIRS, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
+
+
+def _measured_row(run: Run, benchmark: Benchmark, paper_by_key: dict, sources: dict) -> dict:
+    """A run's row of `paper_table`: its numbers, the paper row it compares with and the
+    differences from it, its intervals and the metrics whose paper number lies outside them."""
+    table_metrics, extras = benchmark.table_metrics, list(benchmark.table_extras)
+    protocol, standard = protocol_of(run)
+    label = run.label if standard else f"{run.label} (non-standard)"
+    row = {"method": label, "source": "measured"}
+    row.update({metric: float(run.summary[column]) for metric, column in table_metrics.items()})
+    row.update({extra: run.summary.get(extra, np.nan) for extra in extras})
+    paper_row = paper_row_of(run)
+    reference_row = paper_by_key.get(method_key(paper_row)) if paper_row else None
+    row["vs_paper"] = reference_row["method"] if reference_row is not None else ""
+    row["protocol"] = protocol
+    for metric in table_metrics:
+        row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
+    other_pairs = _other_pairs(run, benchmark) if reference_row is not None else ""
+    row[OTHER_PAIRS] = other_pairs
+    bounds = run_intervals(run)
+    outside = []
+    for column, summary_column in sources.items():
+        interval = intervals.interval_of(bounds, summary_column)
+        row[intervals.lo_key(column)], row[intervals.hi_key(column)] = interval or (np.nan, np.nan)
+        paper_value = reference_row.get(column) if reference_row is not None else None
+        if (interval is not None and paper_value is not None and not other_pairs
+                and not interval[0] <= paper_value <= interval[1]):
+            outside.append(column)
+    row[OUTSIDE] = ", ".join(outside)
+    row["confidence"] = float(bounds["confidence"]) if bounds else np.nan
+    return row
 
 
 def _other_pairs(run: Run, benchmark: Benchmark) -> str:

@@ -1,5 +1,7 @@
-"""A run: its folder (RunFolder, the one owner of the layout and the config record)."""
+"""A run: its folder (RunFolder, the one owner of the layout) and its record (RunConfig, the one
+writer and reader of config.yaml; load_run_pairs, the one way to load a run's pairs again)."""
 
-from .folder import FAILED_ATTR, RunConfig, RunFolder
+from .config import RunConfig, RunPairs, load_run_pairs
+from .folder import FAILED_ATTR, RunFolder
 
-__all__ = ["FAILED_ATTR", "RunConfig", "RunFolder"]
+__all__ = ["FAILED_ATTR", "RunConfig", "RunFolder", "RunPairs", "load_run_pairs"]

@@ -8,7 +8,7 @@ config's ``identity``: a MethodSpec's, an import's sources) decides whether a fo
 be resumed; the evaluation settings (``evaluation``) change only the metrics, and
 ``--eval-only`` may change them.
 
-    OUT/config.yaml      the RunConfig record (below)
+    OUT/config.yaml      the RunConfig record (config.py: its one writer and reader)
     OUT/matches.h5       the match cache (cache.MatchCache; blocks matches.NNN.h5 beside it)
     OUT/per_pair.csv     one row per pair;  OUT/summary.csv: the run's numbers with intervals
     OUT/skipped.csv      pairs skipped for bad input;  OUT/failures.csv: pairs a matcher failed on
@@ -21,73 +21,16 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from ..cache import MatchCache
-from ..files import FolderLock, load_yaml, package_versions, run_environment, save_yaml
+from ..files import FolderLock, save_yaml
+from .config import RunConfig
 
 # The cache attribute of a pair whose matcher failed (--on-matcher-error fail-pair): the message.
 # The pair is stored with no matches, so that it scores as a failure and a resume keeps it;
 # failures.csv lists such pairs.
 FAILED_ATTR = "matcher_error"
-
-
-@dataclass
-class RunConfig:
-    """What config.yaml records, in the order it is written. The optional blocks are written
-    only where they apply (a shard, a merge, an import, a calibration)."""
-
-    benchmark: str | None
-    method: str
-    identity: dict | None
-    matcher: dict | None = None
-    device: str | None = None
-    dataset: dict = field(default_factory=dict)
-    evaluation: dict | None = None
-    # Where the numbers were made (this stage's); not part of the identity that decides whether
-    # a folder may be resumed.
-    versions: dict = field(default_factory=package_versions)
-    environment: dict = field(default_factory=dict)
-    timing: dict = field(default_factory=dict)
-    feature_reuse: dict | None = None
-    dataset_load: dict | None = None
-    shard: dict | None = None
-    shards: dict | None = None
-    imported_files: dict | None = None
-    pixel_origin_check: dict | None = None  # an import's half-pixel check (interchange.pixels)
-    # a calibration's (calibration/run.py): the sequence and its settings
-    command: str | None = None
-    sequence: dict | None = None
-    calibration: dict | None = None
-
-    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "pixel_origin_check", "command",
-                "sequence", "calibration")
-
-    def as_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if not (f.name in self.OPTIONAL and getattr(self, f.name) is None)}
-
-    @classmethod
-    def from_dict(cls, record: dict) -> RunConfig:
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in record.items() if k in names})
-
-    @staticmethod
-    def dataset_load_of(root: str | Path, skip_bad: bool, options: dict | None) -> dict:
-        """How to load the same pairs again (merging shards and exporting need the ground truth),
-        with absolute paths: a merge may run in another working directory (a SLURM task's)."""
-        from ..files import absolute_paths
-
-        return {"root": str(Path(root).resolve()), "skip_bad": skip_bad,
-                "options": {k: absolute_paths(v) for k, v in (options or {}).items() if v is not None}}
-
-    @staticmethod
-    def environment_now() -> dict:
-        """The environment block: CPU dispatch, threads, allocator (files.run_environment)."""
-        from ..devices import allocator
-
-        return {**run_environment(), "allocator": allocator()}
 
 
 class RunFolder:
@@ -193,7 +136,13 @@ class RunFolder:
         return FolderLock(self.path)
 
     def read_config(self) -> dict | None:
-        return load_yaml(self.config_path) if self.config_path.exists() else None
+        """The record as read (a dict), or None for a folder without one (RunConfig.read_if_present)."""
+        config = RunConfig.read_if_present(self.config_path)
+        return None if config is None else config.record
+
+    def run_config(self) -> RunConfig:
+        """The run's record; ValueError naming the file when it is missing or unusable (RunConfig.read)."""
+        return RunConfig.read(self.config_path)
 
     def write_config(self, config: RunConfig | dict) -> Path:
         return save_yaml(config.as_dict() if isinstance(config, RunConfig) else config, self.config_path)

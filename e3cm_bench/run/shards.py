@@ -20,10 +20,11 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from ..benchmarks import EvalSettings, get_benchmark
+from ..benchmarks import EvalSettings
 from ..evaluate import evaluate_and_report
 from ..reporting.tables import print_summary
-from .folder import RunConfig, RunFolder
+from .config import RunConfig, load_run_pairs
+from .folder import RunFolder
 
 def parse_shard(text: str) -> tuple[int, int]:
     """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""
@@ -72,7 +73,8 @@ def shard_command(shard: tuple[int, int], argv: list[str] | None = None, cwd: st
 def rerun_commands(configs: dict[tuple[int, int], dict], shards: list[tuple[int, int]]) -> str:
     """': CMD1; CMD2' for the shards named (from their own recorded command, or
     another shard's with its --shard K/N replaced), or '' where no shard recorded one."""
-    known = {key: c["shard"]["command"] for key, c in configs.items() if c["shard"].get("command")}
+    commands = {key: RunConfig.from_dict(c).rerun_command for key, c in configs.items()}
+    known = {key: command for key, command in commands.items() if command}
     if not known:
         return ""
     (k0, n0), template = next(iter(sorted(known.items())))
@@ -103,12 +105,12 @@ class ShardedCache:
         return self.where[name].read(name)
 
 def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
+    """(K, N) -> the record (RunConfig.record) of each shard folder of OUT that holds a shard's config.yaml."""
     configs = {}
     for folder in RunFolder(out).shard_folders():
-        config = folder.read_config()
-        if config is not None:
-            if "shard" in config:
-                configs[(config["shard"]["index"], config["shard"]["count"])] = config
+        config = RunConfig.read_if_present(folder.config_path)
+        if config is not None and config.shard_key is not None:
+            configs[config.shard_key] = config.record
     return configs
 
 def all_shards_complete(out: Path) -> bool:
@@ -148,10 +150,8 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     if not load:
         raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
-    benchmark = get_benchmark(first["benchmark"])
-    dataset = benchmark.load_dataset(load["root"], skip_bad=load["skip_bad"], **load["options"])
-    limit = first["dataset"].get("limit")
-    pairs = list(dataset)[:limit] if limit else list(dataset)
+    loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
+    benchmark, pairs = loaded.benchmark, loaded.pairs
     ev = EvalSettings.from_record(first["evaluation"])
     folders = [RunFolder(out).shard((k, n)) for k in range(1, n + 1)]
     cache = ShardedCache(folders)
