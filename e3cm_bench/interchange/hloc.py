@@ -55,7 +55,7 @@ class HlocFormat(Format):
     origin = "center"
     reads = ("FEATURES.h5", "MATCHES.h5")
     import_help = "FEATURES.h5 MATCHES.h5 written by hloc (or in its layout)."
-    writes = "features.h5, matches.h5"
+    writes = "features.h5, matches.h5, pairs.txt"
     outputs = ("features.h5", "matches.h5", "pairs.txt")
     merges = True
     labelled_by = "matches"
