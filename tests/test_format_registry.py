@@ -112,6 +112,8 @@ def test_register_refuses_a_name_that_cannot_be_a_flag_and_an_unknown_origin(mon
         register(type("Bad", (Format,), {"name": "two words"}))
     with pytest.raises(ValueError, match="--pixel-origin must be one of"):
         register(type("Bad", (Format,), {"name": "bad", "origin": "middle"}))
+    with pytest.raises(ValueError, match="--pixel-origin must be one of"):  # a format states its own origin
+        register(type("Bad", (Format,), {"name": "bad"}))
     assert "bad" not in registry.FORMATS
     with pytest.raises(ValueError, match="--to must be one of colmap, gluefactory, hloc, npz, got 'bad'"):
         get_format("bad")

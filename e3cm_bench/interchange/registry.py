@@ -30,7 +30,7 @@ class Format:
     """One interchange format. Subclasses set the class attributes and the two methods."""
 
     name: str = ""
-    origin: str = "center"  # the format's own pixel origin ("center" or "corner", pixels.py)
+    origin: str = ""  # the format's own pixel origin, "center" or "corner" (pixels.py); stated only here
     reads: tuple[str, ...] = ()  # what `import --NAME` takes, one placeholder per path
     import_help: str = ""
     writes: str = ""  # what `export --to NAME` writes, for its help
