@@ -6,6 +6,7 @@ In a page:
                  rename={...}, decimals=2, pivot={"index": ..., "columns": ..., "values": ...}) }}
     {{ cli_reference }}
     {{ layer_table }}
+    {{ format_table }}
 Paths are relative to the repository root (the folder of mkdocs.yml). Only literals are
 accepted as arguments (read with ast.literal_eval): a page cannot run code.
 """
@@ -16,7 +17,7 @@ import ast
 import re
 from pathlib import Path
 
-MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference|layer_table)\s*\}\}", re.S)
+MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference|layer_table|format_table)\s*\}\}", re.S)
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -48,6 +49,8 @@ def render(call: str, root: Path, page: str) -> str:
             return cli_reference()
         if call == "layer_table":
             return layer_table(root)
+        if call == "format_table":
+            return format_table()
         node = ast.parse(call, mode="eval").body
         args = [ast.literal_eval(a) for a in node.args]
         kwargs = {k.arg: ast.literal_eval(k.value) for k in node.keywords}
@@ -118,6 +121,15 @@ def cli_reference() -> str:
     command = typer.main.get_command(app)
     text = get_docs_for_click(obj=command, ctx=typer.Context(command), name="e3cm-bench", title="e3cm-bench")
     return re.sub(r"^# e3cm-bench\n", "", text)
+
+
+def format_table() -> str:
+    """The interchange formats as their registry declares them (e3cm_bench/interchange/registry.py)."""
+    from e3cm_bench.interchange.registry import formats
+
+    rows = [f"| {f.name} | `import --{f.name} {' '.join(f.reads)}` | `export --to {f.name}`: {f.writes} | {f.origin} |"
+            for f in formats().values()]
+    return "\n".join(["| format | import | export | pixel origin |", "|---|---|---|---|", *rows])
 
 
 def layer_table(root: Path) -> str:

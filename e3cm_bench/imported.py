@@ -31,11 +31,11 @@ from .interchange.base import image_name
 from .interchange.hloc import hloc_pair_key
 from .matches import MatchesError, check_in_image
 from .reporting.tables import print_summary
+from .interchange.registry import source_label
 from .run import RunConfig, RunFolder
 
-# The sources live in e3cm_bench.interchange; these names stay importable from here.
-SOURCES = (HlocSource, NpzSource, ColmapSource, GluefactorySource)
-__all__ = ["SOURCES", "ColmapSource", "GluefactorySource", "HlocSource", "MissingPair", "NpzSource", "hloc_pair_key",
+# The sources live in e3cm_bench.interchange (its registry: registry.formats()); these names stay importable from here.
+__all__ = ["ColmapSource", "GluefactorySource", "HlocSource", "MissingPair", "NpzSource", "hloc_pair_key",
            "image_name", "import_run"]
 
 
@@ -103,33 +103,6 @@ def import_run(
     print_summary(summary, f"{benchmark.name} - {label} ({len(pairs_done)} pairs, imported from {source.format}) -> {out}",
                   console=console)
     return summary
-
-
-# File names that say nothing of the method (the formats' usual names, and what `export`
-# writes): a source so named is labelled by the folder that holds it.
-GENERIC_STEMS = ("matches", "features", "predictions", "database")
-# The source attribute whose name labels an import: the file (or folder) that holds the matches.
-NAMED_BY = {"hloc": "matches", "npz": "folder", "colmap": "database", "gluefactory": "predictions"}
-
-
-def source_label(source) -> str:
-    """An imported run's method label when --label is not given: the name its maker gave the
-    source, since no format records the method. npz: the folder's name (my_matches/ ->
-    my_matches); hloc: the matches file's name without hloc's "matches-" prefix
-    (matches-superpoint-lightglue.h5 -> superpoint-lightglue); COLMAP, glue-factory: the file's
-    name; a generic file name (matches.h5, predictions.h5, database.db) gives the name of the
-    folder holding it (glue-factory's results/<experiment>/predictions.h5 -> the experiment)."""
-    attribute = NAMED_BY.get(source.format)
-    if attribute is None:  # a source of another kind (the Python API): its format
-        return f"imported-{source.format}"
-    path = Path(getattr(source, attribute))
-    if source.format == "npz":
-        name = path.resolve().name
-    else:
-        name = path.stem.removeprefix("matches-") if source.format == "hloc" else path.stem
-        if name in GENERIC_STEMS or not name:
-            name = path.resolve().parent.name
-    return name or f"imported-{source.format}"
 
 
 def _import_pairs(source, pairs: list[Pair], done: set[str], root: Path, cache: MatchCache, skip_bad: bool,

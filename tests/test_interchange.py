@@ -305,7 +305,7 @@ def test_export_refuses_to_overwrite_and_names_a_missing_extra_cleanly(hpatches_
     assert "features.h5: already exists; pass --overwrite" in line
     assert invoke("export", out, tmp_path / "x", "--to", "hloc", "--overwrite").exit_code == 0
     line = one_line_error(invoke("export", out, tmp_path / "y", "--to", "bundler"))
-    assert "--to must be one of colmap, hloc, gluefactory, npz" in line
+    assert "--to must be one of colmap, gluefactory, hloc, npz" in line
 
 
 def test_export_never_writes_into_a_run_folder(hpatches_run, kitti_run, tmp_path):

@@ -227,6 +227,12 @@ class Benchmark:
         """One per_pair.csv row from the pair's matches (original pixels) and its ground truth."""
         raise NotImplementedError
 
+    def two_view_geometry(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
+        """The estimate this benchmark's evaluation makes from the matches, with its inliers
+        ({"H", "inliers"} or {"R", "t", "inliers"}), for an export that stores it; None where the
+        evaluation estimates no two-view geometry COLMAP can hold, or where it fails."""
+        return None
+
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:  # pragma: no cover
         raise NotImplementedError
 

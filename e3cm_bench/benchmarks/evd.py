@@ -29,7 +29,7 @@ import pandas as pd
 
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..datasets.hpatches import read_homography
-from ..estimators import homography
+from ..estimators import homography_geometry, load_estimator
 from ..geometry import warp_points
 from ..matches import Matches
 from .base import Benchmark, EvalSettings, with_duplicates
@@ -148,7 +148,16 @@ class EVDBenchmark(Benchmark):
     def estimate(self, matches: Matches, ev: EvalSettings) -> np.ndarray | None:
         """The evaluation's H from the matches (estimators.homography, seeded by ev.seed)."""
         cv2.setRNGSeed(int(ev.seed))
-        return homography(
+        return load_estimator(ev.estimator).homography(
+            matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
+            ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence, ev.seed, ev.opencv_method,
+        )
+
+    def two_view_geometry(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
+        """The evaluation's own H (`estimate`: its robust method, threshold and seed) and the
+        matches within its threshold."""
+        cv2.setRNGSeed(int(ev.seed))
+        return homography_geometry(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
             ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
             ev.estimator, ev.seed, ev.opencv_method,

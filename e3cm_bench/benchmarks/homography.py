@@ -55,6 +55,16 @@ class HomographyBenchmark(Benchmark):
                 row[column] = float(np.mean(error < t)) if len(error) else 0.0
         return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
 
+    @classmethod
+    def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
+        """H by the evaluation's estimator, threshold and seed, on the matches as stored (the
+        pixel-centre convention), with the matches within the threshold as its inliers."""
+        from ..estimators import homography_geometry
+
+        return homography_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
+                                   ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
+                                   estimator=ev.estimator, seed=ev.seed)
+
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         summary = metrics.summarize_hpatches(rows)
         for column in _precision_columns(ev):

@@ -52,6 +52,17 @@ class PoseBenchmark(Benchmark):
         note = metrics.rotation_note(rotations, per_pair["err_R"], rotation_error(ev.protocol))
         return [note] if note else []
 
+    @classmethod
+    def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
+        """The relative pose by the evaluation's estimator, threshold (ransac_px) and seed, with
+        its RANSAC's inliers."""
+        from ..estimators import pose_geometry
+
+        sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
+        return pose_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.K0,
+                             pair.K1, cls.ransac_px(pair, matches, ev), ev.pose_confidence, estimator=ev.estimator,
+                             seed=ev.seed, sizes=sizes)
+
     @staticmethod
     def ransac_px(pair: Pair, matches: Matches, ev: EvalSettings) -> float:
         """The essential-matrix RANSAC threshold in pixels of the stored images (whose K the pair

@@ -10,7 +10,15 @@ import typer
 
 from ..benchmarks import BENCHMARKS, get_benchmark
 from .benchmarks import option_parameter
+from ..interchange.registry import formats, origin_help
 from .common import app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
+
+# The interchange formats' help, made from their registry (interchange/registry.py).
+PixelOriginOpt = Annotated[Optional[str], typer.Option(
+    "--pixel-origin", help=f"center (top-left pixel's centre at 0,0) or corner (at 0.5,0.5): overrides the format's own "
+                           f"({origin_help()}).")]
+EXPORT_TO_HELP = ", ".join(f"{fmt.name} ({fmt.writes})" for fmt in formats().values())
+MERGING = ", ".join(fmt.name for fmt in formats().values() if fmt.merges)
 
 
 @app.command()
@@ -55,11 +63,7 @@ def import_matches(
     benchmark: Annotated[str, typer.Argument(help=f"The benchmark: {', '.join(BENCHMARKS)}.")],
     out: OutOpt,
     root: RootOpt = None,
-    hloc: Annotated[Optional[tuple[Path, Path]], typer.Option("--hloc", help="FEATURES.h5 MATCHES.h5 written by hloc (or in its layout).")] = None,
-    npz: Annotated[Optional[Path], typer.Option("--npz", help="Folder of <pair name>.npz (keypoints0, keypoints1, optional scores).")] = None,
-    colmap: Annotated[Optional[Path], typer.Option("--colmap", help="A COLMAP database.db (images named by their path under the root; needs pycolmap).")] = None,
-    gluefactory: Annotated[Optional[Path], typer.Option("--gluefactory", help="glue-factory's predictions.h5 (its evaluation cache).")] = None,
-    pixel_origin: Annotated[Optional[str], typer.Option("--pixel-origin", help="center (top-left pixel's centre at 0,0) or corner (at 0.5,0.5): overrides the format's own (hloc, npz: center; colmap, gluefactory: corner).")] = None,
+    pixel_origin: PixelOriginOpt = None,
     limit: Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs (as a benchmark run's --limit).")] = None,
     label: LabelOpt = None,
     skip_bad: SkipBadOpt = False,
@@ -69,37 +73,46 @@ def import_matches(
     ransac_px: RansacOpt = None,
     pose_estimator: PoseEstimatorOpt = None,
     protocol: ProtocolOpt = None,  # None: the benchmark's default_protocol
-    **dataset_options,
+    **options,  # one --FORMAT per interchange format (source_parameters) and every benchmark's dataset options
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
-    from ..imported import ColmapSource, GluefactorySource, HlocSource, NpzSource, import_run
+    from ..imported import import_run
     from ..download import find_root
     from ..run import RunConfig
 
-    given = [name for name, value in (("--hloc", hloc), ("--npz", npz), ("--colmap", colmap),
-                                      ("--gluefactory", gluefactory)) if value is not None]
+    known = formats()
+    given = {name: options.pop(name) for name in known if options.get(name) is not None}
     if len(given) != 1:
-        raise ValueError("give one source: --hloc FEATURES.h5 MATCHES.h5, --npz DIR, --colmap DATABASE.db or "
-                         f"--gluefactory PREDICTIONS.h5 (given: {', '.join(given) or 'none'})")
+        each = [f"--{fmt.name} {' '.join(fmt.reads)}" for fmt in known.values()]
+        raise ValueError(f"give one source: {', '.join(each[:-1])} or {each[-1]} "
+                         f"(given: {', '.join(f'--{name}' for name in given) or 'none'})")
     bench = get_benchmark(benchmark)
     root = find_root(bench.name, root)
     mine = {o.name for o in bench.command_options()}
+    dataset_options = {k: v for k, v in options.items() if k not in known}
     foreign = sorted(OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False, []))
     if foreign:
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
     options = {k: v for k, v in dataset_options.items() if k in mine}
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
     ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator)
-    if hloc is not None:
-        source = HlocSource(*hloc, origin=pixel_origin)
-    elif npz is not None:
-        source = NpzSource(npz, origin=pixel_origin)
-    elif colmap is not None:
-        source = ColmapSource(colmap, origin=pixel_origin)
-    else:
-        source = GluefactorySource(gluefactory, bench.name, origin=pixel_origin)
+    (name, paths), = given.items()
+    source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
+                                origin=pixel_origin)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
                console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+
+
+def source_parameters() -> list[inspect.Parameter]:
+    """`import`'s --FORMAT option of each registered format: a path, or a tuple of paths where the
+    format reads more than one file (hloc: FEATURES.h5 MATCHES.h5)."""
+    params = []
+    for fmt in formats().values():
+        kind = Path if len(fmt.reads) == 1 else tuple[(Path,) * len(fmt.reads)]
+        option = typer.Option(f"--{fmt.name}", help=fmt.import_help, metavar=" ".join(fmt.reads))
+        params.append(inspect.Parameter(fmt.name, inspect.Parameter.KEYWORD_ONLY, default=None,
+                                        annotation=Annotated[Optional[kind], option]))
+    return params
 
 
 def all_dataset_parameters() -> list[inspect.Parameter]:
@@ -113,12 +126,13 @@ def all_dataset_parameters() -> list[inspect.Parameter]:
 
 
 def _with_dataset_options(command):
-    """`command` with every benchmark's dataset options added to its signature (typer reads it)."""
+    """`command` with each format's source option and every benchmark's dataset options added to its
+    signature (typer reads it)."""
     signature = inspect.signature(command, eval_str=True)
     fixed = [p for p in signature.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
     fixed = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) if p.default is not inspect.Parameter.empty else p
              for p in fixed]
-    params = fixed + all_dataset_parameters()
+    params = fixed + source_parameters() + all_dataset_parameters()
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     return command
@@ -153,12 +167,12 @@ def synth_stereo(
 def export_matches(
     run: Annotated[Path, typer.Argument(help="A run folder (config.yaml, matches.h5).")],
     out: Annotated[Path, typer.Argument(help="Folder for the files.")],
-    to: Annotated[str, typer.Option("--to", help="colmap (database.db), hloc (features.h5, matches.h5), gluefactory (predictions.h5) or npz (the folder import --npz reads).")],
-    pixel_origin: Annotated[Optional[str], typer.Option("--pixel-origin", help="center or corner: overrides the format's own convention (hloc, npz: center; colmap, gluefactory: corner).")] = None,
+    to: Annotated[str, typer.Option("--to", help=EXPORT_TO_HELP)],
+    pixel_origin: PixelOriginOpt = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the files already in OUT.")] = False,
-    merge_px: Annotated[float, typer.Option("--merge-px", help="colmap, hloc: write an image's keypoints within this many pixels of one another as one (exact repeats always are), for dense matchers.")] = 0.0,
+    merge_px: Annotated[float, typer.Option("--merge-px", help=f"{MERGING}: write an image's keypoints within this many pixels of one another as one (exact repeats always are), for dense matchers.")] = 0.0,
 ) -> None:
-    """Write a run's matches for another tool: COLMAP, hloc, glue-factory or npz (docs: Matches in and out)."""
+    """Write a run's matches for another tool, in one of the formats of --to (docs: Matches in and out)."""
     from ..interchange import export_run
 
     export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console, merge_px=merge_px)

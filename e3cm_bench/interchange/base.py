@@ -6,8 +6,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import h5py
 import numpy as np
+
+# h5py is imported in the functions that read or write HDF5: the command line imports this module
+# for the format registry (registry.py) and answers without loading h5py.
 
 from ..matches import MatchesError
 
@@ -56,6 +58,7 @@ def check_self_contained(path: Path) -> None:
     virtual dataset whose source is missing as its fill value without a word, or loop
     ("too many links"); refused, what is imported is exactly the bytes that were hashed.
     Hard links stay: they are the file's own structure and its own bytes."""
+    import h5py
     try:
         with h5py.File(path, "r") as file:
             problem = file.visititems_links(_link_problem) or file.visititems(_storage_problem)
@@ -67,6 +70,7 @@ def check_self_contained(path: Path) -> None:
 
 
 def _link_problem(name: str, link) -> str | None:
+    import h5py
     if isinstance(link, h5py.SoftLink):
         return f"/{name} is a soft link to {link.path}"
     if isinstance(link, h5py.ExternalLink):
@@ -77,6 +81,7 @@ def _link_problem(name: str, link) -> str | None:
 
 
 def _storage_problem(name: str, item) -> str | None:
+    import h5py
     if not isinstance(item, h5py.Dataset):
         return None
     if item.is_virtual:

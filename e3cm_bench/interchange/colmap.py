@@ -32,8 +32,30 @@ from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
 from .base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
 from .pixels import check_origin, from_origin, to_origin
+from .registry import Format, register
 
-DEFAULT_ORIGIN = "corner"
+
+
+@register
+class ColmapFormat(Format):
+    name = "colmap"
+    origin = "corner"
+    reads = ("DATABASE.db",)
+    import_help = "A COLMAP database.db (images named by their path under the root; needs pycolmap)."
+    writes = "database.db"
+    outputs = ("database.db",)
+    merges = True
+    stores_geometry = True
+    labelled_by = "database"
+
+    def source(self, paths, benchmark: str, origin: str | None = None):
+        return ColmapSource(*paths, origin=origin)
+
+    def write(self, out: Path, items: list, origin: str, job) -> list[Path]:
+        return write_colmap(out, items, origin, job.merge_px, merged=job.merged)
+
+    def check_available(self) -> None:
+        pycolmap_module()
 
 
 def pycolmap_module():
@@ -75,7 +97,7 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
                            has_prior_focal_length=True)
 
 
-def write_colmap(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0, merged=None) -> list[Path]:
+def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None) -> list[Path]:
     """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
     mapper can chain pairs into tracks of more than two views. merged: merge_keypoints' result
@@ -186,7 +208,7 @@ class ColmapSource:
 
     def __init__(self, database: Path, origin: str | None = None) -> None:
         self.database = Path(database)
-        self.origin = check_origin(origin or DEFAULT_ORIGIN)
+        self.origin = check_origin(origin or ColmapFormat.origin)
         if not self.database.is_file():
             raise ValueError(f"{self.database}: not found")
         with open(self.database, "rb") as f:
@@ -199,7 +221,7 @@ class ColmapSource:
         return {"database": file_sha256(self.database)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
+        return source_identity({"format": self.format, "files": files}, self.origin, ColmapFormat.origin)
 
     def location(self) -> dict:
         return {"database": str(self.database), "pixel_origin": self.origin}

@@ -23,12 +23,7 @@ from ..images import load_image
 from ..matches import Matches, distinct
 from .base import image_name
 from .pixels import check_origin
-
-FORMATS = ("colmap", "hloc", "gluefactory", "npz")
-OUTPUTS = {"colmap": ("database.db",), "hloc": ("features.h5", "matches.h5", "pairs.txt"), "gluefactory": ("predictions.h5",),
-           "npz": ()}
-DEFAULT_ORIGINS = {"colmap": "corner", "hloc": "center", "gluefactory": "corner", "npz": "center"}
-MERGING = ("colmap", "hloc")  # the formats with one keypoint list per image
+from .registry import formats, get_format
 
 
 @dataclass
@@ -64,29 +59,9 @@ def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
 
 
 def estimate_geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
-    """The evaluation's own estimate on these matches (H where the pair has one, else the relative
-    pose where the benchmark has a RANSAC threshold) and its inliers; None where it fails."""
-    from .. import estimators
-    from ..geometry import warp_points
-
-    k0, k1 = matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64)
-    if getattr(pair, "H", None) is not None:
-        H = estimators.homography(k0, k1, ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
-                                  estimator=ev.estimator, seed=ev.seed)
-        if H is None:
-            return None
-        with np.errstate(invalid="ignore"):
-            error = np.linalg.norm(warp_points(H, k0) - k1, axis=1)
-        return {"H": H, "inliers": np.nan_to_num(error, nan=np.inf) <= ev.homography_ransac_px}
-    if getattr(pair, "K0", None) is not None and hasattr(benchmark, "ransac_px"):
-        sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
-        found = estimators.relative_pose(k0, k1, pair.K0, pair.K1, benchmark.ransac_px(pair, matches, ev),
-                                         ev.pose_confidence, estimator=ev.estimator, seed=ev.seed, sizes=sizes)
-        if found is None:
-            return None
-        R, t, inliers = found
-        return {"R": np.asarray(R, np.float64), "t": np.asarray(t, np.float64).ravel(), "inliers": np.asarray(inliers, bool)}
-    return None
+    """The two-view geometry the run's benchmark estimates in its evaluation (H, or the relative
+    pose; Benchmark.two_view_geometry) and its inliers; None where it has none or it fails."""
+    return benchmark.two_view_geometry(pair, matches, ev)
 
 
 def _run_folder_holding(folder: Path, run_dir: Path) -> Path | None:
@@ -114,40 +89,74 @@ def refuse_run_folder(run_dir: Path, out: Path, targets=()) -> None:
                              "choose another OUT")
 
 
+@dataclass
+class ExportJob:
+    """What a format's writer may need besides the items: the run's benchmark, dataset root and
+    options, the merge radius and (formats that merge) the merged keypoints; a writer may leave
+    figures for the report here (hloc: its layout)."""
+
+    benchmark: object
+    root: Path
+    options: dict
+    merge_px: float
+    merged: tuple | None = None
+    layout: tuple | None = None
+
+
 def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | None = None, overwrite: bool = False,
                console: Console | None = None, merge_px: float = 0.0) -> dict:
-    """Write RUN's matches to OUT in FORMAT (colmap, hloc, gluefactory, npz); returns what was
-    written. An existing output file is refused unless overwrite; files are written beside
-    their name and renamed into place, never through a link. merge_px (colmap, hloc): keypoints
-    of an image within this radius are written as one (tracks.py); exact repeats always are."""
+    """Write RUN's matches to OUT in FORMAT (registry.formats(): colmap, gluefactory, hloc, npz);
+    returns what was written. An existing output file is refused unless overwrite; files are
+    written beside their name and renamed into place, never through a link. merge_px (colmap,
+    hloc): keypoints of an image within this radius are written as one (tracks.py); exact
+    repeats always are."""
     console = console or Console()
-    if fmt not in FORMATS:
-        raise ValueError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    merge_px = float(merge_px)
-    if not merge_px >= 0:  # also refuses NaN
-        raise ValueError(f"--merge-px must be a radius of 0 or more pixels, got {merge_px:g}")
-    if merge_px > 0 and fmt not in MERGING:
-        raise ValueError(f"--merge-px applies to --to {' and '.join(MERGING)} (one keypoint list per image); "
-                         f"{fmt} keeps each pair's own keypoints")
-    origin = check_origin(origin or DEFAULT_ORIGINS[fmt])
+    fmt = get_format(fmt)
+    merge_px = _check_merge(fmt, merge_px)
+    origin = check_origin(origin or fmt.origin)
     run_dir, out = Path(run_dir), Path(out)
     refuse_run_folder(run_dir, out)
     benchmark, config, root, pairs, options, _ = load_run_pairs(run_dir)
-    if fmt == "npz":  # a pair's name may hold folders, which could reach into a run under OUT
-        refuse_run_folder(run_dir, out, [out / f"{p.name}.npz" for p in pairs])
-    ev = None
-    if fmt == "colmap":
-        from .colmap import pycolmap_module
-
-        pycolmap_module()  # before any work: one line if the extra is not installed
-        ev = config.eval_settings()  # the evaluation's own, so that the stored inliers are the ones it found
+    targets = fmt.targets(out, [p.name for p in pairs])
+    refuse_run_folder(run_dir, out, targets)
+    ev = _eval_settings(fmt, config)
     writable_folder(out)
-    if not overwrite:
-        taken = [out / name for name in OUTPUTS[fmt] if (out / name).exists()]
-        if fmt == "npz":
-            taken = [out / f"{p.name}.npz" for p in pairs if (out / f"{p.name}.npz").exists()][:1]
-        if taken:
-            raise ValueError(f"{taken[0]}: already exists; pass --overwrite to replace it or choose another OUT")
+    taken = [path for path in targets if path.exists()]
+    if taken and not overwrite:
+        raise ValueError(f"{taken[0]}: already exists; pass --overwrite to replace it or choose another OUT")
+    items = _items(run_dir, benchmark, root, pairs, ev)
+    job = ExportJob(benchmark, root, options, merge_px)
+    if fmt.merges:
+        from .tracks import merge_keypoints
+
+        job.merged = merge_keypoints(((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1)
+                                      for item in items), merge_px)
+    written = fmt.write(out, items, origin, job)
+    return _report(console, run_dir, out, fmt, origin, items, written, job)
+
+
+def _check_merge(fmt, merge_px: float) -> float:
+    merge_px = float(merge_px)
+    if not merge_px >= 0:  # also refuses NaN
+        raise ValueError(f"--merge-px must be a radius of 0 or more pixels, got {merge_px:g}")
+    if merge_px > 0 and not fmt.merges:
+        merging = [f.name for f in formats().values() if f.merges]
+        raise ValueError(f"--merge-px applies to --to {' and '.join(merging)} (one keypoint list per image); "
+                         f"{fmt.name} keeps each pair's own keypoints")
+    return merge_px
+
+
+def _eval_settings(fmt, config):
+    """The run's evaluation settings (RunConfig.eval_settings) where the format stores each pair's
+    geometry (so that the stored inliers are the ones the evaluation found); the format's library
+    checked first."""
+    fmt.check_available()  # before any work: one line if an extra is not installed
+    return config.eval_settings() if fmt.stores_geometry else None
+
+
+def _items(run_dir: Path, benchmark, root: Path, pairs: list, ev) -> list[ExportItem]:
+    """An ExportItem per pair with matches in the run's cache, in the run's pair order (with its
+    geometry where ev is given)."""
     items = []
     folder = RunFolder(run_dir)
     with folder.lock():
@@ -166,50 +175,31 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
             items.append(item)
     if not items:
         raise ValueError(f"{run_dir}: no matched pairs in its cache to export")
-    merged = layout = None
-    if fmt in MERGING:
-        from .tracks import merge_keypoints
+    return items
 
-        merged = merge_keypoints(((item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1)
-                                  for item in items), merge_px)
-    if fmt == "hloc":
-        from .hloc import hloc_layout, write_hloc
 
-        layout = hloc_layout(items, merged)
-        written = write_hloc(out, items, origin, merge_px, layout=layout)
-    elif fmt == "npz":
-        from .npz import write_npz
-
-        written = write_npz(out, items, origin)
-    elif fmt == "colmap":
-        from .colmap import write_colmap
-
-        written = write_colmap(out, items, origin, merge_px, merged=merged)
-    else:
-        from .gluefactory import write_gluefactory
-
-        written = write_gluefactory(out, items, origin, benchmark=benchmark.name, root=root,
-                                    ignore_large=bool(options.get("exclude_large")))
+def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items: list, written: list,
+            job: ExportJob) -> dict:
+    """Print what the export did and return its figures."""
     n_matches = sum(len(item.matches) for item in items)
-    console.print(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt} in {out} "
-                  f"(pixel origin: {origin})", markup=False, highlight=False, soft_wrap=True)
-    if fmt == "colmap":
+    say = dict(markup=False, highlight=False, soft_wrap=True)
+    console.print(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} "
+                  f"(pixel origin: {origin})", **say)
+    if fmt.stores_geometry:
         verified = sum(item.geometry is not None for item in items)
         console.print(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)",
                       markup=False, highlight=False)
-    found = {"format": fmt, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
+    found = {"format": fmt.name, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
              "pixel_origin": origin}
-    if merged is not None:
-        found.update(_merge_figures(items, merged, layout, merge_px))
-        how = "exact repeats merged" if merge_px == 0 else f"exact repeats and points within {merge_px:g} px merged"
+    if job.merged is not None:
+        found.update(_merge_figures(items, job.merged, job.layout, job.merge_px))
+        how = "exact repeats merged" if job.merge_px == 0 else f"exact repeats and points within {job.merge_px:g} px merged"
         console.print(f"export: one keypoint list per image: {2 * n_matches} matched keypoints -> "
                       f"{found['n_keypoints_merged']} ({how}); {found['n_tracks']} tracks, "
-                      f"{found['mean_track_length']:.2f} images each on average", markup=False, highlight=False,
-                      soft_wrap=True)
-        if layout is not None:
+                      f"{found['mean_track_length']:.2f} images each on average", **say)
+        if job.layout is not None:
             console.print(f"export: {found['n_keypoints_appended']} keypoints appended where a pair matched one keypoint "
-                          "of its first image more than once (hloc's matches0 holds one match per keypoint)",
-                          markup=False, highlight=False, soft_wrap=True)
+                          "of its first image more than once (hloc's matches0 holds one match per keypoint)", **say)
     return found
 
 

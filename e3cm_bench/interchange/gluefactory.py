@@ -26,16 +26,36 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import h5py
 import numpy as np
+
+# h5py is imported in the functions that read or write HDF5: the command line imports this module
+# for the format registry (registry.py) and answers without loading h5py.
 
 from ..files import file_sha256, write_atomically
 from ..matches import Matches, MatchesError
 from .base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
 from .hloc import hloc_pair_key, read_dataset
 from .pixels import check_origin, from_origin, to_origin
+from .registry import Format, register
 
-DEFAULT_ORIGIN = "corner"
+
+
+@register
+class GluefactoryFormat(Format):
+    name = "gluefactory"
+    origin = "corner"
+    reads = ("PREDICTIONS.h5",)
+    import_help = "glue-factory's predictions.h5 (its evaluation cache)."
+    writes = "predictions.h5"
+    outputs = ("predictions.h5",)
+    labelled_by = "predictions"
+
+    def source(self, paths, benchmark: str, origin: str | None = None):
+        return GluefactorySource(*paths, benchmark, origin=origin)
+
+    def write(self, out: Path, items: list, origin: str, job) -> list[Path]:
+        return write_gluefactory(out, items, origin, benchmark=job.benchmark.name, root=job.root,
+                                 ignore_large=bool(job.options.get("exclude_large")))
 # glue-factory's HPatches reader leaves these out by default (datasets/hpatches.py ignored_scenes).
 LARGE_SEQUENCES = ("i_contruction", "i_crownnight", "i_dc", "i_pencils", "i_whitebuilding", "v_artisans",
                    "v_astronautis", "v_talent")
@@ -65,8 +85,9 @@ def pair_key(benchmark: str, pair, root: Path, hpatches: dict | None = None) -> 
     return hloc_pair_key(image_name(pair.image0, root), image_name(pair.image1, root))
 
 
-def write_gluefactory(out: Path, items, origin: str = DEFAULT_ORIGIN, benchmark: str = "", root: Path | None = None,
+def write_gluefactory(out: Path, items, origin: str = GluefactoryFormat.origin, benchmark: str = "", root: Path | None = None,
                       ignore_large: bool = True) -> list[Path]:
+    import h5py
     hpatches = hpatches_keys(root, ignore_large) if benchmark == "hpatches" else None
     keys: dict[str, str] = {}
     for item in items:
@@ -101,9 +122,10 @@ class GluefactorySource:
     per_pair = False
 
     def __init__(self, predictions: Path, benchmark: str, origin: str | None = None) -> None:
+        import h5py
         self.predictions = Path(predictions)
         self.benchmark = benchmark
-        self.origin = check_origin(origin or DEFAULT_ORIGIN)
+        self.origin = check_origin(origin or GluefactoryFormat.origin)
         if not self.predictions.is_file():
             raise ValueError(f"{self.predictions}: not found")
         if not h5py.is_hdf5(self.predictions):
@@ -115,7 +137,7 @@ class GluefactorySource:
         return {"predictions": file_sha256(self.predictions)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
+        return source_identity({"format": self.format, "files": files}, self.origin, GluefactoryFormat.origin)
 
     def location(self) -> dict:
         return {"predictions": str(self.predictions), "pixel_origin": self.origin}
@@ -123,6 +145,7 @@ class GluefactorySource:
     def _hpatches_keys(self, file: h5py.File) -> dict[tuple[str, int], str]:
         """(sequence, k) -> the file's pair name: glue-factory's index is 5 per sequence in
         order, so idx % 5 + 2 is k without knowing which folder glue-factory listed."""
+        import h5py
         if self._hpatches is None:
             self._hpatches, base = {}, {}
             for seq, group in file.items():
@@ -151,10 +174,12 @@ class GluefactorySource:
         return key, False
 
     def expected(self, pair, root: Path) -> str:
+        import h5py
         with h5py.File(self.predictions, "r") as file:
             return f"{self.predictions}: group {self._key(file, pair, root)[0]}"
 
     def read(self, pair, root: Path) -> Matches:
+        import h5py
         with h5py.File(self.predictions, "r") as file:
             key, swapped = self._key(file, pair, root)
             group = file.get(key)

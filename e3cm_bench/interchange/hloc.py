@@ -37,15 +37,39 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import h5py
 import numpy as np
+
+# h5py is imported in the functions that read or write HDF5: the command line imports this module
+# for the format registry (registry.py) and answers without loading h5py.
 
 from ..files import file_sha256
 from ..matches import Matches, MatchesError
 from .base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
 from .pixels import check_origin, from_origin, to_origin
+from .registry import Format, register
 
-DEFAULT_ORIGIN = "center"
+
+@register
+class HlocFormat(Format):
+    name = "hloc"
+    origin = "center"
+    reads = ("FEATURES.h5", "MATCHES.h5")
+    import_help = "FEATURES.h5 MATCHES.h5 written by hloc (or in its layout)."
+    writes = "features.h5, matches.h5, pairs.txt"
+    outputs = ("features.h5", "matches.h5", "pairs.txt")
+    merges = True
+    labelled_by = "matches"
+
+    def source(self, paths, benchmark: str, origin: str | None = None):
+        return HlocSource(*paths, origin=origin)
+
+    def write(self, out: Path, items: list, origin: str, job) -> list[Path]:
+        job.layout = hloc_layout(items, job.merged)  # export reports the keypoints it appends
+        return write_hloc(out, items, origin, job.merge_px, layout=job.layout)
+
+    def label_stem(self, path: Path) -> str:
+        return path.stem.removeprefix("matches-")  # hloc's own naming: matches-<method>.h5
+
 # A pair group's dataset of our own (module docstring): the run's order of its matches.
 ORDER_KEY = "e3cm_order"
 
@@ -57,6 +81,7 @@ def hloc_pair_key(name0: str, name1: str, separator: str = "/") -> str:
 
 def find_pair(file: h5py.File, name0: str, name1: str) -> tuple[h5py.Group | None, bool]:
     """The pair's group and whether it is stored with name1 first (hloc's find_pair order)."""
+    import h5py
     for separator in ("/", "_"):  # "_": hloc's older naming
         for swapped, (a, b) in ((False, (name0, name1)), (True, (name1, name0))):
             key = hloc_pair_key(a, b, separator)
@@ -67,6 +92,7 @@ def find_pair(file: h5py.File, name0: str, name1: str) -> tuple[h5py.Group | Non
 
 def read_dataset(item, what: str) -> np.ndarray:
     """An HDF5 dataset's values, its declared size checked before it is read."""
+    import h5py
     if not isinstance(item, h5py.Dataset):
         raise MatchesError(f"{what}: not a dataset")
     check_declared(what, item.shape, item.dtype.itemsize)
@@ -80,8 +106,9 @@ class HlocSource:
     per_pair = False  # two files for all pairs: any change is another source
 
     def __init__(self, features: Path, matches: Path, origin: str | None = None) -> None:
+        import h5py
         self.features, self.matches = Path(features), Path(matches)
-        self.origin = check_origin(origin or DEFAULT_ORIGIN)
+        self.origin = check_origin(origin or HlocFormat.origin)
         for path in (self.features, self.matches):
             if not path.is_file():
                 raise ValueError(f"{path}: not found")
@@ -93,7 +120,7 @@ class HlocSource:
         return {"features": file_sha256(self.features), "matches": file_sha256(self.matches)}
 
     def identity(self, files: dict[str, str]) -> dict:
-        return source_identity({"format": self.format, "files": files}, self.origin, DEFAULT_ORIGIN)
+        return source_identity({"format": self.format, "files": files}, self.origin, HlocFormat.origin)
 
     def location(self) -> dict:
         return {"features": str(self.features), "matches": str(self.matches), "pixel_origin": self.origin}
@@ -102,6 +129,7 @@ class HlocSource:
         return f"{self.matches}: group {hloc_pair_key(image_name(pair.image0, root), image_name(pair.image1, root))}"
 
     def read(self, pair, root: Path) -> Matches:
+        import h5py
         name0, name1 = image_name(pair.image0, root), image_name(pair.image1, root)
         with h5py.File(self.features, "r") as features, h5py.File(self.matches, "r") as matches:
             group, swapped = find_pair(matches, name0, name1)
@@ -163,9 +191,10 @@ def hloc_layout(items, merged) -> tuple[dict[str, np.ndarray], list[tuple[np.nda
     return {name: np.concatenate(listed) for name, listed in lists.items()}, pairs
 
 
-def write_hloc(out: Path, items, origin: str = DEFAULT_ORIGIN, merge_px: float = 0.0, layout=None) -> list[Path]:
+def write_hloc(out: Path, items, origin: str = HlocFormat.origin, merge_px: float = 0.0, layout=None) -> list[Path]:
     """features.h5, matches.h5 and pairs.txt in OUT for export.ExportItem's (module docstring).
     layout: hloc_layout's result where the caller has it, else made here with merge_px."""
+    import h5py
     from ..files import write_atomically
     from .tracks import merge_keypoints
 

@@ -14,8 +14,32 @@ from ..files import file_sha256, save_npz
 from ..matches import Matches, MatchesError
 from .base import MissingPair, source_identity, check_declared, real_points, score_array
 from .pixels import check_origin, from_origin, to_origin
+from .registry import Format, register
 
-DEFAULT_ORIGIN = "center"
+
+@register
+class NpzFormat(Format):
+    name = "npz"
+    origin = "center"
+    reads = ("DIR",)
+    import_help = "Folder of <pair name>.npz (keypoints0, keypoints1, optional scores)."
+    writes = "the folder import --npz reads"
+    labelled_by = "folder"
+
+    def source(self, paths, benchmark: str, origin: str | None = None):
+        return NpzSource(*paths, origin=origin)
+
+    def write(self, out: Path, items: list, origin: str, job) -> list[Path]:
+        return write_npz(out, items, origin)
+
+    def targets(self, out: Path, pair_names: list[str]) -> list[Path]:
+        # a pair's name may hold folders, which could reach into a run under OUT
+        return [out / f"{name}.npz" for name in pair_names]
+
+    def label(self, source) -> str:
+        return Path(source.folder).resolve().name  # the folder is the method's own, whatever its name
+
+
 KEYS = ("keypoints0", "keypoints1", "scores")
 
 
@@ -47,7 +71,7 @@ class NpzSource:
 
     def __init__(self, folder: Path, origin: str | None = None) -> None:
         self.folder = Path(folder)
-        self.origin = check_origin(origin or DEFAULT_ORIGIN)
+        self.origin = check_origin(origin or NpzFormat.origin)
         if not self.folder.is_dir():
             raise ValueError(f"{self.folder}: not a folder")
 
@@ -62,7 +86,7 @@ class NpzSource:
         """One digest for the folder: each file's hash by name."""
         digest = hashlib.sha256("\n".join(f"{k} {v}" for k, v in sorted(files.items())).encode()).hexdigest()
         return source_identity({"format": self.format, "n_files": len(files), "sha256": digest}, self.origin,
-                               DEFAULT_ORIGIN)
+                               NpzFormat.origin)
 
     def location(self) -> dict:
         return {"folder": str(self.folder), "pixel_origin": self.origin}
@@ -78,7 +102,7 @@ class NpzSource:
             data = load_npz(path)
             k0, k1 = (real_points(data[k], k) for k in KEYS[:2])
             scores = score_array(data["scores"], "scores", len(k0)) if "scores" in data and len(k0) == len(k1) else None
-            if self.origin != DEFAULT_ORIGIN:
+            if self.origin != NpzFormat.origin:
                 k0, k1 = from_origin(k0, self.origin), from_origin(k1, self.origin)
             return Matches(k0, k1, scores)
         except MatchesError as error:
@@ -87,11 +111,11 @@ class NpzSource:
             raise MatchesError(f"{path}: not a readable .npz ({error})") from None
 
 
-def write_npz(out: Path, items, origin: str = DEFAULT_ORIGIN) -> list[Path]:
+def write_npz(out: Path, items, origin: str = NpzFormat.origin) -> list[Path]:
     written = []
     for item in items:
         k0, k1 = item.matches.keypoints0, item.matches.keypoints1
-        if origin != DEFAULT_ORIGIN:
+        if origin != NpzFormat.origin:
             k0, k1 = to_origin(k0, origin), to_origin(k1, origin)
         path = out / f"{item.name}.npz"
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,10 +1,10 @@
 """Pixel conventions at the boundary: the one conversion out and the one conversion in, and
 the HPatches check that tells which convention a file was written in.
 
-Ours (and hloc's h5, npz folders): the centre of the top-left pixel is (0, 0) ("center").
-COLMAP and glue-factory: the top-left corner of the top-left pixel is (0, 0), so that pixel's
-centre is (0.5, 0.5) ("corner"). docs/interchange.md lists each tool with the source line
-that shows its convention.
+Ours: the centre of the top-left pixel is (0, 0) ("center"). The other: the top-left corner
+of the top-left pixel is (0, 0), so that pixel's centre is (0.5, 0.5) ("corner", COLMAP's).
+Each format's own is its Format's ``origin`` (registry.py); docs/interchange.md lists each tool
+with the source line that shows its convention.
 """
 
 from __future__ import annotations
