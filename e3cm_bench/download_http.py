@@ -1,6 +1,6 @@
 """The HTTP pieces of a download: connections whose sockets the deadline's watchdog can shut
-(download.Deadline), and what a server's answer says of the bytes it sends (a 206's range, a
-416's whole length)."""
+(the download.Deadline passed to them; not imported here, as download imports this module),
+and what a server's answer says of the bytes it sends (a 206's range, a 416's whole length)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,10 @@ import http.client
 import re
 import socket
 from pathlib import Path
-from typing import TYPE_CHECKING
 from urllib.error import HTTPError
 from urllib.request import HTTPHandler, HTTPSHandler
 
 from .data_folder import DownloadError
-
-if TYPE_CHECKING:
-    from .download import Deadline
 
 
 def shut(sock: socket.socket) -> None:
@@ -25,7 +21,7 @@ def shut(sock: socket.socket) -> None:
         pass  # already closed
 
 
-def _watched(connection_class, deadline: Deadline):
+def _watched(connection_class, deadline):
     class Watched(connection_class):
         def connect(self) -> None:
             super().connect()
@@ -34,7 +30,7 @@ def _watched(connection_class, deadline: Deadline):
 
 
 class WatchedHTTP(HTTPHandler):
-    def __init__(self, deadline: Deadline) -> None:
+    def __init__(self, deadline) -> None:
         super().__init__()
         self.deadline = deadline
 
@@ -43,7 +39,7 @@ class WatchedHTTP(HTTPHandler):
 
 
 class WatchedHTTPS(HTTPSHandler):
-    def __init__(self, deadline: Deadline) -> None:
+    def __init__(self, deadline) -> None:
         super().__init__()
         self.deadline = deadline
 
