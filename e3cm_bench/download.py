@@ -25,48 +25,43 @@
   connection's socket at the deadline, so that no read (a header trickled a byte at a time,
   a read waiting on a silent server) outlives it. What arrived is kept and resumed from.
 - One download at a time per data folder: the folder is locked like a run folder (FolderLock).
+
+Here: the fetching (resume, bounds, deadlines) and each part's steps. The hash record, the
+free-space checks and the completeness check of a placed copy are data_folder.py's; unpacking
+is archives.py's; the watched connections and the reading of a server's ranges are
+download_http.py's.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import errno
-import hashlib
 import http.client
-import json
-import lzma
 import os
-import re
 import shutil
 import socket
-import stat
-import tarfile
 import threading
 import time
-import zipfile
-import zlib
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from urllib.error import HTTPError, URLError
-from urllib.request import HTTPHandler, HTTPSHandler, Request, build_opener
+from urllib.request import Request, build_opener
 
 from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
 
+# extract, check, find_root and status are read from here too (the command line, tests)
+from .archives import extract, place, unpack  # noqa: F401
+from .data_folder import (CHUNK, FREE_RESERVE, LOCK_FILE, DownloadError, check, check_free_space, disk_full,  # noqa: F401
+                          find_root, read_lock, record_hash, status, verify)
 from .datasets.sources import Part, Source
+from .download_http import WatchedHTTP, WatchedHTTPS, body_range, shut, whole_length
 from .files import FolderLock, refuse_link, write_atomically
 
-LOCK_FILE = "e3cm-bench-data.lock"
-CHUNK = 1 << 20
 TIMEOUT_S = 60  # one read without a byte: the server is gone
 # A part's sizes in sources.py are rounded, and hosts re-pack archives: a body may exceed its
 # Part.size by this factor plus this slack before it is taken for an endless one.
 SIZE_MARGIN = 1.25
 SIZE_SLACK = 8 << 20
-# Image archives compress little (ppm about 2:1, jpg not at all); members declaring more than
-# this many times the archive's bytes are a zip bomb, not data.
-UNPACK_RATIO = 20
-UNPACK_SLACK = 16 << 20
-FREE_RESERVE = 64 << 20  # never written below: the lock, logs and other programs still need room
 # The overall deadline: a base for slow starts plus the expected bytes at the slowest average
 # rate worth waiting for (1.3 GB: about 3.8 h); where no size is known, a fixed bound.
 DEADLINE_BASE_S = 600
@@ -81,12 +76,6 @@ HEADERS_S = 120
 # 0.5 kB/s, where a 1 byte per 2 s trickle would otherwise hold a download for hours.
 STALL_S = 120
 STALL_BYTES = 64 << 10
-SHA256 = re.compile(r"[0-9a-f]{64}")
-_JSON_KINDS = {bool: "true or false", int: "a number", float: "a number", str: "a string", list: "a list"}
-
-
-class DownloadError(ValueError):
-    """One line: what failed, where, and what to do."""
 
 
 def download(source: Source, to: Path, origin: str | None = None, sha256: str | None = None,
@@ -145,15 +134,15 @@ def _fetch_part(part: Part, to: Path, target: Path, console: Console) -> None:
             raise DownloadError(f"{error}; its sha256 was recorded in {to / LOCK_FILE} by an earlier download "
                                 f"that did not check archives: remove the {part.file!r} entry there first") from None
         try:
-            _record(to, part, digest)
-            _place(temporary, target, fetched)
+            record_hash(to, part, digest)
+            place(temporary, target, fetched)
         finally:
             shutil.rmtree(temporary, ignore_errors=True)
     else:
         if not owned:  # a file downloaded by hand is copied into place, leaving the user's own
             dest.parent.mkdir(parents=True, exist_ok=True)
             write_atomically(dest, lambda tmp: shutil.copyfile(fetched, tmp))
-        _record(to, part, digest)
+        record_hash(to, part, digest)
 
 
 def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, console: Console | None = None) -> Path:
@@ -178,7 +167,7 @@ def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, 
     with Deadline(url, part, None if size is None else max(0, size - offset)) as deadline:
         response, refused = _open(url, offset, deadline)
         if refused is not None:  # 416: the server has no byte from `offset` on
-            if offset == _whole_length(refused):
+            if offset == whole_length(refused):
                 os.replace(part, dest)  # the server's own size says the part already holds it all
                 return dest
             # A part longer than the file, or a server that does not say the file's size: the part
@@ -187,7 +176,7 @@ def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, 
             offset = 0
             response, _ = _open(url, 0, deadline)
         with response:
-            start, end, total = _body_range(url, response, offset, part)
+            start, end, total = body_range(url, response, offset, part)
             if total is not None and total > cap:
                 raise DownloadError(f"{url}: announces {total} bytes, more than the {cap} this file may have "
                                     f"(about {size} expected); nothing was written: check the URL or the mirror")
@@ -206,7 +195,7 @@ def _open(url: str, offset: int, deadline: Deadline):
     416 to a resumed request, whose Content-Range may say the file's length. The answer must
     come within HEADERS_S (and the overall deadline): the watchdog shuts the socket otherwise."""
     request = Request(url, headers={"Range": f"bytes={offset}-"} if offset else {})
-    opener = build_opener(_WatchedHTTP(deadline), _WatchedHTTPS(deadline))
+    opener = build_opener(WatchedHTTP(deadline), WatchedHTTPS(deadline))
     deadline.phase(HEADERS_S, "sent no complete answer (status line and headers)")
     try:
         response = opener.open(request, timeout=min(TIMEOUT_S, max(deadline.left(), 0.1)))  # noqa: S310 - sources.py or --from
@@ -261,7 +250,7 @@ class Deadline:
         with self._lock:
             self._sockets.append(sock)
         if self.passed:
-            _shut(sock)
+            shut(sock)
 
     def reason(self) -> str:
         if self.left() < 0:
@@ -288,70 +277,8 @@ class Deadline:
                 self.passed = reason
                 with self._lock:
                     for sock in self._sockets:
-                        _shut(sock)
+                        shut(sock)
                 return
-
-
-def _shut(sock: socket.socket) -> None:
-    try:
-        sock.shutdown(socket.SHUT_RDWR)
-    except OSError:
-        pass  # already closed
-
-
-def _watched(connection_class, deadline: Deadline):
-    class Watched(connection_class):
-        def connect(self) -> None:
-            super().connect()
-            deadline.watch(self.sock)
-    return Watched
-
-
-class _WatchedHTTP(HTTPHandler):
-    def __init__(self, deadline: Deadline) -> None:
-        super().__init__()
-        self.deadline = deadline
-
-    def http_open(self, req):
-        return self.do_open(_watched(http.client.HTTPConnection, self.deadline), req)
-
-
-class _WatchedHTTPS(HTTPSHandler):
-    def __init__(self, deadline: Deadline) -> None:
-        super().__init__()
-        self.deadline = deadline
-
-    def https_open(self, req):
-        return self.do_open(_watched(http.client.HTTPSConnection, self.deadline), req, context=self._context)
-
-
-def _whole_length(error: HTTPError) -> int | None:
-    """The file's length from a 416's Content-Range (``bytes */LENGTH``), else None."""
-    match = re.fullmatch(r"\s*bytes\s+\*/(\d+)\s*", error.headers.get("Content-Range") or "")
-    return int(match.group(1)) if match else None
-
-
-def _body_range(url: str, response, offset: int, part: Path) -> tuple[int, int | None, int | None]:
-    """Where the body starts in the file, where it ends (None: at the connection's end) and
-    the file's whole length (None where unknown), checked against what was asked."""
-    length = response.headers.get("Content-Length")
-    length = int(length) if length is not None and length.strip().isdigit() else None
-    if response.status != 206:
-        return 0, length, length  # the whole file (a server that ignores ranges starts over)
-    content_range = response.headers.get("Content-Range") or ""
-    match = re.fullmatch(r"\s*bytes\s+(\d+)-(\d+)/(\d+|\*)\s*", content_range)
-    first, last = (int(match.group(1)), int(match.group(2))) if match else (-1, -1)
-    total = int(match.group(3)) if match and match.group(3) != "*" else None
-    if not match or last < first or (total is not None and last >= total) or \
-            (length is not None and length != last - first + 1):
-        raise DownloadError(f"{url}: a partial answer (206) with Content-Range {content_range!r} and Content-Length "
-                            f"{length}, which do not agree; {part} is kept: rerun, or pass --from another mirror")
-    if first != offset and first != 0:
-        part.unlink(missing_ok=True)
-        raise DownloadError(f"{url}: asked for the bytes from {offset} on, the server sent {first}-{last}; {part} is "
-                            "dropped: rerun the same command to fetch the file from the start")
-    # first == 0: the server restarted the file; it is written from the start, never appended
-    return first, last + 1, total
 
 
 def _receive(url: str, response, part: Path, start: int, end: int | None, cap: int, deadline: Deadline,
@@ -437,239 +364,6 @@ def deadline_seconds(expected: int | None) -> float:
     if not (seconds > 0 and seconds != float("inf")):
         raise DownloadError(f"{DEADLINE_ENV}={text!r}: expected a positive number of seconds")
     return seconds
-
-
-def check_free_space(folder: Path, needed: int) -> None:
-    free = shutil.disk_usage(folder).free
-    if needed > 0 and free < needed + FREE_RESERVE:
-        raise DownloadError(f"{folder}: {free / 1e9:.1f} GB free, {(needed + FREE_RESERVE) / 1e9:.1f} GB needed; "
-                            "free space or use --to")
-
-
-def disk_full(folder: Path, kept: str, free: int | None = None) -> DownloadError:
-    """The full-disk line of a download: the free space of the filesystem that filled (the
-    nearest existing folder of `folder`), and what a rerun finds (`kept`)."""
-    where = next((p for p in [folder, *folder.parents] if p.exists()), Path("."))
-    try:
-        free = shutil.disk_usage(where).free if free is None else free
-        room = f" ({free / 2**20:.1f} MiB free there, {FREE_RESERVE >> 20} MiB kept free)"
-    except OSError:
-        room = ""
-    return DownloadError(f"{folder}: no space left on the device{room}; free some space and rerun the same command "
-                         f"({kept})")
-
-
-def read_lock(to: Path) -> dict[str, str]:
-    """The hashes recorded by earlier downloads ({file: sha256}), {} where none were; a file
-    that is not such a record is one line naming it (never trusted, never overwritten)."""
-    path = Path(to) / LOCK_FILE
-    if not path.exists():
-        return {}
-    try:
-        record = json.loads(path.read_text())
-        problem = "" if isinstance(record, dict) else f"holds {_JSON_KINDS.get(type(record), 'null')}, not files and their hashes"
-    except (OSError, UnicodeDecodeError, ValueError) as error:
-        record, problem = None, ("empty" if isinstance(error, ValueError) and not path.read_bytes().strip()
-                                 else f"not JSON ({str(error).splitlines()[0] if str(error) else type(error).__name__})")
-    if not problem:
-        bad = next((k for k, v in record.items() if not isinstance(v, str) or not SHA256.fullmatch(v)), None)
-        problem = f"the entry {bad!r} is not a sha256" if bad is not None else ""
-    if problem:
-        raise DownloadError(f"{path}: {problem}, so the hashes of earlier downloads are lost; restore it from a "
-                            "backup, or remove it and the next download records them again")
-    return record
-
-
-def _record(to: Path, part: Part, digest: str) -> None:
-    """The first complete download's hash, where none is pinned, written atomically."""
-    if part.sha256:
-        return
-    record = read_lock(to)
-    if record.get(part.file) == digest:
-        return
-    record[part.file] = digest
-    text = json.dumps(record, indent=1, sort_keys=True) + "\n"
-    write_atomically(Path(to) / LOCK_FILE, lambda tmp: tmp.write_text(text))
-
-
-def verify(path: Path, part: Part, to: Path, owned: bool = True) -> str:
-    """The file's sha256 if it is the pinned (or first recorded) one and its md5 the published
-    one (where given); else the file is moved aside (`owned`: only a file the download wrote)
-    and a one-line error says both hashes. Records nothing (see _record)."""
-    sha, md5 = hashlib.sha256(), hashlib.md5() if part.md5 else None
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(CHUNK), b""):
-            sha.update(block)
-            if md5 is not None:
-                md5.update(block)
-    digest = sha.hexdigest()
-    lock_path = Path(to) / LOCK_FILE
-    expected = part.sha256 or read_lock(to).get(part.file)
-    checks = [("sha256", digest, expected, "pinned in e3cm-bench" if part.sha256 else
-               f"recorded in {lock_path} by the first download")]
-    if md5 is not None:
-        checks.append(("md5", md5.hexdigest(), part.md5.lower(), "published by the source"))
-    for kind, got, want, where in checks:
-        if want is not None and got != want:
-            raise DownloadError(f"{path.name}: {kind} {got} is not the {want} {where}; {_set_aside(path, owned)}")
-    return digest
-
-
-def _set_aside(path: Path, owned: bool) -> str:
-    if not owned:
-        return f"{path} is left as it is"
-    bad = path.with_name(path.name + ".bad")
-    path.replace(bad)
-    return f"the file is kept aside as {bad}"
-
-
-def extract(archive: Path, target: Path, console: Console | None = None) -> Path:
-    """Unpack into a temporary folder beside `target`, refusing unsafe members, then rename into
-    place (the archive's single top folder, or its contents, become `target`)."""
-    temporary = unpack(archive, target, owned=False)
-    try:
-        _place(temporary, target, archive)
-    finally:
-        shutil.rmtree(temporary, ignore_errors=True)
-    return target
-
-
-def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
-    """The archive unpacked whole into a temporary folder beside `target` (returned): unsafe
-    members refused, more than UNPACK_RATIO times the archive's bytes refused, and every member
-    read to its end, which checks each zip member's CRC-32 and finds a tar cut short. A damaged
-    or refused archive is moved aside (`owned`), so that a rerun fetches it again instead of
-    reusing it, and said in one line."""
-    temporary = target.with_name(f".{target.name}.extracting")
-    shutil.rmtree(temporary, ignore_errors=True)
-    temporary.mkdir(parents=True)
-    limit = UNPACK_RATIO * archive.stat().st_size + UNPACK_SLACK
-    try:
-        if zipfile.is_zipfile(archive):
-            with zipfile.ZipFile(archive) as zf:
-                declared = 0
-                for info in zf.infolist():
-                    _check_member(info.filename, stat.S_IFMT(info.external_attr >> 16))
-                    declared += info.file_size  # a zip member never yields more than it declares
-                _check_unpacked_size(declared, limit, temporary)
-                zf.extractall(temporary)
-        elif tarfile.is_tarfile(archive):
-            with tarfile.open(archive) as tf:
-                declared = 0
-                for member in tf:  # one by one: a bomb is refused at the member that passes the limit
-                    kind = stat.S_IFLNK if member.issym() or member.islnk() else \
-                        stat.S_IFCHR if not (member.isfile() or member.isdir()) else 0
-                    _check_member(member.name, kind)
-                    declared += member.size
-                    _check_unpacked_size(declared, limit, temporary)
-                tf.extractall(temporary, filter="data")
-        else:
-            raise _Refused("damaged or cut short (neither a zip nor a tar archive)")
-    except _Refused as error:
-        shutil.rmtree(temporary, ignore_errors=True)
-        raise DownloadError(f"{archive}: {error}; no hash was recorded and nothing was extracted; "
-                            f"{_set_aside(archive, owned)}: rerun to download it again, or pass --from another mirror") from None
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, EOFError, zlib.error, lzma.LZMAError,
-            NotImplementedError, OSError) as error:
-        shutil.rmtree(temporary, ignore_errors=True)
-        if isinstance(error, OSError) and error.errno is not None:
-            raise  # the disk or the folder, not the archive (a full disk is said by download)
-        why = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise DownloadError(f"{archive}: damaged or cut short ({why}); no hash was recorded and nothing was extracted; "
-                            f"{_set_aside(archive, owned)}: rerun the same command to download it again") from None
-    except BaseException:
-        shutil.rmtree(temporary, ignore_errors=True)
-        raise
-    return temporary
-
-
-class _Refused(Exception):
-    """An archive that unpack will not unpack (the reason); it becomes a DownloadError there."""
-
-
-def _check_unpacked_size(declared: int, limit: int, temporary: Path) -> None:
-    if declared > limit:
-        raise _Refused(f"its members would unpack to at least {declared} bytes, over the {limit} allowed "
-                       f"({UNPACK_RATIO} times the archive's size)")
-    free = shutil.disk_usage(temporary).free
-    if declared + FREE_RESERVE > free:
-        raise disk_full(temporary.parent, "the archive is kept", free)
-
-
-def _place(temporary: Path, target: Path, archive: Path) -> Path:
-    """The unpacked archive's single top folder, or its contents, renamed into `target`."""
-    top = list(temporary.iterdir())
-    content = top[0] if len(top) == 1 and top[0].is_dir() else temporary
-    if target.exists():
-        shutil.rmtree(target)
-    content.rename(target)
-    write_atomically(target / ".complete", lambda tmp: tmp.write_text(f"{archive.name}\n"))
-    return target
-
-
-def check(source: Source, to: Path) -> str:
-    """What a placed copy holds against what a complete one does: one line, or a DownloadError
-    naming what is missing and the command that fetches it."""
-    from .benchmarks import get_benchmark
-
-    root = Path(to) / source.folder
-    if not root.is_dir():
-        raise DownloadError(f"{root}: not found; e3cm-bench download {source.name} --to {to} fetches it")
-    try:
-        dataset = get_benchmark(source.benchmark).load_dataset(root)
-    except ValueError as error:  # the dataset's own words, without the advice meant for a run
-        reason = str(error).split(", e.g. ")[0].split("; pass --skip-bad")[0]
-        raise DownloadError(f"{source.name} at {root} is incomplete: {reason}") from None
-    found = {"pairs": len(dataset)}
-    if "sequences" in source.expected:  # an HPatches copy is counted in sequences and images
-        sequences = [d for d in root.iterdir() if d.is_dir() and d.name[:2] in ("i_", "v_")]
-        found = {"sequences": len(sequences), "images": sum(len(list(d.glob("*.ppm"))) for d in sequences)}
-    short = {k: (found.get(k, 0), v) for k, v in source.expected.items() if found.get(k, 0) < v}
-    if short:
-        counts = ", ".join(f"{k} {got} of {want}" for k, (got, want) in short.items())
-        raise DownloadError(f"{source.name} at {root} is incomplete: {counts}")
-    return f"{source.name} at {root}: complete (" + ", ".join(f"{v} {k}" for k, v in found.items()) + ")"
-
-
-def find_root(benchmark: str, root: Path | None) -> Path:
-    """--root as given, else the benchmark's data under data_dir() in the first of its layouts
-    that is there and complete (else a one-line error names the download command that fixes it)."""
-    from .datasets.sources import data_dir, default_sources
-
-    if root is not None:
-        return Path(root)
-    sources = default_sources(benchmark)
-    errors = []
-    for source in sources:
-        try:
-            check(source, data_dir())
-            return data_dir() / source.folder
-        except DownloadError as error:
-            errors.append(error)
-    fixes = " or ".join(f"e3cm-bench download {s.name} --to {data_dir()}" for s in sources)
-    problem = str(errors[0]).split("; e3cm-bench download")[0]
-    raise DownloadError(f"no --root given and {problem}; {fixes} fetches it (or pass --root)")
-
-
-def status(source: Source, to: Path) -> str:
-    """One line for `e3cm-bench datasets`: where a source's data is looked for and what is there."""
-    root = Path(to) / source.folder
-    recorded = read_lock(to)  # a damaged record is one line, whatever the copies hold
-    try:
-        line = check(source, to)
-    except DownloadError as error:
-        text = str(error)
-        return f"{source.name}: {'missing' if 'not found' in text else 'incomplete'} at {root} ({text.split(': ', 1)[-1]})"
-    hashes = [part.file for part in source.parts if part.file in recorded]
-    return line + (f"; sha256 recorded for {', '.join(hashes)}" if hashes else "; no download recorded (placed by hand)")
-
-
-def _check_member(name: str, kind: int) -> None:
-    path = PurePosixPath(name.replace("\\", "/"))
-    if path.is_absolute() or ".." in path.parts or (len(name) > 1 and name[1] == ":"):
-        raise _Refused(f"member {name!r} would be written outside the folder")
-    if kind in (stat.S_IFLNK, stat.S_IFCHR, stat.S_IFBLK, stat.S_IFIFO, stat.S_IFSOCK):
-        raise _Refused(f"member {name!r} is a link or a device file")
 
 
 def _progress(console: Console | None) -> Progress:

@@ -14,7 +14,7 @@ it gives that error in one line. Models load when a matcher is built, never at l
 Entry points are imported only when they are needed: when a name that is not a built-in is
 asked for, or when every matcher is listed (`e3cm-bench matchers`, `entries()`). A run of
 `--matcher sift` imports no plugin, so a broken one cannot touch it. Each import (with the
-call of its object) is bounded by PLUGIN_IMPORT_SECONDS (environment:
+call of its object) is bounded by PLUGIN_IMPORT_SECONDS (plugin_import.py; environment:
 E3CM_BENCH_PLUGIN_TIMEOUT): it is first tried in a forked child process, which is killed at
 the bound (a C call that holds the interpreter lock, such as a regular expression that never
 ends, cannot be interrupted inside this process: no thread of it runs meanwhile); a plugin
@@ -35,10 +35,7 @@ import dataclasses
 import importlib
 import importlib.metadata
 import os
-import signal
 import sys
-import threading
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -46,6 +43,8 @@ from ..backbone_names import DEFAULT_BACKBONE
 from ..devices import check_device
 from ..files import file_sha256
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
+# _probe: scripts/pair_timeout_overhead.py times it from here
+from .plugin_import import PLUGIN_IMPORT_SECONDS, bounded, exit_text, probe as _probe, why  # noqa: F401
 
 ENTRY_POINT_GROUP = "e3cm_bench.matchers"
 
@@ -54,9 +53,6 @@ _BROKEN: dict[str, str] = {}  # plugin entry point -> why it did not load
 _loaded = False
 _plugins_loaded = False
 
-# How long one plugin's import may take. Generous: a plugin importing torch and a model zoo
-# takes seconds on a cold disk; one that never returns must not hang every command.
-PLUGIN_IMPORT_SECONDS = 60.0
 
 # The package.module:factory names given by the user (--matcher, an experiment config), for the
 # worker processes this one starts: set in the environment they inherit.
@@ -197,7 +193,7 @@ def _built(entry: MatcherEntry, build: Callable[[], Matcher]) -> Matcher:
     try:
         return build()
     except SystemExit as exc:
-        raise ValueError(f"matcher {entry.name} ({entry.origin}): building it called {_exit_text(exc)}") from None
+        raise ValueError(f"matcher {entry.name} ({entry.origin}): building it called {exit_text(exc)}") from None
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # noqa: BLE001 - a plugin's factory may raise anything
@@ -236,104 +232,6 @@ def _load(plugins: bool = False) -> None:
         load_plugins()
 
 
-def plugin_import_seconds() -> float:
-    """The bound on one plugin's import: E3CM_BENCH_PLUGIN_TIMEOUT seconds, else PLUGIN_IMPORT_SECONDS."""
-    text = os.environ.get("E3CM_BENCH_PLUGIN_TIMEOUT")
-    if not text:
-        return PLUGIN_IMPORT_SECONDS
-    try:
-        seconds = float(text)
-    except ValueError:
-        seconds = -1.0
-    if not seconds > 0:
-        raise ValueError(f"E3CM_BENCH_PLUGIN_TIMEOUT={text!r}: expected a number of seconds > 0")
-    return seconds
-
-
-class _TimedOut(Exception):
-    pass
-
-
-def _probe(call: Callable[[], object], what: str, seconds: float) -> None:
-    """call() in a forked child, in a process group of its own, killed with that group after
-    `seconds`: _TimedOut then, or where the child crashed. Whatever call() raises there is not
-    looked at: the import here gives the same error, in one line."""
-    if not (hasattr(os, "fork") and hasattr(os, "killpg")):
-        return
-    sys.stdout.flush()
-    sys.stderr.flush()
-    pid = os.fork()
-    if pid == 0:  # the child: quiet, never returns
-        code = 0
-        try:
-            os.setpgid(0, 0)
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 1)
-            os.dup2(devnull, 2)
-            call()
-        except BaseException:  # noqa: BLE001 - an error is the import's own, reported by the import here
-            pass
-        finally:
-            os._exit(code)
-    try:
-        os.setpgid(pid, pid)
-    except OSError:
-        pass
-    deadline, pause = time.monotonic() + seconds, 0.001
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            break
-        if time.monotonic() >= deadline:
-            for kill in (lambda: os.killpg(pid, signal.SIGKILL), lambda: os.kill(pid, signal.SIGKILL)):
-                try:
-                    kill()
-                except OSError:
-                    pass
-            os.waitpid(pid, 0)
-            raise _TimedOut(f"did not finish importing within {seconds:g} s (E3CM_BENCH_PLUGIN_TIMEOUT sets the bound)")
-        time.sleep(pause)
-        pause = min(pause * 2, 0.05)
-    if os.WIFSIGNALED(status):
-        raise _TimedOut(f"crashed while importing (signal {os.WTERMSIG(status)}); not imported here")
-
-
-def _bounded(call: Callable[[], object], what: str):
-    """call() first in a forked child (_probe: killed after plugin_import_seconds()), then here
-    in a daemon thread, waited for as long; _TimedOut where either does not finish. Whatever
-    call() raises, SystemExit included, is raised here in the caller."""
-    seconds = plugin_import_seconds()
-    _probe(call, what, seconds)
-    done: dict = {}
-
-    def target() -> None:
-        try:
-            done["value"] = call()
-        except BaseException as exc:  # noqa: BLE001 - carried to the caller, SystemExit included
-            done["error"] = exc
-
-    thread = threading.Thread(target=target, name=f"e3cm-bench import {what}", daemon=True)
-    thread.start()
-    thread.join(seconds)
-    if thread.is_alive():
-        raise _TimedOut(f"did not finish importing within {seconds:g} s (E3CM_BENCH_PLUGIN_TIMEOUT sets the bound)")
-    if "error" in done:
-        raise done["error"]
-    return done["value"]
-
-
-def _exit_text(exc: SystemExit) -> str:
-    return f"sys.exit({exc.code!r})"
-
-
-def _why(exc: BaseException) -> str:
-    if isinstance(exc, SystemExit):
-        return f"called {_exit_text(exc)}"
-    if isinstance(exc, _TimedOut):
-        return str(exc)
-    return f"{type(exc).__name__}: {exc}"
-
-
 def load_plugins() -> None:
     """Register every entry point of the group (again: a test may add a distribution)."""
     for point in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
@@ -341,11 +239,11 @@ def load_plugins() -> None:
         origin = f"plugin {dist.name} {dist.version}" if dist is not None else f"plugin {point.value}"
         source = {"package": dist.name, "version": dist.version} if dist is not None else {"entry_point": point.value}
         try:
-            found = _bounded(lambda point=point: _entries_of(point.load(), point.value), point.value)
+            found = bounded(lambda point=point: _entries_of(point.load(), point.value), point.value)
         except KeyboardInterrupt:
             raise
         except (Exception, SystemExit) as exc:  # noqa: BLE001 - a broken plugin must not break the toolkit
-            _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) failed to load: {_why(exc)}"
+            _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) failed to load: {why(exc)}"
             continue
         _BROKEN.pop(point.name, None)
         for entry in found:
@@ -370,11 +268,11 @@ def _from_module(name: str) -> MatcherEntry:
     if here not in sys.path and "" not in sys.path:  # as `python -m` finds it: the current folder first
         sys.path.insert(0, here)
     try:
-        module = _bounded(lambda: importlib.import_module(module_name), module_name)
+        module = bounded(lambda: importlib.import_module(module_name), module_name)
     except KeyboardInterrupt:
         raise
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - one line, whatever the module does wrong
-        raise ValueError(f"--matcher {name}: cannot import {module_name} ({_why(exc)})") from None
+        raise ValueError(f"--matcher {name}: cannot import {module_name} ({why(exc)})") from None
     if not hasattr(module, attr):
         raise ValueError(f"--matcher {name}: module {module_name} has no {attr!r}")
     factory = getattr(module, attr)
@@ -387,7 +285,7 @@ def _from_module(name: str) -> MatcherEntry:
         try:
             made = factory()
         except SystemExit as exc:
-            raise ValueError(f"--matcher {name}: {attr}() called {_exit_text(exc)}") from None
+            raise ValueError(f"--matcher {name}: {attr}() called {exit_text(exc)}") from None
         except Exception as exc:  # noqa: BLE001
             raise ValueError(f"--matcher {name}: {attr}() raised {type(exc).__name__}: {exc}") from None
         if isinstance(made, MatcherEntry):

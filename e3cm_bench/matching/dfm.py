@@ -146,17 +146,7 @@ def match_through_warp(
     size1 = (image1.shape[1], image1.shape[0])
     found = H_BA is not None
     t = time.perf_counter()
-    if found:
-        warped = cv2.warpPerspective(image1, H_BA, size0, flags=cv2.INTER_LINEAR, borderValue=0)
-        # A full-white mask warped the same (bilinear) way drops below 255 on every pixel
-        # that blends in the black outside of B.
-        ones = np.full(image1.shape[:2], 255, np.uint8)
-        valid = cv2.warpPerspective(ones, H_BA, size0, flags=cv2.INTER_LINEAR, borderValue=0) == 255
-    else:
-        # Warping by the identity is image B itself; taking B unwarped also keeps all of it
-        # when the two sizes differ, and its features are already computed.
-        H_BA = np.eye(3)
-        warped, valid = image1, np.ones(image1.shape[:2], bool)
+    warped, valid, H_BA = _warped(image1, H_BA, size0)
     timings["warp"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -189,6 +179,21 @@ def match_through_warp(
         "stage1": diagnostics,
         "timings": timings,
     }
+
+
+def _warped(image1: np.ndarray, H_BA: np.ndarray | None, size0: tuple[int, int]) -> tuple:
+    """(B warped onto A by H_BA, the mask of its pixels that are all B's, the H_BA used): B as
+    it is, whole, with the identity where H_BA is None."""
+    if H_BA is not None:
+        warped = cv2.warpPerspective(image1, H_BA, size0, flags=cv2.INTER_LINEAR, borderValue=0)
+        # A full-white mask warped the same (bilinear) way drops below 255 on every pixel
+        # that blends in the black outside of B.
+        ones = np.full(image1.shape[:2], 255, np.uint8)
+        valid = cv2.warpPerspective(ones, H_BA, size0, flags=cv2.INTER_LINEAR, borderValue=0) == 255
+        return warped, valid, H_BA
+    # Warping by the identity is image B itself; taking B unwarped also keeps all of it
+    # when the two sizes differ, and its features are already computed.
+    return image1, np.ones(image1.shape[:2], bool), np.eye(3)
 
 
 def stage0_homography(

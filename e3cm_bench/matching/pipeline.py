@@ -166,22 +166,74 @@ def match_pyramids(
     """
     top = len(feats0) - 1
     timings: dict[str, float] = {}
+    extents = _level_extents(feats0, feats1, size0, size1, settings)
+    unit0, unit1, top0, top1 = _normalised(feats0, feats1, settings, _computed if memo is None else memo, timings)
+    t = time.perf_counter()
+    cells0, cells1, dist = match_dense_level(
+        top0, top1, *extents(top), settings.ratio[top], settings.drop_border, settings.dense_chunk,
+    )
+    timings["initial"] = time.perf_counter() - t
+    counts_before, counts_after = {top: len(cells0)}, {top: len(cells0)}
+    fundamentals: dict[int, np.ndarray | None] = {}
+    rejection: dict[int, str] = {}
+    timings["cascade"] = 0.0
+    for level in range(top, 0, -1):
+        F_l = None
+        if settings.cascade:
+            t = time.perf_counter()
+            F_l = _level_fundamental(unit0, unit1, cells0, cells1, level, settings)
+            fundamentals[level] = F_l
+            timings["cascade"] += time.perf_counter() - t
+        t = time.perf_counter()
+        cells0, cells1, dist, _ = refine_to_children(
+            feats0[level - 1], feats1[level - 1], cells0, cells1,
+            *extents(level - 1), settings.ratio[level - 1], settings.max_per_parent, settings.ratio_at,
+        )
+        timings[f"refine_l{level - 1}"] = time.perf_counter() - t
+        counts_before[level - 1] = len(cells0)
+        if settings.cascade:
+            t = time.perf_counter()
+            cells0, cells1, dist, rejection[level - 1] = _epipolar_rejection(
+                F_l, cells0, cells1, dist, level, counts_after[level], settings)
+            timings["cascade"] += time.perf_counter() - t
+        counts_after[level - 1] = len(cells0)
+    return {
+        **_keypoints(feats0, feats1, cells0, cells1, dist, settings, timings),
+        "counts_before": counts_before,
+        "counts_after": counts_after,
+        "fundamentals": fundamentals,
+        "rejection": rejection,
+        "timings": timings,
+    }
 
+
+def _computed(side: int, name: str, compute: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """match_pyramids' memo where none is given: every product computed."""
+    return compute()
+
+
+def _level_extents(feats0: list[torch.Tensor], feats1: list[torch.Tensor], size0: tuple[int, int],
+                   size1: tuple[int, int], settings: E3CMSettings) -> Callable[[int], tuple]:
+    """level -> the (w, h) in cells of each image's map matched at that level."""
     def extents(level: int) -> tuple[tuple[int, int], tuple[int, int]]:
         if settings.valid_cells_only:
             return valid_extent(size0, level), valid_extent(size1, level)
         return (feats0[level].shape[2], feats0[level].shape[1]), (feats1[level].shape[2], feats1[level].shape[1])
 
+    return extents
+
+
+def _normalised(feats0: list[torch.Tensor], feats1: list[torch.Tensor], settings: E3CMSettings, memo,
+                timings: dict[str, float]) -> tuple:
+    """(unit0, unit1, top0, top1): each image's level 0 as UnitPixels (None where nothing reads
+    it) and its deepest level normalised; the time taken goes to timings["normalise"]."""
     # The deepest level is matched densely, so it is normalised whole. Level 0 is read by the
     # confidence score only (top8 and PROSAC), patch by patch, as pixel rows divided by their
     # norms as they are gathered (UnitPixels): the rows are the backbone's own channels-last
     # output where the matcher kept it (memo "pixel_rows:0"), else a copy; only the norms
     # are computed from the whole map. The levels between are read only at children of
     # matches: refine_to_children normalises those as it reads them.
-    if memo is None:
-        def memo(side, name, compute):
-            return compute()
-
+    top = len(feats0) - 1
     t = time.perf_counter()
     unit0 = unit1 = None
 
@@ -194,57 +246,41 @@ def match_pyramids(
     top0 = memo(0, f"normalize:{top}", lambda: normalize_channels(feats0[top]))
     top1 = memo(1, f"normalize:{top}", lambda: normalize_channels(feats1[top]))
     timings["normalise"] = time.perf_counter() - t
+    return unit0, unit1, top0, top1
 
-    t = time.perf_counter()
-    cells0, cells1, dist = match_dense_level(
-        top0, top1, *extents(top), settings.ratio[top], settings.drop_border, settings.dense_chunk,
+
+def _level_fundamental(unit0: UnitPixels | None, unit1: UnitPixels | None, cells0: torch.Tensor,
+                       cells1: torch.Tensor, level: int, settings: E3CMSettings) -> np.ndarray | None:
+    """The cascade's F at `level`, from the matches' cell centres (scored where the estimator
+    reads confidences); None where it cannot be estimated."""
+    x0 = _np(cell_centres(cells0, level))
+    x1 = _np(cell_centres(cells1, level))
+    conf = None
+    if settings.estimator in SCORED_ESTIMATORS and len(cells0) >= 8:
+        # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
+        top = 8 if settings.estimator == "top8" else None
+        conf = _np(confidence_scores(unit0, unit1, cells0, cells1, level, settings.confidence_eps, top=top))
+    return estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
+
+
+def _epipolar_rejection(F_l: np.ndarray | None, cells0: torch.Tensor, cells1: torch.Tensor, dist: torch.Tensor,
+                        level: int, matched_above: int, settings: E3CMSettings) -> tuple:
+    """(cells0, cells1, dist, what rejection did): the children of level-1 kept where they fit
+    the F of `level` (all of them where there is none; matched_above: the matches at `level`)."""
+    if F_l is None:
+        why = "fewer than 8 matches" if matched_above < 8 else "degenerate F"
+        return cells0, cells1, dist, f"skipped: {why} at level {level}"
+    keep = epipolar_inliers(
+        F_l, _np(cell_centres(cells0, level - 1)), _np(cell_centres(cells1, level - 1)),
+        settings.sampson_px[level - 1],
     )
-    timings["initial"] = time.perf_counter() - t
+    keep_t = torch.from_numpy(keep).to(cells0.device)
+    return cells0[keep_t], cells1[keep_t], dist[keep_t], "applied"
 
-    counts_before = {top: len(cells0)}
-    counts_after = {top: len(cells0)}
-    fundamentals: dict[int, np.ndarray | None] = {}
-    rejection: dict[int, str] = {}
-    timings["cascade"] = 0.0
-    for level in range(top, 0, -1):
-        F_l = None
-        if settings.cascade:
-            t = time.perf_counter()
-            x0 = _np(cell_centres(cells0, level))
-            x1 = _np(cell_centres(cells1, level))
-            conf = None
-            if settings.estimator in SCORED_ESTIMATORS and len(cells0) >= 8:
-                # top-8 needs only the 8 best scores (the rest stay -inf); PROSAC orders them all.
-                top = 8 if settings.estimator == "top8" else None
-                conf = _np(confidence_scores(unit0, unit1, cells0, cells1, level, settings.confidence_eps, top=top))
-            F_l = estimate_level_fundamental(x0, x1, conf, settings.estimator, settings.ransac_cells * 2**level)
-            fundamentals[level] = F_l
-            timings["cascade"] += time.perf_counter() - t
 
-        t = time.perf_counter()
-        cells0, cells1, dist, _ = refine_to_children(
-            feats0[level - 1], feats1[level - 1], cells0, cells1,
-            *extents(level - 1), settings.ratio[level - 1], settings.max_per_parent, settings.ratio_at,
-        )
-        timings[f"refine_l{level - 1}"] = time.perf_counter() - t
-        counts_before[level - 1] = len(cells0)
-
-        if settings.cascade:
-            t = time.perf_counter()
-            if F_l is None:
-                why = "fewer than 8 matches" if counts_after[level] < 8 else "degenerate F"
-                rejection[level - 1] = f"skipped: {why} at level {level}"
-            else:
-                keep = epipolar_inliers(
-                    F_l, _np(cell_centres(cells0, level - 1)), _np(cell_centres(cells1, level - 1)),
-                    settings.sampson_px[level - 1],
-                )
-                keep_t = torch.from_numpy(keep).to(cells0.device)
-                cells0, cells1, dist = cells0[keep_t], cells1[keep_t], dist[keep_t]
-                rejection[level - 1] = "applied"
-            timings["cascade"] += time.perf_counter() - t
-        counts_after[level - 1] = len(cells0)
-
+def _keypoints(feats0: list[torch.Tensor], feats1: list[torch.Tensor], cells0: torch.Tensor, cells1: torch.Tensor,
+               dist: torch.Tensor, settings: E3CMSettings, timings: dict[str, float]) -> dict:
+    """keypoints0/1 (original pixels; B's moved by the sub-pixel offsets where set) and scores."""
     keypoints1 = _np(cell_centres(cells1, 0))
     if settings.subpixel:
         t = time.perf_counter()
@@ -254,9 +290,4 @@ def match_pyramids(
         "keypoints0": _np(cell_centres(cells0, 0)).astype(np.float32),
         "keypoints1": keypoints1.astype(np.float32),
         "scores": (1 - _np(dist)).astype(np.float32),
-        "counts_before": counts_before,
-        "counts_after": counts_after,
-        "fundamentals": fundamentals,
-        "rejection": rejection,
-        "timings": timings,
     }

@@ -50,20 +50,7 @@ def refine_to_children(
     d0 = normalize_channels(_gather(feat0, kids0)).permute(1, 2, 0)  # N x 4 x C
     d1 = normalize_channels(_gather(feat1, kids1)).permute(1, 2, 0)
     dist = 1 - d0 @ d1.transpose(1, 2)  # N x 4 (children of A) x 4 (children of B)
-
-    best_a, nn_a = dist.topk(2, dim=2, largest=False)  # for each A child, over B children
-    best_b, nn_b = dist.topk(2, dim=1, largest=False)  # for each B child, over A children
-    a_idx = torch.arange(4, device=device)[None].expand(n, 4)
-    b_of_a = nn_a[..., 0]  # N x 4
-    mutual = nn_b[:, 0, :].gather(1, b_of_a) == a_idx
-    ok_a = passes_ratio(best_a[..., 0], best_a[..., 1], ratio)
-    ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio)
-    if ratio_at == "matched":
-        ok_b = ok_b.gather(1, b_of_a)
-    # Children in the padding are ruled out before the best ones per parent are chosen, so a
-    # parent at the image edge still yields its valid children.
-    valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1).reshape(n, 4)
-    child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b & valid), float("inf"))
+    child_dist, b_of_a = _children_checked(dist, kids0, kids1, extent0, extent1, ratio, ratio_at)
 
     # Keep the best `max_per_parent` children per parent.
     k = min(max_per_parent, 4)
@@ -80,6 +67,27 @@ def refine_to_children(
     key = torch.cat([out0, out1], 1)
     _, first = _unique_rows(key)
     return out0[first], out1[first], out_dist[first], parent[first]
+
+
+def _children_checked(dist: torch.Tensor, kids0: torch.Tensor, kids1: torch.Tensor, extent0: tuple[int, int],
+                      extent1: tuple[int, int], ratio: float, ratio_at: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(each A child's distance to its nearest B child, inf where the pair is not mutual, fails
+    the ratio test or lies in the padding: N x 4; that B child's index: N x 4)."""
+    n, device = len(dist), dist.device
+    best_a, nn_a = dist.topk(2, dim=2, largest=False)  # for each A child, over B children
+    best_b, nn_b = dist.topk(2, dim=1, largest=False)  # for each B child, over A children
+    a_idx = torch.arange(4, device=device)[None].expand(n, 4)
+    b_of_a = nn_a[..., 0]  # N x 4
+    mutual = nn_b[:, 0, :].gather(1, b_of_a) == a_idx
+    ok_a = passes_ratio(best_a[..., 0], best_a[..., 1], ratio)
+    ok_b = passes_ratio(best_b[:, 0, :], best_b[:, 1, :], ratio)
+    if ratio_at == "matched":
+        ok_b = ok_b.gather(1, b_of_a)
+    # Children in the padding are ruled out before the best ones per parent are chosen, so a
+    # parent at the image edge still yields its valid children.
+    valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1).reshape(n, 4)
+    child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b & valid), float("inf"))
+    return child_dist, b_of_a
 
 
 def _gather(feat: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:

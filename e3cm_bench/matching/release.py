@@ -103,19 +103,43 @@ def release_refine(
     parents0, parents1 = 2 * cells0, 2 * cells1
     kids0 = parents0[:, None, :] + offsets[None]  # N x 4 x 2
     kids1 = parents1[:, None, :] + offsets[None]
+    keep, best_b = _kept_children(_children_similarity(map0, map1, kids0, kids1), ratio, ratio_at)
+    keep = keep.to(cells0.device)
+    best_b = best_b.to(cells0.device)
+    out0 = kids0[keep]
+    out1 = (parents1[:, None, :] + offsets[best_b])[keep]
+    if len(out0) < 4 and n > len(out0):
+        out0, out1 = parents0, parents1
+    if dedup:  # the release's torch.unique + np.unique(return_index): first occurrence, rows sorted
+        first = first_of_each(out0)
+        out0, out1 = out0[first], out1[first]
+        first = first_of_each(out1)
+        out0, out1 = out0[first], out1[first]
+    return out0, out1
+
+
+def _children_similarity(map0: torch.Tensor, map1: torch.Tensor, kids0: torch.Tensor,
+                         kids1: torch.Tensor) -> torch.Tensor:
+    """N x 4 (A children) x 4 (B children) cosine similarities of the children (N x 4 x 2
+    cells) in the maps normalised whole, on the CPU."""
     norm0 = map0 / map0.square().sum(0, keepdim=True).sqrt()
     norm1 = map1 / map1.square().sum(0, keepdim=True).sqrt()
     # N x 4 (A children) x 4 (B children) similarities, each summed over channels of C x N
     # slices as the releases do: exact ties (saturated regions) then break the same way.
     # (Each child's C x N slice is gathered once, not once per pair of children.)
-    sim = torch.zeros(n, 4, 4, dtype=torch.float32, device=cells0.device)
+    sim = torch.zeros(len(kids0), 4, 4, dtype=torch.float32, device=kids0.device)
     a = [norm0[:, kids0[:, i, 1], kids0[:, i, 0]] for i in range(4)]
     b = [norm1[:, kids1[:, j, 1], kids1[:, j, 0]] for j in range(4)]
     for i in range(4):
         for j in range(4):
             sim[:, i, j] = (a[i] * b[j]).sum(0).float()
-    sim = sim.cpu()
+    return sim.cpu()
 
+
+def _kept_children(sim: torch.Tensor, ratio: float, ratio_at: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(keep: N x 4, which A children are kept; best_b: N x 4, the B child each matched), from
+    their similarities: mutual, past the ratio test, and at most two per parent."""
+    n = len(sim)
     sim_ab, nn_ab = sim.topk(2, dim=2)
     dist_ab = 2 - 2 * sim_ab
     ratio_ab = dist_ab[..., 0] / (dist_ab[..., 1] + 1e-8)
@@ -135,19 +159,7 @@ def release_refine(
     rows = torch.arange(n)
     keep[rows, worst[:, 0]] = False
     keep[rows, worst[:, 1]] = False
-
-    keep = keep.to(cells0.device)
-    best_b = best_b.to(cells0.device)
-    out0 = kids0[keep]
-    out1 = (parents1[:, None, :] + offsets[best_b])[keep]
-    if len(out0) < 4 and n > len(out0):
-        out0, out1 = parents0, parents1
-    if dedup:  # the release's torch.unique + np.unique(return_index): first occurrence, rows sorted
-        first = first_of_each(out0)
-        out0, out1 = out0[first], out1[first]
-        first = first_of_each(out1)
-        out0, out1 = out0[first], out1[first]
-    return out0, out1
+    return keep, best_b
 
 
 def level_points(cells: torch.Tensor, level: int) -> np.ndarray:

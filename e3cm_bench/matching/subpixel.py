@@ -240,17 +240,7 @@ def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1:
     by, bx = np.divmod(best, side)
     peak = scores[np.arange(n), best]
     interior = (bx >= 1) & (bx <= side - 2) & (by >= 1) & (by <= side - 2)
-    cy, cx = np.clip(by, 1, side - 2), np.clip(bx, 1, side - 2)  # (clipped only where rejected anyway)
-    around = np.arange(-1, 2)
-    rows, cols = (cy[:, None] + around)[:, :, None], (cx[:, None] + around)[:, None, :]
-    neighbours = ncc[np.arange(n)[:, None, None], rows, cols]  # N x 3 x 3 around the best offset
-    _, gx, gy, hxx, hxy, hyy = _QUADRATIC_FIT @ neighbours.reshape(n, 9).T  # each N; NaN if a value is
-    det = 4 * hxx * hyy - hxy * hxy  # of the Hessian [[2 hxx, hxy], [hxy, 2 hyy]]
-    concave = (hxx < 0) & (det > 0)
-    safe = np.where(concave, det, 1.0)
-    sx = (hxy * gy - 2 * hyy * gx) / safe  # the stationary point: Hessian^-1 (-gradient)
-    sy = (hxy * gx - 2 * hxx * gy) / safe
-    concave &= (np.abs(sx) <= 1) & (np.abs(sy) <= 1)  # a peak outside the fitted 3 x 3 is extrapolated
+    sx, sy, concave = _quadratic_peak(ncc, bx, by)
     moved = p1 + np.stack([bx - radius + sx, by - radius + sy], axis=1)
     h, w = grey1.shape
     with np.errstate(invalid="ignore"):
@@ -262,6 +252,25 @@ def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1:
     if drop:
         keep = consistent
     return refined.astype(np.float32), keep
+
+
+def _quadratic_peak(ncc: np.ndarray, bx: np.ndarray, by: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sx, sy, concave): the sub-pixel peak of the quadratic fitted to the 3 x 3 NCC values
+    around each surface's best whole-pixel offset (bx, by), and whether it is a peak inside
+    that 3 x 3 (N x side x side surfaces; each result N)."""
+    n, side = len(ncc), ncc.shape[1]
+    cy, cx = np.clip(by, 1, side - 2), np.clip(bx, 1, side - 2)  # (clipped only where rejected anyway)
+    around = np.arange(-1, 2)
+    rows, cols = (cy[:, None] + around)[:, :, None], (cx[:, None] + around)[:, None, :]
+    neighbours = ncc[np.arange(n)[:, None, None], rows, cols]  # N x 3 x 3 around the best offset
+    _, gx, gy, hxx, hxy, hyy = _QUADRATIC_FIT @ neighbours.reshape(n, 9).T  # each N; NaN if a value is
+    det = 4 * hxx * hyy - hxy * hxy  # of the Hessian [[2 hxx, hxy], [hxy, 2 hyy]]
+    concave = (hxx < 0) & (det > 0)
+    safe = np.where(concave, det, 1.0)
+    sx = (hxy * gy - 2 * hyy * gx) / safe  # the stationary point: Hessian^-1 (-gradient)
+    sy = (hxy * gx - 2 * hxx * gy) / safe
+    concave &= (np.abs(sx) <= 1) & (np.abs(sy) <= 1)  # a peak outside the fitted 3 x 3 is extrapolated
+    return sx, sy, concave
 
 
 def refine_matches(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, mode: str,

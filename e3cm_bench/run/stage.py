@@ -5,8 +5,6 @@ reused across the pairs that share an image). Nothing here changes a result."""
 from __future__ import annotations
 
 import concurrent.futures
-import re
-import resource
 import shutil
 import sys
 import time
@@ -16,8 +14,6 @@ from typing import Callable
 
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.text import Text
 
 from ..cache import MatchCache
 from ..datasets.base import Pair
@@ -27,8 +23,10 @@ from ..matchers.base import Matcher
 from ..matchers.guards import StoppableWorker, can_fork
 from ..method import MethodSpec
 from ..pair_order import most_alive, reuse_order
+from .address_space import check_address_space
 from .folder import FAILED_ATTR, RunFolder
 from .pair import PAIR_ATTRS, MatcherError, match_pair, match_worker, matcher_input, pair_rotations
+from .progress import progress_bar
 
 
 def match_cached_pair(
@@ -86,24 +84,6 @@ def batch_ahead(job: MatchJob, matcher, batch: int, current: tuple[Pair, object]
         if pair is current[0] and all(matcher.feature_cache.holds(key) for key, _, _ in items):
             return []
     return matcher.prefetch(items, batch)
-
-
-# --------------------------------------------------------------------------- progress
-
-
-class RateColumn(ProgressColumn):
-    """Pairs per minute (rich has a speed column for bytes only)."""
-
-    def render(self, task) -> Text:
-        speed = task.finished_speed or task.speed
-        return Text("-- pairs/min" if speed is None else f"{speed * 60:.1f} pairs/min", style="cyan")
-
-
-def progress_bar(console: Console) -> Progress:
-    return Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), RateColumn(),
-        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console,
-    )
 
 
 # --------------------------------------------------------------------------- the stage
@@ -226,39 +206,6 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, options: Mat
     if todo:
         check_address_space("after matching", todo)
     _report_reuse(jobs, shared, console)
-
-
-# OpenCV's wheel brings its own OpenBLAS, which reserves its work buffer with mmap at its first
-# use (the evaluation's first cv2.findHomography); where an address-space limit (ulimit -v)
-# makes that mmap fail, it calls a null pointer: a segmentation fault, no message, after the
-# matching. Measured: that first call needs between 128 and 160 MiB of address space; the rest
-# leaves room for a thread's malloc arena (64 MiB) and stacks.
-ADDRESS_SPACE_NEEDED_MB = 320
-
-
-def address_space_left_mb() -> float | None:
-    """MiB of address space this process may still map under its RLIMIT_AS (None: no limit)."""
-    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft == resource.RLIM_INFINITY:
-        return None
-    try:
-        size_kb = int(re.search(r"VmSize:\s+(\d+)", open("/proc/self/status").read()).group(1))
-    except (OSError, AttributeError):
-        return None
-    return (soft - size_kb * 1024) / 2**20
-
-
-def check_address_space(when: str, pairs: int) -> None:
-    """A one-line ValueError where the address-space limit leaves too little for the libraries
-    still to run (ADDRESS_SPACE_NEEDED_MB), instead of their crash."""
-    left = address_space_left_mb()
-    if left is None or left >= ADDRESS_SPACE_NEEDED_MB:
-        return
-    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
-    kept = f"; the {pairs} pair(s) matched are kept and the same command resumes" if pairs else "; nothing was matched"
-    raise ValueError(f"{when}: the address-space limit (ulimit -v {soft // 1024}) leaves {max(left, 0):.0f} MiB in this "
-                     f"process, and matching and evaluating need about {ADDRESS_SPACE_NEEDED_MB} MiB more (OpenCV's BLAS "
-                     f"crashes without them): raise the limit, e.g. ulimit -v unlimited{kept}")
 
 
 def isolates(options: MatchOptions) -> bool:
