@@ -1,4 +1,5 @@
-"""A run: its folder (RunFolder, the one owner of the layout and the config record)."""
+"""A run: its folder (RunFolder, the one owner of the layout, the config record and the identity
+check) and the one driver every kind of run goes through (run.driver)."""
 
 from .folder import FAILED_ATTR, RunConfig, RunFolder
 
