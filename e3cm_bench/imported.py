@@ -24,15 +24,13 @@ from rich.console import Console
 from .benchmarks import Benchmark, EvalSettings
 from .cache import MatchCache
 from .datasets.base import Pair, PairList
-from .evaluate import evaluate_and_report
 from .images import load_image
 from .interchange import ColmapSource, GluefactorySource, HlocSource, MissingPair, NpzSource, half_pixel_check
 from .interchange.base import image_name
 from .interchange.hloc import hloc_pair_key
 from .matches import MatchesError, check_in_image
-from .reporting.tables import print_summary
 from .interchange.registry import source_label
-from .run import RunConfig, RunFolder
+from .run import RunConfig, RunFolder, driver
 
 # The sources live in e3cm_bench.interchange (its registry: registry.formats()); these names stay importable from here.
 __all__ = ["ColmapSource", "GluefactorySource", "HlocSource", "MissingPair", "NpzSource", "hloc_pair_key",
@@ -64,14 +62,12 @@ def import_run(
     identity = {"imported": source.identity(files)}
     label = label or source_label(source)
     folder = RunFolder(out)
-    with folder.lock():
-        if overwrite:
-            folder.clear()
+    with driver.open_run(folder, overwrite):
         cache, todo = folder.resume(pairs)
         done = {p.name for p in pairs} - {p.name for p in todo}
         previous = folder.read_config()
         if previous is not None and done:
-            _check_resume(previous, folder.config_path, benchmark, identity, files if source.per_pair else None, done)
+            folder.check_imported(previous, benchmark.name, identity, files if source.per_pair else None, done)
         elif previous is not None and previous.get("identity") != identity:  # nothing imported: nothing to mix with
             console.print(f"{out}: holds no matches of its earlier sources; importing these", markup=False,
                           highlight=False, soft_wrap=True)
@@ -85,24 +81,29 @@ def import_run(
         )
         folder.write_config(config)
         skipped = list(dataset.skipped)
-        missing: list[str] = []
-        t = time.perf_counter()
-        try:
-            _import_pairs(source, pairs, done, root, cache, skip_bad, skipped, missing)
-        finally:
-            getattr(source, "close", lambda: None)()
-        if missing and not skip_bad:
-            first = next(p for p in pairs if p.name == missing[0])
-            raise ValueError(f"{len(missing)} of {len(pairs)} pairs are not in the source (first: {missing[0]}, "
-                             f"expected at {source.expected(first, root)}); --skip-bad evaluates the others")
-        config.timing = {"import_seconds": time.perf_counter() - t}
+        config.timing = _import_all(source, pairs, done, root, cache, skip_bad, skipped)
         config.pixel_origin_check = _convention_check(pairs, cache, source, console)
-        pairs_done, summary = evaluate_and_report(benchmark, folder, label, pairs, skipped, cache, ev, viz, console)
-        config.dataset["n_skipped"] = len(skipped)
-        folder.write_config(config)
-    print_summary(summary, f"{benchmark.name} - {label} ({len(pairs_done)} pairs, imported from {source.format}) -> {out}",
-                  console=console)
+        _, summary = driver.finish_run(
+            benchmark, folder, config, pairs, skipped, cache, ev, viz, console,
+            lambda n: f"{benchmark.name} - {label} ({n} pairs, imported from {source.format}) -> {out}")
     return summary
+
+
+def _import_all(source, pairs: list[Pair], done: set[str], root: Path, cache: MatchCache, skip_bad: bool,
+                skipped: list) -> dict:
+    """The produce-matches hook of an import: every pair not `done` read from the source into
+    the cache; returns the timing block."""
+    missing: list[str] = []
+    t = time.perf_counter()
+    try:
+        _import_pairs(source, pairs, done, root, cache, skip_bad, skipped, missing)
+    finally:
+        getattr(source, "close", lambda: None)()
+    if missing and not skip_bad:
+        first = next(p for p in pairs if p.name == missing[0])
+        raise ValueError(f"{len(missing)} of {len(pairs)} pairs are not in the source (first: {missing[0]}, "
+                         f"expected at {source.expected(first, root)}); --skip-bad evaluates the others")
+    return {"import_seconds": time.perf_counter() - t}
 
 
 def _import_pairs(source, pairs: list[Pair], done: set[str], root: Path, cache: MatchCache, skip_bad: bool,
@@ -146,27 +147,6 @@ def _convention_check(pairs: list[Pair], cache: MatchCache, source, console: Con
                       soft_wrap=True)
     return {"mma@1": check.as_read, "mma@1_shifted": check.shifted, "shift_px": check.shift, "z": check.z,
             "n_matches": check.n_matches, "other_fits_better": check.other_fits_better}
-
-
-def _check_resume(before: dict, path: Path, benchmark: Benchmark, identity: dict, files: dict | None,
-                  done: set[str]) -> None:
-    """Refuse to add to matches imported from other sources. files: each pair's file's hash,
-    for a source of one file per pair (npz), which may gain or fix the files of pairs not
-    imported yet (a resume after a bad pair); those already imported must be the same files."""
-    if before.get("benchmark") != benchmark.name:
-        raise ValueError(f"{path}: this folder holds a {before.get('benchmark')} run; choose another --out")
-    old, new = (before.get("identity") or {}).get("imported") or {}, identity["imported"]
-    if files is not None and old.get("format") == new["format"]:
-        recorded = before.get("imported_files") or {}
-        changed = sorted(n for n in done if recorded.get(f"{n}.npz") != files.get(f"{n}.npz"))
-        if not changed:
-            return
-        why = f"{len(changed)} imported pair file(s) changed since (first: {changed[0]}.npz)"
-    elif old == new:
-        return
-    else:
-        why = "the matches in this folder came from elsewhere (imported)"
-    raise ValueError(f"{path}: {why}; pass --overwrite to replace them or choose another --out")
 
 
 _sizes: dict[Path, tuple[int, int]] = {}

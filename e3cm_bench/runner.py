@@ -1,9 +1,10 @@
 """A run: the stages of run/ put together. The one place where datasets, matchers, the match
 cache and the metrics meet.
 
-run_benchmark = lock and open the folder (run.RunFolder) -> match stage (run/stage.py: pairs ->
-matches.h5) -> evaluate stage (evaluate.py: matches.h5 + ground truth -> per-pair rows ->
-summary) -> reports (CSVs, plots, --viz, config.yaml). Everything that reaches a CSV is
+run_benchmark = open the folder (run.driver.open_run; RunFolder checks its identity) ->
+match stage (run/stage.py: pairs -> matches.h5) -> evaluate stage (evaluate.py: matches.h5 +
+ground truth -> per-pair rows -> summary) -> reports (CSVs, plots, --viz, config.yaml:
+run.driver.finish_run). Everything that reaches a CSV is
 recomputed from matches.h5 plus the ground truth, so `--eval-only` is the same run without the
 match stage, and an interrupted run resumes at the first pair missing from the cache.
 """
@@ -21,12 +22,10 @@ from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import MatchCache
 from .datasets.base import Pair, PairList
 from .devices import check_device, keep_freed_memory
-from .evaluate import evaluate_and_report
 from .matchers.base import Matcher
 from .matchers.guards import describe_matcher
 from .method import MethodSpec, identity_changes
-from .reporting.tables import print_summary
-from .run import RunConfig, RunFolder
+from .run import RunConfig, RunFolder, driver
 from .run.pair import match_pair
 from .run.stage import MatchJob, MatchOptions, match_jobs
 from .run.shards import merge_when_complete, shard_command, shard_dir, shard_slice
@@ -35,23 +34,6 @@ __all__ = ["MatchOptions", "match_pair", "run_benchmark", "run_methods"]
 
 
 # --------------------------------------------------------------------------- a run
-
-
-# Settings a matcher resolves when it is built, not in the identity: `auto` there may resolve
-# otherwise in another version (VGG19's fp32 layout became channels_last), and the maps with it.
-RESOLVED_AT_BUILD = ("memory_format",)
-
-
-def _check_resolved(before: dict | None, now: dict, path: Path) -> None:
-    """Refuse to resume a folder whose matches were made with a setting that resolved otherwise
-    (recorded in its config.yaml `matcher`; records without it are not checked)."""
-    changed = [f"{key} {before[key]} -> {now[key]}" for key in RESOLVED_AT_BUILD
-               if before and key in before and key in now and before[key] != now[key]]
-    if changed:
-        raise ValueError(
-            f"{path}: the matches in this folder were made with the backbone run otherwise ({', '.join(changed)}; "
-            "the maps round differently); pass --overwrite to replace them or choose another --out"
-        )
 
 
 def run_benchmark(
@@ -93,6 +75,24 @@ def run_benchmark(
         raise ValueError(f"--limit must be at least 1, got {limit}")
     if method is not None and method.backbone is not None:
         check_device(device)
+    dataset, load = _dataset(benchmark, dataset, root, dataset_options, skip_bad, dataset_load, limit, console)
+
+    if shard is not None:
+        if eval_only:
+            raise ValueError("--eval-only applies to a whole run: use e3cm-bench merge on a sharded one")
+        run_dir = shard_dir(out, shard)
+    else:
+        run_dir = out
+    summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
+                            console, shard, load, options)
+    if shard is not None and merge_when_complete(out, console):
+        return pd.read_csv(RunFolder(out).summary_path)
+    return pd.DataFrame([summary])
+
+
+def _dataset(benchmark: Benchmark, dataset: PairList | None, root, dataset_options: dict | None, skip_bad: bool,
+             dataset_load: dict | None, limit: int | None, console: Console) -> tuple[PairList, dict | None]:
+    """The run's pairs (given, or loaded from `root`) and how to load them again; says how many."""
     if dataset is None:
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
@@ -107,18 +107,7 @@ def run_benchmark(
         + (f", limited to the first {limit}" if limit else ""),
         markup=False,
     )
-
-    if shard is not None:
-        if eval_only:
-            raise ValueError("--eval-only applies to a whole run: use e3cm-bench merge on a sharded one")
-        run_dir = shard_dir(out, shard)
-    else:
-        run_dir = out
-    summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
-                            console, shard, load, options)
-    if shard is not None and merge_when_complete(out, console):
-        return pd.read_csv(RunFolder(out).summary_path)
-    return pd.DataFrame([summary])
+    return dataset, load
 
 
 def run_methods(
@@ -165,9 +154,8 @@ def _run_folders(
     with ExitStack() as locks:
         opened = []
         for out, method in runs:
-            locks.enter_context(RunFolder(out).lock())  # taken before anything in the folder is read or written
-            opened.append(_open_run(benchmark, out, method, dataset, ev, limit, overwrite, eval_only, device,
-                                    console, shard, load))
+            locks.enter_context(driver.open_run(RunFolder(out), overwrite))
+            opened.append(_open_run(benchmark, out, method, dataset, ev, limit, eval_only, device, console, shard, load))
         matching = [run for run in opened if run.todo]
         if matching:
             jobs = [run.job() for run in matching]
@@ -196,7 +184,7 @@ class _OpenRun:
         def record_matcher(matcher: Matcher) -> None:
             now = describe_matcher(matcher)  # what it says of itself, checked to be writable
             if len(self.todo) < len(self.pairs):  # resuming: the folder holds matches already
-                _check_resolved(self.config.matcher, now, self.folder.config_path)
+                self.folder.check_resolved(self.config.matcher, now)
             self.config.matcher = now
             self.folder.write_config(self.config)
 
@@ -226,13 +214,12 @@ class _OpenRun:
 
 def _open_run(
     benchmark: Benchmark, out: Path, method: MethodSpec | None, dataset: PairList, ev: EvalSettings,
-    limit: int | None, overwrite: bool, eval_only: bool, device: str, console: Console,
+    limit: int | None, eval_only: bool, device: str, console: Console,
     shard: tuple[int, int] | None = None, load: dict | None = None,
 ) -> _OpenRun:
+    """Describe a run whose folder driver.open_run holds: the previous record (RunFolder checks
+    its identity), the pairs still to match, the RunConfig."""
     folder = RunFolder(out)
-    if overwrite and out.exists():
-        folder.clear()
-    out.mkdir(parents=True, exist_ok=True)
     previous = folder.previous(None if method is None else method.identity(), benchmark.name, eval_only,
                                changes=identity_changes, console=console)
     pairs = list(dataset)[:limit] if limit else list(dataset)
@@ -279,13 +266,7 @@ def _open_run(
 
 
 def _finish_run(run: _OpenRun, viz: int, console: Console) -> dict:
-    config, folder = run.config, run.folder
-    pairs, summary = evaluate_and_report(run.benchmark, folder, config.method, run.pairs, run.skipped, run.cache,
-                                         run.ev, viz, console)
-    config.dataset["n_skipped"] = len(run.skipped)
-    if config.shard is not None:
-        config.shard["complete"] = True  # written before the merge check (shards.merge_when_complete)
-    folder.write_config(config)
-    print_summary(summary, f"{run.benchmark.name} - {config.method} ({len(pairs)} pairs) -> {folder.path}", console=console)
+    config, name = run.config, run.benchmark.name
+    _, summary = driver.finish_run(run.benchmark, run.folder, config, run.pairs, run.skipped, run.cache, run.ev, viz,
+                                   console, lambda n: f"{name} - {config.method} ({n} pairs) -> {run.folder.path}")
     return summary
-

@@ -24,7 +24,7 @@ from ..files import load_yaml, read_csv, save_yaml, write_csv, yaml_plain
 from ..images import load_image
 from ..method import MethodSpec, identity_changes
 from ..reporting.tables import print_summary
-from ..run import RunConfig, RunFolder
+from ..run import RunConfig, RunFolder, driver
 from ..run.stage import match_stage
 from .extrinsics import ERROR_COLUMNS, estimate_extrinsics, extrinsic_errors, vertical_disparity
 
@@ -87,6 +87,28 @@ def summarize(windows_df: pd.DataFrame) -> pd.DataFrame:
     return summary
 
 
+def _calibrate_one(folder: RunFolder, method: MethodSpec, sequence: StereoSequence, pairs: list[Pair],
+                   settings: CalibrationSettings, device: str, image_size, console: Console) -> pd.DataFrame:
+    """One method's calibration in its folder (held by driver.open_run): the previous record
+    checked by RunFolder, the frames matched (the produce-matches hook: the match stage), then
+    every window evaluated into windows.csv and summary.csv; returns its windows."""
+    config = RunConfig(benchmark=None, method=method.label, identity=method.identity(), device=device,
+                       environment=RunConfig.environment_now(), command="calibrate",
+                       sequence=sequence.describe(), calibration=asdict(settings))
+    before = folder.previous(config.identity, None, changes=identity_changes, console=console)
+    folder.check_frames(before, str(sequence.root))
+    cache, todo = folder.resume(pairs, console)
+    folder.write_config(config)
+    if todo:
+        console.rule(f"calibrate: {method.label}")
+        match_stage(method, todo, cache, device, console)
+    matches = [cache.read(p.name) for p in pairs]
+    table = calibrate_windows(sequence, matches, settings, image_size)
+    write_csv(table, folder.path / WINDOWS_FILE)
+    write_csv(summarize(table), folder.summary_path)
+    return table.assign(method=method.label)
+
+
 def run_calibration(
     root: str | Path, out: str | Path, methods: list[MethodSpec], settings: CalibrationSettings | None = None,
     device: str = "cpu", unrectified: bool = False, overwrite: bool = False, console: Console | None = None,
@@ -119,26 +141,9 @@ def run_calibration(
     all_windows = {}
     for method in methods:
         folder = RunFolder(out / method.folder)
-        with folder.lock():
-            config = RunConfig(benchmark=None, method=method.label, identity=method.identity(), device=device,
-                               environment=RunConfig.environment_now(), command="calibrate",
-                               sequence=sequence.describe(), calibration=asdict(settings))
-            if overwrite:
-                folder.clear()
-            before = folder.previous(config.identity, None, changes=identity_changes, console=console)
-            if before is not None and (before.get("sequence") or {}).get("root") != str(sequence.root):
-                raise ValueError(f"{folder.config_path}: the matches in this folder were made from other frames "
-                                 f"({(before.get('sequence') or {}).get('root')}); pass --overwrite or choose another --out")
-            cache, todo = folder.resume(pairs, console)
-            folder.write_config(config)
-            if todo:
-                console.rule(f"calibrate: {method.label}")
-                match_stage(method, todo, cache, device, console)
-            matches = [cache.read(p.name) for p in pairs]
-            table = calibrate_windows(sequence, matches, settings, (width, height))
-            write_csv(table, folder.path / WINDOWS_FILE)
-            write_csv(summarize(table), folder.summary_path)
-            all_windows[method.label] = table.assign(method=method.label)
+        with driver.open_run(folder, overwrite):
+            all_windows[method.label] = _calibrate_one(folder, method, sequence, pairs, settings, device, (width, height),
+                                                       console)
         record["methods"][method.label] = method.folder
         save_yaml(record, record_path)
     for label, folder in record["methods"].items():

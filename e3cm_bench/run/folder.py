@@ -191,6 +191,59 @@ class RunFolder:
                              f"({', '.join(changed)}); pass --overwrite to replace them or choose another --out")
         return previous
 
+    # Settings a matcher resolves when it is built, not in the identity: `auto` there may resolve
+    # otherwise in another version (VGG19's fp32 layout became channels_last), and the maps with it.
+    RESOLVED_AT_BUILD = ("memory_format",)
+
+    def check_resolved(self, before: dict | None, now: dict) -> None:
+        """Refuse to resume a folder whose matches were made with a setting that resolved otherwise
+        (recorded in its config.yaml `matcher`; records without it are not checked)."""
+        changed = [f"{key} {before[key]} -> {now[key]}" for key in self.RESOLVED_AT_BUILD
+                   if before and key in before and key in now and before[key] != now[key]]
+        if changed:
+            raise ValueError(
+                f"{self.config_path}: the matches in this folder were made with the backbone run otherwise "
+                f"({', '.join(changed)}; the maps round differently); pass --overwrite to replace them or choose "
+                "another --out"
+            )
+
+    def check_imported(self, before: dict, benchmark: str, identity: dict, files: dict | None,
+                       done: set[str]) -> None:
+        """Refuse to add to matches imported from other sources. files: each pair's file's hash,
+        for a source of one file per pair (npz), which may gain or fix the files of pairs not
+        imported yet (a resume after a bad pair); those already imported must be the same files."""
+        path = self.config_path
+        if before.get("benchmark") != benchmark:
+            raise ValueError(f"{path}: this folder holds a {before.get('benchmark')} run; choose another --out")
+        old, new = (before.get("identity") or {}).get("imported") or {}, identity["imported"]
+        if files is not None and old.get("format") == new["format"]:
+            recorded = before.get("imported_files") or {}
+            changed = sorted(n for n in done if recorded.get(f"{n}.npz") != files.get(f"{n}.npz"))
+            if not changed:
+                return
+            why = f"{len(changed)} imported pair file(s) changed since (first: {changed[0]}.npz)"
+        elif old == new:
+            return
+        else:
+            why = "the matches in this folder came from elsewhere (imported)"
+        raise ValueError(f"{path}: {why}; pass --overwrite to replace them or choose another --out")
+
+    def check_frames(self, before: dict | None, root: str) -> None:
+        """A calibration's: refuse matches made from another sequence's frames."""
+        if before is not None and (before.get("sequence") or {}).get("root") != root:
+            raise ValueError(f"{self.config_path}: the matches in this folder were made from other frames "
+                             f"({(before.get('sequence') or {}).get('root')}); pass --overwrite or choose another --out")
+
+    def check_shards(self, configs: dict) -> None:
+        """A merge's: the shards' records (by (K, N)) must come from one command."""
+        n = next(iter(configs))[1]
+        first = configs[(1, n)]
+        for (k, _), config in sorted(configs.items()):
+            for key in ("benchmark", "identity", "dataset_load", "evaluation"):
+                if config.get(key) != first.get(key):
+                    raise ValueError(f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s; "
+                                     "shards of one run must be made with one command")
+
     def holds_matches(self) -> bool:
         """Whether any pair's matches (or a matcher's failure on it) were written here; a block of
         the cache that cannot be read counts as holding some."""

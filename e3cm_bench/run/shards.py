@@ -21,8 +21,7 @@ import pandas as pd
 from rich.console import Console
 
 from ..benchmarks import EvalSettings
-from ..evaluate import evaluate_and_report
-from ..reporting.tables import print_summary
+from . import driver
 from .config import RunConfig, load_run_pairs
 from .folder import RunFolder
 
@@ -140,19 +139,38 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
                    ([f"{names(unfinished)} not finished (stopped, or still running)"] if unfinished else [])
         raise ValueError(f"{RunFolder(out).shards_dir}: shard(s) {'; '.join(problems)}; run each with --shard K/{n}, "
                          "it resumes what it matched" + rerun_commands(configs, sorted(missing + unfinished)))
+    RunFolder(out).check_shards(configs)
     first = configs[(1, n)]
-    for (k, _), config in sorted(configs.items()):
-        for key in ("benchmark", "identity", "dataset_load", "evaluation"):
-            if config.get(key) != first.get(key):
-                raise ValueError(f"{RunFolder(out).shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s; "
-                                 "shards of one run must be made with one command")
     load = first.get("dataset_load")
     if not load:
         raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
     loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
     benchmark, pairs = loaded.benchmark, loaded.pairs
-    ev = EvalSettings.from_record(first["evaluation"])
+    cache, skipped = _merged_matches(out, n, pairs)
+    folder = RunFolder(out)
+    with driver.open_run(folder):
+        timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
+        config = RunConfig(
+            benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
+            matcher=first.get("matcher"), device=first.get("device"),
+            dataset={**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
+            evaluation=first["evaluation"], environment=first.get("environment") or {},
+            timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
+                    "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
+            dataset_load=load,
+            shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
+        )
+        _, summary = driver.finish_run(
+            benchmark, folder, config, pairs, skipped, cache, EvalSettings.from_record(first["evaluation"]), viz, console,
+            lambda done: f"{benchmark.name} - {first['method']} ({done} pairs, {n} shards merged) -> {out}",
+            count_evaluated=True)
+    return pd.DataFrame([summary])
+
+
+def _merged_matches(out: Path, n: int, pairs: list) -> tuple[ShardedCache, list]:
+    """The produce-matches hook of a merge: the shards' caches read as one, and their skipped
+    pairs (each once); every pair must be in one of them."""
     folders = [RunFolder(out).shard((k, n)) for k in range(1, n + 1)]
     cache = ShardedCache(folders)
     skipped = []
@@ -165,23 +183,8 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     if absent:
         raise ValueError(f"{RunFolder(out).shards_dir}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
                          "the shards were made from another pair list")
-    folder = RunFolder(out)
-    with folder.lock():
-        pairs, summary = evaluate_and_report(benchmark, folder, first["method"], pairs, skipped, cache, ev, viz, console)
-        timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
-        folder.write_config(RunConfig(
-            benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
-            matcher=first.get("matcher"), device=first.get("device"),
-            dataset={**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
-            evaluation=first["evaluation"], environment=first.get("environment") or {},
-            timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
-                    "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
-            dataset_load=load,
-            shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
-        ))
-    print_summary(summary, f"{benchmark.name} - {first['method']} ({len(pairs)} pairs, {n} shards merged) -> {out}",
-                  console=console)
-    return pd.DataFrame([summary])
+    return cache, skipped
+
 
 def merge_when_complete(out: Path, console: Console) -> bool:
     """Merge if every shard is finished; False when some are not, or another process is merging.
