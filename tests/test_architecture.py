@@ -1,11 +1,13 @@
-"""The package's structure, read from its source (ast): one owner for the run folder's file
-names, and no import cycles (docs/architecture.md)."""
+"""The package's structure, read from its source (ast), as docs/architecture.md states it: one
+owner for the run folder's file names, no import cycles (package __init__s included), the size
+targets, one home for the default backbone, and every path and object the page names."""
 
 from __future__ import annotations
 
 import ast
-import re
+import importlib
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -225,3 +227,87 @@ def test_every_path_docs_architecture_names_exists():
     assert len(paths) > 30
     missing = sorted(p for p in paths if not (PACKAGE / p).exists() and not (REPO / p).exists())
     assert not missing, f"docs/architecture.md names paths that do not exist: {', '.join(missing)}"
+
+
+def _definitions() -> tuple[set[str], dict[str, set[str]]]:
+    """Every name the package defines (classes, functions and methods at any depth, module-level
+    assignments) and each class's own attributes (methods, fields, class constants)."""
+    names, members = set(), {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                names.add(node.name)
+            if isinstance(node, ast.ClassDef):
+                own = members.setdefault(node.name, set())
+                for item in node.body:
+                    if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                        own.add(item.name)
+                    elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                        own.add(item.target.id)
+                    elif isinstance(item, ast.Assign):
+                        own |= {t.id for t in item.targets if isinstance(t, ast.Name)}
+        for item in tree.body:
+            if isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                names.add(item.target.id)
+            elif isinstance(item, ast.Assign):
+                names |= {t.id for t in item.targets if isinstance(t, ast.Name)}
+    return names, members
+
+
+def _dotted_exists(name: str) -> bool:
+    """`files.FolderLock`, `e3cm_bench.register`: a module of the package, then attributes."""
+    parts = name.removeprefix("e3cm_bench.").split(".") if name != "e3cm_bench" else []
+    for split in range(len(parts), -1, -1):
+        try:
+            obj = importlib.import_module(".".join(["e3cm_bench", *parts[:split]]))
+        except ModuleNotFoundError:
+            continue
+        try:
+            for attr in parts[split:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
+def doc_objects(text: str) -> list[str]:
+    """The code objects a page names in backticks: `RunFolder`, `PROTOCOLS`, `run_benchmark`,
+    `RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`. Plain lowercase words
+    (`import`, `demo`: commands), paths and file names are not objects."""
+    found = []
+    for token in re.findall(r"`([A-Za-z_][\w.]*)(?:\(\.*\))?`", text):
+        if token.startswith("__") or re.search(r"\.(py|ya?ml|h5|csv|md|json|npz)$", token):
+            continue  # a path or a file name
+        if "." in token or re.fullmatch(r"[A-Z][a-z]\w*|[A-Z][A-Z0-9_]+|[a-z0-9]+(?:_[a-z0-9]+)+", token):
+            found.append(token)
+    return sorted(set(found))
+
+
+def test_every_object_docs_architecture_names_exists():
+    """A class, constant, function or attribute the page names is defined in the package."""
+    names, members = _definitions()
+    objects = doc_objects((REPO / "docs" / "architecture.md").read_text())
+    assert len(objects) > 30
+
+    def exists(token: str) -> bool:
+        head, _, rest = token.partition(".")
+        if not rest and token != "e3cm_bench":
+            return token in names
+        if head[0].isupper():  # Class.attribute
+            return head in members and rest in members[head]
+        return _dotted_exists(token)
+
+    missing = [t for t in objects if not exists(t)]
+    assert not missing, f"docs/architecture.md names objects the package does not define: {', '.join(missing)}"
+
+
+def test_the_object_check_fails_on_a_name_that_is_gone():
+    names, members = _definitions()
+    assert doc_objects("`RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`, `demo`, `run/folder.py`, "
+                       "`NoSuchThing`, `config.yaml`") == ["NoSuchThing", "RunFolder.lock", "e3cm_bench.register",
+                                                           "files.FolderLock"]
+    assert "lock" in members["RunFolder"] and "NoSuchThing" not in names
+    assert _dotted_exists("files.FolderLock") and _dotted_exists("e3cm_bench.register")
+    assert not _dotted_exists("files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
