@@ -161,6 +161,14 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+def cycle_closing(package: Path = PACKAGE) -> set[tuple[str, str]]:
+    """The function-level imports that would close an import cycle if moved to their module's
+    top: (importer, imported) edges, package __init__ edges included, absent from the
+    module-level graph and making it cyclic when added alone."""
+    eager, every = import_graph(package), import_graph(package, module_level=False)
+    return {(a, b) for a in every for b in every[a] - eager[a] if cycles({**eager, a: eager[a] | {b}})}
+
+
 def layers(graph: dict[str, set[str]]) -> dict[str, int]:
     """Module -> the length of the longest import chain below it (0: imports none of the package)."""
     depth: dict[str, int] = {}

@@ -127,8 +127,8 @@ def test_the_import_graph_reads_relative_and_lazy_imports():
     assert "e3cm_bench.run" in eager["e3cm_bench.runner"]  # from .run import RunFolder: the package
     assert "e3cm_bench.run.folder" in eager["e3cm_bench.run"]
     assert "e3cm_bench.metrics" in eager["e3cm_bench.benchmarks.base"]  # from .. import metrics
-    assert "e3cm_bench.method" not in eager["e3cm_bench.benchmarks.base"]  # imported in resolve_method
-    assert "e3cm_bench.method" in every["e3cm_bench.benchmarks.base"]
+    lazy = {(a, b) for a in every for b in every[a] - eager[a]}  # torch-free start, cycles: imports in functions
+    assert len(lazy) > 50 and all(every[a] >= eager[a] for a in eager)
 
 
 def test_importing_a_submodule_runs_its_packages(tmp_path):
@@ -150,30 +150,42 @@ def test_importing_a_submodule_runs_its_packages(tmp_path):
     assert shape.cycles(shape.import_graph(tmp_path / "p", module_level=False)) == [["p.a", "p.a.lazy", "p.top"]]
 
 
-# The function-level imports whose edge closes a cycle (through a package __init__ that the import
-# runs): made at module level, each would be an import cycle. Every other function-level import
-# only defers a heavy or rarely used import (torch, scipy, matplotlib; docs/cli.md "Startup").
+# The function-level imports that would close an import cycle at their module's top (through a
+# package __init__ that the import runs, or two modules reaching each other). Every other
+# function-level import only defers a heavy or rarely used import (torch, scipy, matplotlib;
+# docs/cli.md "Startup").
 CYCLE_CLOSING = {
-    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),  # backbones -> matchers.base runs matchers/__init__ -> registry
-    ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),  # builtin -> e3cm -> backbones -> matchers/__init__
-    ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),  # interchange/__init__ -> export -> benchmarks/__init__
+    # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
+    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),
+    ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
+    # interchange/__init__ -> export -> benchmarks/__init__ -> homography
+    ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),
+    # method -> options at its top; options.build_method makes a MethodSpec with a benchmark's protocol
+    ("e3cm_bench.options", "e3cm_bench.method"),
+    ("e3cm_bench.options", "e3cm_bench.benchmarks"),  # benchmarks/__init__ -> base -> options
 }
 
 
 def test_function_level_imports_close_exactly_the_listed_cycles():
-    """With every import (functions' too) and the package __init__s they run, the graph is
-    acyclic but for the CYCLE_CLOSING edges, and each of them alone closes a cycle: the list
-    is neither short nor stale (docs/architecture.md, Layers)."""
+    """The function-level imports that would make an import cycle at their module's top are
+    exactly CYCLE_CLOSING (docs/architecture.md, Layers), and without those the graph of every
+    import (functions' too, with the package __init__s they run) is acyclic."""
     shape = code_shape()
+    found = shape.cycle_closing()
+    assert found == CYCLE_CLOSING, (f"new: {sorted(found - CYCLE_CLOSING)}; listed but closing no cycle "
+                                    f"(drop them from CYCLE_CLOSING): {sorted(CYCLE_CLOSING - found)}")
     every = shape.import_graph(module_level=False)
-    eager = shape.import_graph()
-    assert all(b in every[a] and b not in eager[a] for a, b in CYCLE_CLOSING), \
-        [edge for edge in CYCLE_CLOSING if not (edge[1] in every[edge[0]] and edge[1] not in eager[edge[0]])]
     rest = {a: targets - {b for x, b in CYCLE_CLOSING if x == a} for a, targets in every.items()}
     cycles = shape.cycles(rest)
     assert not cycles, "import cycles through function-level imports:\n" + "\n".join(" <-> ".join(c) for c in cycles)
-    for a, b in sorted(CYCLE_CLOSING):
-        assert shape.cycles({**rest, a: rest[a] | {b}}), f"{a} -> {b} closes no cycle: drop it from CYCLE_CLOSING"
+
+
+def test_the_cycle_closing_finder_finds_one(tmp_path):
+    for name, text in {"__init__.py": "", "low.py": "def f():\n    from . import high\n", "high.py": "from . import low\n",
+                       "other.py": "def g():\n    import json\n    from . import low\n"}.items():
+        (tmp_path / "p").mkdir(exist_ok=True)
+        (tmp_path / "p" / name).write_text(text)
+    assert code_shape().cycle_closing(tmp_path / "p") == {("p.low", "p.high")}
 
 
 def test_no_module_over_the_size_target():
@@ -311,3 +323,32 @@ def test_the_object_check_fails_on_a_name_that_is_gone():
     assert "lock" in members["RunFolder"] and "NoSuchThing" not in names
     assert _dotted_exists("files.FolderLock") and _dotted_exists("e3cm_bench.register")
     assert not _dotted_exists("files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
+
+
+def _calls(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted callee) of every call in a module: `MethodSpec.create(...)` -> 'MethodSpec.create'."""
+    def dotted(node) -> str:
+        if isinstance(node, ast.Name):
+            return node.id
+        if isinstance(node, ast.Attribute):
+            return f"{dotted(node.value)}.{node.attr}"
+        return "?"
+
+    tree = ast.parse(path.read_text(), str(path))
+    return [(node.lineno, dotted(node.func)) for node in ast.walk(tree) if isinstance(node, ast.Call)]
+
+
+def callers(callee: str) -> list[str]:
+    """'module.py:line' of every call of `callee` (a name as spelled at the call) in the package."""
+    return [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+            for line, name in _calls(path) if name == callee]
+
+
+def test_every_method_is_made_through_the_one_path():
+    """A MethodSpec comes from a user's options through options.build_method only (the benchmark
+    commands, `reproduce`, `match`, `calibrate` and `demo` alike, Benchmark.resolve_method being
+    build_method with a benchmark); from a run's record through MethodSpec.from_identity."""
+    made = [where for where in callers("MethodSpec.create") if not where.startswith("options.py:")]
+    direct = [where for where in callers("MethodSpec") if not where.startswith("method.py:")]
+    assert not made and not direct, f"MethodSpec.create outside options.py: {made}; MethodSpec(...) outside method.py: {direct}"
+    assert callers("MethodSpec.create") and callers("build_method")
