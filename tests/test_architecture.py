@@ -163,6 +163,7 @@ CYCLE_CLOSING = {
     # method -> options at its top; options.build_method makes a MethodSpec with a benchmark's protocol
     ("e3cm_bench.options", "e3cm_bench.method"),
     ("e3cm_bench.options", "e3cm_bench.benchmarks"),  # benchmarks/__init__ -> base -> options
+    ("e3cm_bench.options", "e3cm_bench.benchmarks.protocols"),  # protocols -> options at its top
 }
 
 
