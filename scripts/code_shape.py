@@ -26,7 +26,8 @@ import ast
 from dataclasses import dataclass
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+# The checkout's root, wherever under scripts/ this file lies.
+REPO = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 PACKAGE = REPO / "e3cm_bench"
 MODULE_LINES = 400
 FUNCTION_LINES = 60
