@@ -15,7 +15,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
-OWNER = PACKAGE / "run" / "folder.py"
+# The run folder's owners: run/folder.py (the layout) and run/config.py (config.yaml's record), where it is.
+OWNERS = tuple(p for p in (PACKAGE / "run" / "folder.py", PACKAGE / "run" / "config.py") if p.is_file())
 RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skipped.csv", "failures.csv", ".feature-spill")
 
 
@@ -85,21 +86,21 @@ def _exempt(line: str) -> bool:
 
 
 def test_only_the_run_folder_names_its_files():
-    """Every module but run/folder.py asks RunFolder for a run folder's paths."""
+    """Every module but the run folder's owners asks RunFolder for a run folder's paths."""
     as_path, in_prose = [], []
     for path in sorted(PACKAGE.rglob("*.py")):
-        if path != OWNER:
+        if path not in OWNERS:
             found = run_file_names(path)
             as_path += [line for line in found[0] if not _exempt(line)]
             in_prose += found[1]
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
-    assert not as_path, "run-folder file names outside e3cm_bench/run/folder.py:\n" + "\n".join(as_path)
+    assert not as_path, "run-folder file names outside e3cm_bench/run/folder.py and run/config.py:\n" + "\n".join(as_path)
 
 
 def test_the_owner_names_them():
     """The scan would see the names where they belong (so an empty result elsewhere means something)."""
-    as_path, _ = run_file_names(OWNER)
+    as_path = [line for owner in OWNERS for line in run_file_names(owner)[0]]
     assert {line.split(": ")[1].split(" in ")[0] for line in as_path} == set(RUN_FILES)
 
 
@@ -159,12 +160,6 @@ CYCLE_CLOSING = {
     # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
     ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),
     ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
-    # interchange/__init__ -> export -> benchmarks/__init__ -> homography
-    ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),
-    # method -> options at its top; options.build_method makes a MethodSpec with a benchmark's protocol
-    ("e3cm_bench.options", "e3cm_bench.method"),
-    ("e3cm_bench.options", "e3cm_bench.benchmarks"),  # benchmarks/__init__ -> base -> options
-    ("e3cm_bench.options", "e3cm_bench.benchmarks.protocols"),  # protocols -> options at its top
 }
 
 
@@ -347,10 +342,10 @@ def callers(callee: str) -> list[str]:
 
 
 def test_every_method_is_made_through_the_one_path():
-    """A MethodSpec comes from a user's options through options.build_method only (the benchmark
+    """A MethodSpec comes from a user's options through method.build_method only (the benchmark
     commands, `reproduce`, `match`, `calibrate` and `demo` alike, Benchmark.resolve_method being
     build_method with a benchmark); from a run's record through MethodSpec.from_identity."""
-    made = [where for where in callers("MethodSpec.create") if not where.startswith("options.py:")]
+    made = [where for where in callers("MethodSpec.create") if not where.startswith("method.py:")]
     direct = [where for where in callers("MethodSpec") if not where.startswith("method.py:")]
-    assert not made and not direct, f"MethodSpec.create outside options.py: {made}; MethodSpec(...) outside method.py: {direct}"
+    assert not made and not direct, f"MethodSpec.create outside method.py: {made}; MethodSpec(...) outside method.py: {direct}"
     assert callers("MethodSpec.create") and callers("build_method")
