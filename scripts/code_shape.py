@@ -170,6 +170,15 @@ def cycle_closing(package: Path = PACKAGE) -> set[tuple[str, str]]:
     return {(a, b) for a in every for b in every[a] - eager[a] if cycles({**eager, a: eager[a] | {b}})}
 
 
+def lazy_cycle_edges(package: Path = PACKAGE) -> set[tuple[str, str]]:
+    """The function-level imports that lie on a cycle of the graph of every import (functions'
+    too, package __init__ edges included): (importer, imported) edges absent from the
+    module-level graph whose two ends share a strongly connected component."""
+    eager, every = import_graph(package), import_graph(package, module_level=False)
+    component = {v: k for k, found in enumerate(cycles(every)) for v in found}
+    return {(a, b) for a in every for b in every[a] - eager[a] if a in component and component.get(b) == component[a]}
+
+
 def layers(graph: dict[str, set[str]]) -> dict[str, int]:
     """Module -> the length of the longest import chain below it (0: imports none of the package)."""
     depth: dict[str, int] = {}
