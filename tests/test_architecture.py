@@ -359,3 +359,32 @@ def test_every_method_is_made_through_the_one_path():
     direct = [where for where in callers("MethodSpec") if not where.startswith("method.py:")]
     assert not made and not direct, f"MethodSpec.create outside method.py: {made}; MethodSpec(...) outside method.py: {direct}"
     assert callers("MethodSpec.create") and callers("build_method")
+
+
+# The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol.
+OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "benchmarks/protocols.py"}}
+
+
+def _declared_formats() -> dict[str, str]:
+    """Format name -> the module that declares it (a `Format` subclass with `name = "..."`)."""
+    found = {}
+    for path in sorted((PACKAGE / "interchange").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef) and any(getattr(b, "id", None) == "Format" for b in node.bases):
+                for item in node.body:
+                    if isinstance(item, ast.Assign) and any(getattr(t, "id", None) == "name" for t in item.targets):
+                        assert item.value.value not in found, f"format {item.value.value!r} declared twice"
+                        found[item.value.value] = path.relative_to(PACKAGE).as_posix()
+    return found
+
+
+def test_each_interchange_format_is_declared_in_one_module():
+    """A format (its reader, writer, pixel origin) is one class in its own module of interchange/,
+    and no other module spells its name: import, export and the docs read the registry."""
+    declared = _declared_formats()
+    assert len(declared) >= 4 and len(set(declared.values())) == len(declared), declared
+    elsewhere = [f"{where}:{line}: {name!r}" for name, home in sorted(declared.items())
+                 for path in sorted(PACKAGE.rglob("*.py"))
+                 if (where := path.relative_to(PACKAGE).as_posix()) != home and where not in OTHER_MEANINGS.get(name, ())
+                 for line, text in _string_literals(path) if text == name]
+    assert not elsewhere, "a format's name outside its module:\n" + "\n".join(elsewhere)
