@@ -388,3 +388,15 @@ def test_each_interchange_format_is_declared_in_one_module():
                  if (where := path.relative_to(PACKAGE).as_posix()) != home and where not in OTHER_MEANINGS.get(name, ())
                  for line, text in _string_literals(path) if text == name]
     assert not elsewhere, "a format's name outside its module:\n" + "\n".join(elsewhere)
+
+
+def test_every_kind_of_run_opens_its_folder_through_the_driver():
+    """A benchmark run, an import, a calibration and a shard merge open their folder with
+    run/driver.py's open_run (the noise ensemble's draws are benchmark runs); nothing else takes
+    a run folder's lock but the driver and export (which reads a run under it, never writes one)."""
+    openers = {where.split(":")[0] for where in callers("driver.open_run")}
+    assert openers >= {"runner.py", "imported.py", "calibration/run.py", "run/shards.py"}, sorted(openers)
+    locks = [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+             for line, name in _calls(path) if name.endswith(".lock") and name != "RunFolder.lock"]
+    others = [where for where in locks if not where.startswith(("run/driver.py:", "interchange/export.py:"))]
+    assert locks and not others, f"a run folder locked outside the driver: {others}"
