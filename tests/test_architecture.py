@@ -160,6 +160,8 @@ CYCLE_CLOSING = {
     # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
     ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),
     ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
+    # run/folder.py imports RunConfig at its top; RunConfig asks RunFolder for config.yaml's path
+    ("e3cm_bench.run.config", "e3cm_bench.run.folder"),
 }
 # The function-level imports on a cycle of the graph of every import: modules that reach each
 # other only inside functions (at run time, each after the other has loaded), and CYCLE_CLOSING.
