@@ -4,11 +4,16 @@ functions, and the layers its imports make.
     python scripts/code_shape.py                 # modules by size, the 15 longest functions
     python scripts/code_shape.py --layers        # the layer table docs/architecture.md shows
 
-A module's layer is the length of the longest chain of module-level imports below it inside
-the package: a module that imports none of the package's modules is layer 0, one that imports
-only those is layer 1, and so on. Imports inside functions are left out: they run on first use,
-so they do not order the modules (they are how a lower module reaches a higher one at run time
-without an import cycle). Imports under ``if TYPE_CHECKING:`` never run and are left out too.
+A module's layer is the length of the longest chain of imports that run when it is imported,
+inside the package: a module that imports none of the package's modules is layer 0, one that
+imports only those is layer 1, and so on. Importing ``a.b.c`` runs ``a/__init__`` and
+``a/b/__init__`` first, so those are edges too (but for the packages the importer lies in:
+Python has begun them before its first line). Imports inside functions are left out: they run on
+first use, so they do not order the modules; most defer a heavy library (torch, scipy,
+matplotlib) so that the command line starts fast, and a few would close a cycle through a
+package ``__init__`` (tests/test_architecture.py lists those). Imports under
+``if TYPE_CHECKING:`` never run and are left out too; so are ``importlib.import_module`` calls
+(the benchmark registry's discovery, the package face's names on first use).
 
 tests/test_architecture.py reads the import graph from here, so the layer table, the cycle test
 and this script see the same edges. A measurement, not a gate: nothing here fails.
@@ -21,7 +26,8 @@ import ast
 from dataclasses import dataclass
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+# The checkout's root, wherever under scripts/ this file lies.
+REPO = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 PACKAGE = REPO / "e3cm_bench"
 MODULE_LINES = 400
 FUNCTION_LINES = 60
@@ -92,8 +98,19 @@ def _targets(node: ast.Import | ast.ImportFrom, module: str, is_package: bool, k
     return out
 
 
-def import_graph(package: Path = PACKAGE, module_level: bool = True) -> dict[str, set[str]]:
-    """Module -> the package's modules it imports (module-level imports only, by default)."""
+def _packages_of(module: str) -> set[str]:
+    """The packages Python imports before `module` (its parents: `a`, `a.b` for `a.b.c`)."""
+    parts = module.split(".")
+    return {".".join(parts[:k]) for k in range(1, len(parts))}
+
+
+def import_graph(package: Path = PACKAGE, module_level: bool = True, packages: bool = True) -> dict[str, set[str]]:
+    """Module -> the package's modules its imports run (module-level imports only, by default).
+
+    Importing ``a.b.c`` runs ``a/__init__`` and ``a/b/__init__`` before ``a/b/c``: with
+    packages=True (the default) those are edges too, except the packages the importer itself
+    lies in (Python has begun them before the importer's first line, so importing it runs
+    nothing of theirs again)."""
     modules = package_modules(package)
     known = set(modules)
     graph = {}
@@ -101,7 +118,11 @@ def import_graph(package: Path = PACKAGE, module_level: bool = True) -> dict[str
         tree = ast.parse(path.read_text(), str(path))
         statements = _module_level_imports(tree) if module_level else _all_imports(tree)
         is_package = path.name == "__init__.py"
-        graph[name] = {t for node in statements for t in _targets(node, name, is_package, known)} - {name}
+        targets = {t for node in statements for t in _targets(node, name, is_package, known)}
+        if packages:
+            begun = _packages_of(name) | {name}
+            targets |= {p for t in targets for p in _packages_of(t) if p in known} - begun
+        graph[name] = targets - {name}
     return graph
 
 
@@ -139,6 +160,23 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
         if v not in index:
             connect(v)
     return found
+
+
+def cycle_closing(package: Path = PACKAGE) -> set[tuple[str, str]]:
+    """The function-level imports that would close an import cycle if moved to their module's
+    top: (importer, imported) edges, package __init__ edges included, absent from the
+    module-level graph and making it cyclic when added alone."""
+    eager, every = import_graph(package), import_graph(package, module_level=False)
+    return {(a, b) for a in every for b in every[a] - eager[a] if cycles({**eager, a: eager[a] | {b}})}
+
+
+def lazy_cycle_edges(package: Path = PACKAGE) -> set[tuple[str, str]]:
+    """The function-level imports that lie on a cycle of the graph of every import (functions'
+    too, package __init__ edges included): (importer, imported) edges absent from the
+    module-level graph whose two ends share a strongly connected component."""
+    eager, every = import_graph(package), import_graph(package, module_level=False)
+    component = {v: k for k, found in enumerate(cycles(every)) for v in found}
+    return {(a, b) for a in every for b in every[a] - eager[a] if a in component and component.get(b) == component[a]}
 
 
 def layers(graph: dict[str, set[str]]) -> dict[str, int]:
@@ -207,7 +245,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.layers:
         depth = layers(import_graph())
-        print(f"{len(depth)} modules in {max(depth.values()) + 1} layers (module-level imports)\n")
+        print(f"{len(depth)} modules in {max(depth.values()) + 1} layers (module-level imports and the package __init__s they run)\n")
         print(layer_table())
         return
     sizes = sorted(module_lines().items(), key=lambda kv: (-kv[1], kv[0]))

@@ -1,11 +1,13 @@
-"""The package's structure, read from its source (ast): one owner for the run folder's file
-names, and no import cycles (docs/architecture.md)."""
+"""The package's structure, read from its source (ast), as docs/architecture.md states it: one
+owner for the run folder's file names, no import cycles (package __init__s included), the size
+targets, one home for the default backbone, and every path and object the page names."""
 
 from __future__ import annotations
 
 import ast
-import re
+import importlib
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -13,14 +15,16 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
-OWNER = PACKAGE / "run" / "folder.py"
+# The run folder's owners: run/folder.py (the layout) and run/config.py (config.yaml's record), where it is.
+OWNERS = tuple(p for p in (PACKAGE / "run" / "folder.py", PACKAGE / "run" / "config.py") if p.is_file())
 RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skipped.csv", "failures.csv", ".feature-spill")
 
 
 def code_shape():
     """scripts/code_shape.py, the one reader of the import graph (the layer table uses it too)."""
     if "code_shape" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("code_shape", REPO / "scripts" / "code_shape.py")
+        script = min((REPO / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
+        spec = importlib.util.spec_from_file_location("code_shape", script)
         module = importlib.util.module_from_spec(spec)
         sys.modules["code_shape"] = module  # dataclasses look their module up while it loads
         spec.loader.exec_module(module)
@@ -82,26 +86,27 @@ def _exempt(line: str) -> bool:
 
 
 def test_only_the_run_folder_names_its_files():
-    """Every module but run/folder.py asks RunFolder for a run folder's paths."""
+    """Every module but the run folder's owners asks RunFolder for a run folder's paths."""
     as_path, in_prose = [], []
     for path in sorted(PACKAGE.rglob("*.py")):
-        if path != OWNER:
+        if path not in OWNERS:
             found = run_file_names(path)
             as_path += [line for line in found[0] if not _exempt(line)]
             in_prose += found[1]
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
-    assert not as_path, "run-folder file names outside e3cm_bench/run/folder.py:\n" + "\n".join(as_path)
+    assert not as_path, "run-folder file names outside e3cm_bench/run/folder.py and run/config.py:\n" + "\n".join(as_path)
 
 
 def test_the_owner_names_them():
     """The scan would see the names where they belong (so an empty result elsewhere means something)."""
-    as_path, _ = run_file_names(OWNER)
+    as_path = [line for owner in OWNERS for line in run_file_names(owner)[0]]
     assert {line.split(": ")[1].split(" in ")[0] for line in as_path} == set(RUN_FILES)
 
 
 def test_no_import_cycles():
-    """No module imports itself through others at import time (module-level imports)."""
+    """No module imports itself through others at import time (module-level imports, with the
+    package __init__s that importing a submodule runs)."""
     shape = code_shape()
     cycles = shape.cycles(shape.import_graph())
     assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
@@ -124,8 +129,115 @@ def test_the_import_graph_reads_relative_and_lazy_imports():
     assert "e3cm_bench.run" in eager["e3cm_bench.runner"]  # from .run import RunFolder: the package
     assert "e3cm_bench.run.folder" in eager["e3cm_bench.run"]
     assert "e3cm_bench.metrics" in eager["e3cm_bench.benchmarks.base"]  # from .. import metrics
-    assert "e3cm_bench.method" not in eager["e3cm_bench.benchmarks.base"]  # imported in resolve_method
-    assert "e3cm_bench.method" in every["e3cm_bench.benchmarks.base"]
+    lazy = {(a, b) for a in every for b in every[a] - eager[a]}  # torch-free start, cycles: imports in functions
+    assert len(lazy) > 50 and all(every[a] >= eager[a] for a in eager)
+
+
+def test_importing_a_submodule_runs_its_packages(tmp_path):
+    """`from .a.b.c import x` runs a/__init__ and a/b/__init__ first: edges of the graph, except
+    the packages the importer lies in (begun before its first line)."""
+    files = {"__init__.py": "", "top.py": "from .a.b.c import x\n", "a/__init__.py": "from .b import c\nfrom . import lazy\n",
+             "a/b/__init__.py": "", "a/b/c.py": "x = 1\n", "a/b/d.py": "from . import c\nfrom ..b.c import x\n",
+             "a/lazy.py": "def f():\n    from ..top import g\n"}
+    for name, text in files.items():
+        (tmp_path / "p" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "p" / name).write_text(text)
+    shape = code_shape()
+    graph = shape.import_graph(tmp_path / "p")
+    assert graph["p.top"] == {"p.a", "p.a.b", "p.a.b.c"}
+    assert graph["p.a.b.d"] == {"p.a.b.c"}  # p.a and p.a.b are begun when d runs
+    assert shape.import_graph(tmp_path / "p", packages=False)["p.top"] == {"p.a.b.c"}
+    assert graph["p.a.lazy"] == set() and shape.import_graph(tmp_path / "p", module_level=False)["p.a.lazy"] == {"p.top"}
+    # a.lazy's function imports top, whose import runs a/__init__: a cycle only a function's import may close
+    assert shape.cycles(shape.import_graph(tmp_path / "p", module_level=False)) == [["p.a", "p.a.lazy", "p.top"]]
+
+
+# The function-level imports that would close an import cycle at their module's top (through a
+# package __init__ that the import runs, or two modules reaching each other). Every other
+# function-level import only defers a heavy or rarely used import (torch, scipy, matplotlib;
+# docs/cli.md "Startup").
+CYCLE_CLOSING = {
+    # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
+    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),
+    ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
+    # run/folder.py imports RunConfig at its top; RunConfig asks RunFolder for config.yaml's path
+    ("e3cm_bench.run.config", "e3cm_bench.run.folder"),
+}
+# The function-level imports on a cycle of the graph of every import: modules that reach each
+# other only inside functions (at run time, each after the other has loaded), and CYCLE_CLOSING.
+IN_CYCLES = CYCLE_CLOSING | {
+    ("e3cm_bench.benchmarks.base", "e3cm_bench.method"),  # resolve_method -> build_method
+    ("e3cm_bench.method", "e3cm_bench.benchmarks"),  # build_method reads the benchmark's protocol
+    ("e3cm_bench.run.config", "e3cm_bench.benchmarks"),  # RunConfig's benchmark and evaluation settings
+    ("e3cm_bench.run.config", "e3cm_bench.method"),  # RunConfig.method_spec
+    ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),  # pixel origins, through interchange/__init__
+    ("e3cm_bench.interchange", "e3cm_bench.interchange.export"),  # export_run on first use (its __getattr__)
+}
+
+
+def test_function_level_imports_close_exactly_the_listed_cycles():
+    """The function-level imports that would make an import cycle at their module's top are
+    exactly CYCLE_CLOSING, and those on a cycle of the graph of every import (functions' too,
+    with the package __init__s they run) exactly IN_CYCLES (docs/architecture.md, Layers)."""
+    shape = code_shape()
+    found = shape.cycle_closing()
+    assert found == CYCLE_CLOSING, (f"new: {sorted(found - CYCLE_CLOSING)}; listed but closing no cycle "
+                                    f"(drop them from CYCLE_CLOSING): {sorted(CYCLE_CLOSING - found)}")
+    on_cycles = shape.lazy_cycle_edges()
+    assert on_cycles == IN_CYCLES, (f"function-level imports on a new cycle: {sorted(on_cycles - IN_CYCLES)}; "
+                                    f"listed but on no cycle (drop them from IN_CYCLES): {sorted(IN_CYCLES - on_cycles)}")
+
+
+def test_the_cycle_closing_finder_finds_one(tmp_path):
+    for name, text in {"__init__.py": "", "low.py": "def f():\n    from . import high\n", "high.py": "from . import low\n",
+                       "other.py": "def g():\n    import json\n    from . import low\n"}.items():
+        (tmp_path / "p").mkdir(exist_ok=True)
+        (tmp_path / "p" / name).write_text(text)
+    assert code_shape().cycle_closing(tmp_path / "p") == {("p.low", "p.high")}
+    assert code_shape().lazy_cycle_edges(tmp_path / "p") == {("p.low", "p.high")}  # other -> low: on no cycle
+
+
+def test_no_module_over_the_size_target():
+    """The target: no module over 400 lines (scripts/code_shape.py lists them by size)."""
+    shape = code_shape()
+    over = sorted((-n, name) for name, n in shape.module_lines().items() if n > shape.MODULE_LINES)
+    assert not over, f"modules over {shape.MODULE_LINES} lines:\n" + "\n".join(f"{-n:6d}  {name}" for n, name in over)
+
+
+def test_no_function_over_the_size_target():
+    """The target: no function or method over 60 lines, nested ones included."""
+    shape = code_shape()
+    long = sorted((-f.lines, f.module, f.name) for f in shape.functions() if f.lines > shape.FUNCTION_LINES)
+    assert not long, f"functions over {shape.FUNCTION_LINES} lines:\n" + \
+        "\n".join(f"{-n:6d}  {module}.{name}" for n, module, name in long)
+
+
+def test_the_size_targets_see_what_they_measure(tmp_path):
+    """The measures behind the two targets: a module's lines, a function's from `def` to its end."""
+    body = "\n".join(f"        x{k} = {k}" for k in range(61))
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "__init__.py").write_text("")
+    (tmp_path / "p" / "m.py").write_text(f"class C:\n    @staticmethod\n    def long():\n{body}\n        \ndef short():\n    pass\n")
+    shape = code_shape()
+    assert shape.module_lines(tmp_path / "p") == {"p": 0, "p.m": 67}
+    assert {(f.name, f.lines) for f in shape.functions(tmp_path / "p")} == {("C.long", 62), ("short", 2)}
+
+
+def _string_literals(path: Path) -> list[tuple[int, str]]:
+    """(line, text) of every string constant of a module but its docstrings."""
+    tree = ast.parse(path.read_text(), str(path))
+    skip = _docstrings(tree)
+    return [(node.lineno, node.value) for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in skip]
+
+
+def test_the_default_backbone_is_named_in_the_backbone_modules_only():
+    """"vgg19" as a value lives where the backbones are declared; everyone else asks for
+    DEFAULT_BACKBONE (a comment or docstring may still mention it)."""
+    found = [f"{path.relative_to(REPO)}:{line}: {text[:60]!r}"
+             for path in sorted(PACKAGE.rglob("*.py")) if "backbone" not in path.relative_to(PACKAGE).as_posix()
+             for line, text in _string_literals(path) if re.search(r"\bvgg19\b", text)]
+    assert not found, "the literal 'vgg19' outside the backbone modules:\n" + "\n".join(found)
 
 
 def test_every_path_docs_architecture_names_exists():
@@ -136,3 +248,157 @@ def test_every_path_docs_architecture_names_exists():
     assert len(paths) > 30
     missing = sorted(p for p in paths if not (PACKAGE / p).exists() and not (REPO / p).exists())
     assert not missing, f"docs/architecture.md names paths that do not exist: {', '.join(missing)}"
+
+
+def _definitions() -> tuple[set[str], dict[str, set[str]]]:
+    """Every name the package defines (classes, functions and methods at any depth, module-level
+    assignments) and each class's own attributes (methods, fields, class constants)."""
+    names, members = set(), {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                names.add(node.name)
+            if isinstance(node, ast.ClassDef):
+                own = members.setdefault(node.name, set())
+                for item in node.body:
+                    if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                        own.add(item.name)
+                    elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                        own.add(item.target.id)
+                    elif isinstance(item, ast.Assign):
+                        own |= {t.id for t in item.targets if isinstance(t, ast.Name)}
+        for item in tree.body:
+            if isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                names.add(item.target.id)
+            elif isinstance(item, ast.Assign):
+                names |= {t.id for t in item.targets if isinstance(t, ast.Name)}
+    return names, members
+
+
+def _dotted_exists(name: str) -> bool:
+    """`files.FolderLock`, `e3cm_bench.register`: a module of the package, then attributes."""
+    parts = name.removeprefix("e3cm_bench.").split(".") if name != "e3cm_bench" else []
+    for split in range(len(parts), -1, -1):
+        try:
+            obj = importlib.import_module(".".join(["e3cm_bench", *parts[:split]]))
+        except ModuleNotFoundError:
+            continue
+        try:
+            for attr in parts[split:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
+def doc_objects(text: str) -> list[str]:
+    """The code objects a page names in backticks: `RunFolder`, `PROTOCOLS`, `run_benchmark`,
+    `RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`. Plain lowercase words
+    (`import`, `demo`: commands), paths and file names are not objects."""
+    found = []
+    for token in re.findall(r"`([A-Za-z_][\w.]*)(?:\(\.*\))?`", text):
+        if token.startswith("__") or re.search(r"\.(py|ya?ml|h5|csv|md|json|npz)$", token):
+            continue  # a path or a file name
+        if "." in token or re.fullmatch(r"[A-Z][a-z]\w*|[A-Z][A-Z0-9_]+|[a-z0-9]+(?:_[a-z0-9]+)+", token):
+            found.append(token)
+    return sorted(set(found))
+
+
+def test_every_object_docs_architecture_names_exists():
+    """A class, constant, function or attribute the page names is defined in the package."""
+    names, members = _definitions()
+    objects = doc_objects((REPO / "docs" / "architecture.md").read_text())
+    assert len(objects) > 30
+
+    def exists(token: str) -> bool:
+        head, _, rest = token.partition(".")
+        if not rest and token != "e3cm_bench":
+            return token in names
+        if head[0].isupper():  # Class.attribute
+            return head in members and rest in members[head]
+        return _dotted_exists(token)
+
+    missing = [t for t in objects if not exists(t)]
+    assert not missing, f"docs/architecture.md names objects the package does not define: {', '.join(missing)}"
+
+
+def test_the_object_check_fails_on_a_name_that_is_gone():
+    names, members = _definitions()
+    assert doc_objects("`RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`, `demo`, `run/folder.py`, "
+                       "`NoSuchThing`, `config.yaml`") == ["NoSuchThing", "RunFolder.lock", "e3cm_bench.register",
+                                                           "files.FolderLock"]
+    assert "lock" in members["RunFolder"] and "NoSuchThing" not in names
+    assert _dotted_exists("files.FolderLock") and _dotted_exists("e3cm_bench.register")
+    assert not _dotted_exists("files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
+
+
+def _calls(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted callee) of every call in a module: `MethodSpec.create(...)` -> 'MethodSpec.create'."""
+    def dotted(node) -> str:
+        if isinstance(node, ast.Name):
+            return node.id
+        if isinstance(node, ast.Attribute):
+            return f"{dotted(node.value)}.{node.attr}"
+        return "?"
+
+    tree = ast.parse(path.read_text(), str(path))
+    return [(node.lineno, dotted(node.func)) for node in ast.walk(tree) if isinstance(node, ast.Call)]
+
+
+def callers(callee: str) -> list[str]:
+    """'module.py:line' of every call of `callee` (a name as spelled at the call) in the package."""
+    return [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+            for line, name in _calls(path) if name == callee]
+
+
+def test_every_method_is_made_through_the_one_path():
+    """A MethodSpec comes from a user's options through method.build_method only (the benchmark
+    commands, `reproduce`, `match`, `calibrate` and `demo` alike, Benchmark.resolve_method being
+    build_method with a benchmark); from a run's record through MethodSpec.from_identity."""
+    made = [where for where in callers("MethodSpec.create") if not where.startswith("method.py:")]
+    direct = [where for where in callers("MethodSpec") if not where.startswith("method.py:")]
+    assert not made and not direct, f"MethodSpec.create outside method.py: {made}; MethodSpec(...) outside method.py: {direct}"
+    assert callers("MethodSpec.create") and callers("build_method")
+
+
+# The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol.
+OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "benchmarks/protocols.py"}}
+
+
+def _declared_formats() -> dict[str, str]:
+    """Format name -> the module that declares it (a `Format` subclass with `name = "..."`)."""
+    found = {}
+    for path in sorted((PACKAGE / "interchange").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef) and any(getattr(b, "id", None) == "Format" for b in node.bases):
+                for item in node.body:
+                    if isinstance(item, ast.Assign) and any(getattr(t, "id", None) == "name" for t in item.targets):
+                        assert item.value.value not in found, f"format {item.value.value!r} declared twice"
+                        found[item.value.value] = path.relative_to(PACKAGE).as_posix()
+    return found
+
+
+def test_each_interchange_format_is_declared_in_one_module():
+    """A format (its reader, writer, pixel origin) is one class in its own module of interchange/,
+    and no other module spells its name: import, export and the docs read the registry."""
+    declared = _declared_formats()
+    assert len(declared) >= 4 and len(set(declared.values())) == len(declared), declared
+    elsewhere = [f"{where}:{line}: {name!r}" for name, home in sorted(declared.items())
+                 for path in sorted(PACKAGE.rglob("*.py"))
+                 if (where := path.relative_to(PACKAGE).as_posix()) != home and where not in OTHER_MEANINGS.get(name, ())
+                 for line, text in _string_literals(path) if text == name]
+    assert not elsewhere, "a format's name outside its module:\n" + "\n".join(elsewhere)
+
+
+def test_every_kind_of_run_opens_its_folder_through_the_driver():
+    """A benchmark run, an import, a calibration and a shard merge open their folder with
+    run/driver.py's open_run (the noise ensemble's draws are benchmark runs); nothing else takes
+    a run folder's lock but the driver and export (which reads a run under it, never writes one)."""
+    openers = {where.split(":")[0] for where in callers("driver.open_run")}
+    assert openers >= {"runner.py", "imported.py", "calibration/run.py", "run/shards.py"}, sorted(openers)
+    locks = [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+             for line, name in _calls(path) if name.endswith(".lock") and name != "RunFolder.lock"]
+    others = [where for where in locks if not where.startswith(("run/driver.py:", "interchange/export.py:"))]
+    assert locks and not others, f"a run folder locked outside the driver: {others}"
