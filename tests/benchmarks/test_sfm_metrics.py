@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from e3cm_bench.datasets.megadepth import load_scene_info
 from e3cm_bench.sfm import metrics as sfm_metrics
 
-RECORDED = Path(__file__).parent / "data" / "sfm_kitti00_sift_poses.npz"
+RECORDED = Path(__file__).resolve().parents[1] / "data" / "sfm_kitti00_sift_poses.npz"
 EPS = 1e-15
 
 

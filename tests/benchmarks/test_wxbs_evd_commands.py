@@ -16,7 +16,7 @@ import pytest
 import e3cm_bench.datasets.sources as sources
 from e3cm_bench.run import RunFolder
 from helpers import flat, invoke, one_line_error
-from test_download_round3 import Server, answer
+from http_server import Server, answer
 
 SIFT = ("--matcher", "sift", "--protocol", "wxbs")
 

@@ -13,7 +13,7 @@ import yaml
 from e3cm_bench.demo import METHODS as DEMO_METHODS
 from helpers import flat, invoke, one_line_error
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

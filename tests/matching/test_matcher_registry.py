@@ -20,7 +20,7 @@ from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import run_benchmark
 from helpers import flat, invoke, one_line_error
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "e3cm_bench"
 PLUGIN_SRC = REPO / "examples" / "plugin" / "src"
 BUILTINS = ("e3cm", "e3cm-ransac", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift")

@@ -1,8 +1,9 @@
-"""The speed machinery changes no result: decoding ahead, cross-method feature sharing."""
+"""The speed machinery changes no result: decoding ahead, feature sharing across methods, batched
+backbone passes, the banded copy of the maps, weights cast once, the ordered norm, the widened
+gather, and glibc keeping freed memory."""
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import platform
@@ -14,11 +15,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
+from e3cm_bench import backbones
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.images import ImageError
+from e3cm_bench.matching import norms
+from e3cm_bench.matching.cascade import UnitPixels
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.run.stage import MatchOptions, decoded_ahead
 from e3cm_bench.runner import run_benchmark, run_methods
@@ -145,73 +150,83 @@ def test_a_6000_by_4000_pair_fits_or_names_max_side():
         match_pair(matcher, image, image)
 
 
-def test_bench_batch_prints_and_writes_its_figures(tmp_path: Path):
-    """scripts/bench_batch.py on a tiny case: one row per backbone, size and precision, with
-    the two ways' maps within rounding of each other."""
-    out = tmp_path / "batch.csv"
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_batch.py"
-    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--size", "64x48",
-                          "--batch", "2", "--images", "3", "--repeat", "1", "--csv", str(out)],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    assert "efficientnet_lite0 64x48 fp32: one by one" in run.stdout
-    rows = list(csv.DictReader(out.open()))
-    assert len(rows) == 1 and rows[0]["batch"] == "2" and float(rows[0]["largest difference"]) < 1e-4
-    assert float(rows[0]["one by one s/image"]) > 0 and float(rows[0]["batched s/image"]) > 0
+def test_a_batch_of_images_gives_each_images_maps_within_rounding():
+    """backbone.forward_batch (what --backbone-batch uses) on three images in batches of two
+    gives the maps of passing them one by one, within float32 rounding."""
+    torch.manual_seed(0)
+    backbone = backbones.load_backbone("efficientnet_lite0", pretrained=False)
+    images = torch.rand(3, 3, 48, 64, generator=torch.Generator().manual_seed(0))
+    alone = [backbone(images[i:i + 1]) for i in range(len(images))]
+    together = [maps for start in (0, 2) for maps in backbone.forward_batch(images[start:start + 2])]
+    assert len(together) == 3 and all(len(x) == len(y) for x, y in zip(alone, together))
+    for x, y in zip(alone, together):
+        for a, b in zip(x, y):
+            assert a.shape == b.shape and (a - b).abs().max().item() < 1e-4
 
 
-def test_bench_maps_copy_prints_equal_copies_per_level():
-    """scripts/bench_maps_copy.py on a small case whose level 0 (16 x 240 x 320, over 1M
-    elements) takes the banded copy: a line per level, each copy equal to torch's bit for bit,
-    and the whole pass timed both ways."""
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_maps_copy.py"
-    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--precision", "bf16",
-                          "--size", "320x240", "--repeat", "1"], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    levels = [line for line in run.stdout.splitlines() if " level " in line]
-    assert len(levels) == 5 and all(line.endswith("bit for bit equal: True") for line in levels), run.stdout
-    assert "level 0 (16, 240, 320) bfloat16" in levels[0]
-    assert "whole pass of one image: plain copy" in run.stdout
+def test_the_banded_copy_of_each_level_equals_torchs_copy(monkeypatch):
+    """backbones.channel_first_float on the real channels-last output of every stage of a bf16
+    backbone whose level 0 (16 x 240 x 320, over 1M elements) takes the banded copy: the same
+    C-contiguous float32 maps as torch's copy, bit for bit."""
+    torch.manual_seed(0)
+    backbone = backbones.load_backbone("efficientnet_lite0", pretrained=False, precision="bf16")
+    assert backbone.memory_format == "channels_last"
+    outputs, maps = [], backbones._maps
+    monkeypatch.setattr(backbones, "_maps", lambda x: outputs.append(x[0]) or maps(x))
+    backbone.forward(torch.rand(1, 3, 240, 320, generator=torch.Generator().manual_seed(0)))
+    assert len(outputs) == 5 and tuple(outputs[0].shape) == (16, 240, 320) and outputs[0].dtype == torch.bfloat16
+    for x in outputs:
+        copy = backbones.channel_first_float(x)
+        assert copy.is_contiguous() and torch.equal(copy, x.float().contiguous())
 
 
-def test_bench_weight_cast_prints_equal_maps():
-    """scripts/bench_weight_cast.py on a small case: the weights cast once give the maps of
-    casting them at every pass, bit for bit."""
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_weight_cast.py"
-    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--size", "128x96",
-                          "--repeat", "1"], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    line = run.stdout.splitlines()[1]
-    assert line.startswith("efficientnet_lite0 bf16 128x96 (") and line.endswith("bit for bit equal: True"), run.stdout
+def test_weights_cast_once_give_the_maps_of_casting_at_every_pass(monkeypatch):
+    """backbones.cast_weights (bf16 weights stored once, when the backbone is built) against the
+    same random draw left in float32 and cast by autocast at every pass: the same maps, bit for bit."""
+    def build(cast: bool) -> backbones.Backbone:
+        torch.manual_seed(0)
+        with monkeypatch.context() as m:
+            if not cast:
+                m.setattr(backbones, "cast_weights", lambda module, dtype: None)
+            return backbones.load_backbone("efficientnet_lite0", pretrained=False, precision="bf16")
+
+    each, once = build(False), build(True)
+    assert any(p.dtype == torch.bfloat16 for p in once.parameters())
+    assert not any(p.dtype == torch.bfloat16 for p in each.parameters())
+    image = torch.rand(1, 3, 96, 128, generator=torch.Generator().manual_seed(0))
+    assert all(torch.equal(a, b) for a, b in zip(each(image), once(image)))
 
 
-def test_bench_norm_prints_equal_norms():
-    """scripts/bench_norm.py on a small map (the banded path taken): equal bit for bit, and the
-    allocator it ran with named."""
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_norm.py"
-    run = subprocess.run([sys.executable, str(script), "--size", "320x240", "--repeat", "1"], capture_output=True,
-                         text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    lines = run.stdout.splitlines()
-    assert "; allocator glibc, freed memory kept" in lines[0] or "; allocator system" in lines[0]
-    assert lines[1].startswith("320x240: torch norm") and "bit for bit equal: True; fast path taken: True" in lines[1]
+def test_the_ordered_norm_equals_torchs_norm():
+    """norms.ordered_norm on a ReLU'd 64-channel map where it takes its fast path
+    (norms.ordered_is_exact): torch's Tensor.norm over the channels, bit for bit."""
+    feat = torch.randn(64, 240, 320, generator=torch.Generator().manual_seed(0)).relu_()
+    assert norms.ordered_is_exact(feat)
+    assert torch.equal(norms.ordered_norm(feat), feat.norm(2, 0, keepdim=True))
+    assert torch.equal(norms.channel_norm(feat), feat.norm(2, 0, keepdim=True))
 
 
-def test_bench_gather_prints_equal_gathers():
-    """scripts/bench_gather.py on a small map: bf16 rows widened before they are divided give
-    the bits of dividing them by the float32 norms directly (cascade.UnitPixels.gather)."""
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_gather.py"
-    run = subprocess.run([sys.executable, str(script), "--size", "320x240", "--patches", "60", "--repeat", "1"],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    lines = run.stdout.splitlines()
-    assert "60 patches of 16 x 16 pixels" in lines[0]
-    assert lines[1].startswith("320x240: bf16 / float32") and lines[1].endswith("bit for bit equal: True"), run.stdout
+def test_bf16_rows_widened_then_divided_equal_dividing_them_directly():
+    """cascade.UnitPixels.gather (bf16 rows widened to float32, then divided in place by their
+    norms) gives the bits of dividing the bf16 rows by the float32 norms directly, on 60 random
+    16 x 16 patches of a 320 x 240 map."""
+    gen = torch.Generator().manual_seed(0)
+    w, h = 320, 240
+    rows = (torch.randn(h * w, 64, generator=gen).relu_() * 3).bfloat16()
+    pixel_norms = rows.float().norm(dim=1).clamp_min_(1e-12)
+    cells = torch.stack([torch.randint(0, w // 16, (60,), generator=gen),
+                         torch.randint(0, h // 16, (60,), generator=gen)], 1)
+    unit = UnitPixels(rows, pixel_norms, w)
+    index = unit.patch_index(cells, 16)
+    direct = torch.div(rows.index_select(0, index), pixel_norms.index_select(0, index)[:, None])
+    assert torch.equal(unit.gather(index), direct)
 
 
 ALLOCATOR_SCRIPT = r"""
 import cv2, hashlib, json, torch
 from e3cm_bench import devices
+from e3cm_bench.matching import norms
+from e3cm_bench.matching.cascade import UnitPixels
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.synth.textures import demo_homography, procedural_scene
 
@@ -256,21 +271,3 @@ def test_keeping_freed_memory_can_be_turned_off():
     out = run_allocator_script({"E3CM_BENCH_ALLOCATOR": "system"})
     assert out["allocator"] == "system (E3CM_BENCH_ALLOCATOR=system)"
     assert out["before"] == out["after"] and out["kept_free"] == 0
-
-
-def test_bench_allocator_alternates_and_matches_equal(tmp_path):
-    """scripts/bench_allocator.py on a small pair: both settings timed in one process, the
-    matches equal bit for bit, and a CSV row per size."""
-    if not GLIBC:
-        pytest.skip("bench_allocator.py compares glibc's settings")
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_allocator.py"
-    table = tmp_path / "allocator.csv"
-    run = subprocess.run([sys.executable, str(script), "--backbone", "efficientnet_lite0", "--precision", "fp32",
-                          "--size", "160x120", "--repeat", "1", "--csv", str(table)], capture_output=True, text=True,
-                         timeout=300)
-    assert run.returncode == 0, run.stderr
-    line = next(line for line in run.stdout.splitlines() if line.startswith("160x120:"))
-    assert "pair default" in line and "keep / default" in line and line.endswith("bit for bit equal: True")
-    rows = list(csv.reader(table.open()))
-    assert rows[0][:2] == ["backbone, precision", "size"] and rows[1][:2] == ["efficientnet_lite0, fp32", "160x120"]
-    assert rows[1][8] == "yes"

@@ -214,7 +214,7 @@ def test_a_run_written_before_intervals_still_tables(tmp_path):
 
 
 def test_the_sample_tables_hold_intervals_that_contain_their_numbers():
-    root = Path(__file__).resolve().parents[1] / "results" / "sample"
+    root = Path(__file__).resolve().parents[2] / "results" / "sample"
     for name, columns in (("table1_hpatches", ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3")),
                           ("table2_kitti", ("auc@5", "auc@10", "auc@20", "P")),
                           ("table3_scannet", ("auc@5", "auc@10", "auc@20", "P"))):

@@ -18,7 +18,7 @@ from e3cm_bench.perturb import Perturbation, perturb_correspondences, perturb_ma
 from e3cm_bench.stats.noise import PairMove, count_gate, member_picks, metric_alpha, resampled_gate
 from helpers import flat, invoke, one_line_error
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 BASELINES = REPO_ROOT / "results" / "baselines"
 AMD_RUNS = REPO_ROOT.parent / "shared" / "cpu-runs" / "amd-epyc-avx512-demo"
 

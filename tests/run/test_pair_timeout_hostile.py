@@ -28,7 +28,7 @@ from e3cm_bench.matches import Matches
 from e3cm_bench.run import FAILED_ATTR, RunFolder
 from helpers import assert_same_arrays, flat, invoke, one_line_error
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

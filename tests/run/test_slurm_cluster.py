@@ -21,7 +21,7 @@ import yaml
 from e3cm_bench.run.folder import RunFolder
 from slurm_cluster import job_lines, slurm_cluster, wait_for  # noqa: F401 - slurm_cluster is a fixture
 
-TESTS = Path(__file__).resolve().parent
+TESTS = Path(__file__).resolve().parents[1]  # tests/: slurm_slow_matcher.py lies there
 REPO = TESTS.parent
 ARRAY = REPO / "scripts" / "slurm" / "array.sh"
 MATCHER = "slurm_slow_matcher:ENTRY"
