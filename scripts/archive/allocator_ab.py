@@ -1,6 +1,6 @@
 """glibc's malloc keeping freed memory (what a run does) against its default, side by side in one process.
 
-    python scripts/bench_allocator.py [--backbone vgg19] [--precision bf16] [--size 640x480 --size 1200x900] \
+    python scripts/archive/allocator_ab.py [--backbone vgg19] [--precision bf16] [--size 640x480 --size 1200x900] \
         [--repeat 3]
 
 torch's CPU tensors come from malloc. By default glibc serves a block over its mmap threshold
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import synthetic_pair  # noqa: E402 - the same pair as the per-pair figures
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import synthetic_pair  # noqa: E402 - the same pair as the per-pair figures
 
 from e3cm_bench.files import cpu_info, cpu_isa  # noqa: E402
 from e3cm_bench.method import MethodSpec  # noqa: E402
@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("--csv", type=Path, default=None, help="append a row per size to this CSV (for docs/speed.md)")
     args = parser.parse_args()
     if platform.libc_ver()[0] != "glibc":
-        raise SystemExit("bench_allocator.py compares glibc's settings; this C library is not glibc")
+        raise SystemExit("allocator_ab.py compares glibc's settings; this C library is not glibc")
     libc = ctypes.CDLL("libc.so.6")
     options = {} if args.precision == "fp32" else {"precision": args.precision}
     torch.manual_seed(0)

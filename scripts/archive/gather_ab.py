@@ -1,12 +1,12 @@
 """Gathering normalised level-0 pixels from bf16 rows: dividing the bf16 rows by the float32 norms
 against widening them first and dividing in place (cascade.UnitPixels.gather), side by side.
 
-    python scripts/bench_gather.py [--size 640x480 --size 1200x900] [--patches 474] [--repeat 7]
+    python scripts/archive/gather_ab.py [--size 640x480 --size 1200x900] [--patches 474] [--repeat 7]
 
 The confidence score of the top-8 and PROSAC cascades gathers patches of level 0 from the
 backbone's own channels-last rows (bf16 where the backbone ran in bf16) and divides each row by
 its pixel's norm. For each size: random ReLU'd rows of 64 channels stored in bf16, their norms,
-and the pixels of `--patches` random 16 x 16 patches (level 4's; bench_speed's 640x480 pair
+and the pixels of `--patches` random 16 x 16 patches (level 4's; pair_speed.py's 640x480 pair
 scores 474 of them), gathered both ways; medians, their ratio, and whether the two are equal
 bit for bit.
 """
@@ -22,8 +22,8 @@ import torch
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching.cascade import UnitPixels
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
 
 
 def mixed(rows: torch.Tensor, norms: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

@@ -1,6 +1,6 @@
 """fp32 backbone passes in NCHW against channels_last memory, side by side in one process.
 
-    python scripts/bench_layout.py [--backbone vgg19 --backbone efficientnet_lite0] [--size 640x480 --size 1200x900] [--repeat 3]
+    python scripts/archive/layout_ab.py [--backbone vgg19 --backbone efficientnet_lite0] [--size 640x480 --size 1200x900] [--repeat 3]
 
 Random weights (the time does not depend on them). For each backbone and size, the passes
 alternate between the two layouts; medians, their ratio and the largest difference between

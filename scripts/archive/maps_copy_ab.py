@@ -1,6 +1,6 @@
 """The backbone's maps made C-contiguous float32: torch's copy against the banded copy, side by side.
 
-    python scripts/bench_maps_copy.py [--backbone vgg19 --backbone efficientnet_lite0]
+    python scripts/archive/maps_copy_ab.py [--backbone vgg19 --backbone efficientnet_lite0]
         [--precision bf16 --precision fp32] [--size 640x480 --size 1200x900] [--repeat 3]
 
 Under channels_last (every backbone in bf16 or fp16, Lite0 in fp32) the convolutions give
@@ -26,8 +26,8 @@ from e3cm_bench import backbones
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.method import MethodSpec
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import alternate  # noqa: E402 - the speed scripts' side-by-side timing
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import alternate  # noqa: E402 - the speed scripts' side-by-side timing
 
 
 def plain(x: torch.Tensor) -> torch.Tensor:

@@ -1,6 +1,6 @@
 """Channel norms of a feature map: torch's norm against the ordered sum (matching/norms.py), side by side.
 
-    python scripts/bench_norm.py [--size 640x480 --size 1200x900] [--channels 64] [--repeat 5]
+    python scripts/archive/norm_ab.py [--size 640x480 --size 1200x900] [--channels 64] [--repeat 5]
 
 The top-8 and PROSAC cascades take the channel norms of level 0 whole for their confidence
 score (`cascade.pixel_norms`); the deepest level and the children read by refinement are
@@ -21,8 +21,8 @@ import torch
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import add_allocator_option, before_after, use_allocator  # noqa: E402 - the speed scripts' helpers
 
 
 def torch_norm(feat: torch.Tensor) -> torch.Tensor:

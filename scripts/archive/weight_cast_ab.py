@@ -1,6 +1,6 @@
 """Reduced-precision passes with the weights cast once against cast at every pass, side by side.
 
-    python scripts/bench_weight_cast.py [--backbone vgg19 --backbone efficientnet_lite0]
+    python scripts/archive/weight_cast_ab.py [--backbone vgg19 --backbone efficientnet_lite0]
         [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 5] [--allocator keep|system]
 
 Under bf16 or fp16 the convolutions run under autocast, which casts their float32 weights
@@ -24,8 +24,8 @@ from e3cm_bench import backbones
 from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matchers.deep import image_to_tensor
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench_speed import add_allocator_option, alternate, synthetic_pair, use_allocator  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import add_allocator_option, alternate, synthetic_pair, use_allocator  # noqa: E402
 
 
 def build(name: str, precision: str, cast: bool) -> backbones.Backbone:

@@ -1,6 +1,6 @@
 """Parity of `e3cm-release` and `dfm` with the reference implementations on any reference file.
 
-    python scripts/check_parity.py REF.npz A.png B.png --weights W [--perturbations 8] [--scale 1e-5]
+    python scripts/maintain/check_parity.py REF.npz A.png B.png --weights W [--perturbations 8] [--scale 1e-5]
 
 REF.npz has the layout of ../shared/parity (see its README; keys r09_*/r095_* for the E3CM
 release, dfm_* for the DFM release; lists missing from the file are skipped). A.png / B.png

@@ -1,8 +1,8 @@
 """The shape of the package, read from its source with ast: modules by size, the longest
 functions, and the layers its imports make.
 
-    python scripts/code_shape.py                 # modules by size, the 15 longest functions
-    python scripts/code_shape.py --layers        # the layer table docs/architecture.md shows
+    python scripts/maintain/code_shape.py                 # modules by size, the 15 longest functions
+    python scripts/maintain/code_shape.py --layers        # the layer table docs/architecture.md shows
 
 A module's layer is the length of the longest chain of module-level imports below it inside
 the package: a module that imports none of the package's modules is layer 0, one that imports
@@ -21,7 +21,8 @@ import ast
 from dataclasses import dataclass
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+# The checkout's root, wherever under scripts/ this file lies.
+REPO = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 PACKAGE = REPO / "e3cm_bench"
 MODULE_LINES = 400
 FUNCTION_LINES = 60

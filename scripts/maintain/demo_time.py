@@ -9,7 +9,7 @@ whether `demo --help` names every method the demo runs. Then each target, met or
 under 90 s, at most 60 lines, at least two methods' headline numbers differ, illumination
 pairs included, the help names what runs. Exits 1 if a target is missed.
 
-    python scripts/demo_time.py [--out DIR] [--keep]
+    python scripts/maintain/demo_time.py [--out DIR] [--keep]
 """
 
 from __future__ import annotations

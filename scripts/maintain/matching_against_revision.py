@@ -1,8 +1,8 @@
 """The work after the backbone as the code is now against an earlier revision's, side by side.
 
-    python scripts/bench_matching_ab.py --against REV [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 3]
+    python scripts/maintain/matching_against_revision.py --against REV [--precision bf16] [--size 640x480 --size 1200x900] [--repeat 3]
 
-`e3cm` (top-8) on VGG19 with random weights (seed 0) and bench_speed's synthetic pair. The
+`e3cm` (top-8) on VGG19 with random weights (seed 0) and pair_speed.py's synthetic pair. The
 backbone runs once per size; then match_pyramids runs on the same pyramids, alternating
 between the matching package of revision REV (e3cm_bench/matching and geometry.py, read with
 `git archive` into a temporary folder and imported under another name) and the current one.
@@ -34,13 +34,13 @@ from e3cm_bench.files import cpu_info, cpu_isa
 from e3cm_bench.matching import pipeline
 from e3cm_bench.method import MethodSpec
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench_speed import add_allocator_option, synthetic_pair, use_allocator  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
+from pair_speed import add_allocator_option, synthetic_pair, use_allocator  # noqa: E402
 
 
 def pipeline_of(rev: str, folder: Path):
     """REV's matching/pipeline.py, imported as e3cm_bench_rev.matching.pipeline from `folder`."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     archive = subprocess.run(["git", "-C", str(root), "archive", rev, "e3cm_bench/matching", "e3cm_bench/geometry.py"],
                              capture_output=True, check=True).stdout
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:

@@ -4,7 +4,7 @@ process; prints the median and the range of the wall time, the median CPU time (
 system: about the wall time of an idle machine), and which heavy libraries the import of the
 command line loads. Target (issue 51): under 1.0 s each on an idle machine, no torch.
 
-    python scripts/startup_time.py [--runs 7] [--command e3cm-bench]
+    python scripts/maintain/startup_time.py [--runs 7] [--command e3cm-bench]
 
 The figures depend on the machine and its load (run it idle: `uptime` is printed with them);
 docs/cli.md quotes a measurement.

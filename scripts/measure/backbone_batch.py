@@ -1,6 +1,6 @@
 """Backbone passes one image at a time against batches of images, side by side in one process.
 
-    python scripts/bench_batch.py [--backbone vgg19] [--size 640x480] [--precision fp32 --precision bf16]
+    python scripts/measure/backbone_batch.py [--backbone vgg19] [--size 640x480] [--precision fp32 --precision bf16]
                                   [--batch 4] [--images 8] [--repeat 2] [--device cuda] [--csv FILE]
 
 What `--backbone-batch` (match_jobs, DeepMatcher.prefetch) buys on a device: the same

@@ -1,7 +1,7 @@
 """Pairs per minute over a real pair graph, measured end to end: e3cm-bench's match stage
 against the E3CM release's per-pair loop.
 
-    python scripts/bench_benchmark.py --pairs ../shared/data/yfcc_test_pairs_with_gt.txt \
+    python scripts/measure/benchmark_throughput.py --pairs ../shared/data/yfcc_test_pairs_with_gt.txt \
         --scenes 1 --size 640x480 --precision fp32 --compare-release PATH [--release-sample 24] [--json]
         [--device cuda --backbone-batch 8] [--allocator keep|system]
 
@@ -58,7 +58,7 @@ from e3cm_bench.run.stage import MatchOptions, match_stage
 from e3cm_bench.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_speed import ReleaseRunner, add_allocator_option, use_allocator  # noqa: E402 - the release loader lives with the per-pair benchmark
+from pair_speed import ReleaseRunner, add_allocator_option, use_allocator  # noqa: E402 - the release loader lives with the per-pair benchmark
 
 
 def read_pair_graph(path: Path) -> list[tuple[str, str]]:
@@ -117,7 +117,7 @@ def main() -> None:
           f"VGG19 random weights (seed 0); precision {args.precision}; CPU {cpu} ({isa}); torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads; allocator {allocator}" + (f"; device {args.device}: {gpu_name(args.device)}"
                                                   if args.device != "cpu" else ""))
-    work = Path(tempfile.mkdtemp(prefix="bench_benchmark_"))
+    work = Path(tempfile.mkdtemp(prefix="benchmark_throughput_"))
     try:
         result = run(args, block, (w, h), work)
     finally:

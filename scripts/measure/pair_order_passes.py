@@ -1,6 +1,6 @@
 """Backbone passes a pair order needs: the feature cache's policy replayed over a real pair graph.
 
-    python scripts/bench_pair_order.py [--pairs ../shared/data/yfcc_test_pairs_with_gt.txt] [--resident 16,128,256] [--csv OUT.csv]
+    python scripts/measure/pair_order_passes.py [--pairs ../shared/data/yfcc_test_pairs_with_gt.txt] [--resident 16,128,256] [--csv OUT.csv]
 
 For each number of images the cache holds in memory, the passes (misses) of a plain LRU cache
 in: the list's own order, the order sorted by (lower, higher) image path (what the match stage

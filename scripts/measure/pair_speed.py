@@ -1,6 +1,6 @@
 """Time per stage of a matcher on synthetic pairs (prints measured figures; never asserted).
 
-    python scripts/bench_speed.py --backbone vgg19 --size 1200x900 --repeat 2 --precision fp32 \
+    python scripts/measure/pair_speed.py --backbone vgg19 --size 1200x900 --repeat 2 --precision fp32 \
         [--matcher e3cm] [--random-weights | --weights FILE] [--device cpu] [--json] \
         [--compare-release PATH] [--allocator keep|system]
 

@@ -5,7 +5,7 @@ matcher that does nothing, in this process and through the StoppableWorker's chi
 images sent over a socket, the matches sent back), for images of HPatches' size; the fork of
 a fresh child; and the forked probe of one plugin import (registry._probe).
 
-    python scripts/pair_timeout_overhead.py [--pairs 200] [--side 1000]
+    python scripts/measure/pair_timeout_overhead.py [--pairs 200] [--side 1000]
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 (default 1500, SIFT and SIFT with another ratio, at --max-side 320), and on any run folders
 given. Prints the sizes (the site, its index page, its drawings); writes under --work.
 
-    python scripts/report_size.py --work /tmp/report-size [--pairs 1500] [RUN_DIR ...]
+    python scripts/measure/report_size.py --work /tmp/report-size [--pairs 1500] [RUN_DIR ...]
 """
 
 from __future__ import annotations

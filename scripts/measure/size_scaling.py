@@ -1,9 +1,9 @@
-"""How time and peak memory grow with image size: scripts/bench_speed.py at several sizes.
+"""How time and peak memory grow with image size: scripts/measure/pair_speed.py at several sizes.
 
-    python scripts/bench_scaling.py [--backbone vgg19 --backbone efficientnet_lite0] \
+    python scripts/measure/size_scaling.py [--backbone vgg19 --backbone efficientnet_lite0] \
         [--megapixels 0.25 0.5 1 2] [--precision fp32] [--out results/perf]
 
-Each (backbone, size) runs `bench_speed.py --json` in its own process, so that each peak
+Each (backbone, size) runs `pair_speed.py --json` in its own process, so that each peak
 memory figure (the process's peak RSS) belongs to one size. Sizes are 4:3. Writes
 OUT/scaling.csv (one row per backbone and size) and OUT/scaling.png (seconds per pair and
 peak memory against megapixels), and prints the rows. VGG19 runs with random weights (the
@@ -35,7 +35,7 @@ def size_of(megapixels: float) -> tuple[int, int]:
 
 
 def measure(backbone: str, size: tuple[int, int], precision: str, repeat: int) -> dict:
-    command = [sys.executable, str(HERE / "bench_speed.py"), "--backbone", backbone, "--size", f"{size[0]}x{size[1]}",
+    command = [sys.executable, str(HERE / "pair_speed.py"), "--backbone", backbone, "--size", f"{size[0]}x{size[1]}",
                "--repeat", str(repeat), "--precision", precision, "--json"]
     if backbone == "vgg19":
         command.append("--random-weights")

@@ -1,6 +1,6 @@
 """Wall time of one process against --workers N on this machine, alternating, same run.
 
-    python scripts/bench_workers.py --root ../shared/data/hpatches-sequences-release [--workers 2] [--repeat 2]
+    python scripts/measure/workers_speedup.py --root ../shared/data/hpatches-sequences-release [--workers 2] [--repeat 2]
 
 Each round runs the same HPatches benchmark (direct, EfficientNet-Lite0, --max-side 320 by
 default) once in one process with all threads and once as N worker processes with the

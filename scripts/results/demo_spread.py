@@ -1,6 +1,6 @@
 """`check`'s tolerances from the spread of the demo's metrics across environments.
 
-Reads the demo tables of every cell of an environment matrix (scripts/env_matrix.sh:
+Reads the demo tables of every cell of an environment matrix (scripts/results/env_matrix.sh:
 OUT/<torch>/<variant>/demo/{hpatches,scenes}_table.csv; variants: native kernels, oneDNN one
 instruction set lower, ATen's default kernels, one thread), and writes, per benchmark, method
 and metric, the range measured (max - min over the cells) and the tolerance: twice the range,
@@ -8,7 +8,7 @@ floored at one step of the metric (one pair of 15 for h_acc, one point for MMA@3
 0.1 for P). Estimator seeds move nothing (OpenCV 5's RANSAC ignores cv2.setRNGSeed), so
 they are not part of the matrix.
 
-    python scripts/demo_spread.py --matrix runs/env_matrix [--write results/baselines/demo_tolerances.csv]
+    python scripts/results/demo_spread.py --matrix runs/env_matrix [--write results/baselines/demo_tolerances.csv]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def spread(matrix: Path) -> pd.DataFrame:
                                  "cell": f"{torch_version}/{variant}", "value": float(row[metric])})
     values = pd.DataFrame(rows)
     if values.empty:
-        raise SystemExit(f"{matrix}: no cell with both demo tables (run scripts/env_matrix.sh first)")
+        raise SystemExit(f"{matrix}: no cell with both demo tables (run scripts/results/env_matrix.sh first)")
     grouped = values.groupby(["benchmark", "method", "metric"], sort=False)["value"]
     out = grouped.agg(["min", "max", "count"]).reset_index()
     out["spread"] = out["max"] - out["min"]

@@ -7,16 +7,16 @@
 # oneDNN held one instruction set lower (AVX-512 -> AVX2, AVX2 -> SSE41) and ATen's
 # vectorised kernels off (ATEN_CPU_CAPABILITY=default); 1 thread instead of 2 for the demo.
 #
-#   bash scripts/env_matrix.sh [OUT_DIR]                 (default runs/env_matrix)
-#   TORCH_PAIRS="2.14.1/0.29.1 2.15.0/0.29.2" PYTEST_ARGS="-q tests/test_parity.py" bash scripts/env_matrix.sh
+#   bash scripts/results/env_matrix.sh [OUT_DIR]                 (default runs/env_matrix)
+#   TORCH_PAIRS="2.14.1/0.29.1 2.15.0/0.29.2" PYTEST_ARGS="-q tests/matching/test_parity.py" bash scripts/results/env_matrix.sh
 #   VARIANTS="native avx2" ...   (names below; default: all that apply to this CPU)
 #
 # Appends to OUT_DIR/matrix.md (torch, variant, check verdict, pytest counts, minutes) and keeps
 # each cell's demo under OUT_DIR/<torch>/<variant>/demo, from which
-# `python scripts/demo_spread.py --matrix OUT_DIR` derives check's tolerances. Venvs are kept
+# `python scripts/results/demo_spread.py --matrix OUT_DIR` derives check's tolerances. Venvs are kept
 # (OUT_DIR/venv-<torch>, about 6 GB each) and reused; delete them when done.
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 repo="$PWD"
 out="$(realpath -m "${1:-runs/env_matrix}")"
 mkdir -p "$out"

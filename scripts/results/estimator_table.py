@@ -1,8 +1,8 @@
 """Does the evaluation's estimator change the order of the methods? Re-evaluates the cached
-sample runs of scripts/make_sample_results.sh (runs/sample/) with OpenCV and with PoseLib
+sample runs of scripts/results/make_sample_results.sh (runs/sample/) with OpenCV and with PoseLib
 (copies; the runs stay as they are) and writes one table per sample (prints measured figures).
 
-    python scripts/estimator_table.py [--data ../shared/data] [--runs runs/sample] [--out results/sample/estimators]
+    python scripts/results/estimator_table.py [--data ../shared/data] [--runs runs/sample] [--out results/sample/estimators]
 """
 
 from __future__ import annotations

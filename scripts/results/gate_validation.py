@@ -2,7 +2,7 @@
 out from the fit, its verdict on runs from CPUs it never saw, and its power against known
 degradations. Prints one table per part; docs/results.md "Noise model" quotes them.
 
-    python scripts/gate_validation.py --demo e3cm-demo [--other NAME=DIR ...] [--out results/docs/gate]
+    python scripts/results/gate_validation.py --demo e3cm-demo [--other NAME=DIR ...] [--out results/docs/gate]
 
 --demo: the demo folder the committed baselines were written from (its run folders hold the
 matches the degradations start from). --other NAME=DIR: a demo folder made on another CPU or

@@ -3,9 +3,9 @@
 # ../shared/data (NOT the paper's datasets) with the offline EfficientNet-Lite0 backbone.
 # Matches are cached in runs/sample/ (rerunning reuses them); tables, plots and each run's
 # summary.csv, per_pair.csv and config.yaml are copied to results/sample/.
-#   bash scripts/make_sample_results.sh [SHARED_DATA_DIR]
+#   bash scripts/results/make_sample_results.sh [SHARED_DATA_DIR]
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 data="${1:-../shared/data}"
 # Resolutions as in the configs (HPatches full size, pose pairs longer side 1200); no
 # difference columns: these are not the paper's datasets, so measured - paper means nothing.

@@ -4,7 +4,7 @@ docs/interchange.md ("Exports that reconstruct") were measured.
     e3cm-bench megadepth --root ../shared/data/megadepth_test_1500 \
         --scene-info ../shared/data/megadepth_test_1500/scene_info/kitti00_seq.npz --matcher sift --out RUN
     e3cm-bench export RUN OUT --to colmap [--merge-px R]
-    python scripts/mapper_on_export.py OUT/database.db --images ../shared/data/megadepth_test_1500 \
+    python scripts/results/mapper_on_export.py OUT/database.db --images ../shared/data/megadepth_test_1500 \
         --scene-info ../shared/data/megadepth_test_1500/scene_info/kitti00_seq.npz
 
 Prints the models, registered images, 3D points, mean track length and mean reprojection error

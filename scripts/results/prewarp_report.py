@@ -1,6 +1,6 @@
 """Where e3cm-plus's automatic prewarp fires, and what it does there.
 
-    python scripts/prewarp_report.py RUN_PLUS RUN_UNWARPED [--csv OUT.csv]
+    python scripts/results/prewarp_report.py RUN_PLUS RUN_UNWARPED [--csv OUT.csv]
 
 RUN_PLUS: an e3cm-plus run folder; RUN_UNWARPED: the same pairs matched without the prewarp
 (`e3cm-ransac`, which is e3cm-plus with prewarp false: the direct pipeline is the RANSAC

@@ -2,10 +2,10 @@
 multi-view set, matched together (each image through the backbone once for all methods), each
 into OUT/SET/METHOD, then the set's table in OUT/SET/table.{csv,md}.
 
-    python scripts/sfm_results.py kitti --out /tmp/sfm-results
-    python scripts/sfm_results.py synth --out /tmp/sfm-results
-    python scripts/sfm_results.py kitti --eval-only --merge-px 2 --out /tmp/sfm-results  # after copying
-    python scripts/sfm_results.py side --out /tmp/sfm-results --to results/sfm
+    python scripts/results/sfm_results.py kitti --out /tmp/sfm-results
+    python scripts/results/sfm_results.py synth --out /tmp/sfm-results
+    python scripts/results/sfm_results.py kitti --eval-only --merge-px 2 --out /tmp/sfm-results  # after copying
+    python scripts/results/sfm_results.py side --out /tmp/sfm-results --to results/sfm
 
 side: each run's two-view numbers beside its multi-view ones, in TO/two_view_vs_multi_view.csv,
 and each run's config.yaml, summary.csv and per_pair.csv copied to TO/SET/METHOD/. The two-view
@@ -31,7 +31,7 @@ from e3cm_bench.experiments import write_table
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.runner import run_methods
 
-SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "megadepth_test_1500"
+SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "megadepth_test_1500"
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """The WxBS and EVD tables of docs/wxbs-evd.md from run folders: RUNS/{wxbs,evd}/<method>/.
 
-    python scripts/wxbs_evd_tables.py /work/runs43 --out results/wxbs_evd
+    python scripts/results/wxbs_evd_tables.py /work/runs43 --out results/wxbs_evd
 
 Writes, under --out:
   summary.csv         one row per method: WxBS mAA@10px and EVD mAA with their 95% bootstrap

@@ -47,7 +47,7 @@ def read_csv(path: Path) -> pd.DataFrame:
 
 
 def point_columns(summary: pd.DataFrame) -> list[str]:
-    """summary.csv's metric columns, without the intervals beside them (tests/test_intervals.py)."""
+    """summary.csv's metric columns, without the intervals beside them (tests/reporting/test_intervals.py)."""
     from e3cm_bench.intervals import is_interval_key
 
     return [c for c in summary.columns if not is_interval_key(c)]

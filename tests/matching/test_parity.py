@@ -6,7 +6,7 @@ manifest.json). Each stage runs on the reference's own inputs where the file hol
 chained levels end to end; every list must contain at least 99% of the reference's matches
 (to 1e-3 px) with at most 1% extra, a disagreement counting only where perturbing the
 features at the rounding scale flips it too (e3cm_bench/parity.py; the same checks on any
-reference file: scripts/check_parity.py). The agreement and the ties accepted per list are printed
+reference file: scripts/maintain/check_parity.py). The agreement and the ties accepted per list are printed
 (pytest -s) for the README's parity table.
 """
 
@@ -267,7 +267,7 @@ def test_dfm_corrected_differs_only_where_the_release_slips(matchers, seed0_weig
 
 
 def test_parity_script_on_a_reference_file(seed0_weights, tmp_path):
-    """scripts/check_parity.py runs the checks on any file in the fixtures' layout: it passes on the
+    """scripts/maintain/check_parity.py runs the checks on any file in the fixtures' layout: it passes on the
     reference's own r09 lists and fails, naming the list, when one list is moved by a pixel."""
     import subprocess
     import sys
@@ -293,7 +293,7 @@ def test_parity_script_on_a_reference_file(seed0_weights, tmp_path):
 def test_parity_script_on_a_reference_with_a_stacked_F(seed0_weights, tmp_path, name, stacked_level):
     """A level that keeps exactly 7 matches holds OpenCV's 7-point solutions stacked as a 9x3
     F (tests/data/parity: the E3CM release run on crops of graf12_640; see
-    tests/test_release_small_levels.py): the script compares ours with the first solution,
+    tests/matching/test_release_small_levels.py): the script compares ours with the first solution,
     the one the release used, and every list passes."""
     import subprocess
     import sys
