@@ -121,15 +121,18 @@ def cli_reference() -> str:
 
 
 def layer_table(root: Path) -> str:
-    """The package's layers as its imports make them now (scripts/code_shape.py computes them)."""
+    """The package's layers as its module-level imports and the package __init__s they run make
+    them now (scripts/maintain/code_shape.py computes them, the same graph tests/test_architecture.py reads)."""
     import importlib.util
     import sys
 
-    spec = importlib.util.spec_from_file_location("code_shape", root / "scripts" / "code_shape.py")
+    script = min((root / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
+    spec = importlib.util.spec_from_file_location("code_shape", script)
     shape = importlib.util.module_from_spec(spec)
     sys.modules["code_shape"] = shape  # its dataclasses look the module up while it loads
     spec.loader.exec_module(shape)
     package = root / "e3cm_bench"
     depth = shape.layers(shape.import_graph(package))
     return (f"{len(depth)} modules in {max(depth.values()) + 1} layers.\n\n{shape.layer_table(package)}\n\n"
-            "<small>Rendered at build time from the package's imports (`scripts/code_shape.py --layers`).</small>\n")
+            "<small>Rendered at build time from the package's module-level imports and the package "
+            "`__init__`s they run (`scripts/maintain/code_shape.py --layers`).</small>\n")

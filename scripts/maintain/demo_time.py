@@ -1,4 +1,4 @@
-"""The quick demo against its targets (issue 51): `e3cm-bench demo --quick` in a fresh folder,
+"""The quick demo against its targets: `e3cm-bench demo --quick` in a fresh folder,
 as a new user runs it (a subprocess, stdout a pipe), measured.
 
 Prints: wall seconds and CPU seconds (user + system of the process and its children; the

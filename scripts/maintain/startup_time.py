@@ -2,7 +2,7 @@
 `e3cm-bench hpatches --help`, `--version` and a mistyped command, each run N times in a fresh
 process; prints the median and the range of the wall time, the median CPU time (user +
 system: about the wall time of an idle machine), and which heavy libraries the import of the
-command line loads. Target (issue 51): under 1.0 s each on an idle machine, no torch.
+command line loads. Target: under 1.0 s each on an idle machine, no torch.
 
     python scripts/maintain/startup_time.py [--runs 7] [--command e3cm-bench]
 
