@@ -1,4 +1,4 @@
-"""The documentation (issue 25): the strict MkDocs build, tables rendered from the CSVs that
+"""The documentation: the strict MkDocs build, tables rendered from the CSVs that
 hold them, runnable examples run as written, and the README's headline table against its CSV."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The first hour of a new user, as a test (issue 51): the README's Quickstart and tour, and the
+"""The first hour of a new user, as a test: the README's Quickstart and tour, and the
 docs' tutorial blocks that run offline, read from the files (so an edit of them is tested),
 run one after the other through the installed `e3cm-bench` command in a fresh folder, on the
 shared data samples, with stdout a pipe (as in CI or `| less`).

@@ -1,4 +1,4 @@
-"""Stereo rig self-calibration (issue 12): the estimator, the readers, and `calibrate` end to end."""
+"""Stereo rig self-calibration: the estimator, the readers, and `calibrate` end to end."""
 
 from __future__ import annotations
 

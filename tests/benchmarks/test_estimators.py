@@ -1,4 +1,4 @@
-"""The evaluation's robust estimators (issue 21): OpenCV and PoseLib behind one function each,
+"""The evaluation's robust estimators: OpenCV and PoseLib behind one function each,
 chosen by an evaluation setting that --eval-only may change and config.yaml records."""
 
 from __future__ import annotations

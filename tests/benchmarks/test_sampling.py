@@ -1,5 +1,5 @@
-"""--sample N [--sample-seed S]: a stratified, seeded sample of a benchmark's pairs (issue 51,
-point 10); --limit keeps taking the first N; --viz draws a spread; WxBS and EVD run under
+"""--sample N [--sample-seed S]: a stratified, seeded sample of a benchmark's pairs;
+--limit keeps taking the first N; --viz draws a spread; WxBS and EVD run under
 their reference protocol by default."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""WxBS and EVD are benchmarks like the others (issue 43): resume, --limit, shards, export and
+"""WxBS and EVD are benchmarks like the others: resume, --limit, shards, export and
 import, reproduce by name, table, check, compare and report on their commands; and their
 release zips download from a server (here on 127.0.0.1) with a cut resumed, a wrong md5 and
 an unsafe member refused."""

@@ -32,7 +32,7 @@ def demo_out(demo_run) -> Path:
 
 
 def test_demo_prints_a_short_account_and_logs_the_rest(demo_run):
-    """Issue 51: a line per set and per method with its headline numbers, at most 80 columns;
+    """A line per set and per method with its headline numbers, at most 80 columns;
     the runs' own tables go to demo.log."""
     out, output = demo_run
     lines = output.splitlines()
@@ -133,7 +133,7 @@ def checked(demo_out, tmp_path) -> tuple[Path, Path]:
 
 def degrade(run: Path, column: str, by: float) -> None:
     """A run whose summary moved by `by`; its per_pair.csv is removed, since pairs that no longer
-    give the summary are a problem check reports on their own (issue 52.13)."""
+    give the summary are a problem check reports on their own."""
     summary = pd.read_csv(run / "summary.csv")
     summary[column] = summary[column] + by
     summary.to_csv(run / "summary.csv", index=False)

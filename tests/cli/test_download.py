@@ -1,4 +1,4 @@
-"""`e3cm-bench download` (issue 22) against a server on 127.0.0.1 started here: fetch, verify,
+"""`e3cm-bench download` against a server on 127.0.0.1 started here: fetch, verify,
 resume after a dropped connection, refuse bad hashes and unsafe archives, one line for
 HTTP and connection errors. Nothing leaves the machine."""
 

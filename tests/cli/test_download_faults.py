@@ -1,5 +1,4 @@
-"""`e3cm-bench download`, issue 44 (findings 4, 5 and the download cases of 12), at the level of
-the command, against servers on 127.0.0.1 that misbehave on purpose: a broken first download
+"""`e3cm-bench download` at the level of the command, against servers on 127.0.0.1 that misbehave on purpose: a broken first download
 never becomes the trust anchor, two downloads never share a data folder, a download is
 bounded in bytes, unpacked bytes and time, and every failure is one line."""
 
@@ -93,7 +92,7 @@ def lock_of(data: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-# ----------------------------------------------------------------------------- finding 4
+# ----------------------------------------------------------------------------- the trust anchor
 
 
 @pytest.mark.parametrize("case", ["short content-length", "cut without content-length", "bad crc"])
@@ -226,7 +225,7 @@ def test_os_error_line_quotes_the_full_filesystem_and_says_resume_only_for_run_f
     assert "MiB free" not in os_error_line(OSError(errno.ENOSPC, "No space left on device"))
 
 
-# ----------------------------------------------------------------------------- finding 5
+# ----------------------------------------------------------------------------- one download per folder
 
 
 FIRST_DOWNLOAD = """
@@ -279,7 +278,7 @@ def test_a_second_download_into_the_same_folder_is_refused_while_the_first_runs(
     assert result.exit_code == 0 and COMPLETE in result.output
 
 
-# ----------------------------------------------------------------------------- finding 12: unbounded
+# ----------------------------------------------------------------------------- unbounded
 
 
 def test_downloads_are_bounded_in_bytes_unpacked_bytes_and_time(hp, tmp_path, monkeypatch):
@@ -337,7 +336,7 @@ def test_downloads_are_bounded_in_bytes_unpacked_bytes_and_time(hp, tmp_path, mo
     assert lock_of(data) is None
 
 
-# ----------------------------------------------------------------------------- finding 12: tracebacks
+# ----------------------------------------------------------------------------- tracebacks
 
 
 def test_a_cut_tar_gz_and_damaged_hash_records_are_one_line(hp, tmp_path):

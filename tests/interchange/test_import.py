@@ -1,4 +1,4 @@
-"""Matches made elsewhere (issue 20): hloc files and npz folders written from a native sift run
+"""Matches made elsewhere: hloc files and npz folders written from a native sift run
 import into run folders that evaluate to the same numbers; bad sources give one line."""
 
 from __future__ import annotations

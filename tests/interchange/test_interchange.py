@@ -1,4 +1,4 @@
-"""Matches in and out (issue 45, and the import findings of issue 44): every format round-trips
+"""Matches in and out: every format round-trips
 a sift run to the same per_pair.csv on a homography and a pose benchmark; a COLMAP database
 reads back in pycolmap; hloc's layout read as hloc's io functions read it; bad files refused
 in one line; the half-pixel check catches a file in the other convention."""
@@ -346,7 +346,7 @@ def test_merge_px_is_recorded_and_refused_where_it_means_nothing(kitti_run, tmp_
         invoke("export", out, tmp_path / "neg", "--to", "hloc", "--merge-px", "-1"))
 
 
-# --------------------------------------------------------------------------- bad hloc and npz files (issue 44)
+# --------------------------------------------------------------------------- bad hloc and npz files
 
 
 @pytest.fixture()

@@ -1,4 +1,4 @@
-"""The matcher registry (issue 20): built-ins and plugins through one `register`, the example
+"""The matcher registry: built-ins and plugins through one `register`, the example
 plugin found by its entry point, --matcher module:factory, and broken matchers."""
 
 from __future__ import annotations

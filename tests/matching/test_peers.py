@@ -1,4 +1,4 @@
-"""The supervised peers (issue 21) without network: random weights through the whole path,
+"""The supervised peers without network: random weights through the whole path,
 weights found in the libraries' caches, the one-line messages, the pixel convention."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""--precision auto and the emulated-bf16 warning (issue 24, item 5)."""
+"""--precision auto and the emulated-bf16 warning."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The released E3CM cascade where a level keeps exactly 7 matches or holds fewer than 8 (issue 46).
+"""The released E3CM cascade where a level keeps exactly 7 matches or holds fewer than 8.
 
 With 7 points, OpenCV's findFundamentalMat (FM_RANSAC) runs its 7-point algorithm alone and
 returns every real solution stacked (9x3 for three); the release filters the next level with

@@ -1,4 +1,4 @@
-"""Sub-pixel refinement of final matches (issue 27): known shifts and a known homography on a
+"""Sub-pixel refinement of final matches: known shifts and a known homography on a
 real image, bounded moves, no match added, deterministic, settings validated."""
 
 from __future__ import annotations

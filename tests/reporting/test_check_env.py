@@ -66,7 +66,7 @@ def runs(tmp_path) -> tuple[Path, Path]:
 
 def notes_in(output: str) -> list[str]:
     """The environment notes, each one logical line (check wraps them at the console's width,
-    80 columns in a log: issue 51.5)."""
+    80 columns in a log)."""
     notes, current = [], None
     for line in output.splitlines():
         if line.startswith(NOTE):

@@ -1,4 +1,4 @@
-"""Issue 51 (3, 5, 7) and issue 52 (12, 13): `compare` whose verdict, interval and p agree;
+"""`compare` whose verdict, interval and p agree;
 `compare`, `table` and `check` at 80 columns in a log or a pipe; a run on other pairs than the
 paper's said so; `check` against broken baselines and runs whose two CSVs disagree.
 
@@ -87,7 +87,7 @@ def pipe_width(monkeypatch):
     monkeypatch.delenv("COLUMNS", raising=False)
 
 
-# --------------------------------------------------------------------------- 51.3: one rule
+# --------------------------------------------------------------------------- compare: one rule
 
 
 CASES = [  # benchmark, rows, A's scale and failure rate, B's
@@ -137,8 +137,8 @@ def test_every_row_of_compare_agrees_with_itself(tmp_path, case, alpha):
     assert table.loc[name, "statistic"] == "mean" and table.loc[name, "b"] == pytest.approx(passes_b.mean())
 
 
-def test_issue_51_3_sift_against_a_worse_run_with_failures(sift_run, tmp_path):
-    """The issue's case: B fails on pairs A solves. Before, h_error's means skipped those pairs
+def test_sift_against_a_worse_run_that_fails_pairs_it_solves(sift_run, tmp_path):
+    """The reported case: B fails on pairs A solves. Before, h_error's means skipped those pairs
     and the interval held 0 beside 'A better'; now the median counts them and all three agree."""
     worse = tmp_path / "worse"
     shutil.copytree(sift_run, worse)
@@ -157,7 +157,7 @@ def test_issue_51_3_sift_against_a_worse_run_with_failures(sift_run, tmp_path):
     assert row["d_hi"] < 0 and row["verdict"] == "A better" and row["p_value"] < 0.05
 
 
-# --------------------------------------------------------------------------- 51.5: 80 columns
+# --------------------------------------------------------------------------- 80 columns
 
 
 def test_compare_fits_80_columns_without_cutting_a_name(tmp_path, pipe_width):
@@ -176,7 +176,7 @@ def test_compare_fits_80_columns_without_cutting_a_name(tmp_path, pipe_width):
 
 
 def test_table_fits_80_columns_and_says_the_pairs_differ_from_the_papers(sift_run, tmp_path, pipe_width):
-    """51.5 and 51.7: the paper-layout table on a 6-pair run, read at 80 columns; its differences
+    """The paper-layout table on a 6-pair run, read at 80 columns; its differences
     from the paper's SIFT+NN are marked 'other pairs' with a note saying which pairs each side
     holds, never 'outside CI' (which reads as a regression)."""
     result = invoke("table", sift_run, "--out", tmp_path / "t" / "table")
@@ -243,7 +243,7 @@ def test_check_lines_wrap_at_80_columns(sift_run, tmp_path, pipe_width):
     assert "regression: sift on hpatches: mma@3" in result.output
 
 
-# --------------------------------------------------------------------------- 52.12, 52.13: check
+# --------------------------------------------------------------------------- check against broken baselines
 
 
 @pytest.fixture

@@ -64,7 +64,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     summary = pd.read_csv(sift / "summary.csv").iloc[0]
     assert measured.loc["sift", "d_h_acc@3"] == pytest.approx(summary["h_acc@3"] - 0.76)
     assert pd.isna(measured.loc["direct-efficientnet_lite0", "d_h_acc@3"])
-    assert measured.loc["sift", "other_pairs"].startswith("2 pairs; the paper: the full HPatches")  # issue 51.7
+    assert measured.loc["sift", "other_pairs"].startswith("2 pairs; the paper: the full HPatches")  # a sample is not the paper's pair set
     md = (tmp_path / "t1.md").read_text()
     assert md.startswith("| method") and "SIFT+NN" in md and "direct-efficientnet_lite0" in md
     assert (tmp_path / "t1_mma.png").stat().st_size > 0

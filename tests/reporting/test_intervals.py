@@ -1,4 +1,4 @@
-"""Issue 41, items 4-5: a bootstrap interval on every number a run reports, and `e3cm-bench compare`.
+"""A bootstrap interval on every number a run reports, and `e3cm-bench compare`.
 
 A small SIFT run on the real HPatches sample gives a real summary.csv; the rest are run
 folders written here with per-pair values chosen so that the expected answer is known.

@@ -1,4 +1,4 @@
-"""Plots draw the bootstrap interval every number has (issue 51, point 9): bands around curves,
+"""Plots draw the bootstrap interval every number has: bands around curves,
 error bars on bars; the headline h_acc has its plot; empirical cumulative curves are steps."""
 
 from __future__ import annotations

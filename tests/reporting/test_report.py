@@ -147,7 +147,7 @@ def test_pose_paper_table_rows_columns_and_differences(pose_runs):
     # (5, 10, 20, 20) - SIFT+NN (4.78, 10.71, 20.44, 17.19)
     assert sift[["d_auc@5", "d_auc@10", "d_auc@20", "d_P"]].tolist() == pytest.approx([0.22, -0.71, -0.44, 2.81])
     assert table.iloc[:12][["d_auc@5", "n_pairs"]].isna().all().all()
-    # 4 pairs against the paper's 1500: the differences are said to be over other pairs (issue 51.7)
+    # 4 pairs against the paper's 1500: the differences are said to be over other pairs
     assert e3cm["other_pairs"] == "4 pairs; the paper: MegaDepth-1500 (1500 pairs)"
 
 

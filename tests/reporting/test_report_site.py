@@ -1,4 +1,4 @@
-"""`e3cm-bench report` (issue 26) on the demo's runs: a self-contained static site whose
+"""`e3cm-bench report` on the demo's runs: a self-contained static site whose
 numbers are the runs' own, every link and image present, and, in a real browser (headless
 Chromium from the Debian packages), a rendered page and a working filter."""
 
@@ -181,7 +181,7 @@ def site_with_paper(demo, tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("which", ["site", "site_with_paper"])
 def test_the_layout_fits_a_1400_px_window_and_plots_are_readable(which, request):
-    """Issue 51: the plots are shown about as large as they were drawn (not two to a row at
+    """The plots are shown about as large as they were drawn (not two to a row at
     about 600 px), the summary table fits the page at 1400 px, and the page never scrolls
     sideways. Measured in Chromium on a copy of the page with a script that writes the layout."""
     site = request.getfixturevalue(which)

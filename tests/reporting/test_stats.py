@@ -326,7 +326,7 @@ def test_independent_noise_no_difference():
 
 
 def test_a_failure_is_the_worst_error_and_the_median_sees_it():
-    """Issue 51.3: sift vs e3cm had h_error means over the 13 finite pairs of 15, an interval
+    """Once, sift vs e3cm had h_error means over the 13 finite pairs of 15, an interval
     across 0 and yet a winner. A failure is +inf, the median ranks it worst, n is every pair."""
     rng = np.random.default_rng(24)
     a = rng.uniform(0.5, 2.0, 40)

@@ -1,4 +1,4 @@
-"""A first run that fails must not block its own correction (issue 51): a folder whose run
+"""A first run that fails must not block its own correction: a folder whose run
 wrote no matches takes new settings, one that holds matches still refuses them; a finished
 run leaves no lock file behind; an imported run is labelled by its source's name."""
 

@@ -1,10 +1,5 @@
-"""Robustness, round three, second part (issue 44): plugins that exit or hang, garbage that
-looked like results, tracebacks turned into one line, and files that declare more than they hold.
-
-Tests marked `wiring` exercise a helper in matchers/guards.py or matches.py through the
-command; they pass once the runner (or the evaluation) calls that helper, and are expected to
-fail until then (xfail, not strict, so that they turn green by themselves).
-"""
+"""Hostile inputs: plugins that exit or hang, garbage that
+looked like results, tracebacks turned into one line, and files that declare more than they hold."""
 
 from __future__ import annotations
 
@@ -31,10 +26,6 @@ from e3cm_bench.matchers import MatcherEntry, register, registry, unregister
 from e3cm_bench.matchers.guards import PairTimeout, PluginExit, describe_matcher, no_exit, pair_time_limit
 from e3cm_bench.matches import Matches, distinct
 from helpers import flat, invoke, one_line_error
-
-wiring = pytest.mark.xfail(strict=False, reason="needs the runner to call the guards of matchers/guards.py "
-                                                "(runner.checked_match, record_matcher)")
-
 
 @pytest.fixture(scope="module")
 def boat(shared_data, tmp_path_factory) -> Path:
@@ -448,7 +439,7 @@ def test_a_ten_pair_sift_run_needs_what_it_writes_and_stops_in_one_line_where_th
         shared_data, tmp_path, monkeypatch):
     """Ten full-size SIFT pairs write about 0.3 MiB. With 1 MiB free the matches fit and the
     reports (a plot bound of 1 MiB) do not: one line before any report, every pair kept. With
-    3.7 MiB free (the issue's case, once refused as '16.2 MiB needed') the rerun completes."""
+    3.7 MiB free (the reported case, once refused as '16.2 MiB needed') the rerun completes."""
     out = tmp_path / "run"
     args = ("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", out, "--matcher", "sift",
             "--sequences", "v_boat", "--sequences", "v_graffiti")

@@ -1,4 +1,4 @@
-"""Robustness, round three (issue 44): a report that replaces only its own folder, no output
+"""Where commands write: a report that replaces only its own folder, no output
 written through a symbolic link, no code imported from a run folder, experiment labels kept
 inside --out, and the report page's data block safe from any name.
 

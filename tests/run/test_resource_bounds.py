@@ -1,4 +1,4 @@
-"""Robustness, round two (issue 23): a full disk loses nothing, hostile configs and images are
+"""Resources and bounds: a full disk loses nothing, hostile configs and images are
 bounded, `check` never passes silently, every bad input is one line.
 
 Real processes where the behaviour depends on them (a small tmpfs for a full disk, a killed

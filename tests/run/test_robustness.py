@@ -1,4 +1,4 @@
-"""Robustness (issue 10): nothing lost, nothing mixed, no traceback, no code run from data.
+"""A run under bad data and signals: nothing lost, nothing mixed, no traceback, no code run from data.
 
 Each test corrupts its own copy of ../shared/data. Real subprocesses and real signals where
 the behaviour depends on them (the lock, SIGKILL, SIGINT, memory limits).

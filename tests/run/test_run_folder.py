@@ -1,6 +1,6 @@
 """The run folder's owner (run.RunFolder), the generated benchmark commands, and what a run
 does with a matcher that fails on some pairs (--on-matcher-error, --pair-timeout) or with
-matches whose record is gone (issue 44, finding 8)."""
+matches whose record is gone."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Runs that outgrow one machine (issue 13): shards, merge, launchers."""
+"""Runs that outgrow one machine: shards, merge, launchers."""
 
 from __future__ import annotations
 

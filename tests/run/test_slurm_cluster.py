@@ -1,4 +1,4 @@
-"""The SLURM launcher and scripts/slurm/array.sh against a real one-node SLURM cluster (issue 54):
+"""The SLURM launcher and scripts/slurm/array.sh against a real one-node SLURM cluster:
 real arrays, scancel and the time limit, on 6 pairs of the shared HPatches sample with SIFT.
 
 The matcher is tests/slurm_slow_matcher.py (SIFT after E3CM_SLOW_SECONDS per pair, 0 unless
