@@ -54,3 +54,10 @@ def test_the_reader_finds_paths_as_the_docs_write_them():
     assert expand("tests/a_{b,c}.py") == ["tests/a_b.py", "tests/a_c.py"]
     assert missing("scripts/no_such_script.py") and not missing("scripts/slurm/array.sh")
     assert missing("tests/no_such_*.py") and not missing("tests/*/test_speed.py")
+
+
+def test_every_test_module_name_is_unique_across_the_folders():
+    """pytest imports a test module in a folder without __init__.py by its bare name: two
+    test_x.py in two subject folders would collide."""
+    names = [p.name for p in (REPO / "tests").rglob("test_*.py") if "data" not in p.relative_to(REPO / "tests").parts]
+    assert len(names) == len(set(names)), sorted({n for n in names if names.count(n) > 1})
