@@ -20,7 +20,8 @@ RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skippe
 def code_shape():
     """scripts/code_shape.py, the one reader of the import graph (the layer table uses it too)."""
     if "code_shape" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("code_shape", REPO / "scripts" / "code_shape.py")
+        script = min((REPO / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
+        spec = importlib.util.spec_from_file_location("code_shape", script)
         module = importlib.util.module_from_spec(spec)
         sys.modules["code_shape"] = module  # dataclasses look their module up while it loads
         spec.loader.exec_module(module)

@@ -94,7 +94,7 @@ def test_no_matcher_name_is_dispatched_on_outside_its_entry():
     """No `x == "dfm"` / `x in ("e3cm", ...)` on a matcher's name anywhere in the package or
     its scripts: what a matcher is lives in its registry entry (matchers/builtin.py)."""
     branches = []
-    for path in [*PACKAGE.rglob("*.py"), *(REPO / "scripts").glob("*.py")]:
+    for path in [*PACKAGE.rglob("*.py"), *(REPO / "scripts").rglob("*.py")]:
         if path.name == "builtin.py":
             continue
         for line, value in _string_constants_compared(ast.parse(path.read_text())):

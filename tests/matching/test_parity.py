@@ -277,7 +277,7 @@ def test_parity_script_on_a_reference_file(seed0_weights, tmp_path):
     good, bad = tmp_path / "good.npz", tmp_path / "bad.npz"
     np.savez(good, **r09)
     np.savez(bad, **{**r09, "r09_L2_A": r09["r09_L2_A"] + 4.0})  # one cell of level 2 off
-    command = [sys.executable, str(REPO_ROOT / "scripts" / "check_parity.py"), "--weights", str(seed0_weights),
+    command = [sys.executable, str(REPO_ROOT / "scripts" / "maintain" / "check_parity.py"), "--weights", str(seed0_weights),
                "--perturbations", "2"]
     images = [str(PARITY / "graf12_640_A.png"), str(PARITY / "graf12_640_B.png")]
     ok = subprocess.run([*command, str(good), *images], capture_output=True, text=True, timeout=900)
@@ -306,7 +306,7 @@ def test_parity_script_on_a_reference_with_a_stacked_F(seed0_weights, tmp_path, 
         path = tmp_path / f"{side}.png"
         cv2.imwrite(str(path), cv2.imread(str(PARITY / f"{pair['source']}_{side}.png"))[y0:y0 + h, x0:x0 + w])
         images.append(str(path))
-    run = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "check_parity.py"), str(data / f"{name}.npz"), *images,
+    run = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "maintain" / "check_parity.py"), str(data / f"{name}.npz"), *images,
                           "--weights", str(seed0_weights), "--perturbations", "2"],
                          capture_output=True, text=True, timeout=900)
     print(run.stdout)

@@ -112,7 +112,7 @@ def test_parity_script_names_a_2x3_reference_F_in_one_line(tmp_path):
     bad = tmp_path / "bad.npz"
     np.savez(bad, **{**ref, f"{TAG}_F2": ref[f"{TAG}_F2"][:2]})
     missing = str(tmp_path / "absent")
-    run = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "check_parity.py"), str(bad), missing + ".png",
+    run = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "maintain" / "check_parity.py"), str(bad), missing + ".png",
                           missing + ".png", "--weights", missing + ".pth"], capture_output=True, text=True, timeout=300)
     lines = (run.stdout + run.stderr).strip().splitlines()
     assert run.returncode == 2, run.stdout + run.stderr
