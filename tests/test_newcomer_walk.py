@@ -191,16 +191,19 @@ def test_the_walk_reads_the_files():
     assert deep and all("--backbone" in words and "efficientnet_lite0" in words for words in deep), deep
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_every_step_works_the_first_time(walk):
     failed = [f"e3cm-bench {' '.join(s.words)} [{s.source}] exit {s.code}: {s.stderr.strip()[-300:]}"
               for s in walk if s.code != 0]
     assert len(walk) >= 15 and not failed, "\n".join(failed)
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_no_step_prints_a_traceback(walk):
     assert not [s.words for s in walk if "Traceback" in s.stdout + s.stderr]
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_compare_table_and_check_read_at_80_columns(walk):
     narrow = [s for s in walk if s.words[0] in NARROW]
     assert {s.words[0] for s in narrow} == set(NARROW)
@@ -215,6 +218,7 @@ def broken_rows(text: str) -> list[str]:
             if " | " in line and not (line.strip().startswith("|") and line.strip().endswith("|"))]
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_compare_table_and_check_cut_no_cell_and_break_no_row(walk):
     # Fitting 80 columns by cutting words ("h_acc…", "no differe…") or by wrapping a Markdown
     # row over several lines is no better than overflowing: the reader loses the same text.

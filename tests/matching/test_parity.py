@@ -21,6 +21,8 @@ import pytest
 
 from conftest import REPO_ROOT
 
+pytestmark = pytest.mark.slow  # every list recomputed on 8 perturbed copies of the features: about 8 minutes in all, the DFM cases 30-70 s each
+
 PARITY = REPO_ROOT.parent / "shared" / "parity"
 PAIRS = ("graf12_640", "boat12_640", "kitti_640", "graf12_600")
 UNPADDED = ("graf12_640", "boat12_640")  # sides already multiples of 16

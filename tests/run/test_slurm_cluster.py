@@ -21,6 +21,8 @@ import yaml
 from e3cm_bench.run.folder import RunFolder
 from slurm_cluster import job_lines, slurm_cluster, wait_for  # noqa: F401 - slurm_cluster is a fixture
 
+pytestmark = pytest.mark.slow  # real SLURM arrays, cancels and time limits: 20-100 s each
+
 TESTS = Path(__file__).resolve().parents[1]  # tests/: slurm_slow_matcher.py lies there
 REPO = TESTS.parent
 ARRAY = REPO / "scripts" / "slurm" / "array.sh"
