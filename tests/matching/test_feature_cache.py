@@ -288,6 +288,7 @@ print(json.dumps({"peak_mb": max(after), "reuse": stats.get("feature_reuse")}))
 """
 
 
+@pytest.mark.slow  # a real run's peak memory measured in a fresh process: about a minute
 def test_the_cache_never_holds_more_than_its_budget_peak_rss(tmp_path):
     """Resident memory of the match stage after each pair (max over the pairs), each run in a
     fresh process, on 8 images of 640 x 480 and 16 pairs (Lite0): with a budget of two
