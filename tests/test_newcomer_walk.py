@@ -76,7 +76,7 @@ def commands(block: str) -> list[list[str]]:
 
 # Steps left out of the walk, by a word they hold, and why.
 SKIPPED = {
-    "download": "needs the network (tests/test_download*.py serve the files locally)",
+    "download": "needs the network (tests/cli/test_download*.py serve the files locally)",
     "loftr": "the peers download their weights (tests/matching/test_peers.py)",
     "--workers": "scale-out: tests/run/test_shards.py", "--shard": "scale-out: tests/run/test_shards.py",
     "--launcher": "scale-out: tests/run/test_shards.py", "scripts/results/wxbs_evd_tables.py": "a script, not a command",

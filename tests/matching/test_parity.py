@@ -21,7 +21,9 @@ import pytest
 
 from conftest import REPO_ROOT
 
-pytestmark = pytest.mark.slow  # every list recomputed on 8 perturbed copies of the features: about 8 minutes in all, the DFM cases 30-70 s each
+# Every list is recomputed on 8 perturbed copies of the features: about 8 minutes in all on 2
+# cores, the DFM cases 30-70 s each.
+pytestmark = pytest.mark.slow
 
 PARITY = REPO_ROOT.parent / "shared" / "parity"
 PAIRS = ("graf12_640", "boat12_640", "kitti_640", "graf12_600")

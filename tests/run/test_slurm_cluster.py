@@ -21,7 +21,9 @@ import yaml
 from e3cm_bench.run.folder import RunFolder
 from slurm_cluster import job_lines, slurm_cluster, wait_for  # noqa: F401 - slurm_cluster is a fixture
 
-pytestmark = pytest.mark.slow  # real SLURM arrays, cancels and time limits: 20-100 s each
+# The tests that need the cluster: starting it (about 25 s) and its real arrays, cancels and time
+# limits took 164 s together, the time limit alone 86 s.
+slow = pytest.mark.slow
 
 TESTS = Path(__file__).resolve().parents[1]  # tests/: slurm_slow_matcher.py lies there
 REPO = TESTS.parent
@@ -105,6 +107,7 @@ def test_a_shard_records_the_command_that_reruns_it():
     assert shard_command((1, 2), ["/usr/bin/pytest", "tests"]) is None  # the Python API: no command line to name
 
 
+@slow
 def test_launcher_slurm_submits_a_real_array(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     # SBATCH_TIMELIMIT overrides the --time=1440 of the script submitit writes (docs/cluster.md)
@@ -128,6 +131,7 @@ def test_launcher_slurm_submits_a_real_array(slurm_cluster, args, env, reference
     assert command.endswith(f"--out {out} --shard 2/2") and "--launcher" not in command and "--shards" not in command
 
 
+@slow
 def test_array_script_runs_and_merges(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     job = sbatch(array_options(slurm_cluster, tmp_path, "1-2"), [str(ARRAY), *args, "--out", out],
@@ -137,6 +141,7 @@ def test_array_script_runs_and_merges(slurm_cluster, args, env, reference, tmp_p
     assert sorted(p.name for p in tmp_path.glob(f"slurm-{job}_*.out")) == [f"slurm-{job}_1.out", f"slurm-{job}_2.out"]
 
 
+@slow
 def test_array_task_outside_the_shards_is_refused(slurm_cluster, args, env, tmp_path):
     job = sbatch(array_options(slurm_cluster, tmp_path, "3"), [str(ARRAY), *args, "--out", tmp_path / "run"], env,
                  tmp_path, E3CM_SHARDS="2")
@@ -146,6 +151,7 @@ def test_array_task_outside_the_shards_is_refused(slurm_cluster, args, env, tmp_
     assert not (tmp_path / "run").exists()
 
 
+@slow
 def test_a_cancelled_task_resubmitted_resumes(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     command = [str(ARRAY), *args, "--out", str(out)]
@@ -169,6 +175,7 @@ def test_a_cancelled_task_resubmitted_resumes(slurm_cluster, args, env, referenc
     same_csvs(out, reference)
 
 
+@slow
 def test_a_task_past_its_time_limit_is_named_by_merge_and_resumes(slurm_cluster, args, env, reference, tmp_path):
     out = tmp_path / "run"
     command = [str(ARRAY), *args, "--out", str(out)]
@@ -197,6 +204,7 @@ def test_a_task_past_its_time_limit_is_named_by_merge_and_resumes(slurm_cluster,
     same_csvs(out, reference)
 
 
+@slow
 def test_reproduce_with_the_slurm_launcher(slurm_cluster, shared_data, env, tmp_path):
     config = tmp_path / "exp.yaml"
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "max_side": 320, "methods": [
