@@ -134,7 +134,7 @@ def format_table() -> str:
 
 def layer_table(root: Path) -> str:
     """The package's layers as its module-level imports and the package __init__s they run make
-    them now (scripts/code_shape.py computes them, the same graph tests/test_architecture.py reads)."""
+    them now (scripts/maintain/code_shape.py computes them, the same graph tests/test_architecture.py reads)."""
     import importlib.util
     import sys
 
@@ -147,4 +147,4 @@ def layer_table(root: Path) -> str:
     depth = shape.layers(shape.import_graph(package))
     return (f"{len(depth)} modules in {max(depth.values()) + 1} layers.\n\n{shape.layer_table(package)}\n\n"
             "<small>Rendered at build time from the package's module-level imports and the package "
-            "`__init__`s they run (`scripts/code_shape.py --layers`).</small>\n")
+            "`__init__`s they run (`scripts/maintain/code_shape.py --layers`).</small>\n")

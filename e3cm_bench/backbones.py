@@ -110,7 +110,7 @@ class Backbone(nn.Module):
     def forward_batch(self, images: torch.Tensor) -> list[list[torch.Tensor]]:
         """B x 3 x H x W -> each image's L maps, in one pass: those of `forward` image by image
         to rounding, and often bit for bit (the kernel library picks its algorithm by shape,
-        batch size included; tests/test_backbones.py)."""
+        batch size included; tests/matching/test_backbones.py)."""
         return self._pyramids(images, None)[0]
 
     @torch.inference_mode()
@@ -147,7 +147,7 @@ class Backbone(nn.Module):
         # the maps come out float32. fp32 runs in the layout the spec names (memory_format):
         # channels_last for VGG19 and Lite0, where it is faster;
         # memory_format=nchw gives VGG19 the reference releases' maps bit for bit (the parity
-        # tests pass with either, tests/test_parity.py).
+        # tests pass with either, tests/matching/test_parity.py).
         reduced = self.precision != "fp32"
         if self.memory_format == "channels_last":
             x = channels_last(x)
@@ -193,7 +193,7 @@ def cast_weights(module: nn.Module, dtype: torch.dtype) -> None:
 
     Autocast casts them to that dtype at every call, and the cast of a tensor already in it
     is the tensor itself, so the passes compute the same bits; a VGG19 pass no longer reads
-    and converts its 18M float32 weights (scripts/bench_weight_cast.py), and they take half
+    and converts its 18M float32 weights (scripts/archive/weight_cast_ab.py), and they take half
     the memory. Normalisation layers keep float32 parameters, as autocast leaves them."""
     for m in module.modules():
         if isinstance(m, (nn.Conv2d, nn.Linear)):
@@ -220,7 +220,7 @@ def _maps(x: torch.Tensor) -> list[torch.Tensor]:
 
 # Elements of one band of rows in channel_first_float: a few hundred KiB to 1 MiB, which
 # the caches hold (256K elements measured best or within 10% of it at every level of VGG19
-# and Lite0; scripts/bench_maps_copy.py). Maps of at most 4 bands are copied whole.
+# and Lite0; scripts/archive/maps_copy_ab.py). Maps of at most 4 bands are copied whole.
 COPY_BAND = 1 << 18
 
 

@@ -13,7 +13,7 @@ while it has partners left), ties to the image with the most partners already in
 On the real YFCC100M pair graph the most images alive at once are 101, against 441 for the
 walk this replaced (which followed the most recently used image). With this machine's default
 budgets (VGG19 at 1200x900: 20 pyramids in memory and 62 on disk) the cache then needs 1.09
-passes per image instead of 1.83 (`scripts/bench_pair_order.py`). Pure: no I/O, no torch.
+passes per image instead of 1.83 (`scripts/measure/pair_order_passes.py`). Pure: no I/O, no torch.
 """
 
 from __future__ import annotations

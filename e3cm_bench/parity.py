@@ -4,7 +4,7 @@ A reference file (layout of ../shared/parity: `r09_L{l}_A/B`, `r095_L{l}_A/B`, `
 `r095_F{l}` (3x3, or OpenCV's stacked 7-point solutions, 6x3 / 9x3), `dfm_A/B`, `dfm_Hinit`)
 holds what the E3CM release and the DFM release output on one pair. Rounding of the CNN
 features moves with the CPU's kernels and the torch build (measured on VGG19: 3e-7 .. 5.3e-6
-of each map's norm between AVX-512, AVX2 and ATen's default kernels; tests/test_parity.py,
+of each map's norm between AVX-512, AVX2 and ATen's default kernels; tests/matching/test_parity.py,
 docs/methods.md "Parity"), and a match whose ratio or similarity margin sits below that can
 flip. So parity is proved in two ways:
 

@@ -21,7 +21,7 @@ RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skippe
 
 
 def code_shape():
-    """scripts/code_shape.py, the one reader of the import graph (the layer table uses it too)."""
+    """scripts/maintain/code_shape.py, the one reader of the import graph (the layer table uses it too)."""
     if "code_shape" not in sys.modules:
         script = min((REPO / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
         spec = importlib.util.spec_from_file_location("code_shape", script)
@@ -198,7 +198,7 @@ def test_the_cycle_closing_finder_finds_one(tmp_path):
 
 
 def test_no_module_over_the_size_target():
-    """The target: no module over 400 lines (scripts/code_shape.py lists them by size)."""
+    """The target: no module over 400 lines (scripts/maintain/code_shape.py lists them by size)."""
     shape = code_shape()
     over = sorted((-n, name) for name, n in shape.module_lines().items() if n > shape.MODULE_LINES)
     assert not over, f"modules over {shape.MODULE_LINES} lines:\n" + "\n".join(f"{-n:6d}  {name}" for n, name in over)

@@ -1,4 +1,4 @@
-"""The documentation (issue 25): the strict MkDocs build, tables rendered from the CSVs that
+"""The documentation: the strict MkDocs build, tables rendered from the CSVs that
 hold them, runnable examples run as written, and the README's headline table against its CSV."""
 
 from __future__ import annotations
@@ -113,7 +113,8 @@ def test_a_changed_csv_changes_the_rendered_page(site, tmp_path):
     edit (the build reads the CSV; nothing is cached or retyped)."""
     copy = tmp_path / "repo"
     copy.mkdir()
-    for name in ("mkdocs.yml", "docs", "results", "e3cm_bench", "scripts"):  # scripts: the layer table
+    # scripts and pyproject.toml: the layer table (code_shape finds the checkout by its pyproject.toml)
+    for name in ("mkdocs.yml", "pyproject.toml", "docs", "results", "e3cm_bench", "scripts"):
         source = REPO / name
         (shutil.copytree if source.is_dir() else shutil.copy)(source, copy / name)
     csv = copy / "results/sample/table1_hpatches/table.csv"

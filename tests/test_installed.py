@@ -1,4 +1,4 @@
-"""The package as installed (issue 42, item 5): the paper's experiment configs and numbers ship
+"""The package as installed: the paper's experiment configs and numbers ship
 as package data under e3cm_bench/paper/, found through importlib.resources; `reproduce` takes a
 config by name; a wheel installed away from the checkout finds them. (.ci/run installs the wheel
 into a clean virtual environment and runs demo, reproduce and report from it.)"""
@@ -49,7 +49,7 @@ def test_the_paper_data_is_found_through_importlib_resources():
 
 def test_every_shipped_config_resolves_by_name_and_is_valid():
     names = config_names()
-    # the short names first: the paper's, and WxBS and EVD (issue 43: every built-in method)
+    # the short names first: the paper's, and WxBS and EVD (every built-in benchmark)
     assert list(names)[:6] == sorted((*PAPER_NAMES, "wxbs", "evd")) and names["table1"] == CONFIG_DIR / "table1_hpatches.yaml"
     assert names["wxbs"] == CONFIG_DIR / "wxbs_all.yaml" and names["evd"] == CONFIG_DIR / "evd_all.yaml"
     # a prefix several configs share names none of them

@@ -1,4 +1,4 @@
-"""The first hour of a new user, as a test (issue 51): the README's Quickstart and tour, and the
+"""The first hour of a new user, as a test: the README's Quickstart and tour, and the
 docs' tutorial blocks that run offline, read from the files (so an edit of them is tested),
 run one after the other through the installed `e3cm-bench` command in a fresh folder, on the
 shared data samples, with stdout a pipe (as in CI or `| less`).
@@ -8,7 +8,7 @@ traceback, or (compare, table, check) when a line of its stdout is wider than 80
 
 Bounded to stay within a few minutes on a 2-core machine: every command that matches gets
 `--limit 2` on small images (and the demo `--quick` with two methods), as `bounded` says, and
-the steps that need the network (downloads, the peers' weights) or scale out (tests/test_shards.py
+the steps that need the network (downloads, the peers' weights) or scale out (tests/run/test_shards.py
 covers those) are left out, each with its reason in SKIPPED.
 """
 
@@ -76,10 +76,10 @@ def commands(block: str) -> list[list[str]]:
 
 # Steps left out of the walk, by a word they hold, and why.
 SKIPPED = {
-    "download": "needs the network (tests/test_download*.py serve the files locally)",
-    "loftr": "the peers download their weights (tests/test_peers.py)",
-    "--workers": "scale-out: tests/test_shards.py", "--shard": "scale-out: tests/test_shards.py",
-    "--launcher": "scale-out: tests/test_shards.py", "scripts/wxbs_evd_tables.py": "a script, not a command",
+    "download": "needs the network (tests/cli/test_download*.py serve the files locally)",
+    "loftr": "the peers download their weights (tests/matching/test_peers.py)",
+    "--workers": "scale-out: tests/run/test_shards.py", "--shard": "scale-out: tests/run/test_shards.py",
+    "--launcher": "scale-out: tests/run/test_shards.py", "scripts/results/wxbs_evd_tables.py": "a script, not a command",
 }
 
 
@@ -191,16 +191,19 @@ def test_the_walk_reads_the_files():
     assert deep and all("--backbone" in words and "efficientnet_lite0" in words for words in deep), deep
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_every_step_works_the_first_time(walk):
     failed = [f"e3cm-bench {' '.join(s.words)} [{s.source}] exit {s.code}: {s.stderr.strip()[-300:]}"
               for s in walk if s.code != 0]
     assert len(walk) >= 15 and not failed, "\n".join(failed)
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_no_step_prints_a_traceback(walk):
     assert not [s.words for s in walk if "Traceback" in s.stdout + s.stderr]
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_compare_table_and_check_read_at_80_columns(walk):
     narrow = [s for s in walk if s.words[0] in NARROW]
     assert {s.words[0] for s in narrow} == set(NARROW)
@@ -215,6 +218,7 @@ def broken_rows(text: str) -> list[str]:
             if " | " in line and not (line.strip().startswith("|") and line.strip().endswith("|"))]
 
 
+@pytest.mark.slow  # the walk runs every step once: about a minute
 def test_compare_table_and_check_cut_no_cell_and_break_no_row(walk):
     # Fitting 80 columns by cutting words ("h_acc…", "no differe…") or by wrapping a Markdown
     # row over several lines is no better than overflowing: the reader loses the same text.

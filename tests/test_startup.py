@@ -1,7 +1,7 @@
 """The command line answers before it loads the heavy libraries: importing e3cm_bench.cli
 (what every invocation does before typer reads its arguments, `--help` and a typo included)
 loads neither torch nor scipy, and the help texts read as written. The time it takes is
-measured by scripts/startup_time.py, not here."""
+measured by scripts/maintain/startup_time.py, not here."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ before typer reads a word of the command line, so the modules of the command lin
 their top only what their help needs (typer, rich, the benchmark registry and torch-free name
 lists: backbone_names, matching's estimators, the protocols); torch, scipy and the run
 machinery are imported inside the command that uses them. tests/test_startup.py holds this;
-scripts/startup_time.py measures it.
+scripts/maintain/startup_time.py measures it.
 """
 
 from __future__ import annotations

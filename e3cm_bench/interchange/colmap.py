@@ -72,7 +72,7 @@ def _shift(origin: str) -> float:
 
 def mapper_options(pycolmap, calibrated: bool = True):
     """pycolmap's incremental mapper options under which an export is checked (tests,
-    scripts/mapper_on_export.py): one thread and seed 0, so that the same database gives the
+    scripts/results/mapper_on_export.py): one thread and seed 0, so that the same database gives the
     same model; with ``calibrated``, the cameras' intrinsics held fixed, since the benchmark's
     calibration is ground truth (refining the focal length of a forward-moving camera is what
     makes COLMAP's default lose most of KITTI: docs/interchange.md)."""

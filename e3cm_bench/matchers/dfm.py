@@ -1,7 +1,7 @@
 """`dfm`: DFM (Efe et al. 2021), the two-stage baseline.
 
 variant "release" (default) reproduces the DFM release (matching/release.py, proven by
-tests/test_parity.py); "corrected" is the release with its two evident slips fixed (the
+tests/matching/test_parity.py); "corrected" is the release with its two evident slips fixed (the
 refinement's B->A ratio index, the final filter's height test); "bench" is this project's
 earlier reading of the DFM paper (matching/dfm.py: valid cells only, warp-border mask, a
 minimum of stage-0 inliers).

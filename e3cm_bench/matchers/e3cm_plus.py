@@ -46,7 +46,7 @@ from .deep import DeepMatcher
 # than this, or scales (either axis, or one against the other) by more than this factor.
 # The warp rescues pairs with large turns or zooms, which the unwarped cascade fails, and
 # costs a little accuracy on pairs the unwarped cascade already matches; the bounds sit
-# between those two kinds of pair on the shared sets (scripts/prewarp_report.py; the
+# between those two kinds of pair on the shared sets (scripts/results/prewarp_report.py; the
 # evidence: docs/methods.md, "Where e3cm-plus's automatic prewarp fires").
 PREWARP_MIN_ROTATION_DEG = 16.0
 PREWARP_MAX_SCALE = 1.5

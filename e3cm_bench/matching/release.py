@@ -3,7 +3,7 @@
 `e3cm-release` is the E3CM authors' `match_large_img` / `match_small_img` followed by their
 `refinement_pose_ransac`; `dfm` is the DFM release's two-stage `match`. Both differ from the
 paper text and from this project's own pipeline (pipeline.py) in ways that change results;
-../shared/parity/README.md lists them and tests/test_parity.py proves that these functions
+../shared/parity/README.md lists them and tests/matching/test_parity.py proves that these functions
 reproduce the releases' outputs on its four pairs. What each step keeps from the release:
 
 - dense matching runs over the whole padded map (padding cells included) and drops the

@@ -15,7 +15,7 @@ import pandas as pd
 from ..files import read_csv
 
 # Tolerances (absolute, in the metric's own unit: fractions for HPatches, percent for pose),
-# from the spread measured over repeated demo runs (scripts/demo_spread.py; docs/results.md
+# from the spread measured over repeated demo runs (scripts/results/demo_spread.py; docs/results.md
 # "Regression check"): estimator seeds 0, 1, 2 gave identical numbers (OpenCV 5's RANSAC
 # ignores cv2.setRNGSeed), one CPU thread instead of two moved the deep methods' features
 # by rounding and with them the scene poses: largest differences auc@5 12.1, auc@10 9.2,

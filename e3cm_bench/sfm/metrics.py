@@ -15,7 +15,7 @@ that ``np.histogram(err, np.arange(11))`` puts in the bins below k, i.e. error <
 error <= 10 for k = 10 (numpy's last bin is closed); mAA is the mean of the ten accuracies. The
 reference's errors (utils/eval_helper.py ``evaluate_R_t``) are the quaternion angle between the
 rotations and the arccos of |cos| between the translations: the same angles as ours, the
-translation folded the same way (tests/test_sfm_metrics.py checks both on recorded poses).
+translation folded the same way (tests/benchmarks/test_sfm_metrics.py checks both on recorded poses).
 Where the reference evaluates a bag's pairs in the model with the most images only
 (utils/colmap_helper.py ``get_best_colmap_index``), this benchmark takes a pair from whichever
 model holds both of its images (the issue's rule: a pair in two different models fails); the
