@@ -95,6 +95,7 @@ def paper_row_of(run: Run) -> str | None:
     E3CM numbers came from the authors' released code, e3cm-release; its DFM numbers from
     the DFM release), when the run was made as the paper's were (the entry says which
     settings keep it so) on the paper's VGG19. Our variants and ablations have none."""
+    from ..backbone_names import DEFAULT_BACKBONE
     from ..matchers import get_matcher
 
     identity = run.run_config.identity or {}

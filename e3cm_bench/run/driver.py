@@ -20,7 +20,8 @@ from contextlib import contextmanager
 
 from rich.console import Console
 
-from .folder import RunConfig, RunFolder
+from .config import RunConfig
+from .folder import RunFolder
 
 
 @contextmanager
