@@ -23,7 +23,7 @@ from e3cm_bench.method import MethodSpec
 
 from helpers import flat, one_line_error
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONFIG_FOLDERS = (REPO / "configs", REPO / "e3cm_bench" / "paper" / "configs")
 
 # Each committed config's methods (label and identity, without weight hashes) under four

@@ -18,7 +18,7 @@ from e3cm_bench.interchange import registry
 from e3cm_bench.interchange.registry import Format, formats, get_format, origin_help, register, source_label
 from helpers import invoke, one_line_error
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 # A format that is none of the built-in ones: one JSON file, {pair name: [[x0, y0, x1, y1, score], ...]}
 # in the corner convention, declared in this one module and nowhere else.

@@ -103,42 +103,6 @@ def test_no_matcher_name_is_dispatched_on_outside_its_entry():
     assert branches == []
 
 
-def test_no_two_modules_import_each_other():
-    """Every import between the package's modules (function-level ones too) forms no cycle."""
-    modules = {}
-    for path in PACKAGE.rglob("*.py"):
-        parts = list(path.relative_to(REPO).with_suffix("").parts)
-        is_package = parts[-1] == "__init__"
-        modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
-    edges = {name: set() for name in modules}
-    for name, (path, is_package) in modules.items():
-        base = name.split(".") if is_package else name.split(".")[:-1]
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom):
-                module = ".".join(base[:len(base) - node.level + 1] + [node.module or ""]).strip(".") if node.level \
-                    else node.module or ""
-                targets = [f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module for a in node.names]
-            elif isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                continue
-            edges[name] |= {t for t in targets if t in modules and t != name}
-
-    def reaches(start: str, goal: str) -> bool:
-        seen, todo = set(), [start]
-        while todo:
-            node = todo.pop()
-            if node == goal:
-                return True
-            if node not in seen:
-                seen.add(node)
-                todo += edges[node]
-        return False
-
-    cycles = sorted({" <-> ".join(sorted((a, b))) for a in edges for b in edges[a] if reaches(b, a)})
-    assert cycles == []
-
-
 # --------------------------------------------------------------------------- plugins
 
 

@@ -158,7 +158,7 @@ def test_sigterm_during_a_report_keeps_the_previous_one(made_run, tmp_path):
             Path({str(parked)!r}).write_text("here")
             while True:
                 time.sleep(0.05)
-        reportsite._draw = park
+        reportsite.draw_pairs = park  # site.py calls it by this name (drawings.py)
         from e3cm_bench.cli import app
         sys.argv = ["e3cm-bench", "report", {str(run)!r}, "--out", {str(site)!r}]
         app()

@@ -13,7 +13,7 @@ import yaml
 from e3cm_bench.run import RunConfig, RunFolder, load_run_pairs
 from helpers import invoke, one_line_error
 
-PACKAGE = Path(__file__).resolve().parents[1] / "e3cm_bench"
+PACKAGE = Path(__file__).resolve().parents[2] / "e3cm_bench"
 
 
 # --------------------------------------------------------------------------- a bad config.yaml
@@ -198,6 +198,7 @@ def test_the_yaml_scan_names_the_reading_function():
 
 
 def test_no_module_but_run_config_reads_config_yaml():
+    assert (PACKAGE / "run" / "config.py").is_file(), PACKAGE  # the scan reads the package, not an empty folder
     readers = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         source, name = path.read_text(), path.relative_to(PACKAGE).as_posix()
