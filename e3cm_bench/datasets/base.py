@@ -218,6 +218,34 @@ def check_pose(T: np.ndarray, where: str) -> None:
                            "so its translation error is undefined")
 
 
+def text_lines(path: Path) -> Iterator[tuple[int, str]]:
+    """(number in the file, text) of each line of a text list but blank lines and # comments:
+    a message quotes the line number an editor shows. DatasetError naming the file where it
+    cannot be read."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise DatasetError(f"{path}: not readable ({' '.join(str(error).split())})") from None
+    for number, line in enumerate(text.splitlines(), 1):
+        if line.strip() and not line.lstrip().startswith("#"):
+            yield number, line
+
+
+def name_pairs(path: Path, known, unknown: str) -> Iterator[tuple[int, str, str]]:
+    """(line number, name0, name1) of each line of a list of image-name pairs (``name0 name1``
+    per line; MegaDepth's pairs.txt, the sfm benchmark's pair graph). A line that does not hold
+    two names, or names one not in `known`, is an error naming the file and line; `unknown`
+    says what such a name is not (``which views.txt does not list``)."""
+    for number, line in text_lines(path):
+        names = line.split()
+        if len(names) != 2:
+            raise DatasetError(f"{path}: line {number} holds {len(names)} names, not two")
+        for name in names:
+            if name not in known:
+                raise DatasetError(f"{path}: line {number} names {name}, {unknown}")
+        yield number, names[0], names[1]
+
+
 def require_directory(root: Path, what: str) -> Path:
     root = Path(root)
     if not root.is_dir():

@@ -20,7 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, check_intrinsics, check_pose, require_directory
+from e3cm_bench.datasets.base import (
+    DatasetError, Pair, PairList, check_intrinsics, check_pose, name_pairs, require_directory, text_lines,
+)
 
 SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
 
@@ -131,13 +133,7 @@ def read_gluefactory(folder: Path) -> tuple[list[Pair], list[tuple[str, str]]]:
     views = _read_views(folder / GLUEFACTORY_VIEWS)
     pairs_path = folder / GLUEFACTORY_PAIRS
     pairs, bad = [], []
-    for number, line in enumerate(_lines(pairs_path), 1):
-        names = line.split()
-        if len(names) != 2:
-            raise DatasetError(f"{pairs_path}: line {number} holds {len(names)} names, not two")
-        for image in names:
-            if image not in views:
-                raise DatasetError(f"{pairs_path}: line {number} names {image}, which views.txt does not list")
+    for number, *names in name_pairs(pairs_path, views, "which views.txt does not list"):
         (K0, T0, problem0), (K1, T1, problem1) = views[names[0]], views[names[1]]
         image0, image1 = folder / "images" / names[0], folder / "images" / names[1]
         name = f"{GLUEFACTORY_SCENE}/{image0.stem}--{image1.stem}"
@@ -155,18 +151,10 @@ def read_gluefactory(folder: Path) -> tuple[list[Pair], list[tuple[str, str]]]:
     return pairs, bad
 
 
-def _lines(path: Path) -> list[str]:
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
-        raise DatasetError(f"{path}: not readable ({' '.join(str(error).split())})") from None
-    return [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
-
-
 def _read_views(path: Path) -> dict[str, tuple]:
     """name -> (K, world-to-camera 4x4, problem or ""); a line that cannot be parsed is an error."""
     views = {}
-    for number, line in enumerate(_lines(path), 1):
+    for number, line in text_lines(path):
         fields = line.split()
         where = f"{path}: line {number}"
         if len(fields) < 16:

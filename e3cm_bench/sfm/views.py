@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets.base import DatasetError, check_intrinsics, check_pose
+from ..datasets.base import DatasetError, check_intrinsics, check_pose, name_pairs
 from ..datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
 
 MIN_VIEWS = 2
@@ -158,19 +158,10 @@ def window(views: list[View], k: int) -> list[ListedPair]:
 def read_graph(path: Path, views: list[View]) -> list[ListedPair]:
     """A text list of image-name pairs (``name0 name1`` per line, # comments), each name one
     of the set's views."""
-    known = {v.name for v in views}
     if not Path(path).is_file():
         raise DatasetError(f"{path}: pair graph file not found")
     pairs, seen = [], set()
-    for number, line in enumerate(Path(path).read_text().splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        names = line.split()
-        if len(names) != 2:
-            raise DatasetError(f"{path}: line {number} holds {len(names)} names, not two")
-        for name in names:
-            if name not in known:
-                raise DatasetError(f"{path}: line {number} names {name}, which is not an image of the set")
+    for number, *names in name_pairs(path, {v.name for v in views}, "which is not an image of the set"):
         if names[0] == names[1]:
             raise DatasetError(f"{path}: line {number} joins image {names[0]} with itself")
         key = frozenset(names)

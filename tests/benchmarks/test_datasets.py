@@ -285,6 +285,9 @@ def test_gluefactory_layout_bad_input_is_one_line_naming_the_file(tmp_path: Path
         ([f"a.jpg {POSE} PINHOLE 8"], ["a.jpg a.jpg"], r"views\.txt: line 1 holds 15 fields"),
         ([f"a.jpg {POSE} PINHOLE 8 8 500 x 4 4"], ["a.jpg a.jpg"], r"views\.txt: line 1: a pose or camera value is not a number"),
         (good + [good[0]], ["a.jpg b.jpg"], r"views\.txt: line 3: view a\.jpg is listed twice"),
+        # the line number an editor shows: comments and blank lines above count
+        (good, ["# the pairs", "", "a.jpg c.jpg"], r"pairs\.txt: line 3 names c\.jpg"),
+        (["# K, R, t", *good, "  # an indented comment"], ["a.jpg b.jpg b.jpg"], r"pairs\.txt: line 1 holds 3"),
     ]
     for number, (views, pairs, says) in enumerate(cases):
         with pytest.raises(DatasetError, match=says):
@@ -374,3 +377,18 @@ def test_yfcc_empty_and_duplicate_lists(tmp_path: Path):
         YFCC100M(tmp_path, pairs=twice)
     with pytest.raises(DatasetError, match="absent.txt"):
         YFCC100M(tmp_path, pairs=tmp_path / "absent.txt")
+
+
+def test_a_pair_list_is_read_in_one_place_with_its_file_line_numbers(tmp_path: Path):
+    """datasets.base.name_pairs: MegaDepth's pairs.txt and the sfm pair graph read through it."""
+    from e3cm_bench.datasets.base import name_pairs
+
+    path = tmp_path / "pairs.txt"
+    path.write_text("# header\n\na b\n   # note\nb c\n")
+    assert list(name_pairs(path, {"a", "b", "c"}, "unknown")) == [(3, "a", "b"), (5, "b", "c")]
+    path.write_text("# header\na b\nb x\n")
+    with pytest.raises(DatasetError, match=r"pairs\.txt: line 3 names x, which is not here"):
+        list(name_pairs(path, {"a", "b"}, "which is not here"))
+    path.write_bytes(b"\xff\xfe a b\n")
+    with pytest.raises(DatasetError, match=r"pairs\.txt: not readable"):
+        list(name_pairs(path, {"a", "b"}, "unknown"))
