@@ -35,13 +35,13 @@ import numpy as np
 import pandas as pd
 
 from . import noise_gate
-from .ensemble import eval_settings_of, noise_path, read_noise
+from .ensemble import noise_path, read_noise
 from ..files import read_keyed_csv, write_atomically, write_csv
 from .formats import format_number
 from ..stats.noise import CHECK_ALPHA, metric_alpha
 from .environment import (ENVIRONMENT_PACKAGES, ISA_KEYS, environment_differences,  # noqa: F401 - their old home
                           environment_string, parse_environment, run_environment_items)
-from .runs import Run, load_run
+from .runs import Run, eval_settings_of, load_run
 from .tolerances import (ANY, DEFAULT_TOLERANCES, TOLERANCE_FILE_COLUMNS, Tolerances,  # noqa: F401 - their old home
                          parse_tolerance_options, parse_tolerances, read_tolerance_file)
 from ..run import RunFolder
@@ -191,8 +191,6 @@ def consistency_problems(runs: list[Run], baseline_path: Path) -> list[str]:
 
     Runs evaluated with --repeats K > 1 are left out of the first test: their summary is the mean
     over K evaluations, their per_pair.csv the first."""
-    from .runs import eval_settings_of
-
     problems = []
     settings = {}
     for run in runs:
@@ -344,7 +342,7 @@ def gate(runs: list[Run], baseline_path: Path, check_alpha: float = CHECK_ALPHA
         plans.append((run, values, measured))
     alpha = metric_alpha(sum(len(values) for _, values, _ in plans), check_alpha)
     verdicts = [noise_gate.gate_run(run, models[(run.benchmark.name, run.label)], values, measured, alpha,
-                                    eval_settings_of(run.run_config)) for run, values, measured in plans]
+                                    run.run_config.eval_settings()) for run, values, measured in plans]
     return verdicts, others, alpha
 
 

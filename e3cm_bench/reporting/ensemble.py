@@ -18,9 +18,8 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from ..benchmarks import EvalSettings, get_benchmark
+from ..benchmarks import get_benchmark
 from ..files import read_csv, read_keyed_csv, write_csv
-from ..method import MethodSpec
 from ..perturb import Perturbation, perturbed
 from ..run import RunConfig, RunFolder, load_run_pairs
 
@@ -34,29 +33,10 @@ def noise_path(baseline: Path) -> Path:
     return baseline.with_name(baseline.stem + NOISE_SUFFIX)
 
 
-def _config_of(config: RunConfig | dict, where: Path) -> RunConfig:
-    """A run's RunConfig (a Run's record given as a dict is read as its folder's config.yaml's)."""
-    if isinstance(config, RunConfig):
-        return config
-    return RunConfig.from_dict(config, RunFolder(where).config_path if Path(where).is_dir() else where)
-
-
-def method_of(config: RunConfig | dict, where: Path) -> MethodSpec:
-    """The run's MethodSpec from its config.yaml identity (RunConfig.method_spec). Only built-in
-    matchers: rerunning reads no code that a run folder names (a plugin's run is checked without
-    an ensemble)."""
-    return _config_of(config, where).method_spec()
-
-
-def eval_settings_of(config: RunConfig | dict, seed: int | None = None) -> EvalSettings:
-    """The run's evaluation settings (config.yaml `evaluation`), with another RANSAC seed if given."""
-    return _config_of(config, Path(RunFolder.CONFIG)).eval_settings(seed)
-
-
-def _dataset_of(config: RunConfig | dict, benchmark, where: Path):
+def _dataset_of(config: RunConfig):
     """The run's pairs as it loaded them (run.config.load_run_pairs: dataset_load, skip_bad and
     --limit as recorded), as a pair list the runner takes."""
-    loaded = load_run_pairs(_config_of(config, where))
+    loaded = load_run_pairs(config)
     dataset = copy.copy(loaded.dataset)  # a PairList cut to the run's pairs, as PairList.sampled cuts one
     dataset.pairs = loaded.pairs
     return dataset
@@ -73,18 +53,20 @@ def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Co
     work = Path(work)
     groups: dict[tuple, list] = {}
     for run in runs:
-        dataset = run.config.get("dataset") or {}
+        dataset = run.run_config.dataset
         key = (run.benchmark.name, str(dataset.get("root")), str(sorted(dataset.items(), key=str)))
         groups.setdefault(key, []).append(run)
     tables = []
     for (bench_name, _, _), members in groups.items():
         benchmark = get_benchmark(bench_name)
-        dataset = _dataset_of(members[0].config, benchmark, members[0].dir)
+        dataset = _dataset_of(members[0].run_config)
         for draw in draws:
             t = time.perf_counter()
-            folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, method_of(run.config, run.dir))
+            # the method each run recorded (RunConfig.method_spec: built-in matchers only; a plugin's
+            # run is checked without an ensemble, since a record never names code to run)
+            folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, run.run_config.method_spec())
                        for run in members]
-            ev = eval_settings_of(members[0].config, seed=draw if reseed else None)
+            ev = members[0].run_config.eval_settings(seed=draw if reseed else None)
             with perturbed(Perturbation(draw=draw)):
                 run_methods(benchmark, folders, dataset, ev=ev, console=Console(quiet=True))
             for run, (folder, _) in zip(members, folders):

@@ -20,7 +20,6 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from ..benchmarks import EvalSettings
 from . import driver
 from .config import RunConfig, load_run_pairs
 from .folder import RunFolder
@@ -154,7 +153,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
         config = RunConfig(
             benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
             matcher=first.get("matcher"), device=first.get("device"),
-            dataset={**first["dataset"], "n_pairs_evaluated": len(pairs), "n_skipped": len(skipped)},
+            dataset=dict(first["dataset"]),  # its counts are the merge's own (driver.finish_run)
             evaluation=first["evaluation"], environment=first.get("environment") or {},
             timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
                     "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
@@ -162,7 +161,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
             shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
         )
         _, summary = driver.finish_run(
-            benchmark, folder, config, pairs, skipped, cache, EvalSettings.from_record(first["evaluation"]), viz, console,
+            benchmark, folder, config, pairs, skipped, cache, loaded.config.eval_settings(), viz, console,
             lambda done: f"{benchmark.name} - {first['method']} ({done} pairs, {n} shards merged) -> {out}",
             count_evaluated=True)
     return pd.DataFrame([summary])

@@ -114,7 +114,7 @@ def test_every_reloader_gives_the_same_pairs(limited_run):
     expected = _run_pair_names(limited_run)
     notes: list[str] = []
     assert list(_dataset_pairs(run, notes)) == expected and not notes  # the report's drawings
-    assert [p.name for p in _dataset_of(run.config, run.benchmark, run.dir)] == expected  # the noise ensemble
+    assert [p.name for p in _dataset_of(run.run_config)] == expected  # the noise ensemble
 
 
 def test_a_sampled_run_reloads_its_sample(shared_data, tmp_path):

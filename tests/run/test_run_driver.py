@@ -17,6 +17,7 @@ from e3cm_bench.imported import import_run
 from e3cm_bench.interchange import NpzSource
 from e3cm_bench.method import MethodSpec
 from e3cm_bench.reporting.ensemble import build_ensemble
+from e3cm_bench.reporting.runs import load_run
 from e3cm_bench.run import RunFolder, driver
 from e3cm_bench.runner import run_benchmark
 from helpers import invoke
@@ -92,9 +93,7 @@ def test_a_calibration_opens_each_method_folder_through_the_driver(spy, tmp_path
 
 def test_the_noise_ensemble_reruns_through_the_driver(hpatches, spy, tmp_path):
     sift_run(hpatches, tmp_path / "run")
-    config = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
-    run = SimpleNamespace(config=config, benchmark=get_benchmark("hpatches"), dir=tmp_path / "run", label="sift")
-    table = build_ensemble([run], [0, 1], tmp_path / "work")
+    table = build_ensemble([load_run(tmp_path / "run")], [0, 1], tmp_path / "work")
     rerun = [tmp_path / "work" / "hpatches" / f"draw-{d:03d}" / "run" for d in (0, 1)]
     assert spy.opened[1:] == spy.finished[1:] == rerun
     assert sorted(set(table["draw"])) == [0, 1]
