@@ -66,9 +66,9 @@ def run_command(bench: Benchmark, given: dict) -> None:
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
     o = SimpleNamespace(**given)
     protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
-    method = build_method(method_values(method_given), bench, o.device, warn=warn)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
-    scale.check(o.eval_only, o.device)
+    scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
+    method = build_method(method_values(method_given), bench, o.device, warn=warn)
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
         dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
     console.print(get_protocol(protocol, bench.name).line(), markup=False)
@@ -113,6 +113,8 @@ COMMON_AFTER = (
     ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
     ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0),
 )
+
+
 def option_parameter(option, help_text: str) -> inspect.Parameter:
     """A dataset option as a keyword parameter typer reads as a command-line option: its kind's
     type (options.KINDS), a switch off by default, any other kind absent by default."""

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, method_values, warn, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
+from .common import app, console, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
