@@ -1,8 +1,8 @@
 """The backbones' names, without torch: what the command line's help and its errors name.
 
 `e3cm-bench --help` must answer in well under a second, so the command line never imports
-torch to say which backbones exist; backbones.py builds one network per name here and checks,
-when it is imported, that its specs and this list agree.
+torch to say which backbones exist; backbones.py builds one network per name here, and
+backbone_specs.py (imported with it) checks that its specs and this list agree.
 """
 
 from __future__ import annotations

@@ -172,4 +172,4 @@ SPECS: dict[str, BackboneSpec] = {
 }
 # The names live in backbone_names.py (torch-free, for the command line's help); one spec each.
 if tuple(SPECS) != BACKBONES:  # a backbone added in one place only
-    raise RuntimeError(f"backbone_names.BACKBONES {BACKBONES} and backbones.SPECS {tuple(SPECS)} differ")
+    raise RuntimeError(f"backbone_names.BACKBONES {BACKBONES} and backbone_specs.SPECS {tuple(SPECS)} differ")

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .backbone_names import BACKBONES, OFFLINE_BACKBONE
+from .backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from .backbone_specs import MAX_LEVELS, SPECS, BackboneSpec
 from .perturb import perturb_map
 from .files import file_sha256
@@ -303,7 +303,7 @@ def _imagenet_weights(spec: BackboneSpec) -> tuple[dict, Path]:
 
 
 def load_backbone(
-    name: str = "vgg19",
+    name: str = DEFAULT_BACKBONE,
     weights: str | Path | None = None,
     pretrained: bool = True,
     num_levels: int = MAX_LEVELS,

@@ -12,6 +12,8 @@ import threading
 import time
 from typing import Callable
 
+from .guards import exit_text
+
 # How long one plugin's import may take. Generous: a plugin importing torch and a model zoo
 # takes seconds on a cold disk; one that never returns must not hang every command.
 PLUGIN_IMPORT_SECONDS = 60.0
@@ -101,10 +103,6 @@ def bounded(call: Callable[[], object], what: str):
     if "error" in done:
         raise done["error"]
     return done["value"]
-
-
-def exit_text(exc: SystemExit) -> str:
-    return f"sys.exit({exc.code!r})"
 
 
 def why(exc: BaseException) -> str:

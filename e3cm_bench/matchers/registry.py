@@ -43,8 +43,8 @@ from ..backbone_names import DEFAULT_BACKBONE
 from ..devices import check_device
 from ..files import file_sha256
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
-# _probe: scripts/measure/pair_timeout_overhead.py times it from here
-from .plugin_import import PLUGIN_IMPORT_SECONDS, bounded, exit_text, probe as _probe, why  # noqa: F401
+from .guards import exit_text
+from .plugin_import import bounded, why
 
 ENTRY_POINT_GROUP = "e3cm_bench.matchers"
 

@@ -3,7 +3,7 @@
 Prints measured figures (docs/robustness.md quotes them): the time of one pair through a
 matcher that does nothing, in this process and through the StoppableWorker's child (the
 images sent over a socket, the matches sent back), for images of HPatches' size; the fork of
-a fresh child; and the forked probe of one plugin import (registry._probe).
+a fresh child; and the forked probe of one plugin import (plugin_import.probe).
 
     python scripts/measure/pair_timeout_overhead.py [--pairs 200] [--side 1000]
 """
@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from e3cm_bench.matchers import registry
+from e3cm_bench.matchers import plugin_import
 from e3cm_bench.matchers.guards import StoppableWorker
 from e3cm_bench.matches import Matches
 from e3cm_bench.run.pair import checked_match, match_worker
@@ -68,7 +68,7 @@ def main() -> None:
     probes = []
     for _ in range(20):
         t = time.perf_counter()
-        registry._probe(lambda: __import__("json"), "json", 60)
+        plugin_import.probe(lambda: __import__("json"), "json", 60)
         probes.append(time.perf_counter() - t)
     print(f"images {shape[1]}x{shape[0]} x2, 2000 matches, median of {args.pairs} pairs:")
     print(f"  in this process:        {here * 1e3:8.2f} ms per pair")
