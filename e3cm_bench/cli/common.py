@@ -97,16 +97,12 @@ def warn(message: str) -> None:
     err_console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
 
 
-def parse_settings(pairs: list[str] | None, precision: str = "fp32", channel_order: str = "rgb", device: str = "cpu") -> dict:
-    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML values);
-    a precision other than fp32 and a channel order other than rgb join them (the defaults are
-    left out, so that runs with them keep their identity: method.deep_settings). --precision
-    auto is resolved for `device` here (the identity records what runs); a precision that will
-    be emulated is said."""
+def parse_settings(pairs: list[str] | None) -> dict:
+    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML
+    values). --precision and --channel-order join them in method.build_method (deep_settings)."""
     from ..files import load_yaml_text
-    from ..method import deep_settings
 
-    settings = deep_settings({"precision": precision, "channel_order": channel_order}, device, warn)
+    settings = {}
     for item in pairs or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():

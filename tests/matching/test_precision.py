@@ -6,7 +6,8 @@ import pytest
 from typer.testing import CliRunner
 
 import e3cm_bench.devices as devices
-from e3cm_bench.cli import app, parse_settings
+from e3cm_bench.cli import app
+from e3cm_bench.method import deep_settings
 
 
 @pytest.mark.parametrize("native, device, precision, expected, warns", [
@@ -26,9 +27,10 @@ def test_precision_fits_the_hardware(monkeypatch, native, device, precision, exp
 
 def test_auto_is_resolved_before_the_identity(monkeypatch):
     monkeypatch.setattr(devices, "native_bf16", lambda device: False)
-    assert parse_settings(None, "auto") == {}  # fp32, the default, leaves the identity as it was
+    auto = {"precision": "auto", "channel_order": "rgb"}
+    assert deep_settings(auto, "cpu", None) == {}  # fp32, the default, leaves the identity as it was
     monkeypatch.setattr(devices, "native_bf16", lambda device: True)
-    assert parse_settings(None, "auto") == {"precision": "bf16"}
+    assert deep_settings(auto, "cpu", None) == {"precision": "bf16"}
 
 
 def test_the_cpu_flags_decide_native_bf16(monkeypatch, tmp_path):
