@@ -90,3 +90,21 @@ def invoke(*args, **kwargs):
     result = CliRunner().invoke(app, [str(a) for a in args], **kwargs)
     print(f"$ e3cm-bench {' '.join(str(a) for a in args)}\n{result.output}")
     return result
+
+
+def replay_stage(cache, files_in_order: list[tuple[str, str]], maps, plan: bool = True) -> None:
+    """Drive a FeatureCache as the match stage does (run/stage.py): told the order (plan; else
+    it evicts the least recently used), then per pair `at`, get or put each image's maps
+    (maps(file)), and done_with after an image's last pair."""
+    last = {f: k for k, files in enumerate(files_in_order) for f in files}
+    if plan:
+        cache.plan(files_in_order)
+    for k, files in enumerate(files_in_order):
+        cache.at(k, files)
+        for which, f in enumerate(files):
+            cache.belongs_to(f, which)
+            if cache.get(f) is None:
+                cache.put(f, maps(f))
+        for f in dict.fromkeys(files):
+            if last[f] == k:
+                cache.done_with(f)

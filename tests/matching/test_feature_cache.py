@@ -20,7 +20,7 @@ from e3cm_bench.run import RunFolder
 from e3cm_bench.run.pair import matcher_input
 from e3cm_bench.run.stage import MatchOptions
 from e3cm_bench.runner import run_benchmark
-from helpers import assert_same_arrays
+from helpers import assert_same_arrays, replay_stage
 
 MiB = 2**20
 
@@ -75,19 +75,8 @@ def test_done_with_drops_an_images_maps_from_memory_and_disk(tmp_path):
 
 
 def _replay(cache: FeatureCache, files_in_order: list[tuple[str, str]]) -> None:
-    """What the match stage does: plan, then per pair `at`, get or put each image's maps, and
-    done_with after an image's last pair (file name = key here)."""
-    last = {f: k for k, files in enumerate(files_in_order) for f in files}
-    cache.plan(files_in_order)
-    for k, files in enumerate(files_in_order):
-        cache.at(k, files)
-        for which, f in enumerate(files):
-            cache.belongs_to(f, which)
-            if cache.get(f) is None:
-                cache.put(f, pyramid(ord(f[0])))
-        for f in dict.fromkeys(files):
-            if last[f] == k:
-                cache.done_with(f)
+    """The match stage's use of the cache (helpers.replay_stage), file name = key here."""
+    replay_stage(cache, files_in_order, lambda f: pyramid(ord(f[0])))
 
 
 def test_with_the_order_known_the_cache_keeps_what_is_needed_soonest():

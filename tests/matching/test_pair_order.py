@@ -11,6 +11,7 @@ import torch
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
 from e3cm_bench.pair_order import most_alive, reuse_order
+from helpers import replay_stage
 
 
 def cache_passes(order: list[Pair], memory: int, spill: Path | None = None, disk: int = 0, planned: bool = True) -> int:
@@ -19,19 +20,8 @@ def cache_passes(order: list[Pair], memory: int, spill: Path | None = None, disk
     the order (planned; else it evicts the least recently used) and after each pair which
     images have no pair left, as the match stage tells it."""
     files_in_order = [(str(pair.image0), str(pair.image1)) for pair in order]
-    last = {image: k for k, files in enumerate(files_in_order) for image in files}
     cache = FeatureCache(memory / 2**20, SpillStore(spill, disk / 2**20) if disk else None)
-    if planned:
-        cache.plan(files_in_order)
-    for k, files in enumerate(files_in_order):
-        cache.at(k, files)
-        for which, image in enumerate(files):
-            cache.belongs_to(image, which)
-            if cache.get(image) is None:
-                cache.put(image, [torch.zeros(1, dtype=torch.uint8)])
-        for image in dict.fromkeys(files):
-            if last[image] == k:
-                cache.done_with(image)
+    replay_stage(cache, files_in_order, lambda image: [torch.zeros(1, dtype=torch.uint8)], plan=planned)
     cache.close()
     return cache.misses
 
