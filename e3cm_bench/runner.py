@@ -104,7 +104,8 @@ def _dataset(benchmark: Benchmark, dataset: PairList | None, root, dataset_optio
     console.print(
         f"{benchmark.name}: {len(dataset)} pairs"
         + (f" ({dataset.n_skipped} of {n_total} skipped: {dataset.skip_reason()})" if dataset.n_skipped else "")
-        + (f", limited to the first {limit}" if limit else ""),
+        + (f", limited to the first {limit}" if limit else "")
+        + (f"; {dataset.preamble()}" if dataset.preamble() else ""),
         markup=False,
     )
     return dataset, load
@@ -136,6 +137,7 @@ def run_methods(
     if limit is not None and limit < 1:
         raise ValueError(f"--limit must be at least 1, got {limit}")
     console.print(f"{benchmark.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")
+                  + (f"; {dataset.preamble()}" if dataset.preamble() else "")
                   + f"; {len(runs)} methods matched together", markup=False)
     return _run_folders(benchmark, runs, dataset, ev or EvalSettings(), limit, False, False, viz, device, console,
                         None, dataset_load, options)

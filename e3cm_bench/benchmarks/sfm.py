@@ -25,6 +25,7 @@ from ..matches import Matches, distinct
 from ..sfm import metrics as sfm_metrics
 from ..sfm.dataset import MultiViewSet
 from .base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
+from .pose import PoseBenchmark
 
 WORKDIR = "sfm"  # the run folder's subfolder of the reconstruction
 
@@ -41,12 +42,24 @@ class SfMBenchmark(Benchmark):
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
 
+    def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
+                     estimator: str | None = None, repeats: int = 1) -> EvalSettings:
+        if repeats != 1:  # said before matching (evaluate_set says it again for the Python API)
+            raise ValueError("--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model")
+        return super().resolve_eval(protocol, seed, ransac_px, estimator, repeats)
+
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
                                 "err_R", "err_t", "err_pose"])
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         raise ValueError("sfm scores the pairs of a set together (evaluate_set), not one at a time")
+
+    def two_view_geometry(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
+        """The pose benchmarks' relative pose and RANSAC inliers: the two-view geometry the
+        reconstruction's database holds (sfm/reconstruct.py), so that `export --to colmap` of an
+        sfm run writes the same one."""
+        return PoseBenchmark.two_view_geometry(pair, matches, ev)
 
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
                      workdir: Path | None) -> tuple[list[dict], dict]:
@@ -120,6 +133,10 @@ SFM = SfMBenchmark(
         DatasetOption("window", "text", "Pair graph: each image with the next K in the set's order "
                       "(default: every pair)."),
         DatasetOption("graph", "path", "Pair graph: a file of image-name pairs to match (name0 name1 per line)."),
+        DatasetOption("allow_disconnected", "flag", "A pair graph in several connected components (sets of images "
+                      "no pair joins) is refused; with this, each component is reconstructed as its own bag."),
+        DatasetOption("absolute_paths", "flag", "Images may lie anywhere (absolute paths, '..'), each named by its "
+                      "absolute path; without it every image must be under ROOT."),
         DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
                       "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
     ),

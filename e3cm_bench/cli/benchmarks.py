@@ -13,7 +13,7 @@ import typer
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
 from ..options import KINDS, METHOD_OPTIONS
-from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
+from .common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
 
 
 @dataclass(frozen=True)
@@ -148,6 +148,6 @@ def benchmark_command(bench: Benchmark):
 
 
 for _bench in BENCHMARKS.values():
-    app.command(_bench.name)(benchmark_command(_bench))
+    app.command(_bench.name, cls=OnceEach)(benchmark_command(_bench))
 
 

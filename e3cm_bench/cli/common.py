@@ -20,6 +20,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
+from typer.core import TyperCommand
 
 from .. import __version__
 from ..benchmarks import BENCHMARKS
@@ -202,6 +203,30 @@ def friendly_errors(command):
 
     return wrapper
 
+
+
+class OnceEach(TyperCommand):
+    """A command whose options of one value may each be given once: click keeps the last of a
+    repeated one without a word (`sfm --graph A --graph B` matched B's pairs only). Options
+    that collect (--set, --scene-info of megadepth) and switches may repeat."""
+
+    def parse_args(self, ctx, args: list[str]) -> list[str]:
+        given: dict[str, int] = {}
+        for arg in args:
+            if arg == "--":
+                break
+            if arg.startswith("--"):
+                flag = arg.split("=", 1)[0]
+                given[flag] = given.get(flag, 0) + 1
+        for param in self.params:
+            if getattr(param, "param_type_name", "") != "option" or param.multiple or param.is_flag or param.nargs != 1:
+                continue
+            times = sum(given.get(flag, 0) for flag in param.opts)
+            if times > 1:
+                err_console.print(f"[bold red]error:[/] {param.opts[0]} is given {times} times; it takes one value, "
+                                  "give it once", highlight=False, soft_wrap=True)
+                ctx.exit(2)
+        return super().parse_args(ctx, args)
 
 
 ShardOpt = Annotated[Optional[str], typer.Option("--shard", help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).")]

@@ -11,7 +11,7 @@ import typer
 from ..benchmarks import BENCHMARKS, get_benchmark
 from .benchmarks import option_parameter
 from ..interchange.registry import formats, origin_help
-from .common import app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
+from .common import OnceEach, app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
 PixelOriginOpt = Annotated[Optional[str], typer.Option(
@@ -139,7 +139,7 @@ def _with_dataset_options(command):
 
 
 OPTION_FLAGS = {o.name: o.flag for bench in BENCHMARKS.values() for o in bench.command_options()}
-app.command("import")(friendly_errors(_with_dataset_options(import_matches)))
+app.command("import", cls=OnceEach)(friendly_errors(_with_dataset_options(import_matches)))
 
 
 

@@ -89,6 +89,11 @@ class PairList:
             return "images missing"
         return "bad input, listed in skipped.csv"
 
+    def preamble(self) -> str:
+        """What a run prints of the pairs besides their number (the sfm set: its pair graph's
+        components); empty for most datasets."""
+        return ""
+
     def __iter__(self) -> Iterator[Pair]:
         return iter(self.pairs)
 

@@ -36,6 +36,12 @@ class YFCC100M(PairList):
     ) -> None:
         self.root = require_directory(root, "YFCC100M")
         self.pairs_file = Path(pairs) if pairs is not None else self.root / DEFAULT_PAIRS_FILE
+        parsed, bad = self.read_pairs()
+        super().__init__(parsed, self.pairs_file, skip_bad, bad)
+
+    def read_pairs(self) -> tuple[list[Pair], list[tuple[str, str]]]:
+        """The list's pairs, and (name, problem) of those whose K or T_0to1 is unusable; the
+        PairList checks (names once, images present) are the caller's."""
         if not self.pairs_file.is_file():
             raise DatasetError(f"{self.pairs_file}: pair list not found")
         lines = self.pairs_file.read_text().splitlines()
@@ -51,7 +57,7 @@ class YFCC100M(PairList):
                     bad.append((pair.name, str(error)))
                     continue
                 parsed.append(pair)
-        super().__init__(parsed, self.pairs_file, skip_bad, bad)
+        return parsed, bad
 
     def _parse_line(self, line: str, number: int) -> Pair:
         where = f"{self.pairs_file}:{number}"

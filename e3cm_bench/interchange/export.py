@@ -168,14 +168,24 @@ def _items(run_dir: Path, benchmark, root: Path, pairs: list, ev) -> list[Export
             matches = cache.read(pair.name)
             size0 = tuple(int(v) for v in matches.info.get("size0", ())) or _size(pair.image0)
             size1 = tuple(int(v) for v in matches.info.get("size1", ())) or _size(pair.image1)
-            item = ExportItem(pair.name, pair, image_name(pair.image0, root), image_name(pair.image1, root), size0, size1,
-                              matches, getattr(pair, "K0", None), getattr(pair, "K1", None))
+            item = ExportItem(pair.name, pair, *_image_names(pair, root), size0, size1, matches,
+                              getattr(pair, "K0", None), getattr(pair, "K1", None))
             if ev is not None:
                 item.geometry = _geometry(benchmark, pair, matches, ev)
             items.append(item)
     if not items:
         raise ValueError(f"{run_dir}: no matched pairs in its cache to export")
     return items
+
+
+def _image_names(pair, root: Path) -> tuple[str, str]:
+    """The pair's image names: the set's own where it names its views (sfm: the names of its
+    reconstruction's database, absolute paths with --absolute-paths), else each image's path
+    under the root."""
+    meta = getattr(pair, "meta", None) or {}
+    if meta.get("view0") and meta.get("view1"):
+        return str(meta["view0"]), str(meta["view1"])
+    return image_name(pair.image0, root), image_name(pair.image1, root)
 
 
 def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items: list, written: list,

@@ -8,7 +8,7 @@ scene_info file's or the model folder's name (the pair list's own names otherwis
 
 from __future__ import annotations
 
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from . import views as V
@@ -19,14 +19,24 @@ class MultiViewSet(PairList):
     """The pairs of a multi-view set: ``scene_info`` (MegaDepth, absolute poses), ``colmap_model``
     (a sparse model's folder, absolute poses) or ``pairs`` (a SuperGlue list: those pairs, their
     relative poses). Exactly one is given. With absolute poses the graph is every pair, or
-    ``window`` (each image with the next K), or ``graph`` (a file of image-name pairs)."""
+    ``window`` (each image with the next K), or ``graph`` (a file of image-name pairs).
+
+    Everything that would stop the reconstruction is refused here, before any matching: no
+    pycolmap, an image listed twice, two pairs of the same two images (either way round), an
+    image outside the root (unless ``absolute_paths``), and a pair graph in several connected
+    components (unless ``allow_disconnected``: then each component is a bag of its own,
+    ``pair.meta["bag"]``, 0 the largest)."""
 
     name = "sfm"
 
     def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
                  pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
-                 merge_px: str | float | None = None, skip_bad: bool = False) -> None:
+                 merge_px: str | float | None = None, allow_disconnected: bool = False, absolute_paths: bool = False,
+                 skip_bad: bool = False) -> None:
+        from ..interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
+
         self.root = require_directory(root, "image set")
+        pycolmap_module()  # the reconstruction's: missing, it is said now rather than after every pair is matched
         given = [flag for flag, value in (("--scene-info", scene_info), ("--colmap-model", colmap_model),
                                            ("--pairs", pairs)) if value is not None]
         if len(given) != 1:
@@ -35,34 +45,51 @@ class MultiViewSet(PairList):
         self.window = _window(window)
         self.merge_px = _radius(merge_px)
         self.graph = Path(graph) if graph is not None else None
+        self.allow_disconnected, self.absolute_paths = bool(allow_disconnected), bool(absolute_paths)
         if self.window is not None and self.graph is not None:
             raise DatasetError(f"{self.graph}: --window and --graph are two pair graphs; give one")
+        listed, bad = self._read(scene_info, colmap_model, pairs)
+        built, unusable = self._pairs(listed)
+        super().__init__(built, self.source, skip_bad, bad + unusable)
+        self.components = self._bags()
+
+    def _read(self, scene_info, colmap_model, pairs) -> tuple[list[V.ListedPair], list[tuple[str, str]]]:
+        """The views (self.views) and the pairs of the graph; (pair, problem) of a pair list's
+        pairs whose ground truth is unusable."""
+        anywhere = self.absolute_paths
         if scene_info is not None:
             self.source, self.kind = Path(scene_info), "scene_info"
-            self.views = V.views_from_scene_info(self.source, self.root)
+            self.views = V.views_from_scene_info(self.source, self.root, anywhere)
         elif colmap_model is not None:
             self.source, self.kind = Path(colmap_model), "colmap_model"
-            self.views = V.views_from_colmap(self.source, self.root)
+            self.views = V.views_from_colmap(self.source, self.root, anywhere)
         else:
             self.source, self.kind = Path(pairs), "pairs"
             if self.window is not None or self.graph is not None:
                 raise DatasetError(f"{self.source}: a pair list is its own graph (its relative poses are the only "
                                    "ground truth); --window and --graph apply to --scene-info and --colmap-model")
-            self.views, listed = V.views_from_pair_list(self.source, self.root)
+            self.views, listed, bad = V.views_from_pair_list(self.source, self.root, anywhere)
+            return listed, bad
+        if self.graph is not None:
+            return V.read_graph(self.graph, self.views), []
+        return (V.window(self.views, self.window) if self.window is not None else V.exhaustive(self.views)), []
+
+    def _pairs(self, listed: list[V.ListedPair]) -> tuple[list[Pair], list[tuple[str, str]]]:
+        """A Pair per listed pair, named SET/<label0>--<label1> (views.pair_labels); (name, problem)
+        of those whose relative pose is unusable. Two pairs of the same two images are refused:
+        the database holds one match list per image pair."""
         by_name = {v.name: v for v in self.views}
-        if self.kind != "pairs":
-            if self.graph is not None:
-                listed = V.read_graph(self.graph, self.views)
-            elif self.window is not None:
-                listed = V.window(self.views, self.window)
-            else:
-                listed = V.exhaustive(self.views)
+        labels = V.pair_labels(self.views)
         set_name = self.source.stem if self.kind == "scene_info" else self.source.name
-        built, bad = [], []
-        for number, item in enumerate(listed):
+        built, bad, seen = [], [], {}
+        for item in listed:
             view0, view1 = by_name[item.view0], by_name[item.view1]
-            stems = f"{PurePosixPath(item.view0).stem}--{PurePosixPath(item.view1).stem}"
-            name = f"{set_name}/{stems}"
+            name = f"{set_name}/{labels[item.view0]}--{labels[item.view1]}"
+            key = frozenset((item.view0, item.view1))
+            if key in seen:
+                raise DatasetError(f"{self.graph or self.source}: pairs {seen[key]} and {name} join the same two images "
+                                   f"({item.view0} and {item.view1}); a reconstruction holds one match list per image pair")
+            seen[key] = name
             try:
                 T = item.T_0to1 if item.T_0to1 is not None else V.relative_pose(
                     view0, view1, f"{self.source}: images {item.view0} and {item.view1}")
@@ -72,7 +99,30 @@ class MultiViewSet(PairList):
             built.append(Pair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
                               meta={"scene": set_name, "view0": item.view0, "view1": item.view1,
                                     "merge_px": self.merge_px}))
-        super().__init__(built, self.source, skip_bad, bad)
+        return built, bad
+
+    def _bags(self) -> list[list[str]]:
+        """The pair graph's connected components (image names, largest first), checked before any
+        matching: a graph of several is refused, unless allow_disconnected, where each pair's
+        meta["bag"] says its component (pairs never join two: a component is closed)."""
+        found = V.components((p.meta["view0"], p.meta["view1"]) for p in self.pairs)
+        if len(found) > 1 and not self.allow_disconnected:
+            labels = V.pair_labels(self.views)
+            shown = ", ".join("{" + ", ".join(labels[n] for n in names[:3]) + (f", ... {len(names)} images" if len(names) > 3
+                                                                              else "") + "}" for names in found[:4])
+            more = f" and {len(found) - 4} more" if len(found) > 4 else ""
+            raise DatasetError(f"{self.graph or self.source}: the pair graph has {len(found)} components that share no "
+                               f"image: {shown}{more}; pass --allow-disconnected to reconstruct each as its own bag")
+        bag = {name: k for k, names in enumerate(found) for name in names}
+        for pair in self.pairs:
+            pair.meta["bag"] = bag[pair.meta["view0"]]
+        return found
+
+    def preamble(self) -> str:
+        sizes = [len(names) for names in self.components]
+        if len(sizes) == 1:
+            return f"pair graph: one component of {sizes[0]} images"
+        return f"pair graph: {len(sizes)} components (bags) of {', '.join(map(str, sizes))} images"
 
     def settings(self) -> dict:
         graph = ("listed" if self.kind == "pairs" else f"file {self.graph}" if self.graph is not None
@@ -81,6 +131,8 @@ class MultiViewSet(PairList):
         # they decide every number the evaluation gives, as the set does.
         return {"dataset": self.name, "root": str(self.root), self.kind: str(self.source), "window": self.window,
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
+                "components": {"count": len(self.components), "sizes": [len(c) for c in self.components]},
+                "allow_disconnected": self.allow_disconnected, "absolute_paths": self.absolute_paths,
                 "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
 
 

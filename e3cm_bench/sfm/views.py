@@ -16,14 +16,17 @@ or a list of image-name pairs.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from itertools import combinations
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from ..datasets.base import DatasetError, check_intrinsics, check_pose, name_pairs
 from ..datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
+from ..datasets.yfcc import YFCC100M
 
 MIN_VIEWS = 2
 
@@ -54,25 +57,55 @@ def _check_count(views: list[View], source: Path) -> None:
                            f"{MIN_VIEWS}")
 
 
-def views_from_scene_info(path: Path, root: Path) -> list[View]:
+def image_key(image: str | Path, root: Path, anywhere: bool, where: str) -> str:
+    """An image's name in the set (the database's image name, the key of its view): its path
+    under ROOT, '/'-separated, with '.' and '..' resolved as text (links not followed, so that
+    `a/../b.png` and `b.png` are one image). An image outside the root (an absolute path
+    elsewhere, a '..' that leaves it) is refused unless `anywhere` (--absolute-paths): then every
+    image is named by its absolute path."""
+    full = Path(os.path.normpath(Path(root, image).absolute()))
+    if anywhere:
+        return full.as_posix()
+    try:
+        return full.relative_to(os.path.normpath(Path(root).absolute())).as_posix()
+    except ValueError:
+        raise DatasetError(f"{where}: image {image} lies outside the image root {root}; name images by their path "
+                           "under --root, or pass --absolute-paths to take images from anywhere") from None
+
+
+def _once(views: list[View], source: Path, entries: list[str] | None = None) -> list[View]:
+    """The views, each image once: two views of one image would be two database images.
+    entries: where the source lists each view (named in the error)."""
+    first: dict[str, int] = {}
+    for i, view in enumerate(views):
+        if view.name in first:
+            where = f" ({entries[first[view.name]]} and {entries[i]})" if entries else ""
+            raise DatasetError(f"{source}: image {view.name} is listed twice{where}; each image is one view of the set")
+        first[view.name] = i
+    return views
+
+
+def views_from_scene_info(path: Path, root: Path, anywhere: bool = False) -> list[View]:
     """The views of a MegaDepth scene_info file, in its order (images without a path left out)."""
     scene = load_scene_info(path)
-    views = []
+    views, entries = [], []
     for i, image in enumerate(scene["image_paths"]):
         if image is None:
             continue
+        entries.append(f"image_paths[{i}]")
         K = _matrix(scene["intrinsics"][i], (3, 3), path, f"intrinsics[{i}]")
         check_intrinsics(K, f"{path}: intrinsics[{i}]")
         pose = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
         R = pose[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-3):
             raise DatasetError(f"{path}: poses[{i}] does not hold a rotation (is it a pose at all?)")
-        views.append(View(str(image), root / str(image), K, pose))
+        name = image_key(str(image), root, anywhere, f"{path}: image_paths[{i}]")
+        views.append(View(name, Path(name) if anywhere else root / name, K, pose))
     _check_count(views, path)
-    return views
+    return _once(views, path, entries)
 
 
-def views_from_colmap(model: Path, root: Path) -> list[View]:
+def views_from_colmap(model: Path, root: Path, anywhere: bool = False) -> list[View]:
     """The views of a COLMAP sparse model (cameras + images, text or binary), in name order;
     every image must be under ROOT and every camera a pinhole one without distortion (the
     matches are made on the stored images, which K must describe)."""
@@ -106,28 +139,37 @@ def views_from_colmap(model: Path, root: Path) -> list[View]:
             pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
         else:
             continue  # an image the model lists but never registered has no ground truth
-        views.append(View(image.name, root / image.name, K, pose))
+        name = image_key(image.name, root, anywhere, f"{model}: image {image.name}")
+        views.append(View(name, Path(name) if anywhere else root / name, K, pose))
     missing = [v for v in views if not v.path.is_file()]
     if missing:
         raise DatasetError(f"{model}: {len(missing)} of the {len(views)} images the model names are missing under "
                            f"{root} (first: {missing[0].name})")
     _check_count(views, model)
-    return views
+    return _once(views, model)
 
 
-def views_from_pair_list(path: Path, root: Path) -> tuple[list[View], list[ListedPair]]:
-    """The views and pairs of a SuperGlue-format list; an image named twice must have the same
-    K both times (one camera per image in the reconstruction)."""
-    from ..datasets.yfcc import YFCC100M
-    from ..interchange.base import image_name
+class _PairLines(YFCC100M):
+    """YFCC100M's reading of a SuperGlue-format list without its PairList checks: the set names
+    its pairs itself (a stereo layout, image_0/N.png and image_1/N.png, repeats the file stems
+    YFCC's pair names are made of) and checks its images once (MultiViewSet)."""
 
-    listed = YFCC100M(root, pairs=path, skip_bad=False)
+    def __init__(self, root: Path, pairs: Path) -> None:  # noqa: the PairList is the set's own
+        self.root, self.pairs_file = Path(root), Path(pairs)
+
+
+def views_from_pair_list(path: Path, root: Path, anywhere: bool = False
+                         ) -> tuple[list[View], list[ListedPair], list[tuple[str, str]]]:
+    """The views and pairs of a SuperGlue-format list, and (pair, problem) of its pairs whose
+    ground truth is unusable; an image named twice must have the same K both times (one camera
+    per image in the reconstruction)."""
+    listed, bad = _PairLines(root, path).read_pairs()
     views: dict[str, View] = {}
     pairs = []
     for pair in listed:
         names = []
         for image, K, where in ((pair.image0, pair.K0, "K0"), (pair.image1, pair.K1, "K1")):
-            name = image_name(image, root)
+            name = image_key(image, root, anywhere, f"{path}: pair {pair.name}")
             known = views.get(name)
             if known is None:
                 views[name] = View(name, Path(image), np.asarray(K, np.float64))
@@ -138,8 +180,9 @@ def views_from_pair_list(path: Path, root: Path) -> tuple[list[View], list[Liste
         if names[0] == names[1]:
             raise DatasetError(f"{path}: pair {pair.name} joins image {names[0]} with itself")
         pairs.append(ListedPair(names[0], names[1], np.asarray(pair.T_0to1, np.float64)))
-    _check_count(list(views.values()), path)
-    return list(views.values()), pairs
+    if views or not bad:  # a list of bad pairs only is refused with their problem (PairList)
+        _check_count(list(views.values()), path)
+    return list(views.values()), pairs, bad
 
 
 # ----------------------------------------------------------------------------- the pair graph
@@ -172,6 +215,40 @@ def read_graph(path: Path, views: list[View]) -> list[ListedPair]:
     if not pairs:
         raise DatasetError(f"{path}: lists no pair")
     return pairs
+
+
+def components(edges: Iterable[tuple[str, str]]) -> list[list[str]]:
+    """The connected components of the graph of these image pairs: each a list of image names
+    in the order first met, largest first (equal sizes: the one met first, first)."""
+    parent: dict[str, str] = {}
+
+    def root(name: str) -> str:
+        while parent[name] != name:
+            parent[name] = parent[parent[name]]  # path halving: near-flat trees on long chains
+            name = parent[name]
+        return name
+
+    for a, b in edges:
+        for name in (a, b):
+            parent.setdefault(name, name)
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[rb] = ra
+    groups: dict[str, list[str]] = {}
+    for name in parent:  # insertion order: first met
+        groups.setdefault(root(name), []).append(name)
+    return sorted(groups.values(), key=len, reverse=True)  # sorted() is stable: ties keep their order
+
+
+def pair_labels(views: list[View]) -> dict[str, str]:
+    """Each view's part of a pair's name: its file stem where no two views share one (the names
+    runs have had), else its name without the suffix (a stereo layout: image_0/N, image_1/N),
+    else its whole name; never with a leading '/' (an absolute name: the cache's groups)."""
+    for label in (lambda n: PurePosixPath(n).stem, lambda n: str(PurePosixPath(n).with_suffix("")), str):
+        labels = {v.name: label(v.name).lstrip("/") for v in views}
+        if len(set(labels.values())) == len(labels):
+            return labels
+    raise DatasetError(f"{views[0].path}: two images of the set have one name")  # views are unique by name
 
 
 def relative_pose(view0: View, view1: View, where: str) -> np.ndarray:
