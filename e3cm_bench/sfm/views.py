@@ -154,7 +154,7 @@ class _PairLines(YFCC100M):
     its pairs itself (a stereo layout, image_0/N.png and image_1/N.png, repeats the file stems
     YFCC's pair names are made of) and checks its images once (MultiViewSet)."""
 
-    def __init__(self, root: Path, pairs: Path) -> None:  # noqa: the PairList is the set's own
+    def __init__(self, root: Path, pairs: Path) -> None:  # no PairList.__init__: the set checks its pairs
         self.root, self.pairs_file = Path(root), Path(pairs)
 
 
