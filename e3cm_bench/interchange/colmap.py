@@ -84,17 +84,11 @@ def mapper_options(pycolmap, calibrated: bool = True):
     return options
 
 
-# The camera models an image without known intrinsics may get (reconstruct --camera-model):
-# COLMAP's default, with one radial distortion term, or a plain pinhole.
-UNCALIBRATED_MODELS = ("SIMPLE_RADIAL", "PINHOLE")
-
-
-def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: str, model: str = "SIMPLE_RADIAL"):
+def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: str):
     w, h = (int(v) for v in size)
     if K is None:
         f = 1.2 * max(w, h)  # COLMAP's default focal prior for an image without EXIF
-        params = [f, w / 2, h / 2, 0.0] if model == "SIMPLE_RADIAL" else [f, f, w / 2, h / 2]
-        return pycolmap.Camera(model=model, width=w, height=h, params=params)
+        return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, 0.0])
     K = np.asarray(K, np.float64)
     shift = _shift(origin)
     # has_prior_focal_length: the focal is the benchmark's calibration, not a guess, so that
@@ -104,13 +98,13 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
 
 
 def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None,
-                 camera_model: str = "SIMPLE_RADIAL", single_camera: bool = False) -> list[Path]:
+                 cameras=None) -> list[Path]:
     """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
     mapper can chain pairs into tracks of more than two views. merged: merge_keypoints' result
-    for these items, where the caller has it. An image without K gets a `camera_model` camera
-    (UNCALIBRATED_MODELS); with single_camera, images without K that share a size share one
-    (COLMAP's --ImageReader.single_camera, per size), so the mapper refines one set of intrinsics."""
+    for these items, where the caller has it. cameras: image name -> the pycolmap.Camera it gets
+    instead of camera_for's (images given the same object share one camera, as COLMAP's
+    single_camera makes them)."""
     from .tracks import merge_keypoints
 
     pycolmap = pycolmap_module()
@@ -123,16 +117,17 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
         db = pycolmap.Database.open(str(tmp))
         try:
             ids: dict[str, int] = {}
-            shared: dict[tuple[int, int], int] = {}  # size -> camera, with single_camera
+            written: dict[int, int] = {}  # id() of a given camera -> its camera_id, for those shared
             for item in items:
                 for name, K, size in ((item.name0, item.K0, item.size0), (item.name1, item.K1, item.size1)):
                     if name not in ids:
-                        key = tuple(int(v) for v in size) if single_camera and K is None else None
-                        camera_id = shared.get(key) if key is not None else None
-                        if camera_id is None:
-                            camera_id = db.write_camera(camera_for(pycolmap, K, size, origin, camera_model))
-                            if key is not None:
-                                shared[key] = camera_id
+                        given = (cameras or {}).get(name)
+                        if given is None:
+                            camera_id = db.write_camera(camera_for(pycolmap, K, size, origin))
+                        else:
+                            if id(given) not in written:
+                                written[id(given)] = db.write_camera(given)
+                            camera_id = written[id(given)]
                         ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
             for name, points in keypoints.items():
                 db.write_keypoints(ids[name], to_origin(points, origin).astype(np.float32).reshape(-1, 2))

@@ -2,10 +2,10 @@
 -> pycolmap's incremental mapper -> the model, written where COLMAP's GUI and hloc open it.
 
 Where the sfm benchmark knows each image's K and keeps it fixed (sfm/reconstruct.py), here the
-intrinsics are unknown, as for a user's photos: one camera per image size (shared by the images
-of that size: COLMAP's single_camera, per size), focal initialised COLMAP's way (1.2 x the
-longer side, what COLMAP takes without an EXIF focal), principal point at the centre, and
-refined by the mapper's bundle adjustment. Without K there is no essential matrix to check the
+intrinsics are unknown, as for a user's photos: each image's camera as COLMAP's image reader
+makes it (the focal length from EXIF where the file has it, else 1.2 x the longer side; the
+principal point at the centre), shared by the images whose cameras come out the same (COLMAP's
+single_camera, per size and EXIF focal), and refined by the mapper's bundle adjustment. Without K there is no essential matrix to check the
 matches with, so COLMAP verifies them itself (pycolmap.verify_matches: its fundamental /
 essential / homography RANSAC, seeded), as hloc's pipelines do, and the mapper runs on its
 inliers.
@@ -49,8 +49,9 @@ def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
     return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": version,
             "options": dict(MAPPER_OPTIONS), **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
             "seed": "evaluation.seed", "camera_model": camera_model,
-            "cameras": "one per image size" if single_camera else "one per image",
-            "focal_init": "1.2 x longer side (COLMAP's, no EXIF read)", "intrinsics": "refined by the mapper",
+            "cameras": "shared by the images of one size and EXIF focal" if single_camera else "one per image",
+            "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
+            "intrinsics": "refined by the mapper",
             "merge_px": merge_px}
 
 
@@ -67,6 +68,25 @@ def mapper_options(seed: int):
         setattr(options, group, sub)
     options.random_seed = options.mapper.random_seed = options.triangulation.random_seed = int(seed)
     return options
+
+
+def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_camera: bool) -> dict:
+    """Each image's camera as COLMAP's image reader makes it (pycolmap.infer_camera_from_image:
+    the focal length from EXIF where the file has it, else 1.2 x the longer side; the principal
+    point at the centre); with single_camera, images whose cameras come out the same (size,
+    model, parameters, whether the focal is a prior) share one object, so one camera."""
+    from ..interchange.colmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    options = pycolmap.ImageReaderOptions()
+    options.camera_model = camera_model
+    cameras, shared = {}, {}
+    for name in names:
+        camera = pycolmap.infer_camera_from_image(str(Path(root) / name), options)
+        key = (camera.model_name, camera.width, camera.height, tuple(np.round(camera.params, 9)),
+               camera.has_prior_focal_length)
+        cameras[name] = shared.setdefault(key, camera) if single_camera else camera
+    return cameras
 
 
 def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: Path, seed: int = 0,
@@ -88,7 +108,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         names = pair.meta["view0"], pair.meta["view1"]
         images += [name for name in names if name not in images]
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m))
-    write_colmap(workdir, items, merge_px=merge_px, camera_model=camera_model, single_camera=single_camera)
+    write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, single_camera))
     (workdir / PAIRS).write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
     pycolmap.set_random_seed(int(seed))
     level = pycolmap.logging.minloglevel

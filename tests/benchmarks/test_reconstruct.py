@@ -121,3 +121,28 @@ def test_kitti_frames_without_ground_truth(shared_data, tmp_path):
         stems = pair.replace(".png", "")
         a, b = ours.read(pair), theirs.read(f"kitti00_seq/{stems}")
         assert np.array_equal(a.keypoints0, b.keypoints0) and np.array_equal(a.keypoints1, b.keypoints1), pair
+
+
+def test_cameras_are_colmaps_guess_shared_by_size_and_exif(room, tmp_path):
+    """One camera per size and EXIF focal (COLMAP's single_camera), each as COLMAP's reader makes it."""
+    from PIL import Image
+
+    from e3cm_bench.sfm.uncalibrated import cameras_for
+
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for i in range(3):
+        shutil.copy(room / f"view{i:02d}.png", folder / f"a{i}.png")
+    with Image.open(room / "view03.png") as image:
+        image.resize((320, 240)).save(folder / "small.png")
+        exif = Image.Exif()
+        exif[0x8769] = {0xA405: 50}  # FocalLengthIn35mmFilm, in the Exif sub-IFD
+        image.convert("RGB").save(folder / "exif.jpg", exif=exif)
+    names = image_names(folder)
+    cameras = cameras_for(folder, names, "SIMPLE_RADIAL", single_camera=True)
+    assert len({id(c) for c in cameras.values()}) == 3  # the three 640 x 480 PNGs share one
+    assert cameras["a0.png"] is cameras["a2.png"] and cameras["small.png"].width == 320
+    assert cameras["a0.png"].params[0] == pytest.approx(1.2 * 640) and not cameras["a0.png"].has_prior_focal_length
+    assert cameras["exif.jpg"].has_prior_focal_length and cameras["exif.jpg"].params[0] != pytest.approx(1.2 * 640)
+    apart = cameras_for(folder, names, "PINHOLE", single_camera=False)
+    assert len({id(c) for c in apart.values()}) == 5 and apart["a0.png"].model_name == "PINHOLE"
