@@ -122,12 +122,8 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
                 for name, K, size in ((item.name0, item.K0, item.size0), (item.name1, item.K1, item.size1)):
                     if name not in ids:
                         given = (cameras or {}).get(name)
-                        if given is None:
-                            camera_id = db.write_camera(camera_for(pycolmap, K, size, origin))
-                        else:
-                            if id(given) not in written:
-                                written[id(given)] = db.write_camera(given)
-                            camera_id = written[id(given)]
+                        camera_id = (db.write_camera(camera_for(pycolmap, K, size, origin)) if given is None
+                                     else _shared_camera(db, written, given))
                         ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
             for name, points in keypoints.items():
                 db.write_keypoints(ids[name], to_origin(points, origin).astype(np.float32).reshape(-1, 2))
@@ -158,6 +154,14 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
             db.close()
 
     return [write_atomically(out / "database.db", write)]
+
+
+def _shared_camera(db, written: dict, camera) -> int:
+    """The id of a caller's camera, written once: images given the same object share it (the
+    objects live in the caller's mapping for the whole write, so their id() stays theirs)."""
+    if id(camera) not in written:
+        written[id(camera)] = db.write_camera(camera)
+    return written[id(camera)]
 
 
 # COLMAP's array tables: (table, key column, bytes per entry (descriptors: uint8 or float32),
