@@ -31,7 +31,7 @@ class MethodSpec:
     matchers that draw no random numbers (their matches do not depend on it). upright: match
     images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
     plugin: what a matcher from outside this package is, as sorted (key, value) pairs: its
-    distribution and version, or its module and the module file's sha256 (None: built-in).
+    distribution and version, or its module, with the sha256 of its code (None: built-in).
     label: the name in tables and plots; not part of the identity.
     """
 

@@ -23,6 +23,7 @@ from .cache import MatchCache
 from .datasets.base import Pair, PairList
 from .devices import check_device, keep_freed_memory
 from .matchers.base import Matcher
+from .matchers import built_settings
 from .matchers.guards import describe_matcher
 from .method import MethodSpec, identity_changes
 from .run import RunConfig, RunFolder, driver
@@ -184,7 +185,8 @@ class _OpenRun:
 
     def job(self) -> MatchJob:
         def record_matcher(matcher: Matcher) -> None:
-            now = describe_matcher(matcher)  # what it says of itself, checked to be writable
+            # what it says of itself (a plugin that says nothing: what it was built from), checked to be writable
+            now = describe_matcher(matcher, built_settings(self.method.matcher, self.method.settings_dict()))
             if len(self.todo) < len(self.pairs):  # resuming: the folder holds matches already
                 self.folder.check_resolved(self.config.matcher, now)
             self.config.matcher = now

@@ -32,7 +32,8 @@ WIDTH = 80
 NARROW = ("compare", "table", "check")  # the commands whose output must read at 80 columns
 
 # What the tour's placeholders stand for on the shared samples.
-IMAGES = {"a.jpg": "hpatches-sequences-release/v_boat/1.ppm", "b.jpg": "hpatches-sequences-release/v_boat/2.ppm"}
+IMAGES = {"a.jpg": "hpatches-sequences-release/v_boat/1.ppm", "b.jpg": "hpatches-sequences-release/v_boat/2.ppm",
+          "photos/": "megadepth_test_1500/Undistorted_SfM/kitti00/images"}  # 20 frames, no ground truth given
 ROOTS = {"hpatches": "hpatches-sequences-release", "wxbs": "WxBS", "evd": "EVD", "table1": "hpatches-sequences-release"}
 SMALL = {"hpatches": ["--sequences", "v_boat", "--limit", "2", "--max-side", "320"],
          "wxbs": ["--limit", "2", "--max-side", "320"], "evd": ["--limit", "2", "--max-side", "320"]}
@@ -130,6 +131,7 @@ class Step:
     code: int
     stdout: str
     stderr: str
+    cwd: Path | None = None
 
 
 def walk_plan() -> list[tuple[str, list[str]]]:
@@ -173,7 +175,7 @@ def walk(shared_data, tmp_path_factory) -> list[Step]:
             done = subprocess.run([entry, *run], cwd=here, env=env, capture_output=True, text=True, timeout=900)
             print(f"$ e3cm-bench {' '.join(run)}    [{source}; {time.perf_counter() - start:.1f} s]")
             print(done.stdout + done.stderr)
-            steps.append(Step(source, run, done.returncode, done.stdout, done.stderr))
+            steps.append(Step(source, run, done.returncode, done.stdout, done.stderr, here))
     finally:
         os.chdir(cwd)
     return steps
@@ -183,7 +185,7 @@ def test_the_walk_reads_the_files():
     plan = walk_plan()
     names = [words[0] for _, words in plan]
     for command in ("demo", "match", "hpatches", "compare", "table", "reproduce", "import", "report", "check",
-                    "calibrate", "wxbs", "evd"):
+                    "calibrate", "wxbs", "evd", "reconstruct"):
         assert command in names, (command, names)
     # the tour's steps that match with a deep matcher run offline as written
     deep = [words for where, words in plan if where == "README.md" and words[0] in ("match", "reproduce", "hpatches")
@@ -210,6 +212,59 @@ def test_compare_table_and_check_read_at_80_columns(walk):
     wide = [f"{s.words[0]}: {len(line)} columns: {line!r}" for s in narrow for line in s.stdout.splitlines()
             if len(line) > WIDTH]
     assert not wide, "\n".join(wide)
+
+
+@pytest.mark.slow  # the walk runs every step once
+def test_reconstruct_makes_a_model_of_the_kitti_frames_without_ground_truth(walk):
+    """The tour's `reconstruct photos/ ... --matcher sift --window 2`, on the 20 shared KITTI frames."""
+    pycolmap = pytest.importorskip("pycolmap")
+    import pandas as pd
+
+    step = next(s for s in walk if s.words[0] == "reconstruct")
+    assert step.code == 0 and "--window" in step.words and "sift" in step.words
+    out = step.cwd / step.words[step.words.index("--out") + 1]
+    summary = pd.read_csv(out / "summary.csv").iloc[0]
+    assert summary["n_images"] == 20 and summary["largest_model_images"] >= 15, summary.to_dict()
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))  # what COLMAP's GUI and hloc read
+    assert model.num_reg_images() == summary["largest_model_images"]
+
+
+@pytest.mark.slow  # three commands, each with its start-up: about 40 s on 2 cores
+def test_an_edited_editable_plugin_is_refused_or_rematched_never_scored_stale(shared_data, tmp_path):
+    """docs/own-matcher.md's plugin route as a researcher takes it: the example plugin installed
+    editable (its source folder on the path and a dist-info naming its entry point, what `pip
+    install -e` leaves), a run, an edit of its code that keeps its version, the same command
+    again (refused in one line), then --overwrite (matched anew, the new settings recorded)."""
+    entry = entry_point()
+    if entry is None:
+        pytest.skip("the e3cm-bench command is not installed (pip install -e .)")
+    source, site = tmp_path / "src", tmp_path / "site"
+    shutil.copytree(REPO / "examples/plugin/src/e3cm_bench_orb", source / "e3cm_bench_orb")
+    info = site / "e3cm_bench_orb-0.1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: e3cm-bench-orb\nVersion: 0.1.0\n")
+    (info / "entry_points.txt").write_text("[e3cm_bench.matchers]\norb = e3cm_bench_orb:ENTRY\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "E3CM_BENCH_DEBUG")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), str(source), str(REPO), env.get("PYTHONPATH")]))
+    command = [entry, "hpatches", "--root", str(shared_data / ROOTS["hpatches"]), *SMALL["hpatches"],
+               "--out", str(tmp_path / "runs" / "orb"), "--matcher", "orb"]
+    run = lambda *extra: subprocess.run(command + list(extra), env=env, capture_output=True, text=True,  # noqa: E731
+                                        timeout=600)
+    import yaml
+
+    config = lambda: yaml.safe_load((tmp_path / "runs" / "orb" / "config.yaml").read_text())  # noqa: E731
+    first = run()
+    assert first.returncode == 0, first.stderr
+    assert config()["matcher"]["max_keypoints"] == 5000
+    code = source / "e3cm_bench_orb" / "__init__.py"
+    code.write_text(code.read_text().replace("max_keypoints: int = 5000", "max_keypoints: int = 1000"))
+    again = run()
+    assert again.returncode == 2 and "made with other settings" in again.stderr, again.stdout + again.stderr
+    assert "evaluating only" not in again.stdout and config()["matcher"]["max_keypoints"] == 5000
+    fresh = run("--overwrite")
+    assert fresh.returncode == 0 and "evaluating only" not in fresh.stdout, fresh.stderr
+    assert config()["matcher"]["max_keypoints"] == 1000
+    assert config()["identity"]["plugin"]["version"] == "0.1.0"  # the version never changed: the code did
 
 
 def broken_rows(text: str) -> list[str]:

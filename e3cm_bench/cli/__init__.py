@@ -9,6 +9,7 @@ data commands.
 
 from . import match  # noqa: F401, I001 - each module adds its commands to app, in this order
 from . import benchmarks  # noqa: F401
+from . import reconstruct  # noqa: F401
 from . import results  # noqa: F401
 from . import tools  # noqa: F401
 from . import data  # noqa: F401

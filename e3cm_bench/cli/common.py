@@ -114,7 +114,7 @@ def parse_settings(pairs: list[str] | None) -> dict:
 
 # The commands that write run folders (with every benchmark's own): only their rerun resumes at
 # the first pair not written.
-RESUMING_COMMANDS = frozenset({"reproduce", "import_matches", "calibrate", "demo"})
+RESUMING_COMMANDS = frozenset({"reproduce", "import_matches", "calibrate", "demo", "reconstruct"})
 
 
 def os_error_line(exc: OSError, resumes: bool = False) -> str:

@@ -97,11 +97,14 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
                            has_prior_focal_length=True)
 
 
-def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None) -> list[Path]:
+def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None,
+                 cameras=None) -> list[Path]:
     """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
     mapper can chain pairs into tracks of more than two views. merged: merge_keypoints' result
-    for these items, where the caller has it."""
+    for these items, where the caller has it. cameras: image name -> the pycolmap.Camera it gets
+    instead of camera_for's (images given the same object share one camera, as COLMAP's
+    single_camera makes them)."""
     from .tracks import merge_keypoints
 
     pycolmap = pycolmap_module()
@@ -114,10 +117,13 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
         db = pycolmap.Database.open(str(tmp))
         try:
             ids: dict[str, int] = {}
+            written: dict[int, int] = {}  # id() of a given camera -> its camera_id, for those shared
             for item in items:
                 for name, K, size in ((item.name0, item.K0, item.size0), (item.name1, item.K1, item.size1)):
                     if name not in ids:
-                        camera_id = db.write_camera(camera_for(pycolmap, K, size, origin))
+                        given = (cameras or {}).get(name)
+                        camera_id = (db.write_camera(camera_for(pycolmap, K, size, origin)) if given is None
+                                     else _shared_camera(db, written, given))
                         ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
             for name, points in keypoints.items():
                 db.write_keypoints(ids[name], to_origin(points, origin).astype(np.float32).reshape(-1, 2))
@@ -148,6 +154,14 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
             db.close()
 
     return [write_atomically(out / "database.db", write)]
+
+
+def _shared_camera(db, written: dict, camera) -> int:
+    """The id of a caller's camera, written once: images given the same object share it (the
+    objects live in the caller's mapping for the whole write, so their id() stays theirs)."""
+    if id(camera) not in written:
+        written[id(camera)] = db.write_camera(camera)
+    return written[id(camera)]
 
 
 # COLMAP's array tables: (table, key column, bytes per entry (descriptors: uint8 or float32),

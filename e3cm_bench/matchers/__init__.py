@@ -10,12 +10,12 @@ from __future__ import annotations
 
 from .base import BACKBONE_SETTINGS, CHANNEL_ORDERS, PRECISIONS, BackboneSettings, Matcher, MatcherEntry
 from .registry import (
-    ENTRY_POINT_GROUP, broken_plugins, build_matcher, check_settings, entries, get_matcher, matcher_names,
+    ENTRY_POINT_GROUP, broken_plugins, build_matcher, built_settings, check_settings, entries, get_matcher, matcher_names,
     register, resolve, unregister,
 )
 
 __all__ = [
     "BACKBONE_SETTINGS", "CHANNEL_ORDERS", "ENTRY_POINT_GROUP", "PRECISIONS", "BackboneSettings", "Matcher",
-    "MatcherEntry", "broken_plugins", "build_matcher", "check_settings", "entries", "get_matcher",
+    "MatcherEntry", "broken_plugins", "build_matcher", "built_settings", "check_settings", "entries", "get_matcher",
     "matcher_names", "register", "resolve", "unregister",
 ]

@@ -107,8 +107,9 @@ class MatcherEntry:
     weights_beside: settings -> the library files it still loads when --weights FILE replaces
         its own (e.g. the keypoint extractor); they enter the identity after the file's hash.
     origin: "built-in", "plugin DIST VERSION" or "module NAME" (set by the registry).
-    source: what the plugin's code is, for the identity: {"package", "version"} or
-        {"module", "sha256"}; None for built-ins (the package's own version is in config.yaml).
+    source: what the plugin's code is, for the identity: {"package", "version", "sha256"} or
+        {"module", "sha256"}, the sha256 of its code (plugin_code.code_sha256); None for
+        built-ins (the package's own version is in config.yaml).
     """
 
     name: str

@@ -6,8 +6,8 @@ A matcher is someone else's code called in our process. Three helpers keep its f
   SystemExit, which no ``except Exception`` stops, so the whole tool would end with the
   plugin's exit code and no word. Inside the block it becomes a PluginExit (a RuntimeError)
   that the caller reports as that matcher's failure.
-- ``describe_matcher(matcher)``: the matcher's ``config()`` as a dict YAML can write, or a
-  one-line ValueError (it raised, exited, or returned an object YAML cannot represent).
+- ``describe_matcher(matcher)``: the matcher's ``settings()`` or ``config()`` as a dict YAML can
+  write, or a one-line ValueError (it raised, exited, or returned an object YAML cannot represent).
 - ``StoppableWorker(target, what)``: the per-pair bound of ``--pair-timeout`` where it must
   hold against code that does not cooperate. ``target`` runs in a forked child process, in a
   process group of its own; a call with no answer by its deadline kills that whole group
@@ -60,28 +60,44 @@ def no_exit(what: str) -> Iterator[None]:
         raise PluginExit(f"{exit_text(exc)} called inside {what}") from None
 
 
-def describe_matcher(matcher) -> dict:
-    """What a matcher says of itself for config.yaml: its ``config()`` (a plugin's object may
-    have none: then its name), checked to be a mapping that YAML can write; a one-line
-    ValueError naming the matcher otherwise, raised before anything is written."""
+def describe_matcher(matcher, built_with: dict | None = None) -> dict:
+    """What a matcher says of itself for config.yaml, checked to be a mapping that YAML can
+    write (a one-line ValueError naming the matcher otherwise, raised before anything is
+    written): its ``settings()`` (the documented hook for a plugin: {"matcher": name, **settings}),
+    else its ``config()`` where its class defines one (the built-ins), else its name and
+    `built_with`, the settings the registry built it from (plugin_code.built_with)."""
     name = getattr(matcher, "name", type(matcher).__name__)
+    hook = getattr(matcher, "settings", None)
+    if callable(hook):
+        return {"matcher": name, **_described(name, "settings()", hook)}
     describe = getattr(matcher, "config", None)
-    if not callable(describe):
-        return {"matcher": name}
+    if callable(describe) and (built_with is None or _defines_config(matcher)):
+        return _described(name, "config()", describe)
+    return {"matcher": name, **(built_with or {})}
+
+
+def _defines_config(matcher) -> bool:
+    """Whether the matcher's class has a config() of its own (not only Matcher's, its name)."""
+    from .base import Matcher
+
+    return getattr(type(matcher), "config", None) is not Matcher.config
+
+
+def _described(name: str, what: str, call) -> dict:
     try:
-        with no_exit("config()"):
-            described = describe()
+        with no_exit(what):
+            described = call()
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # noqa: BLE001 - a plugin's config() may raise anything
-        raise ValueError(f"matcher {name}: config() raised {type(exc).__name__}: {exc}") from None
+        raise ValueError(f"matcher {name}: {what} raised {type(exc).__name__}: {exc}") from None
     if not isinstance(described, dict):
-        raise ValueError(f"matcher {name}: config() returned {type(described).__name__}, expected a dict")
+        raise ValueError(f"matcher {name}: {what} returned {type(described).__name__}, expected a dict")
     try:  # as files.save_yaml will write it
         yaml.safe_dump(yaml_plain(described))
     except (yaml.YAMLError, ValueError, TypeError) as exc:  # RepresenterError: an object, a set
         reason = " ".join(str(exc).split())
-        raise ValueError(f"matcher {name}: config() returned a value YAML cannot write ({reason}); "
+        raise ValueError(f"matcher {name}: {what} returned a value YAML cannot write ({reason}); "
                          "return plain numbers, strings, lists and dicts") from None
     return described
 

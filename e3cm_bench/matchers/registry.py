@@ -36,14 +36,13 @@ import importlib
 import importlib.metadata
 import os
 import sys
-from pathlib import Path
 from typing import Callable
 
 from ..backbone_names import DEFAULT_BACKBONE
 from ..devices import check_device
-from ..files import file_sha256
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
 from .guards import exit_text
+from .plugin_code import built_with, code_sha256
 from .plugin_import import bounded, why
 
 ENTRY_POINT_GROUP = "e3cm_bench.matchers"
@@ -148,6 +147,16 @@ def check_settings(name: str, settings: dict):
     return entry.make_settings(own)
 
 
+def built_settings(name: str, settings: dict) -> dict | None:
+    """What a plugin's matcher is built from (plugin_code.built_with), for config.yaml where the
+    matcher says nothing of its settings itself; None for a built-in (its config() says it all)."""
+    entry, settings = resolve(name, settings or {})
+    if entry.origin == "built-in":
+        return None
+    own, _ = split_settings(entry, settings)
+    return built_with(entry, entry.make_settings(own))
+
+
 def build_matcher(
     name: str = "e3cm",
     backbone: str = DEFAULT_BACKBONE,
@@ -240,6 +249,8 @@ def load_plugins() -> None:
         source = {"package": dist.name, "version": dist.version} if dist is not None else {"entry_point": point.value}
         try:
             found = bounded(lambda point=point: _entries_of(point.load(), point.value), point.value)
+            # the code it runs (an editable install keeps its version through every edit)
+            source["sha256"] = code_sha256(point.module)
         except KeyboardInterrupt:
             raise
         except (Exception, SystemExit) as exc:  # noqa: BLE001 - a broken plugin must not break the toolkit
@@ -277,7 +288,7 @@ def _from_module(name: str) -> MatcherEntry:
         raise ValueError(f"--matcher {name}: module {module_name} has no {attr!r}")
     factory = getattr(module, attr)
     file = getattr(module, "__file__", None)
-    source = {"module": module_name, "sha256": file_sha256(Path(file)) if file else None}
+    source = {"module": module_name, "sha256": code_sha256(module_name)}
     origin = f"module {module_name}" + (f" ({file})" if file else "")
     if isinstance(factory, MatcherEntry):
         entry = factory
@@ -291,7 +302,11 @@ def _from_module(name: str) -> MatcherEntry:
         if isinstance(made, MatcherEntry):
             entry = made
         elif callable(getattr(made, "match", None)):
-            entry = MatcherEntry(name=attr, description=f"{attr}() of {module_name}", build=lambda settings: factory())
+            def build(settings):
+                return factory()
+
+            build.factory = factory  # whose arguments config.yaml records (plugin_code.built_with)
+            entry = MatcherEntry(name=attr, description=f"{attr}() of {module_name}", build=build)
         else:
             raise ValueError(f"--matcher {name}: {attr}() returned {type(made).__name__}, "
                              "expected a MatcherEntry or a matcher (an object with match(image0, image1))")

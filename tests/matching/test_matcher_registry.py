@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from e3cm_bench.cache import MatchCache
+from e3cm_bench.matchers.plugin_code import code_sha256
 from e3cm_bench.matchers import MatcherEntry, get_matcher, matcher_names, register, registry, unregister
 from e3cm_bench.matches import Matches
 from e3cm_bench.method import MethodSpec
@@ -138,7 +139,9 @@ def example_plugin(tmp_path, monkeypatch):
 
 def test_the_example_plugin_is_found_by_entry_point_and_runs_hpatches(example_plugin, hpatches_boat, tmp_path):
     entry = get_matcher("orb")
-    assert entry.origin == "plugin e3cm-bench-orb 0.1.0" and entry.source == {"package": "e3cm-bench-orb", "version": "0.1.0"}
+    code = code_sha256("e3cm_bench_orb")  # every .py file of the package: its identity is its code
+    assert entry.origin == "plugin e3cm-bench-orb 0.1.0"
+    assert entry.source == {"package": "e3cm-bench-orb", "version": "0.1.0", "sha256": code}
     listing = invoke("matchers", "orb").output
     assert "orb  (plugin e3cm-bench-orb 0.1.0)" in listing and "max_keypoints=5000, scale_factor=1.2" in listing
     out = tmp_path / "orb"
@@ -146,8 +149,11 @@ def test_the_example_plugin_is_found_by_entry_point_and_runs_hpatches(example_pl
     assert result.exit_code == 0
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["identity"]["matcher"] == "orb" and config["method"] == "orb"
-    assert config["identity"]["plugin"] == {"package": "e3cm-bench-orb", "version": "0.1.0"}
+    assert config["identity"]["plugin"] == {"package": "e3cm-bench-orb", "version": "0.1.0", "sha256": code}
     assert config["identity"]["settings"] == {"max_keypoints": 1500}
+    # its settings recorded as the built-ins' are, every default in
+    assert config["matcher"] == {"matcher": "orb", "max_keypoints": 1500, "scale_factor": 1.2, "n_levels": 8,
+                                 "fast_threshold": 20}
     summary = (out / "summary.csv").read_text().splitlines()
     row = dict(zip(summary[0].split(","), summary[1].split(",")))
     assert int(row["n_pairs"]) == 5 and float(row["n_matches"]) > 100

@@ -6,11 +6,14 @@ and a function building the matcher from the settings. The matcher has one metho
 ``match(image0, image1) -> Matches``: H x W x 3 uint8 RGB arrays in, keypoints in those
 images' pixels out (pixel-centre convention: the top-left pixel's centre is (0, 0)).
 The benchmark resizes the images first and maps the keypoints back itself.
+
+A run records the plugin by its code (the sha256 of this package's .py files: an edit, even
+in an editable install, is a new identity) and its settings by ``OrbMatcher.settings()``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
@@ -45,12 +48,14 @@ class OrbMatcher(Matcher):
     name = "orb"
 
     def __init__(self, settings: OrbSettings) -> None:
-        self.settings = settings
+        self.options = settings
         self._orb = cv2.ORB_create(nfeatures=settings.max_keypoints, scaleFactor=float(settings.scale_factor),
                                    nlevels=settings.n_levels, fastThreshold=settings.fast_threshold)
 
-    def config(self) -> dict:
-        return {"matcher": self.name, **self.settings.__dict__}
+    def settings(self) -> dict:
+        """Every setting its matches depend on, defaults included: what a run's config.yaml
+        records under `matcher` (without it, e3cm-bench records the settings dataclass)."""
+        return asdict(self.options)
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
         points0, descriptors0 = self._detect(image0)

@@ -1,0 +1,77 @@
+"""`e3cm-bench reconstruct IMAGES --out OUT`: one's own images, no ground truth, to a COLMAP model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt, DeviceOpt,
+                     FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
+                     SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors)
+
+ReconMaxSideOpt = method_option("max_side", help="Match at a longer side of at most N px (default 1200, as sfm; 0: "
+                                                 "full resolution); keypoints are mapped back to the images' pixels.")
+
+
+@app.command()
+@friendly_errors
+def reconstruct(
+    images: Annotated[Path, typer.Argument(help="The folder of images (sub-folders included), named in the model by "
+                                                "their paths under it.")],
+    out: OutOpt,
+    matcher: MatcherOpt = "e3cm",
+    window: Annotated[Optional[int], typer.Option("--window", help="Pairs: each image with the next K in name order "
+                                                                   "(default: every pair).")] = None,
+    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pairs: a file of 'name0 name1' lines, names "
+                                                                  "relative to IMAGES.")] = None,
+    merge_px: Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher without a backbone "
+                                                      "(its keypoints are detections), 2 for one on a backbone",
+                                                      help="Keypoints of an image within this radius (pixels) become "
+                                                           "one, so that tracks form from dense matches.")] = None,
+    camera_model: Annotated[str, typer.Option("--camera-model", help="SIMPLE_RADIAL (COLMAP's default) or PINHOLE; "
+                                                                      "intrinsics unknown, refined by the mapper.")] = "SIMPLE_RADIAL",
+    camera_per_image: Annotated[bool, typer.Option("--camera-per-image", help="One camera per image (default: images "
+                                                                              "of one size share one).")] = False,
+    backbone: BackboneOpt = None,
+    weights: WeightsOpt = None,
+    max_side: ReconMaxSideOpt = None,
+    settings: SetOpt = None,
+    precision: PrecisionOpt = "fp32",
+    channel_order: ChannelOrderOpt = "rgb",
+    seed: SeedOpt = 0,
+    device: DeviceOpt = "cpu",
+    overwrite: OverwriteOpt = False,
+    feature_cache_mb: FeatureCacheOpt = None,
+    skip_bad: SkipBadOpt = False,
+    on_matcher_error: OnMatcherErrorOpt = "stop",
+    pair_timeout: PairTimeoutOpt = None,
+) -> None:
+    """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
+    pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
+    from ..benchmarks import EvalSettings
+    from ..matchers import get_matcher
+    from ..method import build_method
+    from ..run.stage import MatchOptions
+    from ..runner import run_benchmark
+    from ..sfm.own_images import RECONSTRUCT
+    from ..sfm.uncalibrated import SPARSE
+
+    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
+                 channel_order=channel_order, seed=seed,
+                 max_side=RECONSTRUCT.default_max_side if max_side is None else max_side)
+    method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
+    if merge_px is None:  # dense matchers move a feature's point from pair to pair; detections repeat exactly
+        merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
+    options = {"window": window, "pairs": pairs, "merge_px": merge_px, "camera_model": camera_model,
+               "single_camera": not camera_per_image}
+    summary = run_benchmark(RECONSTRUCT, out, method, root=images, dataset_options=options, skip_bad=skip_bad,
+                            ev=EvalSettings(seed=seed), overwrite=overwrite, device=device, console=console,
+                            options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
+                                                 pair_timeout=pair_timeout))
+    row = summary.iloc[0]
+    console.print(f"{int(row['registered_images'])} of {int(row['n_images'])} images registered in "
+                  f"{int(row['n_models'])} model(s); the largest, {Path(out) / SPARSE / '0'}, holds "
+                  f"{int(row['largest_model_images'])} (COLMAP binary and text: colmap gui --import_path, "
+                  "pycolmap.Reconstruction)", markup=False, soft_wrap=True)

@@ -1,0 +1,147 @@
+"""One's own images, no ground truth: a folder of images -> the pairs to match -> the match stage
+every benchmark runs (cache, resume, feature reuse: runner.run_benchmark) -> a reconstruction
+with unknown intrinsics (sfm/uncalibrated.py). What `e3cm-bench reconstruct` runs.
+
+`ImageFolder` is the pairs: every image file under the folder (sub-folders included, hidden ones
+not), named by its path relative to it, in name order; the graph is every pair (exhaustive, as
+hloc's pairs_from_exhaustive), each image with the next K (``window``: a video or a walk), or a
+file of ``name0 name1`` lines (``pairs``: from retrieval, or by hand). `RECONSTRUCT` is the
+"benchmark" that scores them: it has no ground truth, so it scores nothing; its per-pair rows
+say how many matches COLMAP's verification kept and where each image went, and its summary is
+the reconstruction's numbers. It is not in the benchmark registry (it is no benchmark: no
+paper table, no ground truth), so `table` and `report` do not read its folders.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicates
+from ..datasets.base import DatasetError, Pair, PairList, require_directory
+from ..matches import Matches, distinct
+from . import views as V
+from .dataset import _radius, _window
+from .uncalibrated import reconstruct_images, settings as mapper_settings
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
+CAMERA_MODELS = ("SIMPLE_RADIAL", "PINHOLE")
+
+
+def image_names(root: Path) -> list[str]:
+    """The image files under root (hidden folders and files left out), as sorted relative paths."""
+    names = []
+    for path in root.rglob("*"):
+        relative = path.relative_to(root)
+        if path.suffix.lower() in IMAGE_SUFFIXES and path.is_file() and not any(p.startswith(".") for p in relative.parts):
+            names.append(relative.as_posix())
+    return sorted(names)
+
+
+class ImageFolder(PairList):
+    """The pairs of a folder of images: exhaustive, ``window`` K, or the ``pairs`` file's."""
+
+    name = "images"
+
+    def __init__(self, root: str | Path, window: str | int | None = None, pairs: str | Path | None = None,
+                 merge_px: str | float | None = None, camera_model: str = "SIMPLE_RADIAL",
+                 single_camera: bool = True, skip_bad: bool = False) -> None:
+        self.root = require_directory(root, "image")
+        self.window, self.merge_px = _window(window), _radius(merge_px)
+        self.pairs_file = Path(pairs) if pairs is not None else None
+        if self.window is not None and self.pairs_file is not None:
+            raise DatasetError(f"{self.pairs_file}: --window and --pairs are two pair graphs; give one")
+        if camera_model not in CAMERA_MODELS:
+            raise DatasetError(f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
+        self.camera_model, self.single_camera = camera_model, bool(single_camera)
+        self.views = [V.View(name, self.root / name, None) for name in image_names(self.root)]
+        if len(self.views) < V.MIN_VIEWS:
+            raise DatasetError(f"{self.root}: holds {len(self.views)} image(s) ({', '.join(IMAGE_SUFFIXES)}); "
+                               f"a reconstruction needs at least {V.MIN_VIEWS}")
+        if self.pairs_file is not None:
+            listed = V.read_graph(self.pairs_file, self.views)
+        elif self.window is not None:
+            listed = V.window(self.views, self.window)
+        else:
+            listed = V.exhaustive(self.views)
+        built = [Pair(name=f"{item.view0}--{item.view1}", image0=self.root / item.view0, image1=self.root / item.view1,
+                      meta={"view0": item.view0, "view1": item.view1, **self.reconstruction()}) for item in listed]
+        super().__init__(built, self.pairs_file or self.root, skip_bad)
+
+    def reconstruction(self) -> dict:
+        """How the set is reconstructed: it travels with each pair (its meta), as the sfm set's
+        merge radius does, to the evaluation that maps them."""
+        return {"root": str(self.root), "merge_px": self.merge_px, "camera_model": self.camera_model,
+                "single_camera": self.single_camera}
+
+    def settings(self) -> dict:
+        graph = (f"file {self.pairs_file}" if self.pairs_file is not None
+                 else f"window {self.window}" if self.window is not None else "exhaustive")
+        return {"dataset": self.name, "root": str(self.root), "pair_graph": graph, "window": self.window,
+                "pairs": str(self.pairs_file) if self.pairs_file is not None else None, "n_images": len(self.views),
+                "reconstruction": mapper_settings(self.camera_model, self.single_camera, self.merge_px)}
+
+
+@dataclass(frozen=True)
+class ReconstructBenchmark(Benchmark):
+    """A folder of images reconstructed from a matcher's matches: no ground truth, so no score;
+    the rows and the summary say what the reconstruction holds."""
+
+    table_extras: tuple[str, ...] = ("n_pairs", "registered_images", "largest_model_images", "n_images", "n_models",
+                                     "points", "mean_track_length", "mean_reprojection_error")
+    evaluates_set = True
+
+    def pair_columns(self, ev: EvalSettings) -> list[str]:
+        return with_duplicates(["pair", "n_matches", "n_verified", "registered0", "registered1", "model"])
+
+    def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+        raise ValueError("reconstruct maps the pairs of a folder together (evaluate_set), not one at a time")
+
+    def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
+                     workdir: Path | None) -> tuple[list[dict], dict]:
+        if workdir is None:
+            raise ValueError("reconstruct writes its model into the run folder: give one")
+        kept = [distinct(m) for m in matches]
+        how = pairs[0].meta
+        found, verified = reconstruct_images(pairs, [k for k, _ in kept], workdir, Path(how["root"]), seed=ev.seed,
+                                             merge_px=how["merge_px"], camera_model=how["camera_model"],
+                                             single_camera=how["single_camera"])
+        rows = []
+        for pair, (k, repeats), n_verified in zip(pairs, kept, verified):
+            (placed0, placed1) = found.placed(pair.meta["view0"], pair.meta["view1"])
+            same = placed0 is not None and placed1 is not None and placed0[0] == placed1[0]
+            rows.append({"pair": pair.name, "n_matches": len(k), "n_verified": n_verified,
+                         "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
+                         "model": placed0[0] if same else -1, DUPLICATES: repeats})
+        # the model a user opens first (sparse/0): several models may share images
+        largest = len(found.models[0].poses) if found.models else 0
+        return rows, {**found.numbers(), "largest_model_images": largest}
+
+    def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
+        rows = list(rows)
+        mean = lambda key: float(np.mean([float(r[key]) for r in rows])) if rows else 0.0  # noqa: E731
+        return {"n_pairs": len(rows), "n_matches": mean("n_matches"), "n_verified": mean("n_verified")}
+
+    def required_summary_columns(self) -> list[str]:
+        return ["n_pairs", "n_matches", "registered_images", "n_models"]
+
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
+        raise ValueError("reconstruct has no ground truth to call a match correct")
+
+    def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
+        return None  # its picture is the model: open OUT/sparse/0 in COLMAP's GUI
+
+    def plot_comparison(self, runs, stem: Path) -> list[Path]:
+        return []
+
+
+RECONSTRUCT = ReconstructBenchmark(
+    name="reconstruct", dataset=ImageFolder,
+    dataset_options=("window", "pairs", "merge_px", "camera_model", "single_camera"),
+    summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
+    default_max_side=1200,
+)

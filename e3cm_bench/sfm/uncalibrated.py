@@ -1,0 +1,162 @@
+"""Matches of one's own images (no ground truth) -> a COLMAP database -> COLMAP's verification
+-> pycolmap's incremental mapper -> the model, written where COLMAP's GUI and hloc open it.
+
+Where the sfm benchmark knows each image's K and keeps it fixed (sfm/reconstruct.py), here the
+intrinsics are unknown, as for a user's photos: each image's camera as COLMAP's image reader
+makes it (the focal length from EXIF where the file has it, else 1.2 x the longer side; the
+principal point at the centre), shared by the images whose cameras come out the same (COLMAP's
+single_camera, per size and EXIF focal), and refined by the mapper's bundle adjustment. Without K there is no essential matrix to check the
+matches with, so COLMAP verifies them itself (pycolmap.verify_matches: its fundamental /
+essential / homography RANSAC, seeded), as hloc's pipelines do, and the mapper runs on its
+inliers.
+
+The products, in the run folder: ``database.db`` (keypoints, matches, verified geometries),
+``pairs.txt`` (the pair graph, ``name0 name1`` per line) and ``sparse/N/`` per model, largest
+first (``sparse/0``), in COLMAP's binary and text formats (``cameras``, ``images``, ``points3D``): ``colmap gui --import_path``,
+``pycolmap.Reconstruction(path)`` and hloc read them. A rerun (resume, --overwrite) replaces them.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .reconstruct import Model, Reconstruction, image_size
+
+DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
+
+# The incremental mapper's options that differ from pycolmap 4.2.1's defaults, and why:
+# - min_model_size 3: COLMAP's 10 would drop every model of a small set;
+# - init_min_tri_angle 4 degrees (COLMAP's 16): a video's forward motion (the shared KITTI
+#   frames) gives no initial pair at 16 (sfm/reconstruct.py measured it);
+# - one thread and the run's seed (interchange.colmap.mapper_options): the same matches give
+#   the same model. Intrinsics are refined (COLMAP's default): they are unknown here.
+MAPPER_OPTIONS = {"min_model_size": 3}
+MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0}}
+
+
+def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
+    """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
+    from ..interchange.colmap import pycolmap_module
+
+    try:
+        version = pycolmap_module().__version__
+    except ValueError:
+        version = None
+    return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": version,
+            "options": dict(MAPPER_OPTIONS), **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
+            "seed": "evaluation.seed", "camera_model": camera_model,
+            "cameras": "shared by the images of one size and EXIF focal" if single_camera else "one per image",
+            "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
+            "intrinsics": "refined by the mapper",
+            "merge_px": merge_px}
+
+
+def mapper_options(seed: int):
+    from ..interchange.colmap import mapper_options as checked_options, pycolmap_module
+
+    options = checked_options(pycolmap_module(), calibrated=False)
+    for key, value in MAPPER_OPTIONS.items():
+        setattr(options, key, value)
+    for group, values in MAPPER_SUB_OPTIONS.items():
+        sub = getattr(options, group)
+        for key, value in values.items():
+            setattr(sub, key, value)
+        setattr(options, group, sub)
+    options.random_seed = options.mapper.random_seed = options.triangulation.random_seed = int(seed)
+    return options
+
+
+def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_camera: bool) -> dict:
+    """Each image's camera as COLMAP's image reader makes it (pycolmap.infer_camera_from_image:
+    the focal length from EXIF where the file has it, else 1.2 x the longer side; the principal
+    point at the centre); with single_camera, images whose cameras come out the same (size,
+    model, parameters, whether the focal is a prior) share one object, so one camera."""
+    from ..interchange.colmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    options = pycolmap.ImageReaderOptions()
+    options.camera_model = camera_model
+    cameras, shared = {}, {}
+    for name in names:
+        camera = pycolmap.infer_camera_from_image(str(Path(root) / name), options)
+        key = (camera.model_name, camera.width, camera.height, tuple(np.round(camera.params, 9)),
+               camera.has_prior_focal_length)
+        cameras[name] = shared.setdefault(key, camera) if single_camera else camera
+    return cameras
+
+
+def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: Path, seed: int = 0,
+                       merge_px: float = 0.0, camera_model: str = "SIMPLE_RADIAL",
+                       single_camera: bool = True) -> tuple[Reconstruction, list[int]]:
+    """The database of `pairs` (meta view0/view1: the images' names under `root`) and their
+    `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
+    returns the reconstruction and each pair's number of verified matches."""
+    from ..interchange.colmap import pycolmap_module, write_colmap
+    from ..interchange.export import ExportItem
+
+    pycolmap = pycolmap_module()
+    workdir = Path(workdir)
+    for stale in (workdir / DATABASE, workdir / PAIRS):
+        stale.unlink(missing_ok=True)
+    shutil.rmtree(workdir / SPARSE, ignore_errors=True)  # a rerun replaces the last one's products
+    items, images = [], []
+    for pair, m in zip(pairs, matches):
+        names = pair.meta["view0"], pair.meta["view1"]
+        images += [name for name in names if name not in images]
+        items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m))
+    write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, single_camera))
+    (workdir / PAIRS).write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
+    pycolmap.set_random_seed(int(seed))
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 1  # its progress log is thousands of lines; warnings and errors still show
+    try:
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = int(seed)
+        pycolmap.verify_matches(str(workdir / DATABASE), str(workdir / PAIRS), verification)
+        verified = _verified(pycolmap, workdir / DATABASE, items)
+        mapper_out = workdir / f"{SPARSE}.mapper"  # where the mapper writes its snapshots
+        shutil.rmtree(mapper_out, ignore_errors=True)
+        mapper_out.mkdir()
+        found = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root), str(mapper_out),
+                                             options=mapper_options(seed))
+    finally:
+        pycolmap.logging.minloglevel = level
+    shutil.rmtree(mapper_out, ignore_errors=True)
+    # sparse/0 is the largest model (the mapper's index breaks ties), as a user opens it first
+    ranked = sorted(found.items(), key=lambda item: (-item[1].num_reg_images(), item[0]))
+    models = []
+    for rank, (_, model) in enumerate(ranked):
+        folder = workdir / SPARSE / str(rank)
+        folder.mkdir(parents=True)
+        model.write_binary(str(folder))
+        model.write_text(str(folder))
+        models.append(_model(rank, model))
+    return Reconstruction(images, models, workdir / DATABASE), verified
+
+
+def _verified(pycolmap, database: Path, items) -> list[int]:
+    """Each pair's number of matches COLMAP's verification kept (0: none, or no geometry)."""
+    db = pycolmap.Database.open(str(database))
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        return [len(db.read_two_view_geometry(ids[i.name0], ids[i.name1]).inlier_matches)
+                if db.exists_two_view_geometry(ids[i.name0], ids[i.name1]) else 0 for i in items]
+    finally:
+        db.close()
+
+
+def _model(index: int, model) -> Model:
+    poses = {}
+    for image_id in model.reg_image_ids():
+        image = model.image(image_id)
+        pose = np.eye(4)
+        pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
+        poses[image.name] = pose
+    points = int(model.num_points3D())
+    return Model(index, poses, points, int(model.compute_num_observations()),
+                 float(model.compute_mean_track_length()) if points else float("nan"),
+                 float(model.compute_mean_reprojection_error()) if points else float("nan"))
