@@ -10,6 +10,7 @@ from dataclasses import replace
 import pandas as pd
 from rich.console import Console
 
+from ..matchers.user_module import no_folder_on_path
 from ..reporting.tables import print_summary
 from .folder import RunFolder
 from .stage import MatchOptions
@@ -153,7 +154,8 @@ def submit_array(function, jobs: list[dict], folder, console: Console, out, slur
     if executor.cluster != "slurm":
         params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
     executor.update_parameters(**params)
-    submitted = executor.map_array(function, jobs)
+    with no_folder_on_path():  # the tasks (sbatch exports this environment) import nothing from the current folder
+        submitted = executor.map_array(function, jobs)
     job_id = submitted[0].job_id.split("_")[0]
     console.print(f"submitted {n} shard(s) to {executor.cluster}: job {job_id}; "
                   f"they merge when the last one finishes (or: e3cm-bench merge {out})", markup=False)
@@ -198,7 +200,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
     if launcher == "slurm":
         return submit_array(run_shard_job, jobs, RunFolder(kwargs["out"]).shards_dir / "slurm", console,
                             kwargs["out"], slurm)
-    with worker_pool(len(devices)) as pool:
+    with no_folder_on_path(), worker_pool(len(devices)) as pool:  # workers import nothing from the current folder
         futures = [pool.submit(run_shard_job, job) for job in jobs]
         results = []
         for k, future in enumerate(futures, start=1):
