@@ -40,6 +40,7 @@ class SfMBenchmark(Benchmark):
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
+    builds_to_limit = True
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
@@ -120,6 +121,8 @@ SFM = SfMBenchmark(
         DatasetOption("window", "text", "Pair graph: each image with the next K in the set's order "
                       "(default: every pair)."),
         DatasetOption("graph", "path", "Pair graph: a file of image-name pairs to match (name0 name1 per line)."),
+        DatasetOption("max_pairs", "text", "The most pairs the graph may hold (default 20000); the count is "
+                      "checked before a pair is made."),
         DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
                       "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
     ),

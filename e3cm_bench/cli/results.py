@@ -91,9 +91,11 @@ def reproduce(
     from ..download import find_root
     from ..experiments import reproduce as reproduce_experiment
     from ..run.shards import parse_shard
-    from ..run.launch import check_launcher, run_experiment_shards
+    from ..run.launch import check_launcher, check_slurm, run_experiment_shards
 
     check_launcher(launcher)
+    if shards and launcher != "slurm":
+        raise ValueError(f"--shards {shards} applies to --launcher slurm")
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
@@ -106,6 +108,7 @@ def reproduce(
     if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
         if shard or not shards:
             raise ValueError("--launcher slurm needs --shards N (and no --shard)")
+        check_slurm(shards)
         run_experiment_shards(run, shards, console=console)
     else:
         reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)

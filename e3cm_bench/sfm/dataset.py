@@ -25,7 +25,8 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
                  pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
-                 merge_px: str | float | None = None, skip_bad: bool = False) -> None:
+                 merge_px: str | float | None = None, max_pairs: str | int | None = None, skip_bad: bool = False,
+                 first: int | None = None) -> None:
         self.root = require_directory(root, "image set")
         given = [flag for flag, value in (("--scene-info", scene_info), ("--colmap-model", colmap_model),
                                            ("--pairs", pairs)) if value is not None]
@@ -57,9 +58,13 @@ class MultiViewSet(PairList):
                 listed = V.window(self.views, self.window)
             else:
                 listed = V.exhaustive(self.views)
+        self.max_pairs = _count(max_pairs, "--max-pairs") or DEFAULT_MAX_PAIRS
+        self.n_graph_pairs = self._check_size(listed, first)
         set_name = self.source.stem if self.kind == "scene_info" else self.source.name
         built, bad = [], []
         for number, item in enumerate(listed):
+            if first and len(built) >= first:  # --limit: the graph is built no further than the run reaches
+                break
             view0, view1 = by_name[item.view0], by_name[item.view1]
             stems = f"{PurePosixPath(item.view0).stem}--{PurePosixPath(item.view1).stem}"
             name = f"{set_name}/{stems}"
@@ -74,6 +79,19 @@ class MultiViewSet(PairList):
                                     "merge_px": self.merge_px}))
         super().__init__(built, self.source, skip_bad, bad)
 
+    def _check_size(self, listed, first: int | None) -> int:
+        """The number of pairs of the graph, counted before one is built; a DatasetError where the
+        run would build more than max_pairs of them."""
+        n = len(self.views)
+        count = len(listed) if isinstance(listed, list) else V.graph_size(n, self.window)
+        building = min(count, first) if first else count
+        if building > self.max_pairs:
+            graph = "every pair" if self.window is None and self.graph is None and self.kind != "pairs" else "its graph"
+            raise DatasetError(f"{self.graph or self.source}: {n} images give {count:,} pairs ({graph}), over the "
+                               f"{self.max_pairs:,} a run builds; --max-pairs {count} lifts the bound, or choose "
+                               "fewer pairs (--window K, --graph FILE, --limit N)")
+        return count
+
     def settings(self) -> dict:
         graph = ("listed" if self.kind == "pairs" else f"file {self.graph}" if self.graph is not None
                  else f"window {self.window}" if self.window is not None else "exhaustive")
@@ -82,6 +100,23 @@ class MultiViewSet(PairList):
         return {"dataset": self.name, "root": str(self.root), self.kind: str(self.source), "window": self.window,
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
                 "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
+
+
+# The pairs a set's graph may hold unless --max-pairs says more: an exhaustive graph grows with
+# the square of the images (20,000 pairs: 200 images; 3000 images give 4.5 million).
+DEFAULT_MAX_PAIRS = 20_000
+
+
+def _count(value, option: str) -> int | None:
+    if value is None:
+        return None
+    try:
+        n = int(str(value))
+    except ValueError:
+        raise DatasetError(f"{option} must be a whole number, got {value!r}") from None
+    if n < 1:
+        raise DatasetError(f"{option} must be at least 1, got {n}")
+    return n
 
 
 def _window(value) -> int | None:
