@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 from rich.console import Console
+from rich.markup import escape
 
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import MatchCache
@@ -260,10 +261,10 @@ def _open_run(
     )
     if todo:
         console.print(method.describe(), markup=False)
-        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {folder.matches_path}")
+        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {escape(str(folder.matches_path))}")
         folder.write_config(config)  # before the model loads: the folder is claimed and described
     else:
-        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {folder.matches_path}; evaluating only")
+        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {escape(str(folder.matches_path))}; evaluating only")
     return _OpenRun(benchmark, folder, method, pairs, todo, skipped, dataset.skip_bad, cache, config, ev)
 
 

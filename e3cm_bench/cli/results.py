@@ -205,7 +205,7 @@ def check(
     bad += sum(f.status == "regression" for f in findings) + len(problems)
     # The verdict first, so that a wrapped line never splits it (CI logs are searched for it).
     console.print(("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
-                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False)
+                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False, markup=False)
     if bad:
         raise typer.Exit(1)
 
@@ -235,18 +235,21 @@ def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | N
     if ensemble < 0:
         raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")
     regression.write_baseline(runs, baseline)
-    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}")
+    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}",
+                  markup=False)
     noise = regression.noise_path(baseline)
     if not ensemble:
         if noise.is_file():  # draws around the old baseline would judge the new one
             noise.unlink()
-            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)")
+            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)",
+                          markup=False)
         return
     work = ensemble_dir or Path(".e3cm-ensemble") / baseline.stem
-    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False)
+    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False, markup=False)
     t = time.perf_counter()
     table = build_ensemble(runs, range(1, ensemble + 1), work, console=console)
     write_noise(table, noise)
-    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False)
+    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False,
+                  markup=False)
 
 
