@@ -40,7 +40,7 @@ class SfMBenchmark(Benchmark):
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
-    builds_to_limit = True
+    builds_to_limit: bool = True
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
