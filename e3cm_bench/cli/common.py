@@ -183,12 +183,12 @@ def friendly_errors(command):
         except ImportError as exc:
             # A library that cannot be mapped into memory (the commands import torch only when they
             # match, so under `ulimit -v` this is where the limit is met first) is the memory case
-            # above, not a bug; a broken library is one line (__main__.broken_library_line); an
+            # above, not a bug; a broken library is one line (library_errors.py); an
             # ImportError in e3cm-bench's own code keeps its traceback.
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             if not _out_of_address_space(exc):
-                from ..__main__ import broken_library_line
+                from ..library_errors import broken_library_line
 
                 line = broken_library_line(exc)
                 if line is None:
