@@ -176,10 +176,13 @@ class StoppableWorker:
             status = self.stop()
             raise WorkerDied(f"{what}: its process ended without a result ({status or type(exc).__name__})") from None
         try:
-            return child_answer.decode(document, declared, data, self.errors)
+            value = child_answer.decode(document, declared, data, self.errors)
         except child_answer.BadAnswer as exc:
             self.stop()
             raise WorkerDied(f"{what}: its answer was refused ({exc}); its process was stopped") from None
+        if deadline is not None and time.monotonic() > deadline:  # reading it back counts toward the limit
+            raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s (its answer was read back late)")
+        return value
 
     def _answer(self, nonce: bytes, deadline: float | None, spares: int = 16):
         """The answer to the call `nonce` (its JSON document, declared arrays and bytes), each
