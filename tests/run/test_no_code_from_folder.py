@@ -60,13 +60,15 @@ def decoyed(tmp_path) -> Path:
     return here
 
 
-def e3cm_bench(args: list, cwd: Path, pythonpath: list[Path] = ()) -> subprocess.CompletedProcess:
+def e3cm_bench(args: list, cwd: Path, pythonpath: list[Path] = (), without_srun: bool = False) -> subprocess.CompletedProcess:
     """The command as the installed script runs it (its own folder first on the path, not the current one)."""
     script = cwd.parent / "bin" / "e3cm-bench"
     script.parent.mkdir(exist_ok=True)
     script.write_text(LAUNCHER)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, [ROOT, *pythonpath]))}
     env.pop("PYTHONSAFEPATH", None)
+    if without_srun:  # submitit then runs the array's tasks here, as local processes
+        env["PATH"] = os.pathsep.join(p for p in env["PATH"].split(os.pathsep) if not (Path(p) / "srun").exists())
     return subprocess.run([sys.executable, str(script), *map(str, args)], cwd=cwd, env=env, capture_output=True,
                           text=True, timeout=600)
 
@@ -116,6 +118,6 @@ def test_slurm_tasks_import_nothing_from_the_current_folder(boat, decoyed, monke
     (decoyed / "mine.py").write_text(MINE)
     out = decoyed.parent / "out"
     done = e3cm_bench(["hpatches", "--root", boat, "--out", out, "--matcher", "mine:build", "--limit", 2,
-                       "--launcher", "slurm", "--shards", 2], decoyed)
+                       "--launcher", "slurm", "--shards", 2], decoyed, without_srun=True)
     assert_no_decoy_ran(done, decoyed)
     assert len(pd.read_csv(out / "per_pair.csv")) == 2
