@@ -8,6 +8,7 @@ its public names lazily), so this function runs before anything slow is loaded.
 
 from __future__ import annotations
 
+import os
 import sys
 
 INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command ended by Ctrl-C
@@ -19,6 +20,14 @@ def main() -> None:
     except KeyboardInterrupt:
         print("error: interrupted (Ctrl-C) while starting; nothing was done", file=sys.stderr)
         raise SystemExit(INTERRUPTED) from None
+    except ImportError as exc:  # a broken OpenCV, h5py or PyYAML: one line, even for --help
+        from .library_errors import broken_library_line
+
+        line = None if os.environ.get("E3CM_BENCH_DEBUG") else broken_library_line(exc)
+        if line is None:
+            raise
+        print(line, file=sys.stderr)
+        raise SystemExit(2) from None
     app()
 
 

@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
 from .reporting import tables as report
 from .benchmarks import BENCHMARKS, Benchmark, get_benchmark
@@ -233,7 +234,7 @@ def write_table(
         candidate = report.paper_reference(benchmark)
         reference = candidate if candidate.is_file() else None
         if reference is None:
-            console.print(f"[yellow]note[/]: {candidate} not found; the table has no paper reference rows")
+            console.print(f"[yellow]note[/]: {escape(str(candidate))} not found; the table has no paper reference rows")
     table = report.paper_table(runs, benchmark, reference)
     if not compare:
         table = report.without_comparison(table)

@@ -372,6 +372,7 @@ class FolderLock:
                   "command": " ".join(sys.argv)}
         os.write(fd, json.dumps(holder).encode())
         self._fd = fd
+        _HELD_LOCKS.add(fd)
         return True
 
     def __exit__(self, *exc) -> None:
@@ -380,8 +381,15 @@ class FolderLock:
                 self.path.unlink()  # while still held: whoever opens it next checks that it is still there
             except OSError:
                 pass  # a folder that became read-only or vanished: the lock is released all the same
+            _HELD_LOCKS.discard(self._fd)
             os.close(self._fd)  # closing releases the flock
             self._fd = None
+
+
+# Folder locks held here, closed in a forked child (a --pair-timeout matcher's process): its
+# flock(LOCK_UN) on a shared copy would release the parent's lock and let a second run in.
+_HELD_LOCKS: set[int] = set()
+os.register_at_fork(after_in_child=lambda: [os.close(fd) for fd in _HELD_LOCKS] and _HELD_LOCKS.clear())
 
 
 def _describe_holder(text: str) -> str:

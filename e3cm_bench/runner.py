@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 from rich.console import Console
+from rich.markup import escape
 
 from .benchmarks import Benchmark, EvalSettings, get_benchmark
 from .cache import MatchCache
@@ -29,7 +30,7 @@ from .method import MethodSpec, identity_changes
 from .run import RunConfig, RunFolder, driver
 from .run.pair import match_pair
 from .run.stage import MatchJob, MatchOptions, match_jobs
-from .run.shards import merge_when_complete, shard_command, shard_dir, shard_slice
+from .run.shards import check_shard_count, merge_when_complete, shard_command, shard_dir, shard_slice
 
 __all__ = ["MatchOptions", "match_pair", "run_benchmark", "run_methods"]
 
@@ -97,7 +98,7 @@ def _dataset(benchmark: Benchmark, dataset: PairList | None, root, dataset_optio
     if dataset is None:
         if root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
-        dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **(dataset_options or {}))
+        dataset = benchmark.load_dataset(root, skip_bad=skip_bad, limit=limit, **(dataset_options or {}))
         load = RunConfig.dataset_load_of(root, skip_bad, dataset_options)
     else:
         load = dataset_load  # given with a dataset object, so that its shards can be merged
@@ -153,6 +154,8 @@ def _run_folders(
     evaluate and report each."""
     if viz < 0:
         raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
+    if shard is not None:  # before any folder is opened: N shards of fewer pairs leave some with none
+        check_shard_count(shard, min(len(dataset), limit) if limit else len(dataset))
     keep_freed_memory()  # a run's passes reuse the pages of the one before (docs/speed.md); recorded in config.yaml
     with ExitStack() as locks:
         opened = []
@@ -262,10 +265,10 @@ def _open_run(
     )
     if todo:
         console.print(method.describe(), markup=False)
-        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {folder.matches_path}")
+        console.print(f"[bold]{benchmark.name}[/]: {len(pairs)} pairs, {len(pairs) - len(todo)} already in {escape(str(folder.matches_path))}")
         folder.write_config(config)  # before the model loads: the folder is claimed and described
     else:
-        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {folder.matches_path}; evaluating only")
+        console.print(f"[bold]{benchmark.name}[/]: all {len(pairs)} pairs found in {escape(str(folder.matches_path))}; evaluating only")
     return _OpenRun(benchmark, folder, method, pairs, todo, skipped, dataset.skip_bad, cache, config, ev)
 
 

@@ -162,6 +162,9 @@ class Benchmark:
     # The protocol a run gets when none is named (benchmarks/protocols.py): the reference code's
     # where the benchmark has one (WxBS, EVD: wxbs-benchmark's), else e3cm-bench's own.
     default_protocol: str = "default"
+    # Whether its dataset takes the run's --limit (`first`) and builds no pair beyond it (sfm: a
+    # set's exhaustive graph grows with the square of its images).
+    builds_to_limit: bool = False
 
     @property
     def option_names(self) -> tuple[str, ...]:
@@ -171,14 +174,17 @@ class Benchmark:
         """The dataset options its command line offers."""
         return tuple(o for o in self.dataset_options if isinstance(o, DatasetOption))
 
-    def load_dataset(self, root: str | Path, skip_bad: bool = False, **options) -> PairList:
+    def load_dataset(self, root: str | Path, skip_bad: bool = False, limit: int | None = None, **options) -> PairList:
         # --sample N [--sample-seed S] holds for every benchmark (datasets/base.py stratified_sample);
         # kept among the options so that dataset_load reloads the same sample (shards, export).
         sample, sample_seed = options.pop("sample", None), options.pop("sample_seed", None)
         unknown = set(options) - set(self.option_names)
         if unknown:
             raise ValueError(f"dataset option(s) {', '.join(sorted(unknown))} do not apply to {self.name}")
-        dataset = self.dataset(root, skip_bad=skip_bad, **{k: v for k, v in options.items() if v is not None})
+        options = {k: v for k, v in options.items() if v is not None}
+        if limit and sample is None and self.builds_to_limit:  # the run's --limit: built no further (sfm's graph)
+            options["first"] = int(limit)
+        dataset = self.dataset(root, skip_bad=skip_bad, **options)
         return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
 
     def max_side(self, option: int | None) -> int | None:

@@ -41,6 +41,7 @@ class SfMBenchmark(Benchmark):
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
+    builds_to_limit: bool = True
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:
@@ -137,6 +138,8 @@ SFM = SfMBenchmark(
                       "no pair joins) is refused; with this, each component is reconstructed as its own bag."),
         DatasetOption("absolute_paths", "flag", "Images may lie anywhere (absolute paths, '..'), each named by its "
                       "absolute path; without it every image must be under ROOT."),
+        DatasetOption("max_pairs", "text", "The most pairs the graph may hold (default 20000); the count is "
+                      "checked before a pair is made."),
         DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
                       "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
     ),

@@ -45,6 +45,12 @@ class Scale:
             check_workers(self.workers)
         if self.launcher == "slurm" and not self.shards:
             raise ValueError("--launcher slurm needs --shards N")
+        if self.shards and self.launcher != "slurm":
+            raise ValueError(f"--shards {self.shards} applies to --launcher slurm (local processes: --workers N)")
+        if self.launcher == "slurm":
+            from ..run.launch import check_slurm
+
+            check_slurm(self.shards)
 
     def device_list(self, device: str) -> list[str]:
         """The device of each local worker: --devices', else --device for each of --workers."""

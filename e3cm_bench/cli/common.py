@@ -20,6 +20,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from typer.core import TyperCommand
 
 from .. import __version__
@@ -95,7 +96,7 @@ def method_values(given: dict) -> dict:
 
 def warn(message: str) -> None:
     """A warning on stderr (method.build_method's `warn`: a precision that will be emulated)."""
-    err_console.print(f"[yellow]warning[/]: {message}", highlight=False, soft_wrap=True)
+    err_console.print(f"[yellow]warning[/]: {escape(message)}", highlight=False, soft_wrap=True)
 
 
 def parse_settings(pairs: list[str] | None) -> dict:
@@ -172,21 +173,30 @@ def friendly_errors(command):
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+            err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)  # a path may hold [/]
             raise typer.Exit(2) from None
         except MemoryError as exc:
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "not enough memory"
-            err_console.print(f"[bold red]error:[/] out of memory: {detail}", highlight=False, soft_wrap=True)
+            err_console.print(f"[bold red]error:[/] out of memory: {escape(detail)}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except ImportError as exc:
             # A library that cannot be mapped into memory (the commands import torch only when they
             # match, so under `ulimit -v` this is where the limit is met first) is the memory case
-            # above, not a bug; any other ImportError keeps its traceback.
-            if os.environ.get("E3CM_BENCH_DEBUG") or not _out_of_address_space(exc):
+            # above, not a bug; a broken library is one line (library_errors.py); an
+            # ImportError in e3cm-bench's own code keeps its traceback.
+            if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
-            err_console.print(f"[bold red]error:[/] out of memory: a library could not be loaded ({exc}); "
+            if not _out_of_address_space(exc):
+                from ..library_errors import broken_library_line
+
+                line = broken_library_line(exc)
+                if line is None:
+                    raise
+                err_console.print(escape(line), highlight=False, soft_wrap=True)
+                raise typer.Exit(2) from None
+            err_console.print(f"[bold red]error:[/] out of memory: a library could not be loaded ({escape(str(exc))}); "
                               "raise the address-space or memory limit (ulimit -v) and rerun: matches already "
                               "written are kept", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
@@ -195,7 +205,7 @@ def friendly_errors(command):
                 raise
             name = command.__name__
             line = os_error_line(exc, resumes=name in RESUMING_COMMANDS or name.replace("_", "-") in BENCHMARKS)
-            err_console.print(f"[bold red]error:[/] {line}", highlight=False, soft_wrap=True)
+            err_console.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")

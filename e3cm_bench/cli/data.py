@@ -93,7 +93,7 @@ def import_matches(
     foreign = sorted(OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False, []))
     if foreign:
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
-    options = {k: v for k, v in dataset_options.items() if k in mine}
+    options = {k: _as_declared(bench, k, v) for k, v in dataset_options.items() if k in mine}
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
     ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator)
     (name, paths), = given.items()
@@ -101,6 +101,17 @@ def import_matches(
                                 origin=pixel_origin)
     import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
                console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+
+
+def _as_declared(bench, name: str, value):
+    """`import` reads an option shared by several benchmarks as the first declares it (megadepth's
+    --scene-info takes several files, sfm's one): the value as `bench` declares it."""
+    kind = next(o.kind for o in bench.command_options() if o.name == name)
+    if not isinstance(value, (list, tuple)) or kind in ("paths", "names"):
+        return value
+    if len(value) != 1:
+        raise ValueError(f"{OPTION_FLAGS[name]}: {bench.name} takes one, given {len(value)}")
+    return value[0]
 
 
 def source_parameters() -> list[inspect.Parameter]:
@@ -158,7 +169,7 @@ def synth_stereo(
     from ..synth.stereo import write_stereo_sequence
 
     root = write_stereo_sequence(out, frames=frames, seed=seed)
-    console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)")
+    console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)", markup=False)
 
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 
 from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from .common import app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
@@ -104,8 +105,8 @@ def _write_and_say(result, img0, img1, H, method, matcher: str, out: Path) -> No
         correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), shown, EvalSettings())
     save_image(out / "matches.png", draw_matches(img0, img1, shown.keypoints0, shown.keypoints1, correct=correct,
                                                  max_lines=500))
-    console.print(f"[bold]{len(k0)} matches[/] ({get_matcher(matcher).name}, "
-                  f"{method.backbone or 'no backbone'}) -> {out}/matches.npz, matches.png")
+    console.print(f"[bold]{len(k0)} matches[/] ({escape(get_matcher(matcher).name)}, "
+                  f"{escape(str(method.backbone or 'no backbone'))}) -> {escape(str(out))}/matches.npz, matches.png")
     if correct is not None:
         console.print(f"demo ground truth: {correct.mean() * 100 if len(correct) else 0:.1f}% of matches within 3 px")
 

@@ -91,9 +91,11 @@ def reproduce(
     from ..download import find_root
     from ..experiments import reproduce as reproduce_experiment
     from ..run.shards import parse_shard
-    from ..run.launch import check_launcher, run_experiment_shards
+    from ..run.launch import check_launcher, check_slurm, run_experiment_shards
 
     check_launcher(launcher)
+    if shards and launcher != "slurm":
+        raise ValueError(f"--shards {shards} applies to --launcher slurm")
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
@@ -106,6 +108,7 @@ def reproduce(
     if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
         if shard or not shards:
             raise ValueError("--launcher slurm needs --shards N (and no --shard)")
+        check_slurm(shards)
         run_experiment_shards(run, shards, console=console)
     else:
         reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)
@@ -202,7 +205,7 @@ def check(
     bad += sum(f.status == "regression" for f in findings) + len(problems)
     # The verdict first, so that a wrapped line never splits it (CI logs are searched for it).
     console.print(("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
-                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False)
+                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False, markup=False)
     if bad:
         raise typer.Exit(1)
 
@@ -232,18 +235,21 @@ def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | N
     if ensemble < 0:
         raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")
     regression.write_baseline(runs, baseline)
-    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}")
+    console.print(f"baseline: {len(runs)} runs written to {baseline} and {regression.noise_gate.pairs_path(baseline)}",
+                  markup=False)
     noise = regression.noise_path(baseline)
     if not ensemble:
         if noise.is_file():  # draws around the old baseline would judge the new one
             noise.unlink()
-            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)")
+            console.print(f"removed {noise}: its draws belong to the previous baseline (--ensemble K writes new ones)",
+                          markup=False)
         return
     work = ensemble_dir or Path(".e3cm-ensemble") / baseline.stem
-    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False)
+    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False, markup=False)
     t = time.perf_counter()
     table = build_ensemble(runs, range(1, ensemble + 1), work, console=console)
     write_noise(table, noise)
-    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False)
+    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s", highlight=False,
+                  markup=False)
 
 

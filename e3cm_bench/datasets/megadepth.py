@@ -268,7 +268,61 @@ def load_scene_info(path: Path) -> dict:
     missing = [key for key in SCENE_INFO_KEYS if key not in loaded]
     if missing:
         raise DatasetError(f"{path}: scene_info lacks the key(s) {', '.join(missing)}")
-    return {key: loaded[key] for key in SCENE_INFO_KEYS}
+    scene = {key: loaded[key] for key in SCENE_INFO_KEYS}
+    try:
+        _measure(scene, 0, {}, set())
+    except ValueError as error:
+        raise DatasetError(f"{path}: not a scene_info file ({error})") from None
+    return _one_per_image(scene, path)
+
+
+# What a scene_info can hold, counted as its values would be expanded (a list that holds one
+# list twice counts it twice: np.asarray copies it twice): a pair_infos entry is ((i, j),
+# overlap, central_matches), an intrinsics entry 3x3; a full MegaDepth scene's lists come to a
+# few million entries and a few hundred MB. A crafted 2.7 KB pickle of a list that holds the
+# same list twice, 30 levels deep, would expand to 2**30 entries: refused before anything uses it.
+MAX_DEPTH = 12
+MAX_ENTRIES = 20_000_000
+MAX_EXPANDED_BYTES = 2 << 30
+
+
+def _measure(value, depth: int, seen: dict, open_: set) -> tuple[int, int]:
+    """(entries, bytes) of `value` expanded; a ValueError beyond MAX_DEPTH, MAX_ENTRIES or
+    MAX_EXPANDED_BYTES, or for a value that holds itself. Each object is measured once."""
+    if depth > MAX_DEPTH:
+        raise ValueError(f"nested deeper than the {MAX_DEPTH} levels a scene_info has")
+    if isinstance(value, np.ndarray) and not value.dtype.hasobject:
+        return 1, value.nbytes
+    if not isinstance(value, (list, tuple, dict, np.ndarray)):
+        return 1, 64
+    key = (id(value), depth)  # by depth too: the depth bound holds for each place an object is met
+    if key in seen:
+        return seen[key]
+    if id(value) in open_:
+        raise ValueError("a value that holds itself")
+    open_.add(id(value))
+    entries, size = 1, 0
+    for item in (value.values() if isinstance(value, dict) else value.ravel() if isinstance(value, np.ndarray) else value):
+        n, b = _measure(item, depth + 1, seen, open_)
+        entries, size = entries + n, size + b
+        if entries > MAX_ENTRIES or size > MAX_EXPANDED_BYTES:
+            raise ValueError(f"it expands to over {MAX_ENTRIES:,} values or {MAX_EXPANDED_BYTES >> 30} GiB")
+    open_.discard(id(value))
+    seen[key] = (entries, size)
+    return entries, size
+
+
+def _one_per_image(scene: dict, path: Path) -> dict:
+    """The scene, where intrinsics and poses have one entry per image path; a DatasetError otherwise."""
+    try:
+        lengths = {key: len(scene[key]) for key in ("image_paths", "intrinsics", "poses")}
+    except TypeError:
+        raise DatasetError(f"{path}: image_paths, intrinsics and poses must be lists (one entry per image)") from None
+    for key in ("intrinsics", "poses"):
+        if lengths[key] < lengths["image_paths"]:
+            raise DatasetError(f"{path}: {key} has {lengths[key]} entries for {lengths['image_paths']} images "
+                               "(image_paths); a scene_info has one per image")
+    return scene
 
 
 def _image_indices(info, n_images: int, path: Path, index: int) -> tuple[int, int]:

@@ -153,7 +153,28 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
         finally:
             db.close()
 
-    return [write_atomically(out / "database.db", write)]
+    try:
+        return [write_atomically(out / "database.db", write)]
+    except RuntimeError as error:  # pycolmap's own words for a database it could not open or write
+        for left in Path(out).glob(".database.db.*.tmp-*"):  # SQLite's -wal and -shm of the temporary file
+            left.unlink(missing_ok=True)
+        raise _unwritten(out / "database.db", error) from None
+
+
+def _unwritten(path: Path, error: RuntimeError) -> Exception:
+    """pycolmap says no more than "No registered database factory succeeded" for a full disk:
+    an OSError (ENOSPC: the commands' one line for a full disk) where little space is left, else
+    a ValueError naming the file and pycolmap's message."""
+    import errno
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        free = None
+    if free is not None and free < 16 << 20:
+        return OSError(errno.ENOSPC, "No space left on device", str(path))
+    return ValueError(f"{path}: pycolmap could not write the COLMAP database ({' '.join(str(error).split())[:200]})")
 
 
 def _shared_camera(db, written: dict, camera) -> int:

@@ -37,6 +37,7 @@ from typing import Any, Callable, Iterator
 import yaml
 
 from ..files import yaml_plain
+from . import child_answer
 
 
 class PluginExit(RuntimeError):
@@ -154,13 +155,18 @@ class StoppableWorker:
     child without an answer by then is killed with its whole process group (SIGKILL: no
     handler can delay it), reaped, and the call raises PairTimeout; the next call forks a
     fresh child. Only a process that leaves the group on purpose (setsid) escapes the kill.
-    The child dies with its parent (PR_SET_PDEATHSIG on Linux). What the target raises is
-    raised in the caller as it was (an exception that cannot be pickled: a RuntimeError
-    with its type and message).
+    The child dies with its parent (PR_SET_PDEATHSIG on Linux). Its answer is plain data and
+    arrays (child_answer.py: no pickle, lengths bounded before they are read, the call it
+    answers named by a nonce); the deadline covers reading it. What the target raises is
+    raised in the caller as the same class where that is a built-in one or one of `errors`,
+    else as a RuntimeError with its type and message.
     """
 
-    def __init__(self, target: Callable[..., Any], what: str) -> None:
+    def __init__(self, target: Callable[..., Any], what: str, errors: tuple[type, ...] = (),
+                 max_bytes: int = child_answer.MAX_ARRAY_BYTES) -> None:
         self.target, self.what = target, what
+        self.errors = {cls.__name__: cls for cls in errors}  # what the target raises, raised as itself here
+        self.max_bytes = max_bytes  # the array bytes one answer may announce
         self.pid: int | None = None
         self.sock: socket.socket | None = None
         self.forks = 0  # children started (the first, and one after each stop)
@@ -171,23 +177,42 @@ class StoppableWorker:
         what = what or self.what
         self.start()
         deadline = None if seconds is None else time.monotonic() + float(seconds)
+        nonce = os.urandom(child_answer.NONCE_BYTES)  # the answer names its call: a spare one is never this call's
         try:
-            _send(self.sock, pickle.dumps(args, protocol=pickle.HIGHEST_PROTOCOL), deadline)
-            answer = _receive(self.sock, deadline)
+            _send(self.sock, pickle.dumps((nonce, args), protocol=pickle.HIGHEST_PROTOCOL), deadline)
+            document, declared, data = self._answer(nonce, deadline)
         except (TimeoutError, socket.timeout):
             self.stop()
             raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s "
                               "(its process was stopped, with every process it started)") from None
-        except (OSError, EOFError, pickle.UnpicklingError, struct.error) as exc:
+        except child_answer.BadAnswer as exc:
+            self.stop()
+            raise WorkerDied(f"{what}: its answer was refused ({exc}); its process was stopped") from None
+        except (OSError, EOFError, struct.error) as exc:
             status = self.stop()
             raise WorkerDied(f"{what}: its process ended without a result ({status or type(exc).__name__})") from None
         try:
-            kind, value = pickle.loads(answer)
-        except Exception as exc:  # noqa: BLE001 - e.g. an exception class whose __init__ wants other arguments
-            raise WorkerDied(f"{what}: its answer could not be read back ({type(exc).__name__}: {exc})") from None
-        if kind == "error":
-            raise value
+            value = child_answer.decode(document, declared, data, self.errors)
+        except child_answer.BadAnswer as exc:
+            self.stop()
+            raise WorkerDied(f"{what}: its answer was refused ({exc}); its process was stopped") from None
+        if deadline is not None and time.monotonic() > deadline:  # reading it back counts toward the limit
+            raise PairTimeout(f"{what}: no result within --pair-timeout {seconds:g} s (its answer was read back late)")
         return value
+
+    def _answer(self, nonce: bytes, deadline: float | None, spares: int = 16):
+        """The answer to the call `nonce` (its JSON document, declared arrays and bytes), each
+        length checked before it is read; answers to other calls (at most `spares`) read past."""
+        for _ in range(spares + 1):
+            got, text_bytes, array_bytes = child_answer.ANSWER_HEADER.unpack(
+                _exactly(self.sock, child_answer.ANSWER_HEADER.size, deadline))
+            child_answer.check_lengths(text_bytes, array_bytes, self.max_bytes)
+            if got != nonce:
+                _discard(self.sock, text_bytes + array_bytes, deadline)
+                continue
+            document, declared = child_answer.declared_arrays(_exactly(self.sock, text_bytes, deadline), array_bytes)
+            return document, declared, _exactly(self.sock, array_bytes, deadline)
+        raise child_answer.BadAnswer(f"more than {spares} answers to other calls")
 
     def start(self) -> None:
         """Fork the child, unless it is running."""
@@ -268,6 +293,11 @@ def _exactly(sock: socket.socket, n: int, deadline: float | None) -> bytearray:
     return buffer  # pickle reads a bytearray as it is: no copy
 
 
+def _discard(sock: socket.socket, n: int, deadline: float | None) -> None:
+    while n > 0:
+        n -= len(_exactly(sock, min(n, 1 << 20), deadline))
+
+
 def _timeout(sock: socket.socket, deadline: float | None) -> None:
     if deadline is None:
         sock.settimeout(None)
@@ -302,19 +332,14 @@ def _child_main(target: Callable[..., Any], sock: socket.socket, parent: int) ->
             sys.modules["torch"].set_num_threads(1)
         while True:
             try:
-                args = pickle.loads(_receive(sock, None))
+                nonce, args = pickle.loads(_receive(sock, None))  # the parent's own call
             except (EOFError, OSError):
                 break
             try:
                 answer = ("ok", target(*args))
             except BaseException as exc:  # noqa: BLE001 - carried to the parent, SystemExit included
                 answer = ("error", exc)
-            try:
-                data = pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL)
-            except Exception:  # noqa: BLE001 - an exception (or result) that cannot be pickled
-                exc = answer[1]
-                data = pickle.dumps(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
-            _send(sock, data, None)
+            sock.sendall(child_answer.encode(nonce, answer))  # its own framing: a header, no length prefix
     except BaseException:  # noqa: BLE001 - nothing of the child may run on in the parent's code
         code = 1
     finally:

@@ -24,9 +24,10 @@ happen in this process for its classes to be used; a consequence is that a plugi
 install signal handlers at import). ``sys.exit`` at import, or in a factory, is that
 plugin's failure in one line, never the tool's exit; so is a factory that raises.
 
-``--matcher package.module:factory`` resolves as ``python -m`` would: the current folder is
-searched first. The names the user gave this way are passed to the processes this one starts
-(--workers, SLURM shards: USER_MATCHERS_ENV), which may then import them too.
+``--matcher package.module:factory`` comes from the Python path, else from the current folder,
+where only that one module (or package) is taken from: the folder never joins ``sys.path``
+(user_module.py). The names the user gave this way are passed to the processes this one starts
+(--workers, SLURM shards: USER_MATCHERS_ENV), with the file each came from, which they import.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import dataclasses
 import importlib
 import importlib.metadata
 import os
-import sys
 from typing import Callable
 
 from ..backbone_names import DEFAULT_BACKBONE
@@ -44,6 +44,7 @@ from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
 from .guards import exit_text
 from .plugin_code import built_with, code_sha256
 from .plugin_import import bounded, why
+from .user_module import importing
 
 ENTRY_POINT_GROUP = "e3cm_bench.matchers"
 
@@ -275,11 +276,9 @@ def _entries_of(obj, where: str) -> list[MatcherEntry]:
 
 def _from_module(name: str) -> MatcherEntry:
     module_name, _, attr = name.partition(":")
-    here = os.getcwd()
-    if here not in sys.path and "" not in sys.path:  # as `python -m` finds it: the current folder first
-        sys.path.insert(0, here)
     try:
-        module = bounded(lambda: importlib.import_module(module_name), module_name)
+        with importing(module_name):  # from the Python path, else this one name from the current folder
+            module = bounded(lambda: importlib.import_module(module_name), module_name)
     except KeyboardInterrupt:
         raise
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - one line, whatever the module does wrong

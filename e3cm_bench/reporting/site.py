@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
 from ..files import create_new, writable_folder, write_atomically
 from .drawings import choose_pairs, draw_pairs, pair_rows
@@ -76,7 +77,7 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
         shutil.rmtree(built, ignore_errors=True)  # the half-built report, or the previous one swapped out
     console.print(line, markup=False)
     for note in report.notes:
-        console.print(f"[yellow]note[/]: {note}", highlight=False)
+        console.print(f"[yellow]note[/]: {escape(str(note))}", highlight=False)
     return report
 
 

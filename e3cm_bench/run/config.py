@@ -219,6 +219,6 @@ def load_run_pairs(run: str | Path | RunConfig) -> RunPairs:
     config = run if isinstance(run, RunConfig) else RunConfig.read(run)
     benchmark = config.benchmark_object()
     root, skip_bad, options = config.dataset_source(benchmark)
-    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
+    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, limit=config.limit, **options)
     pairs = list(dataset)[:config.limit] if config.limit else list(dataset)
     return RunPairs(benchmark, config, Path(root).resolve(), pairs, options, dataset)

@@ -10,6 +10,7 @@ from dataclasses import replace
 import pandas as pd
 from rich.console import Console
 
+from ..matchers.user_module import no_folder_on_path
 from ..reporting.tables import print_summary
 from .folder import RunFolder
 from .stage import MatchOptions
@@ -43,14 +44,38 @@ def check_launcher(launcher: str) -> None:
         raise ValueError(f"--launcher {launcher!r}: choose one of {', '.join(LAUNCHERS)}")
 
 
-def check_workers(workers: int) -> None:
+def check_workers(workers: int, option: str | None = None) -> None:
     """A one-line ValueError for a --workers the machine cannot hold."""
     if workers < 0:
         raise ValueError(f"--workers must be 0 (one process) or more, got {workers}")
     bound, why = max_cpu_workers()
     if workers > bound:
-        raise ValueError(f"--workers {workers}: this machine holds at most {bound} ({why}); "
+        raise ValueError(f"{option or f'--workers {workers}'}: this machine holds at most {bound} ({why}); "
                          "for more, run shards on more machines (--shard K/N or --launcher slurm)")
+
+
+def check_slurm(shards: int) -> None:
+    """--launcher slurm --shards N, checked before anything starts: N from 1 to MAX_SHARDS; where
+    no srun is found, submitit runs the N tasks as local processes, so the machine must hold them
+    as it must --workers N; where srun is found, a SLURM controller must answer (sinfo)."""
+    import shutil
+    import subprocess
+
+    from .shards import MAX_SHARDS
+
+    if not 1 <= shards <= MAX_SHARDS:
+        raise ValueError(f"--shards must be from 1 to {MAX_SHARDS:,}, got {shards}")
+    if shutil.which("srun") is None:
+        check_workers(shards, f"--launcher slurm --shards {shards} (no srun here: submitit starts them as local processes)")
+        return
+    try:
+        done = subprocess.run(["sinfo", "-h"], capture_output=True, text=True, timeout=30)
+        why = None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+    except (OSError, subprocess.TimeoutExpired) as error:
+        why = f"{type(error).__name__}: {error}"
+    if why is not None:
+        raise ValueError(f"--launcher slurm: srun is on PATH but no SLURM controller answers (sinfo -h: {why[:200]}); "
+                         "start the controller, or use --workers N here")
 
 
 def _die_with_parent(parent: int) -> None:
@@ -153,7 +178,8 @@ def submit_array(function, jobs: list[dict], folder, console: Console, out, slur
     if executor.cluster != "slurm":
         params = {k: v for k, v in params.items() if not k.startswith("slurm_")}
     executor.update_parameters(**params)
-    submitted = executor.map_array(function, jobs)
+    with no_folder_on_path():  # the tasks (sbatch exports this environment) import nothing from the current folder
+        submitted = executor.map_array(function, jobs)
     job_id = submitted[0].job_id.split("_")[0]
     console.print(f"submitted {n} shard(s) to {executor.cluster}: job {job_id}; "
                   f"they merge when the last one finishes (or: e3cm-bench merge {out})", markup=False)
@@ -198,7 +224,7 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
     if launcher == "slurm":
         return submit_array(run_shard_job, jobs, RunFolder(kwargs["out"]).shards_dir / "slurm", console,
                             kwargs["out"], slurm)
-    with worker_pool(len(devices)) as pool:
+    with no_folder_on_path(), worker_pool(len(devices)) as pool:  # workers import nothing from the current folder
         futures = [pool.submit(run_shard_job, job) for job in jobs]
         results = []
         for k, future in enumerate(futures, start=1):

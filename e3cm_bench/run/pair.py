@@ -106,7 +106,8 @@ def match_worker(matcher: Matcher) -> StoppableWorker:
     """A child process that runs `matcher` (forked when first used: it holds the matcher as
     built here) and can be killed with all it started (matchers/guards.py)."""
     name = getattr(matcher, "name", type(matcher).__name__)
-    return StoppableWorker(lambda small0, small1, seed: _seeded_match(matcher, small0, small1, seed), f"matcher {name}")
+    return StoppableWorker(lambda small0, small1, seed: _seeded_match(matcher, small0, small1, seed), f"matcher {name}",
+                           errors=(MatcherError,))
 
 
 def _seeded_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, seed: int) -> Matches:

@@ -24,6 +24,11 @@ from . import driver
 from .config import RunConfig, load_run_pairs
 from .folder import RunFolder
 
+# The most shards one run may have: a merge lists every one of them (E3CM_SHARDS=1000000000
+# must not make it list a billion); each shard holds at least one pair too (check_shard_count).
+MAX_SHARDS = 100_000
+
+
 def parse_shard(text: str) -> tuple[int, int]:
     """'2/3' -> (2, 3): the 2nd of 3 shards (1-based)."""
     try:
@@ -32,7 +37,19 @@ def parse_shard(text: str) -> tuple[int, int]:
         raise ValueError(f"--shard: expected K/N (e.g. 2/8), got {text!r}") from None
     if not 1 <= k <= n:
         raise ValueError(f"--shard {text}: K must be between 1 and N")
+    check_shard_count((k, n))
     return k, n
+
+
+def check_shard_count(shard: tuple[int, int], n_pairs: int | None = None, option: str | None = None) -> None:
+    """A one-line ValueError for N shards over MAX_SHARDS, or (n_pairs given) over the pairs of the run."""
+    k, n = shard
+    option = option or f"--shard {k}/{n}"
+    if n > MAX_SHARDS:
+        raise ValueError(f"{option}: at most {MAX_SHARDS:,} shards")
+    if n_pairs is not None and n > n_pairs:
+        raise ValueError(f"{option}: {n} shards of {n_pairs} pair(s) would leave some with none; "
+                         f"choose N of at most {n_pairs}")
 
 def shard_slice(n_pairs: int, shard: tuple[int, int]) -> slice:
     """The K-th of N contiguous slices of n_pairs items; sizes differ by at most one."""
@@ -116,7 +133,9 @@ def all_shards_complete(out: Path) -> bool:
     if not configs:
         return False
     n = next(iter(configs))[1]
-    return set(configs) == {(k, n) for k in range(1, n + 1)} and all(c["shard"].get("complete") for c in configs.values())
+    # counted, not listed: N comes from a shard's record (a crafted one may say a billion)
+    return (len(configs) == n and all(m == n and 1 <= k <= n for k, m in configs)
+            and all(c["shard"].get("complete") for c in configs.values()))
 
 def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
     """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
@@ -130,6 +149,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
         raise ValueError(f"{RunFolder(out).shards_dir}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
                          "keep one and delete the others")
     n = counts.pop()
+    check_shard_count((1, n), option=f"{RunFolder(out).shards_dir}: shards of N={n}")
     missing = [(k, n) for k in range(1, n + 1) if (k, n) not in configs]
     unfinished = [key for key, c in sorted(configs.items()) if not c["shard"].get("complete")]
     if missing or unfinished:

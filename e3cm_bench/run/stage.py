@@ -316,7 +316,7 @@ def _report_reuse(jobs: list[MatchJob], shared: _Shared, console: Console) -> No
                 job.stats["feature_reuse"] = stats
         console.print(f"feature maps ({', '.join(group['labels'])}): {stats['backbone_passes']} backbone passes for "
                       f"{stats['distinct_images']} images ({stats['passes_per_image']:.2f} per image), "
-                      f"{stats.get('read_from_disk', 0)} read back from disk")
+                      f"{stats.get('read_from_disk', 0)} read back from disk", markup=False)  # labels are the user's
 
 
 def _match_one(job: MatchJob, matcher: Matcher, pair: Pair, images, options: MatchOptions | None = None,

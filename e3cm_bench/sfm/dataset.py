@@ -32,7 +32,7 @@ class MultiViewSet(PairList):
     def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
                  pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
                  merge_px: str | float | None = None, allow_disconnected: bool = False, absolute_paths: bool = False,
-                 skip_bad: bool = False) -> None:
+                 max_pairs: str | int | None = None, skip_bad: bool = False, first: int | None = None) -> None:
         from ..interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
 
         self.root = require_directory(root, "image set")
@@ -49,7 +49,9 @@ class MultiViewSet(PairList):
         if self.window is not None and self.graph is not None:
             raise DatasetError(f"{self.graph}: --window and --graph are two pair graphs; give one")
         listed, bad = self._read(scene_info, colmap_model, pairs)
-        built, unusable = self._pairs(listed)
+        self.max_pairs = _count(max_pairs, "--max-pairs") or DEFAULT_MAX_PAIRS
+        self.n_graph_pairs = self._check_size(listed, first)
+        built, unusable = self._pairs(listed, first)
         super().__init__(built, self.source, skip_bad, bad + unusable)
         self.components = self._bags()
 
@@ -74,7 +76,7 @@ class MultiViewSet(PairList):
             return V.read_graph(self.graph, self.views), []
         return (V.window(self.views, self.window) if self.window is not None else V.exhaustive(self.views)), []
 
-    def _pairs(self, listed: list[V.ListedPair]) -> tuple[list[Pair], list[tuple[str, str]]]:
+    def _pairs(self, listed, first: int | None = None) -> tuple[list[Pair], list[tuple[str, str]]]:
         """A Pair per listed pair, named SET/<label0>--<label1> (views.pair_labels); (name, problem)
         of those whose relative pose is unusable. Two pairs of the same two images are refused:
         the database holds one match list per image pair."""
@@ -83,6 +85,8 @@ class MultiViewSet(PairList):
         set_name = self.source.stem if self.kind == "scene_info" else self.source.name
         built, bad, seen = [], [], {}
         for item in listed:
+            if first and len(built) >= first:  # --limit: the graph is built no further than the run reaches
+                break
             view0, view1 = by_name[item.view0], by_name[item.view1]
             name = f"{set_name}/{labels[item.view0]}--{labels[item.view1]}"
             key = frozenset((item.view0, item.view1))
@@ -124,6 +128,19 @@ class MultiViewSet(PairList):
             return f"pair graph: one component of {sizes[0]} images"
         return f"pair graph: {len(sizes)} components (bags) of {', '.join(map(str, sizes))} images"
 
+    def _check_size(self, listed, first: int | None) -> int:
+        """The number of pairs of the graph, counted before one is built; a DatasetError where the
+        run would build more than max_pairs of them."""
+        n = len(self.views)
+        count = len(listed) if isinstance(listed, list) else V.graph_size(n, self.window)
+        building = min(count, first) if first else count
+        if building > self.max_pairs:
+            graph = "every pair" if self.window is None and self.graph is None and self.kind != "pairs" else "its graph"
+            raise DatasetError(f"{self.graph or self.source}: {n} images give {count:,} pairs ({graph}), over the "
+                               f"{self.max_pairs:,} a run builds; --max-pairs {count} lifts the bound, or choose "
+                               "fewer pairs (--window K, --graph FILE, --limit N)")
+        return count
+
     def settings(self) -> dict:
         graph = ("listed" if self.kind == "pairs" else f"file {self.graph}" if self.graph is not None
                  else f"window {self.window}" if self.window is not None else "exhaustive")
@@ -133,7 +150,24 @@ class MultiViewSet(PairList):
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
                 "components": {"count": len(self.components), "sizes": [len(c) for c in self.components]},
                 "allow_disconnected": self.allow_disconnected, "absolute_paths": self.absolute_paths,
-                "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
+                "max_pairs": self.max_pairs, "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
+
+
+# The pairs a set's graph may hold unless --max-pairs says more: an exhaustive graph grows with
+# the square of the images (20,000 pairs: 200 images; 3000 images give 4.5 million).
+DEFAULT_MAX_PAIRS = 20_000
+
+
+def _count(value, option: str) -> int | None:
+    if value is None:
+        return None
+    try:
+        n = int(str(value))
+    except ValueError:
+        raise DatasetError(f"{option} must be a whole number, got {value!r}") from None
+    if n < 1:
+        raise DatasetError(f"{option} must be at least 1, got {n}")
+    return n
 
 
 def _window(value) -> int | None:

@@ -157,6 +157,8 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)
+    if workdir.is_symlink() or workdir.exists() and not workdir.is_dir():
+        raise ValueError(f"{workdir}: is not a folder (the reconstruction's files go there); move it away and rerun")
     if workdir.exists():
         shutil.rmtree(workdir)  # a rerun (--eval-only) replaces the last one's products
     workdir.mkdir(parents=True)

@@ -21,6 +21,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from itertools import combinations
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 import numpy as np
 
@@ -188,14 +189,22 @@ def views_from_pair_list(path: Path, root: Path, anywhere: bool = False
 # ----------------------------------------------------------------------------- the pair graph
 
 
-def exhaustive(views: list[View]) -> list[ListedPair]:
-    return [ListedPair(a.name, b.name) for a, b in combinations(views, 2)]
+def exhaustive(views: list[View]) -> Iterator[ListedPair]:
+    """Every pair, made as they are taken (graph_size counts them first)."""
+    return (ListedPair(a.name, b.name) for a, b in combinations(views, 2))
 
 
-def window(views: list[View], k: int) -> list[ListedPair]:
-    """Each view with the next k in the set's order (k >= 1)."""
-    return [ListedPair(views[i].name, views[j].name)
-            for i in range(len(views)) for j in range(i + 1, min(i + k + 1, len(views)))]
+def window(views: list[View], k: int) -> Iterator[ListedPair]:
+    """Each view with the next k in the set's order (k >= 1), made as they are taken."""
+    return (ListedPair(views[i].name, views[j].name)
+            for i in range(len(views)) for j in range(i + 1, min(i + k + 1, len(views))))
+
+
+def graph_size(n_views: int, k: int | None = None) -> int:
+    """The number of pairs of `exhaustive` (k None) or `window(k)` over n_views views, without making them."""
+    if k is None or k >= n_views - 1:
+        return n_views * (n_views - 1) // 2
+    return k * (n_views - k) + k * (k - 1) // 2
 
 
 def read_graph(path: Path, views: list[View]) -> list[ListedPair]:

@@ -29,6 +29,9 @@ COMMAND=(megadepth --root "$ROOT" --out "$OUT" --matcher e3cm --backbone vgg19 -
 # one shard (sbatch --array=3 scripts/slurm/array.sh) is an array of one task, and shard 3
 # must still be the 3rd of N.
 SHARDS="${E3CM_SHARDS:-8}"
+case "$SHARDS" in
+  ''|*[!0-9]*) echo "array.sh: E3CM_SHARDS=$SHARDS is not a whole number of shards" >&2; exit 2 ;;
+esac
 if [ "$#" -gt 0 ]; then
   COMMAND=("$@")
 fi

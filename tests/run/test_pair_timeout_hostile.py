@@ -24,6 +24,7 @@ import pytest
 from e3cm_bench.cache import MatchCache
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.guards import PairTimeout, StoppableWorker, pair_time_limit
+from e3cm_bench.matchers.user_module import USER_FILES_ENV
 from e3cm_bench.matches import Matches
 from e3cm_bench.run import FAILED_ATTR, RunFolder
 from helpers import assert_same_arrays, flat, invoke, one_line_error
@@ -241,6 +242,7 @@ def mine_here(tmp_path, monkeypatch):
     monkeypatch.chdir(package.parent)
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(package.parent))])
     monkeypatch.setenv(registry.USER_MATCHERS_ENV, "")
+    monkeypatch.setenv(USER_FILES_ENV, "")  # the file a test before imported mine_pkg from is not this one
     yield package.parent
     for name in [n for n in sys.modules if n == "mine_pkg" or n.startswith("mine_pkg.")]:
         del sys.modules[name]
