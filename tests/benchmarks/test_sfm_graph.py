@@ -44,6 +44,10 @@ def pose_list_graph(shared_data, scene, tmp_path_factory) -> Path:
     return path
 
 
+def scene_paths(shared_data) -> list:
+    return list(load_scene_info(shared_data / SCENE_INFO)["image_paths"])
+
+
 def _sfm(shared_data, out, *args):
     return invoke("sfm", "--root", shared_data / KITTI, "--matcher", "sift", "--out", out, *args)
 
@@ -77,13 +81,16 @@ def test_a_disconnected_graph_is_refused_in_one_line_before_matching(shared_data
 
 
 def test_allow_disconnected_makes_each_component_a_bag(shared_data, pose_list_graph, tmp_path):
+    # one pair of each chain at the command (3 pairs to match); the whole list's bags below
+    names = [str(p) for p in scene_paths(shared_data)]
+    graph = tmp_path / "three_chains.txt"
+    graph.write_text("".join(f"{names[i]} {names[i + 3]}\n" for i in range(3)))
     out = tmp_path / "out"
-    result = _sfm(shared_data, out, "--scene-info", shared_data / SCENE_INFO, "--graph", pose_list_graph,
-                  "--allow-disconnected", "--limit", "1")
+    result = _sfm(shared_data, out, "--scene-info", shared_data / SCENE_INFO, "--graph", graph, "--allow-disconnected")
     assert result.exit_code == 0, result.output
-    assert "pair graph: 3 components (bags) of 7, 7, 6 images" in flat(result.output)
+    assert "pair graph: 3 components (bags) of 2, 2, 2 images" in flat(result.output)
     dataset = yaml.safe_load((out / "config.yaml").read_text())["dataset"]
-    assert dataset["components"] == {"count": 3, "sizes": [7, 7, 6]} and dataset["allow_disconnected"] is True
+    assert dataset["components"] == {"count": 3, "sizes": [2, 2, 2]} and dataset["allow_disconnected"] is True
     pairs = get_benchmark("sfm").load_dataset(shared_data / KITTI, scene_info=shared_data / SCENE_INFO,
                                               graph=pose_list_graph, allow_disconnected=True)
     index = {str(p): i for i, p in enumerate(load_scene_info(shared_data / SCENE_INFO)["image_paths"])}
@@ -94,10 +101,11 @@ def test_allow_disconnected_makes_each_component_a_bag(shared_data, pose_list_gr
 
 def test_a_connected_graph_is_one_bag(shared_data, tmp_path):
     out = tmp_path / "out"
-    result = _sfm(shared_data, out, "--scene-info", shared_data / SCENE_INFO, "--window", "2", "--limit", "1")
+    # --limit applies before the graph is built: the components are those of the pairs run
+    result = _sfm(shared_data, out, "--scene-info", shared_data / SCENE_INFO, "--window", "2", "--limit", "3")
     assert result.exit_code == 0, result.output
-    assert "pair graph: one component of 20 images" in flat(result.output)
-    assert yaml.safe_load((out / "config.yaml").read_text())["dataset"]["components"] == {"count": 1, "sizes": [20]}
+    assert "pair graph: one component of 3 images" in flat(result.output)
+    assert yaml.safe_load((out / "config.yaml").read_text())["dataset"]["components"] == {"count": 1, "sizes": [3]}
 
 
 def test_a_repeated_graph_option_is_refused(shared_data, pose_list_graph, tmp_path):
