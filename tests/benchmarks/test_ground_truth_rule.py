@@ -182,3 +182,24 @@ def test_the_rule_itself():
     T[:3, 3] = [0, 0, 1e-12]
     with pytest.raises(DatasetError, match="no translation"):
         check_pose(T, "f")
+
+
+def test_gluefactory_views_with_a_bad_pose_or_size_are_one_line(shared_data, tmp_path):
+    """glue-factory's views.txt: a view whose R is no rotation, or whose image size is 0, is
+    refused naming the file, the line and the view (with --skip-bad its pairs are skipped)."""
+    from helpers import gluefactory_layout
+
+    root = shared_data / KITTI
+    folder = tmp_path / "megadepth1500"
+    gluefactory_layout([shared_data / SCENE_INFO], folder, lambda rel, dest: dest.symlink_to(root / rel))
+    original = (folder / "views.txt").read_text().splitlines()
+    for edit, words in (({k: "0" for k in range(1, 10)}, "the pose's rotation is not a rotation"),
+                        ({14: "0"}, "image size 0 x 8 is not positive")):
+        lines = list(original)
+        fields = lines[1].split()
+        for k, value in edit.items():
+            fields[k] = value
+        lines[1] = " ".join(fields)
+        (folder / "views.txt").write_text("\n".join(lines) + "\n")
+        line = one_line_error(invoke("megadepth", "--root", folder, "--matcher", "sift", "--out", tmp_path / "out"))
+        assert f"views.txt: line 2: view {fields[0]}: {words}" in line
