@@ -146,19 +146,20 @@ def test_scene_info_with_an_implausible_translation_is_one_line(shared_data, tmp
 
 
 def test_stereo_calibration_with_a_negative_focal_is_one_line(tmp_path):
-    """KITTI's calib.txt with P0's fx negated (a left-handed camera): OpenCV's decomposition hands back negative
-    focals; they were taken as the rig's ground truth, now it is refused."""
-    from e3cm_bench.datasets.stereo import load_stereo_sequence
+    """KITTI's calib.txt with P0's fx negated (a left-handed camera): OpenCV's decomposition hands
+    back negative focals; they were taken as the rig's ground truth, now `calibrate` refuses them."""
+    import cv2
 
     root = tmp_path / "seq"
     for side in ("image_0", "image_1"):
         (root / side).mkdir(parents=True)
-        (root / side / "000000.png").write_bytes(b"")
+        for name in ("000000.png", "000001.png"):
+            cv2.imwrite(str(root / side / name), np.full((48, 64, 3), 128, np.uint8))
     P0 = "-718.856 0 607.19 0 0 718.856 185.2 0 0 0 1 0"
     P1 = "718.856 0 607.19 -386.14 0 718.856 185.2 0 0 0 1 0"
     (root / "calib.txt").write_text(f"P0: {P0}\nP1: {P1}\n")
-    with pytest.raises(DatasetError, match=r"calib.txt: the first projection matrix: focal length -?\d"):
-        load_stereo_sequence(root)
+    line = one_line_error(invoke("calibrate", "--root", root, "--out", tmp_path / "out", "--matcher", "sift"))
+    assert f"{root / 'calib.txt'}: the first projection matrix: focal length -718.856 is not positive" in line
 
 
 def test_the_rule_itself():
