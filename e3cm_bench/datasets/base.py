@@ -201,28 +201,6 @@ def _image_problems(pairs: Iterable[Pair]) -> dict[Path, str]:
     return {path: problem for path, problem in checked.items() if problem}
 
 
-def check_intrinsics(K: np.ndarray, where: str) -> None:
-    """K must be a camera matrix: positive focal lengths, last row (0, 0, 1)."""
-    if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.allclose(K[2], [0, 0, 1]):
-        raise DatasetError(f"{where}: intrinsics are not a camera matrix (focal lengths {K[0, 0]:g}, {K[1, 1]:g}; "
-                           f"last row {K[2].tolist()})")
-
-
-MIN_TRANSLATION = 1e-9  # below this the translation's direction, half of the pose error, is undefined
-
-
-def check_pose(T: np.ndarray, where: str) -> None:
-    """T (4x4) must hold a rotation (orthonormal, det +1) and a translation that is not zero
-    (the pose error compares translation directions, which a zero translation has none of:
-    SuperGlue's and LoFTR's evaluations cannot score such a pair either)."""
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-3):
-        raise DatasetError(f"{where}: the relative pose's rotation is not a rotation (det {np.linalg.det(R):.3g})")
-    if not np.linalg.norm(T[:3, 3]) > MIN_TRANSLATION:
-        raise DatasetError(f"{where}: the relative pose has no translation (the cameras share a centre), "
-                           "so its translation error is undefined")
-
-
 def text_lines(path: Path) -> Iterator[tuple[int, str]]:
     """(number in the file, text) of each line of a text list but blank lines and # comments:
     a message quotes the line number an editor shows. DatasetError naming the file where it

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.truth import check_homography
 
 # D2-Net's protocol drops the sequences whose images exceed 1600 x 1200 (PROTOCOLS §2).
 LARGE_SEQUENCES = (
@@ -106,9 +107,5 @@ def read_homography(path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: not a numeric matrix ({reason})") from None
     if H.shape != (3, 3):
         raise DatasetError(f"{path}: expected a 3x3 matrix, got shape {H.shape}")
-    if not np.all(np.isfinite(H)):
-        raise DatasetError(f"{path}: the homography has non-finite entries (NaN or inf)")
-    # Relative to the entries' scale: an H of tiny entries is fine, a rank-deficient one is not.
-    if np.linalg.cond(H) > 1e12:
-        raise DatasetError(f"{path}: the homography is singular (it maps the image onto a line or a point)")
+    check_homography(H, str(path))
     return H

@@ -20,9 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.datasets.base import (
-    DatasetError, Pair, PairList, check_intrinsics, check_pose, name_pairs, require_directory, text_lines,
-)
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, name_pairs, require_directory, text_lines
+from e3cm_bench.datasets.truth import check_image_size, check_intrinsics, check_pose, check_world_pose
 
 SCENE_INFO_KEYS = ("image_paths", "intrinsics", "poses", "pair_infos")
 
@@ -93,6 +92,8 @@ class MegaDepth1500(PairList):
                 check_intrinsics(K1, f"{path}: intrinsics[{j}]")
                 pose0 = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
                 pose1 = _matrix(scene["poses"][j], (4, 4), path, f"poses[{j}]")
+                check_world_pose(pose0, f"{path}: poses[{i}]")
+                check_world_pose(pose1, f"{path}: poses[{j}]")
                 T_0to1 = _relative_pose(pose0, pose1, path, i)
                 check_pose(T_0to1, f"{path}: pair_infos[{index}] (poses[{i}], poses[{j}])")
             except DatasetError as error:
@@ -168,9 +169,11 @@ def _read_views(path: Path) -> dict[str, tuple]:
             raise DatasetError(f"{where}: non-finite pose or camera values")
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = numbers[:9].reshape(3, 3), numbers[9:12]
-        params, problem = numbers[12:], ""
+        params, problem = numbers[12:], _view_problem(T, fields[14:16], f"{where}: view {name}")
         n = PINHOLE_PARAMS.get(model)
-        if n is None or len(params) < n:
+        if problem:
+            K = np.eye(3)
+        elif n is None or len(params) < n:
             problem = f"{where}: camera model {model} with {len(params)} parameters is not a pinhole camera"
             K = np.eye(3)
         else:
@@ -180,7 +183,7 @@ def _read_views(path: Path) -> dict[str, tuple]:
                 problem = f"{where}: camera {model} has non-zero distortion; MegaDepth's images are undistorted"
             else:
                 try:
-                    check_intrinsics(K, where)
+                    check_intrinsics(K, f"{where}: view {name}")
                 except DatasetError as error:
                     problem = str(error)
         if name in views:
@@ -189,6 +192,20 @@ def _read_views(path: Path) -> dict[str, tuple]:
     if not views:
         raise DatasetError(f"{path}: lists no views")
     return views
+
+
+def _view_problem(T: np.ndarray, size: list[str], where: str) -> str:
+    """What the ground-truth rule (truth.py) finds wrong with a view's pose and image size, or ""."""
+    try:
+        check_world_pose(T, where)
+        try:
+            width, height = float(size[0]), float(size[1])
+        except ValueError:
+            width = height = float("nan")
+        check_image_size(width, height, where)
+    except DatasetError as error:
+        return str(error)
+    return ""
 
 
 # What a scene_info pickle may build: numpy arrays, dtypes and scalars (module paths of numpy

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from .base import DatasetError, require_directory
+from .truth import check_intrinsics, check_rotation, check_translation
 
 
 @dataclass
@@ -63,24 +64,19 @@ def read_calibration_file(path: Path) -> dict[str, np.ndarray]:
     return values
 
 
-# How far a calibration file's rotation may be from orthonormal with determinant +1: KITTI
-# prints seven significant digits, which leaves about 1e-6.
-ROTATION_TOLERANCE = 1e-3
 # The baseline below which two cameras are taken as one (the file's units: metres in KITTI).
 MIN_BASELINE = 1e-9
 
 
 def _rotation(values: dict, key: str, path: Path) -> np.ndarray:
     R = _entry(values, key, 9, path).reshape(3, 3)
-    off = float(np.abs(R @ R.T - np.eye(3)).max())
-    if off > ROTATION_TOLERANCE or abs(np.linalg.det(R) - 1) > ROTATION_TOLERANCE:
-        raise DatasetError(f"{path}: '{key}:' is not a rotation (R R^T differs from I by {off:.3g}, "
-                           f"det {np.linalg.det(R):.4f}); expected an orthonormal 3x3 matrix with determinant 1")
+    check_rotation(R, str(path), f"'{key}:'")
     return R
 
 
 def _baseline(t: np.ndarray, path: Path, keys: str) -> np.ndarray:
     """A rig's t, refused when the two cameras sit at one place (nothing to rectify or triangulate)."""
+    check_translation(t, str(path), f"the baseline of {keys}")
     if not np.linalg.norm(t) > MIN_BASELINE:
         raise DatasetError(f"{path}: {keys} put both cameras at the same place (no baseline); a stereo rig needs two")
     return t
@@ -101,7 +97,11 @@ def _from_projections(P0: np.ndarray, P1: np.ndarray, path: Path) -> tuple[np.nd
     C0, C1 = c0[:3, 0] / c0[3, 0], c1[:3, 0] / c1[3, 0]
     t0, t1 = -R0 @ C0, -R1 @ C1
     R = R1 @ R0.T
-    return K0 / K0[2, 2], K1 / K1[2, 2], R, t1 - R @ t0
+    K0, K1 = K0 / K0[2, 2], K1 / K1[2, 2]
+    # OpenCV's RQ decomposition leaves a focal negative where the 3x3 part has a negative determinant
+    for K, which in ((K0, "the first"), (K1, "the second")):
+        check_intrinsics(K, f"{path}: {which} projection matrix")
+    return K0, K1, R, t1 - R @ t0
 
 
 def _frames(left_dir: Path, right_dir: Path) -> tuple[list[Path], list[Path]]:
@@ -131,6 +131,8 @@ def load_stereo_sequence(root: str | Path, unrectified: bool = False) -> StereoS
         values = read_calibration_file(path)
         if unrectified:
             K0, K1 = _entry(values, "K_00", 9, path).reshape(3, 3), _entry(values, "K_01", 9, path).reshape(3, 3)
+            check_intrinsics(K0, f"{path}: 'K_00:'")
+            check_intrinsics(K1, f"{path}: 'K_01:'")
             R00, R01 = _rotation(values, "R_00", path), _rotation(values, "R_01", path)
             T00, T01 = _entry(values, "T_00", 3, path), _entry(values, "T_01", 3, path)
             R = R01 @ R00.T

@@ -13,7 +13,8 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, check_intrinsics, check_pose, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.truth import check_intrinsics, check_pose
 
 DEFAULT_PAIRS_FILE = "yfcc_test_pairs_with_gt.txt"
 N_FIELDS = 2 + 2 + 9 + 9 + 16

@@ -311,12 +311,15 @@ def dfm_release_stage0(top0: torch.Tensor, top1: torch.Tensor, level: int, setti
     cells0, cells1 = release_dense(top0, top1, settings.stage0_ratio)
     H = None
     if len(cells0) >= 4:
-        x1, x0, _ = perturb_correspondences(level_points(cells1, level), level_points(cells0, level))
-        H, _ = cv2.findHomography(
-            x1, x0, cv2.RANSAC,
-            settings.homography_threshold_px, maxIters=5000, confidence=0.9999,
-        )
+        H = dfm_stage0_homography(level_points(cells0, level), level_points(cells1, level), settings)
     return (np.eye(3) if H is None else H), len(cells0)
+
+
+def dfm_stage0_homography(points0: np.ndarray, points1: np.ndarray, settings: DFMRelease) -> np.ndarray | None:
+    """The release's stage-0 homography B -> A from its matches (None where RANSAC finds none)."""
+    x1, x0, _ = perturb_correspondences(points1, points0)
+    H, _ = cv2.findHomography(x1, x0, cv2.RANSAC, settings.homography_threshold_px, maxIters=5000, confidence=0.9999)
+    return H
 
 
 def dfm_release_stage1(

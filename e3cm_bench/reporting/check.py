@@ -37,6 +37,7 @@ import pandas as pd
 from . import noise_gate
 from .ensemble import noise_path, read_noise
 from ..files import read_keyed_csv, write_atomically, write_csv
+from .escape import markdown_code, markdown_text
 from .formats import format_number
 from ..stats.noise import CHECK_ALPHA, metric_alpha
 from .environment import (ENVIRONMENT_PACKAGES, ISA_KEYS, environment_differences,  # noqa: F401 - their old home
@@ -290,21 +291,21 @@ def markdown_summary(findings: list[Finding], problems: list[str], baseline_path
     """A Markdown report (GitHub Actions: append it to $GITHUB_STEP_SUMMARY); ``notes``: the
     environment differences (environment_notes), listed above the table."""
     marks = {"ok": "ok", "regression": "**regression**", "improvement": "improved"}
-    lines = [f"### e3cm-bench check against `{baseline_path}`", ""]
+    lines = [f"### e3cm-bench check against {markdown_code(baseline_path)}", ""]
     bad = [f for f in findings if f.status == "regression"]
     lines.append(f"{len(findings)} metrics checked: {len(bad)} regression(s), "
                  f"{sum(f.status == 'improvement' for f in findings)} improvement(s), {len(problems)} problem(s).")
     if tolerance_file is not None:
-        lines += ["", f"Tolerances: the command line's, then `{tolerance_file}`, then the defaults."]
+        lines += ["", f"Tolerances: the command line's, then {markdown_code(tolerance_file)}, then the defaults."]
     if notes:
-        lines += [""] + [f"- {note}" for note in notes]
+        lines += [""] + [f"- {markdown_text(note)}" for note in notes]
     lines += ["", "| benchmark | method | metric | baseline | measured | change | tolerance | status |",
               "|---|---|---|---:|---:|---:|---:|---|"]
     for f in findings:
-        lines.append(f"| {f.benchmark} | {f.method} | {f.metric} | {format_number(f.baseline, f.metric, fraction_decimals=4)} | "
+        lines.append(f"| {markdown_text(f.benchmark)} | {markdown_text(f.method)} | {markdown_text(f.metric)} | {format_number(f.baseline, f.metric, fraction_decimals=4)} | "
                      f"{format_number(f.measured, f.metric, fraction_decimals=4)} | "
                      f"{format_number(f.delta, 'd_', decimals=4 if abs(f.baseline) < 1.5 else 2)} | {f.tolerance:g} | {marks[f.status]} |")
-    lines += [f"- {problem}" for problem in problems]
+    lines += [f"- {markdown_text(problem)}" for problem in problems]
     return "\n".join(lines) + "\n"
 
 
@@ -368,17 +369,17 @@ def verdict_lines(verdict: noise_gate.RunVerdict, max_pairs: int = 5) -> list[tu
 def gate_markdown(verdicts: list[noise_gate.RunVerdict], alpha: float, check_alpha: float, baseline_path: Path) -> str:
     """The noise gate's Markdown report: every metric, its noise band and p-value."""
     marks = {"ok": "ok", "regression": "**regression**", "improvement": "improved"}
-    lines = [f"### e3cm-bench check against `{baseline_path}` (noise model)", "",
+    lines = [f"### e3cm-bench check against {markdown_code(baseline_path)} (noise model)", "",
              f"False-alarm rate {check_alpha:g} per check, {alpha:.2g} per metric "
              f"({sum(len(v.gates) for v in verdicts)} metrics).", "",
              "| benchmark | method | metric | baseline | measured | noise mean | band | p | status |",
              "|---|---|---|---:|---:|---:|---|---:|---|"]
     for v in verdicts:
         for g in v.gates:
-            lines.append(f"| {v.benchmark} | {v.method} | {g.metric} | {g.baseline:.4g} | {g.measured:.4g} | "
+            lines.append(f"| {markdown_text(v.benchmark)} | {markdown_text(v.method)} | {markdown_text(g.metric)} | {g.baseline:.4g} | {g.measured:.4g} | "
                          f"{g.expected:.4g} | {g.low:.4g}..{g.high:.4g} | {g.p_value:.2g} | {marks[g.status]} |")
     for v in verdicts:
         for status, line in verdict_lines(v):
             if status == "moved":
-                lines.append(f"- {line}")
+                lines.append(f"- {markdown_text(line)}")
     return "\n".join(lines) + "\n"

@@ -26,6 +26,7 @@ from rich.table import Table
 from .. import metrics, stats
 from ..benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
 from ..files import write_atomically, write_csv
+from .escape import markdown_text
 from .formats import format_interval, format_number, text_width
 from .tables import Run
 
@@ -274,7 +275,8 @@ def to_markdown(comparison: Comparison) -> str:
         return "| " + " | ".join(c.rjust(w) if k in right else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths))) + " |"
 
     rule = "| " + " | ".join("-" * (w - 1) + ":" if k in right else "-" * w for k, w in enumerate(widths)) + " |"
-    return (f"{comparison.heading()}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)])
+    # the heading holds the two labels: their characters stay text (no HTML, no link)
+    return (f"{markdown_text(comparison.heading())}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)])
             + f"\n\n{comparison.explanation()}\n")
 
 

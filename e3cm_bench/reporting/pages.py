@@ -5,7 +5,6 @@ site opens from the file system with no server and no network.
 
 from __future__ import annotations
 
-import html
 import json
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import pandas as pd
 
 from ..files import write_atomically
 from .drawings import file_slug
+from .escape import html_text
 from .runs import Run
 from .tables import display_cells
 
@@ -40,11 +40,11 @@ def _number(value, column: str = "") -> str:
         if column.startswith("n_") and float(value).is_integer():
             return str(int(value))
         return format_number(float(value), column)
-    return html.escape(str(value))
+    return html_text(str(value))
 
 
 def _page(title: str, body: str, script: str = "") -> str:
-    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html_text(title)}</title>"
             f"<style>{STYLE}</style></head><body>\n{body}\n" + (f"<script>{script}</script>\n" if script else "")
             + "</body></html>\n")
 
@@ -54,20 +54,20 @@ def index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: list
     # The table as the Markdown shows it: each number with its interval, differences flagged.
     text_columns = ("method", "source", "vs_paper", "protocol")
     shown, body, _ = display_cells(table)
-    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\">{html.escape(c)}</th>" for c in shown)
+    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\">{html_text(c)}</th>" for c in shown)
     rows = []
     for source, cells_text in zip(table["source"], body):
-        cells = "".join(f"<td class=\"t\">{html.escape('' if text == '-' else text)}</td>" if c in text_columns
-                        else f"<td>{html.escape(text)}</td>" for c, text in zip(shown, cells_text))
-        rows.append(f"<tr class=\"{html.escape(str(source))}\">{cells}</tr>")
+        cells = "".join(f"<td class=\"t\">{html_text('' if text == '-' else text)}</td>" if c in text_columns
+                        else f"<td>{html_text(text)}</td>" for c, text in zip(shown, cells_text))
+        rows.append(f"<tr class=\"{html_text(str(source))}\">{cells}</tr>")
     intervals_note = ("[lo, hi]: the bootstrap interval over the pairs (95% unless the run recorded another), "
                       "where the run has one; \"outside CI\": the paper's number lies outside it (a run on the paper's "
                       "pairs); \"other pairs\": the run's pairs are not the paper's, so the difference is no regression "
                       "and no improvement (the note above says which pairs each side holds).")
     run_items = []
     for k, (run, links) in enumerate(zip(runs, run_links), start=1):
-        items = " · ".join(f"<a href=\"{html.escape(path)}\">{html.escape(name)}</a>" for name, path in links.items())
-        run_items.append(f"<li><b>{html.escape(run.label)}</b> ({html.escape(str(run.dir))}): {items}</li>")
+        items = " · ".join(f"<a href=\"{html_text(path)}\">{html_text(name)}</a>" for name, path in links.items())
+        run_items.append(f"<li><b>{html_text(run.label)}</b> ({html_text(str(run.dir))}): {items}</li>")
     data = {
         "methods": [r.label for r in runs],
         "columns": list(runs[0].benchmark.report_columns),
@@ -80,19 +80,19 @@ def index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: list
         ],
     }
     payload = script_json(data)
-    selects = "".join(f"<option value=\"{k}\">{html.escape(label)}</option>" for k, label in enumerate(data["methods"]))
-    failure = (f"a pair fails where {html.escape(data['failure'][0])} &gt; {data['failure'][1]:g} (or none)"
+    selects = "".join(f"<option value=\"{k}\">{html_text(label)}</option>" for k, label in enumerate(data["methods"]))
+    failure = (f"a pair fails where {html_text(data['failure'][0])} &gt; {data['failure'][1]:g} (or none)"
                if data["failure"] else "")
     body = f"""
-<h1>e3cm-bench report: {html.escape(benchmark)}</h1>
+<h1>e3cm-bench report: {html_text(benchmark)}</h1>
 <p class="muted">Every number comes from the runs' own summary.csv and per_pair.csv; nothing is recomputed.</p>
-{''.join(f'<p class="muted">note: {html.escape(n)}</p>' for n in notes)}
+{''.join(f'<p class="muted">note: {html_text(n)}</p>' for n in notes)}
 <h2>Table</h2>
 <div class="wide"><table id="summary"><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table></div>
-<p class="muted">{html.escape(intervals_note)}</p>
+<p class="muted">{html_text(intervals_note)}</p>
 {_comparison_section(comparison)}
 <h2>Plots</h2>
-<div class="plots">{''.join(f'<img src="{html.escape(p)}" alt="{html.escape(p)}">' for p in plots)}</div>
+<div class="plots">{''.join(f'<img src="{html_text(p)}" alt="{html_text(p)}">' for p in plots)}</div>
 <h2>Runs</h2>
 <ul>{''.join(run_items)}</ul>
 <h2>Pairs</h2>
@@ -114,12 +114,12 @@ def _comparison_section(comparison) -> str:
         return ""
     header, body = comparison.display()
     text = (0, 1, 2, 8)  # metric, statistic, better, verdict: left-aligned
-    head = "".join(f"<th class=\"{'t' if k in text else ''}\">{html.escape(h)}</th>" for k, h in enumerate(header))
-    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in text else ''}\">{html.escape(cell)}</td>"
+    head = "".join(f"<th class=\"{'t' if k in text else ''}\">{html_text(h)}</th>" for k, h in enumerate(header))
+    rows = "".join("<tr>" + "".join(f"<td class=\"{'t' if k in text else ''}\">{html_text(cell)}</td>"
                                     for k, cell in enumerate(row)) + "</tr>" for row in body)
-    return (f"<h2>Paired comparison</h2>\n<p>{html.escape(comparison.heading())}</p>\n"
+    return (f"<h2>Paired comparison</h2>\n<p>{html_text(comparison.heading())}</p>\n"
             f"<table id=\"comparison\"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>\n"
-            f"<p class=\"muted\">{html.escape(comparison.explanation())} (e3cm-bench compare)</p>")
+            f"<p class=\"muted\">{html_text(comparison.explanation())} (e3cm-bench compare)</p>")
 
 
 def script_json(data) -> str:
@@ -192,11 +192,11 @@ def write_pair_page(out: Path, name: str, runs: list[Run], pairs: pd.DataFrame, 
         numbers = ", ".join(f"{c} {_number(pairs.loc[name].get(f'{k}:{c}'), c)}" for c in columns)
         failed = bool(pairs.loc[name].get(f"{k}:fail"))
         image = drawings.get(name, {}).get(k)
-        picture = f"<img src=\"../{html.escape(image)}\" alt=\"{html.escape(run.label)}\">" if image else \
+        picture = f"<img src=\"../{html_text(image)}\" alt=\"{html_text(run.label)}\">" if image else \
             "<p class=\"muted\">no drawing (no cached matches or no ground truth here)</p>"
-        blocks.append(f"<div class=\"drawing\"><h2>{html.escape(run.label)}{' (fails)' if failed else ''}</h2>"
+        blocks.append(f"<div class=\"drawing\"><h2>{html_text(run.label)}{' (fails)' if failed else ''}</h2>"
                       f"<p>{numbers}</p>{picture}</div>")
-    body = (f"<p><a href=\"../index.html\">back to the report</a></p><h1>{html.escape(name)}</h1>"
+    body = (f"<p><a href=\"../index.html\">back to the report</a></p><h1>{html_text(name)}</h1>"
             "<p class=\"muted\">Green: right by the ground truth; red: wrong (at most 400 lines drawn).</p>" + "".join(blocks))
     page = _page(name, body)
     write_atomically(out / "pairs" / f"{file_slug(name)}.html", lambda tmp: tmp.write_text(page))

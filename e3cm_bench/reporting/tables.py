@@ -19,6 +19,7 @@ from rich.table import Table
 from ..benchmarks import Benchmark, get_benchmark
 from .. import intervals
 from ..files import read_csv, write_atomically, write_csv
+from .escape import markdown_text
 from .formats import fit_columns, format_interval, format_number, text_width
 from ..paper import PAPER_DIR
 from .runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
@@ -263,6 +264,9 @@ def table_to_markdown(df: pd.DataFrame) -> str:
     with ``<col>_lo`` and ``<col>_hi`` beside it shows them in its cells (`display_cells`).
     """
     columns, body, numeric = display_cells(df)
+    # a label's characters stay text: `sift | ok` one cell, `<b>` and `[a](b)` no HTML or link
+    columns = [markdown_text(c) for c in columns]
+    body = [[cell if is_num else markdown_text(cell) for cell, is_num in zip(row, numeric)] for row in body]
     widths = [max([len(column), 3, *(len(row[i]) for row in body)]) for i, column in enumerate(columns)]
 
     def line(cells: Sequence[str]) -> str:
@@ -270,7 +274,7 @@ def table_to_markdown(df: pd.DataFrame) -> str:
         return "| " + " | ".join(padded) + " |"
 
     rule = "| " + " | ".join("-" * (w - 1) + ":" if is_num else "-" * w for w, is_num in zip(widths, numeric)) + " |"
-    notes = "".join(f"\nNote: {note}\n" for note in paper_set_notes(df))
+    notes = "".join(f"\nNote: {markdown_text(note)}\n" for note in paper_set_notes(df))
     return "\n".join([line(columns), rule, *(line(row) for row in body)]) + "\n" + notes
 
 

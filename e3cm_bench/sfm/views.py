@@ -25,7 +25,8 @@ from typing import Iterator
 
 import numpy as np
 
-from ..datasets.base import DatasetError, check_intrinsics, check_pose, name_pairs
+from ..datasets.base import DatasetError, name_pairs
+from ..datasets.truth import check_image_size, check_intrinsics, check_pose, check_quaternion, check_world_pose
 from ..datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
 from ..datasets.yfcc import YFCC100M
 
@@ -97,9 +98,7 @@ def views_from_scene_info(path: Path, root: Path, anywhere: bool = False) -> lis
         K = _matrix(scene["intrinsics"][i], (3, 3), path, f"intrinsics[{i}]")
         check_intrinsics(K, f"{path}: intrinsics[{i}]")
         pose = _matrix(scene["poses"][i], (4, 4), path, f"poses[{i}]")
-        R = pose[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-3):
-            raise DatasetError(f"{path}: poses[{i}] does not hold a rotation (is it a pose at all?)")
+        check_world_pose(pose, f"{path}: poses[{i}]")
         name = image_key(str(image), root, anywhere, f"{path}: image_paths[{i}]")
         views.append(View(name, Path(name) if anywhere else root / name, K, pose))
     _check_count(views, path)
@@ -124,30 +123,42 @@ def views_from_colmap(model: Path, root: Path, anywhere: bool = False) -> list[V
         raise DatasetError(f"{model}: not a readable COLMAP model ({' '.join(str(error).split())[:200]})") from None
     views = []
     for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
-        camera = reconstruction.cameras[image.camera_id]
-        n = PINHOLE_PARAMS.get(camera.model_name)
-        params = np.asarray(camera.params, np.float64)
-        if n is None or np.any(params[n:] != 0):
-            raise DatasetError(f"{model}: image {image.name} has a {camera.model_name} camera with distortion; "
-                               "the set needs undistorted images and pinhole cameras")
-        K = np.asarray(camera.calibration_matrix(), np.float64)
-        # COLMAP's principal point is in its corner convention (top-left pixel centre at 0.5); the
-        # benchmark's pixel centres are at integers, as its matches are
-        K[0, 2] -= 0.5
-        K[1, 2] -= 0.5
-        pose = np.eye(4)
-        if image.has_pose:
-            pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
-        else:
+        if not image.has_pose:
             continue  # an image the model lists but never registered has no ground truth
         name = image_key(image.name, root, anywhere, f"{model}: image {image.name}")
-        views.append(View(name, Path(name) if anywhere else root / name, K, pose))
+        views.append(View(name, Path(name) if anywhere else root / name, *_colmap_view(reconstruction, image, model)))
     missing = [v for v in views if not v.path.is_file()]
     if missing:
         raise DatasetError(f"{model}: {len(missing)} of the {len(views)} images the model names are missing under "
                            f"{root} (first: {missing[0].name})")
     _check_count(views, model)
     return _once(views, model)
+
+
+def _colmap_view(reconstruction, image, model: Path) -> tuple[np.ndarray, np.ndarray]:
+    """K and world-to-camera 4x4 of one registered image of a COLMAP model, checked by the
+    ground-truth rule (truth.py) as stored: the quaternion itself, since pycolmap turns a zero
+    or non-unit one into a matrix without a word (a zero one into the identity)."""
+    where = f"{model}: image {image.name}"
+    camera = reconstruction.cameras[image.camera_id]
+    n = PINHOLE_PARAMS.get(camera.model_name)
+    params = np.asarray(camera.params, np.float64)
+    if n is None or np.any(params[n:] != 0):
+        raise DatasetError(f"{where} has a {camera.model_name} camera with distortion; "
+                           "the set needs undistorted images and pinhole cameras")
+    check_image_size(camera.width, camera.height, where)
+    K = np.asarray(camera.calibration_matrix(), np.float64)
+    # COLMAP's principal point is in its corner convention (top-left pixel centre at 0.5); the
+    # benchmark's pixel centres are at integers, as its matches are
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    check_intrinsics(K, where)
+    cam_from_world = image.cam_from_world()
+    check_quaternion(cam_from_world.rotation.quat, where)
+    pose = np.eye(4)
+    pose[:3, :] = np.asarray(cam_from_world.matrix(), np.float64)
+    check_world_pose(pose, where)
+    return K, pose
 
 
 class _PairLines(YFCC100M):
