@@ -134,22 +134,8 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
                                      "COLMAP holds one match list per image pair")
                 pairs = pairs.astype(np.uint32)
                 db.write_matches(id0, id1, pairs)
-                geometry = item.geometry
-                if geometry is None:
-                    continue
-                tvg = pycolmap.TwoViewGeometry()
-                tvg.inlier_matches = pairs[geometry["inliers"]]
-                if "H" in geometry:
-                    T = np.array([[1, 0, shift], [0, 1, shift], [0, 0, 1]], np.float64)
-                    tvg.config = pycolmap.TwoViewGeometryConfiguration.PLANAR
-                    tvg.H = T @ geometry["H"] @ np.linalg.inv(T)
-                else:
-                    R, t = geometry["R"], geometry["t"]
-                    tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
-                    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], np.float64)
-                    tvg.E = tx @ R
-                    tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
-                db.write_two_view_geometry(id0, id1, tvg)
+                if item.geometry is not None:
+                    db.write_two_view_geometry(id0, id1, _two_view_geometry(pycolmap, item.geometry, pairs, shift))
         finally:
             db.close()
 
@@ -159,6 +145,24 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
         for left in Path(out).glob(".database.db.*.tmp-*"):  # SQLite's -wal and -shm of the temporary file
             left.unlink(missing_ok=True)
         raise _unwritten(out / "database.db", error) from None
+
+
+def _two_view_geometry(pycolmap, geometry: dict, pairs: np.ndarray, shift: float):
+    """A pair's verified geometry as COLMAP stores it: its inlier matches and H (PLANAR, moved to
+    COLMAP's pixel origin) or E and the relative pose (CALIBRATED)."""
+    tvg = pycolmap.TwoViewGeometry()
+    tvg.inlier_matches = pairs[geometry["inliers"]]
+    if "H" in geometry:
+        T = np.array([[1, 0, shift], [0, 1, shift], [0, 0, 1]], np.float64)
+        tvg.config = pycolmap.TwoViewGeometryConfiguration.PLANAR
+        tvg.H = T @ geometry["H"] @ np.linalg.inv(T)
+    else:
+        R, t = geometry["R"], geometry["t"]
+        tvg.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], np.float64)
+        tvg.E = tx @ R
+        tvg.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+    return tvg
 
 
 def _unwritten(path: Path, error: RuntimeError) -> Exception:

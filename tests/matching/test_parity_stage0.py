@@ -112,12 +112,25 @@ def test_stage0_check_on_one_cpu_accepts_the_others_homography(leuven_maps, tmp_
 FIXTURE = REPO_ROOT / "tests" / "data" / "parity"
 
 
-def test_parity_script_on_leuven_with_the_xeons_kernels(seed0_weights):  # noqa: F811
+def leuven_images(shared_data, where: Path) -> list[Path]:
+    """The images the reference read (tests/data/parity/leuven13_640.json: i_leuven 1 and 3, longer
+    side 640 px, cv2.resize INTER_AREA), made from ../shared/data: the data's own files are never
+    copied into the repository."""
+    made = []
+    for side, frame in (("A", "1"), ("B", "3")):
+        image = cv2.imread(str(shared_data / "hpatches-sequences-release" / "i_leuven" / f"{frame}.ppm"))
+        path = where / f"leuven13_640_{side}.png"
+        cv2.imwrite(str(path), cv2.resize(image, (640, 427), interpolation=cv2.INTER_AREA))
+        made.append(path)
+    return made
+
+
+def test_parity_script_on_leuven_with_the_xeons_kernels(seed0_weights, shared_data, tmp_path):  # noqa: F811
     """The issue's case at the command: the DFM release's own output on leuven 1-3 (made on an AMD
     EPYC, whose OpenBLAS kernels are Haswell's: tests/data/parity/leuven13_640.json), checked
     with SkylakeX's kernels, an Intel Xeon's. Before: exit 1, "H_init differs and no
     perturbation changes the stage-0 list"; now stage 0 and stage 1 pass, end to end too."""
-    images = [FIXTURE / f"leuven13_640_{side}.png" for side in "AB"]
+    images = leuven_images(shared_data, tmp_path)
     flags = set(Path("/proc/cpuinfo").read_text().split()) if Path("/proc/cpuinfo").is_file() else set()
     if not set(KERNELS["SkylakeX"]) <= flags:
         pytest.skip("this CPU cannot run OpenBLAS's SkylakeX kernels")
