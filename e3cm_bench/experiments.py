@@ -215,7 +215,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
 
 def write_table(
     run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
-    console: Console | None = None, paper_rows: bool = True,
+    console: Console | None = None, paper_rows: bool = True, latex: bool = False,
 ) -> tuple[Path, Path]:
     """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
 
@@ -225,6 +225,7 @@ def write_table(
     ``0.73 [0.47, 0.93]`` in the Markdown and on the terminal); a difference whose paper number
     lies outside that interval says so.
     paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
+    latex=True also writes ``<out_path>.tex``, a booktabs table for a paper (reporting/latex.py).
     """
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
@@ -238,7 +239,12 @@ def write_table(
     if not compare:
         table = report.without_comparison(table)
     csv_path, md_path = report.write_paper_table(table, out_path)
+    written = [csv_path, md_path]
+    if latex:
+        from .reporting.latex import write_latex_table
+
+        written.append(write_latex_table(table, out_path))
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
     report.print_paper_table(table, console)  # the Markdown's cells, within the terminal's width
-    console.print(f"table: {csv_path}, {md_path}", markup=False)
+    console.print(f"table: {', '.join(str(p) for p in written)}", markup=False)
     return csv_path, md_path

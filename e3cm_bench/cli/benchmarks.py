@@ -13,7 +13,7 @@ import typer
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
 from ..options import KINDS, METHOD_OPTIONS
-from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
+from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ COMMON_AFTER = (
     ("skip_bad", SkipBadOpt, False), ("ransac_px", RansacOpt, None), ("pose_estimator", PoseEstimatorOpt, None),
     ("repeats", RepeatsOpt, 1), ("on_matcher_error", OnMatcherErrorOpt, "stop"),
     ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
-    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0),
+    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0), ("plot_format", PlotFormatOpt, "png"),
 )
 
 
@@ -135,7 +135,10 @@ def benchmark_command(bench: Benchmark):
     dataset options (typer reads the signature built here, as it reads a written one)."""
 
     def command(**given) -> None:
-        run_command(bench, given)
+        from ..reporting.formats import plots_as
+
+        with plots_as(given.pop("plot_format")):
+            run_command(bench, given)
 
     common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
                                               annotation=annotation) for name, annotation, default in group]

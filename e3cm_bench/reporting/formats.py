@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -92,3 +93,40 @@ def text_width(console) -> int:
         return console.width
     columns = os.environ.get("COLUMNS", "")
     return int(columns) if columns.isdigit() and int(columns) > 0 else PIPE_WIDTH
+
+
+# The file format of every plot a command writes (--format). The benchmarks name their plots
+# .png (plot_run, plot_comparison); plots.py saves each in this format instead. It travels in
+# the environment, not as an argument, so that the worker processes of --workers and a SLURM
+# array's tasks (which write a merged run's plots) inherit it; png by default, so that
+# committed results stay byte-identical.
+PLOT_FORMATS = ("png", "pdf", "svg")
+PLOT_FORMAT_ENV = "E3CM_BENCH_PLOT_FORMAT"
+
+
+def plot_format() -> str:
+    """The format plots are saved in now: --format's, else png."""
+    chosen = os.environ.get(PLOT_FORMAT_ENV) or "png"
+    if chosen not in PLOT_FORMATS:
+        raise ValueError(f"{PLOT_FORMAT_ENV}={chosen}: the plot format is one of {', '.join(PLOT_FORMATS)}")
+    return chosen
+
+
+def check_plot_format(chosen: str) -> str:
+    if chosen not in PLOT_FORMATS:
+        raise ValueError(f"--format {chosen}: expected one of {', '.join(PLOT_FORMATS)}")
+    return chosen
+
+
+@contextmanager
+def plots_as(chosen: str):
+    """Plots written inside are saved as `chosen` (png, pdf, svg); the previous setting after."""
+    previous = os.environ.get(PLOT_FORMAT_ENV)
+    os.environ[PLOT_FORMAT_ENV] = check_plot_format(chosen)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(PLOT_FORMAT_ENV, None)
+        else:
+            os.environ[PLOT_FORMAT_ENV] = previous
