@@ -155,7 +155,7 @@ def reproduce(
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": skip_bad}
-    console.print(protocol.line(), markup=False)
+    console.print(protocol.line(benchmark.name), markup=False)
     if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
         console.rule(f"{experiment.get('name', config_path.stem)}: {', '.join(m.label for m in methods)}")
         run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev, limit=limit,

@@ -12,7 +12,7 @@ import typer
 
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from ..options import KINDS, METHOD_OPTIONS
+from ..options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
 from .common import app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
 
 
@@ -58,7 +58,8 @@ def run_command(bench: Benchmark, given: dict) -> None:
     from ..download import find_root
     from ..method import build_method
     from ..run.launch import run_shards
-    from ..run.shards import parse_shard
+    from ..files import FolderLock
+    from ..run.shards import parse_shard, shard_dir
     from ..run.stage import MatchOptions
     from ..runner import run_benchmark
 
@@ -68,15 +69,22 @@ def run_command(bench: Benchmark, given: dict) -> None:
     protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
-    method = build_method(method_values(method_given), bench, o.device, warn=warn)
+    check_run_flags(o)
+    values = method_values(method_given)
+    check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
+    # A busy folder is refused before torch and the method load (seconds; the lock itself is
+    # taken where the run opens the folder, run/driver.open_run).
+    FolderLock(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
+    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
+    options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
+                           pair_timeout=o.pair_timeout)
+    root = find_root(bench.name, o.root)
+    method = build_method(values, bench, o.device, warn=warn)
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
         dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
-    console.print(get_protocol(protocol, bench.name).line(), markup=False)
-    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
-    run = dict(benchmark=bench.name, out=o.out, method=method, root=find_root(bench.name, o.root),
-               dataset_options=dataset_options, skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite,
-               viz=o.viz, options=MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch,
-                                               on_matcher_error=o.on_matcher_error, pair_timeout=o.pair_timeout))
+    console.print(get_protocol(protocol, bench.name).line(bench.name), markup=False)
+    run = dict(benchmark=bench.name, out=o.out, method=method, root=root, dataset_options=dataset_options,
+               skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options)
     if o.workers or o.devices:
         devices = scale.device_list(o.device)
         run_shards(run, len(devices), devices=devices, console=console)
@@ -85,6 +93,14 @@ def run_command(bench: Benchmark, given: dict) -> None:
     else:
         run_benchmark(**run, eval_only=o.eval_only, device=o.device, shard=parse_shard(o.shard) if o.shard else None,
                       console=console)
+
+
+def check_run_flags(o: SimpleNamespace) -> None:
+    """The run's numeric flags, before anything loads (run_benchmark checks them again for the API)."""
+    if o.limit is not None and o.limit < 1:
+        raise ValueError(f"--limit must be at least 1, got {o.limit}")
+    if o.viz < 0:
+        raise ValueError(f"--viz must be 0 (no drawings) or more, got {o.viz}")
 
 
 # Options of the benchmark commands.

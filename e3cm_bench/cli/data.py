@@ -11,7 +11,7 @@ import typer
 from ..benchmarks import BENCHMARKS, get_benchmark
 from .benchmarks import option_parameter
 from ..interchange.registry import formats, origin_help
-from .common import app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt, PlotFormatOpt
+from .common import app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt, PlotFormatOpt
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
 PixelOriginOpt = Annotated[Optional[str], typer.Option(
@@ -53,9 +53,9 @@ def datasets(
     from ..download import status
 
     to = to or data_dir()
-    console.print(f"data folder: {to} (benchmark commands use it when --root is not given)", markup=False)
+    say(f"data folder: {to} (benchmark commands use it when --root is not given)")
     for source in SOURCES.values():
-        console.print(status(source, to), markup=False, highlight=False, soft_wrap=True)
+        say(status(source, to))
 
 
 

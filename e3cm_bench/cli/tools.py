@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
+from .common import app, console, say, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -66,9 +66,9 @@ def matchers(
 
     shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
     for line in describe_matchers(shown):
-        console.print(line, markup=False, highlight=False, soft_wrap=True)
+        say(line)
     for name, why in ([] if names else sorted(broken_plugins().items())):
-        console.print(f"{name}  (not loaded) {why}", markup=False, highlight=False, soft_wrap=True)
+        say(f"{name}  (not loaded) {why}")
 
 
 def describe_matchers(shown) -> list[str]:

@@ -28,10 +28,19 @@ def format_number(value, key: str, decimals: int = 2, fraction_decimals: int = 2
         return "-"
     if key.startswith("d_"):
         return f"{number:+.{decimals}f}"
-    # Pair counts may come back as floats from a CSV; other integral floats (an MMA of 1.0) stay floats.
-    if isinstance(value, (int, np.integer)) or (key.startswith("n_pairs") and number.is_integer()):
+    # Counts may come back as floats from a CSV; other integral floats (an MMA of 1.0) stay floats.
+    if isinstance(value, (int, np.integer)) or (is_count(key) and number.is_integer()):
         return str(int(number))
     return f"{number:.{fraction_decimals if abs(number) < 1.5 else decimals}f}"
+
+
+# Columns that count things (pairs, failures, images registered, models, 3D points): an
+# integral value is printed as an integer (a mean over pairs, such as n_matches', keeps decimals).
+COUNT_COLUMNS = ("registered_images", "n_images", "points")
+
+
+def is_count(key: str) -> bool:
+    return key.startswith("n_") or key in COUNT_COLUMNS
 
 
 def format_interval(value, lo, hi, key: str, decimals: int = 2, fraction_decimals: int = 2) -> str:
