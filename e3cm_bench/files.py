@@ -358,7 +358,7 @@ class FolderLock:
         except BlockingIOError:
             holder = os.read(fd, 4096).decode("utf-8", "replace")
             os.close(fd)
-            raise self._busy(holder) from None
+            raise self.busy_error(holder) from None
         try:
             now = os.stat(self.path, follow_symlinks=False)
         except FileNotFoundError:
@@ -373,29 +373,9 @@ class FolderLock:
         self._fd = fd
         return True
 
-    def _busy(self, holder: str) -> ValueError:
+    def busy_error(self, holder: str) -> ValueError:
         return ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
                           f"wait for it to finish or choose another {self.option}")
-
-    def check_free(self) -> None:
-        """The refusal of a folder another process holds, now, taking nothing: a command asks
-        before it loads torch and its method (seconds to minutes), then takes the lock as ever.
-        A shared lock is tried and dropped at once; a lock file that is no regular file is left
-        for __enter__ to refuse with its reason."""
-        try:
-            fd = os.open(self.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
-        except OSError:
-            return  # no lock file: nobody holds the folder
-        try:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                return
-            try:
-                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                raise self._busy(os.read(fd, 4096).decode("utf-8", "replace")) from None
-            fcntl.flock(fd, fcntl.LOCK_UN)
-        finally:
-            os.close(fd)
 
     def __exit__(self, *exc) -> None:
         if self._fd is not None:

@@ -58,7 +58,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     from ..download import find_root
     from ..method import build_method
     from ..run.launch import run_shards
-    from ..files import FolderLock
+    from ..run.folder import RunFolder
     from ..run.shards import parse_shard, shard_dir
     from ..run.stage import MatchOptions
     from ..runner import run_benchmark
@@ -74,7 +74,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
     # taken where the run opens the folder, run/driver.open_run).
-    FolderLock(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
+    RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
     ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
                            pair_timeout=o.pair_timeout)

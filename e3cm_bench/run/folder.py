@@ -20,7 +20,10 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
 
 from __future__ import annotations
 
+import fcntl
+import os
 import shutil
+import stat
 from pathlib import Path
 
 from ..cache import MatchCache
@@ -134,6 +137,24 @@ class RunFolder:
         """The folder's exclusive lock (a context manager), taken before anything in it is read
         or written."""
         return FolderLock(self.path)
+
+    def check_free(self) -> None:
+        """The lock's refusal of a folder another process holds, now, taking nothing: a command
+        asks before it loads torch and its method (seconds to minutes), then takes the lock as
+        ever. A shared lock is tried and dropped at once; a lock file that is not a regular file
+        is left for the lock itself to refuse with its reason."""
+        lock = FolderLock(self.path)  # only its file and its message: nothing is taken
+        try:
+            fd = os.open(lock.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            return  # no lock file: nobody holds the folder
+        try:
+            if stat.S_ISREG(os.fstat(fd).st_mode):
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # dropped when fd closes
+        except BlockingIOError:
+            raise lock.busy_error(os.read(fd, 4096).decode("utf-8", "replace")) from None
+        finally:
+            os.close(fd)
 
     def read_config(self) -> dict | None:
         """The record as read (a dict), or None for a folder without one (RunConfig.read_if_present)."""

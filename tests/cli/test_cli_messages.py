@@ -16,6 +16,7 @@ from e3cm_bench.files import FolderLock
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.names import BUILTIN_MATCHERS
 from e3cm_bench.reporting.formats import format_number
+from e3cm_bench.run.folder import RunFolder
 from helpers import flat, invoke, one_line_error
 
 REPO = Path(__file__).resolve().parents[2]
@@ -54,12 +55,11 @@ def test_a_busy_folder_is_refused_before_torch_loads(tmp_path, shared_data):
 
 
 def test_check_free_takes_nothing(tmp_path):
-    lock = FolderLock(tmp_path)
-    lock.check_free()  # no lock file
+    RunFolder(tmp_path).check_free()  # no lock file
     with FolderLock(tmp_path):
         with pytest.raises(ValueError, match="another run is using this folder"):
-            FolderLock(tmp_path).check_free()
-    FolderLock(tmp_path).check_free()
+            RunFolder(tmp_path).check_free()
+    RunFolder(tmp_path).check_free()
     with FolderLock(tmp_path):  # the probe left no lock behind
         pass
 

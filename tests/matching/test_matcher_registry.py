@@ -165,7 +165,7 @@ def test_a_plugin_upgrade_refuses_to_resume_in_one_line(tmp_path, monkeypatch, h
         registry.load_plugins()
         assert get_matcher("orb").origin == "plugin e3cm-bench-orb 0.2.0"
         line = one_line_error(invoke("hpatches", *hpatches_boat, "--out", out, "--matcher", "orb", "--limit", 1))
-        assert "other settings (plugin)" in line and "--overwrite" in line
+        assert "other settings (plugin.version 0.1.0 -> 0.2.0)" in line and "--overwrite" in line
     finally:
         unregister("orb")
 
@@ -239,7 +239,7 @@ def test_a_module_factory_runs_and_its_file_hash_is_its_identity(tmp_path, monke
         unregister("my_corners:build")
         line = one_line_error(invoke("hpatches", *hpatches_boat, "--out", out, "--matcher", "my_corners:build",
                                      "--limit", 2))
-        assert "other settings (plugin)" in line
+        assert "other settings (plugin.sha256 " in line
         line = one_line_error(invoke("hpatches", *hpatches_boat, "--out", tmp_path / "x", "--matcher", "my_corners:nothing"))
         assert line.endswith("--matcher my_corners:nothing: module my_corners has no 'nothing'")
     finally:
