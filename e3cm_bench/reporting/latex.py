@@ -15,7 +15,7 @@ import pandas as pd
 
 from .. import intervals
 from ..files import write_atomically
-from .formats import format_interval, format_number
+from .formats import format_interval, format_number, is_count
 from .tables import display_cells
 
 # What LaTeX reads as a command in text mode, and what it takes to print it.
@@ -36,12 +36,17 @@ def lower_is_better(column: str) -> bool:
     return "error" in column
 
 
+# Figures that describe a reconstruction rather than score it: no best among them.
+_DESCRIPTIVE = ("mean_track_length",)
+
+
 def compared_columns(table: pd.DataFrame, columns: list[str]) -> list[str]:
-    """The columns whose best value is bold: the measured numbers that carry an interval and the
-    paper's own metrics (every number but the counts; the counts say how much was run)."""
-    with_interval = {c for c in columns if intervals.lo_key(c) in table.columns}
+    """The columns whose best value is bold: the paper's metrics and the measured numbers with an
+    interval; never a count (how much was run or registered: formats.is_count) or a descriptive
+    figure."""
+    with_interval = {c for c in columns if intervals.lo_key(c) in table.columns and table[intervals.lo_key(c)].notna().any()}
     paper_metrics = {c for c in columns if c in table.columns and table.loc[table["source"] == "paper", c].notna().any()}
-    return [c for c in columns if c in with_interval | paper_metrics]
+    return [c for c in columns if c in with_interval | paper_metrics and not is_count(c) and c not in _DESCRIPTIVE]
 
 
 def best_rows(table: pd.DataFrame, column: str) -> set[int]:

@@ -105,3 +105,17 @@ def test_latex_table_compiles(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout[-2000:]
     assert (tmp_path / "doc.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_counts_and_descriptive_figures_are_never_bold():
+    """An SfM table: the scores with intervals get a best, the counts (registered images, points)
+    and the mean track length none; an error with an interval is best lowest."""
+    table = pd.DataFrame({
+        "method": ["a", "b"], "source": ["measured", "measured"],
+        "auc@5": [90.0, 95.0], "auc@5_lo": [89.0, 94.0], "auc@5_hi": [91.0, 96.0],
+        "registered_images": [10.0, 9.0], "points": [1716.0, 5633.0], "mean_track_length": [6.05, 3.21],
+        "mean_reprojection_error": [0.18, 0.29], "mean_reprojection_error_lo": [0.1, 0.2],
+        "mean_reprojection_error_hi": [0.2, 0.3], "confidence": [0.95, 0.95]})
+    body = rows_of(table_to_latex(table))[1:]
+    assert body[0] == ["a", "90.00 [89.00, 91.00]", "10", "1716", "6.05", r"\textbf{0.18} [0.10, 0.20]"]
+    assert body[1] == ["b", r"\textbf{95.00} [94.00, 96.00]", "9", "5633", "3.21", "0.29 [0.20, 0.30]"]
