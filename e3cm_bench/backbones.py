@@ -27,6 +27,7 @@ from .backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
 from .backbone_specs import MAX_LEVELS, SPECS, BackboneSpec
 from .perturb import perturb_map
 from .files import file_sha256
+from .suggest import did_you_mean
 from .matchers.base import MEMORY_FORMATS, PRECISIONS
 
 
@@ -317,7 +318,7 @@ def load_backbone(
     pretrained=False: random weights (tests, timing).
     """
     if name not in SPECS:
-        raise BackboneError(f"unknown backbone {name!r}; choose one of: {', '.join(BACKBONES)}")
+        raise BackboneError(f"unknown backbone {name!r}{did_you_mean(name, BACKBONES)}; choose one of: {', '.join(BACKBONES)}")
     if not 1 <= num_levels <= MAX_LEVELS:
         raise BackboneError(f"num_levels must be 1..{MAX_LEVELS}, got {num_levels}")
     spec = SPECS[name]

@@ -156,7 +156,7 @@ def reproduce(
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": skip_bad}
-    console.print(protocol.line(), markup=False)
+    console.print(protocol.line(benchmark.name), markup=False)
     if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
         console.rule(f"{experiment.get('name', config_path.stem)}: {', '.join(m.label for m in methods)}")
         run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev, limit=limit,
@@ -216,7 +216,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
 
 def write_table(
     run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
-    console: Console | None = None, paper_rows: bool = True,
+    console: Console | None = None, paper_rows: bool = True, latex: bool = False,
 ) -> tuple[Path, Path]:
     """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
 
@@ -226,6 +226,7 @@ def write_table(
     ``0.73 [0.47, 0.93]`` in the Markdown and on the terminal); a difference whose paper number
     lies outside that interval says so.
     paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
+    latex=True also writes ``<out_path>.tex``, a booktabs table for a paper (reporting/latex.py).
     """
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
@@ -239,7 +240,12 @@ def write_table(
     if not compare:
         table = report.without_comparison(table)
     csv_path, md_path = report.write_paper_table(table, out_path)
+    written = [csv_path, md_path]
+    if latex:
+        from .reporting.latex import write_latex_table
+
+        written.append(write_latex_table(table, out_path))
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
     report.print_paper_table(table, console)  # the Markdown's cells, within the terminal's width
-    console.print(f"table: {csv_path}, {md_path}", markup=False)
+    console.print(f"table: {', '.join(str(p) for p in written)}", markup=False)
     return csv_path, md_path

@@ -358,8 +358,7 @@ class FolderLock:
         except BlockingIOError:
             holder = os.read(fd, 4096).decode("utf-8", "replace")
             os.close(fd)
-            raise ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
-                             f"wait for it to finish or choose another {self.option}") from None
+            raise self.busy_error(holder) from None
         try:
             now = os.stat(self.path, follow_symlinks=False)
         except FileNotFoundError:
@@ -374,6 +373,10 @@ class FolderLock:
         self._fd = fd
         _HELD_LOCKS.add(fd)
         return True
+
+    def busy_error(self, holder: str) -> ValueError:
+        return ValueError(f"{self.path.parent}: another run is using this folder ({_describe_holder(holder)}); "
+                          f"wait for it to finish or choose another {self.option}")
 
     def __exit__(self, *exc) -> None:
         if self._fd is not None:

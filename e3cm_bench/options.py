@@ -197,3 +197,15 @@ def check_method_values(values: Mapping) -> None:
         option = METHOD_OPTIONS.get(name)
         if option is not None and value is not None and not KINDS[option.kind].test(value):
             raise ValueError(f"{option.flags[0]} must be {KINDS[option.kind].wanted}, got {value!r}")
+    # The names, before anything is loaded (torch takes seconds): a backbone is one of the list
+    # whatever the matcher (a matcher without one ignores it), a matcher one that exists.
+    backbone = values.get("backbone")
+    if isinstance(backbone, str) and backbone not in BACKBONES:
+        from .suggest import did_you_mean
+
+        raise ValueError(f"--backbone {backbone}: unknown backbone{did_you_mean(backbone, BACKBONES)}; "
+                         f"choose one of: {', '.join(BACKBONES)}")
+    if values.get("matcher") is not None:
+        from .matchers.registry import check_name
+
+        check_name(values["matcher"])

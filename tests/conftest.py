@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -15,6 +17,35 @@ if str(TESTS) not in sys.path:
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+
+
+# Ctrl-C stops the suite at once. Most tests run a command in-process (helpers.invoke), and a
+# command turns a KeyboardInterrupt into its exit status 130 (cli/common.friendly_errors: the
+# user's Ctrl-C of a run) or click into "Aborted!": the running test failed on that status and
+# pytest went on with the next test, so each Ctrl-C cost one test. A SIGINT is noted here (and
+# raised as ever), and the session stops when that test ends.
+_SIGINTS: list[int] = []
+
+
+def _on_sigint(signum, frame):
+    _SIGINTS.append(signum)
+    signal.default_int_handler(signum, frame)
+
+
+def pytest_configure(config):
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _on_sigint)
+
+
+def pytest_unconfigure(config):
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is _on_sigint:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem):
+    if _SIGINTS:
+        item.session.shouldstop = "interrupted (Ctrl-C)"
 
 
 @pytest.fixture(scope="session")

@@ -47,6 +47,7 @@ def test_the_paper_data_is_found_through_importlib_resources():
     assert not list((REPO / "results").glob("paper/*"))
 
 
+@pytest.mark.slow  # 89 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_every_shipped_config_resolves_by_name_and_is_valid():
     names = config_names()
     # the short names first: the paper's, and WxBS and EVD (every built-in benchmark)
@@ -75,6 +76,7 @@ def test_an_unknown_name_is_one_line_listing_the_known_ones(tmp_path):
     assert all(name in usage for name in (*PAPER_NAMES, "table1_hpatches", "refine_ablation_kitti"))
 
 
+@pytest.mark.slow  # 56 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_reproduce_by_name_from_another_folder(tmp_path, monkeypatch, shared_data):
     monkeypatch.chdir(tmp_path)  # nothing is read relative to the checkout
     result = invoke("reproduce", "table1", "--root", shared_data / "hpatches-sequences-release", "--methods", "sift",
@@ -87,6 +89,7 @@ def test_reproduce_by_name_from_another_folder(tmp_path, monkeypatch, shared_dat
     assert (tmp_path / "t1" / "experiment.yaml").read_text().startswith("name: table1_hpatches\n")
 
 
+@pytest.mark.slow  # 60 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_a_wheel_installed_away_from_the_checkout_reports_the_paper_rows(tmp_path):
     """The wheel, built from the package as it is on disk and installed into a folder of its own,
     imported ahead of the editable install from a folder outside the checkout: its report of a

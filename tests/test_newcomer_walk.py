@@ -193,6 +193,13 @@ def test_the_walk_reads_the_files():
     assert deep and all("--backbone" in words and "efficientnet_lite0" in words for words in deep), deep
 
 
+@pytest.mark.slow  # the walk's steps
+def test_the_tour_writes_a_latex_table_and_pdf_plots(walk):
+    step = next(s for s in walk if s.words[0] == "table" and "--latex" in s.words)
+    assert step.code == 0 and "tables/mine.tex" in step.stdout, step.stdout + step.stderr
+    assert "SIFT+NN" not in step.stdout  # --no-paper: the runs' rows only
+
+
 @pytest.mark.slow  # the walk runs every step once: about a minute
 def test_every_step_works_the_first_time(walk):
     failed = [f"e3cm-bench {' '.join(s.words)} [{s.source}] exit {s.code}: {s.stderr.strip()[-300:]}"

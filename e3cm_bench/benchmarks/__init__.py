@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
+from ..suggest import did_you_mean
 from .base import Benchmark, DatasetOption, EvalSettings
 from .homography import HomographyBenchmark
 from .pose import PoseBenchmark
@@ -42,7 +43,7 @@ def get_benchmark(name: str | Benchmark) -> Benchmark:
     if isinstance(name, Benchmark):
         return name
     if name not in BENCHMARKS:
-        raise ValueError(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}")
+        raise ValueError(f"unknown benchmark {name!r}{did_you_mean(name, BENCHMARKS)}; choose one of {', '.join(BENCHMARKS)}")
     return BENCHMARKS[name]
 
 

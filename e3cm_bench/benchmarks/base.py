@@ -184,8 +184,26 @@ class Benchmark:
         options = {k: v for k, v in options.items() if v is not None}
         if limit and sample is None and self.builds_to_limit:  # the run's --limit: built no further (sfm's graph)
             options["first"] = int(limit)
-        dataset = self.dataset(root, skip_bad=skip_bad, **options)
+        try:
+            dataset = self.dataset(root, skip_bad=skip_bad, **options)
+        except (ValueError, FileNotFoundError) as error:  # DatasetError is a ValueError
+            hint = self.root_hint(root)
+            if not hint:
+                raise
+            raise type(error)(f"{str(error).splitlines()[0]}; {hint}") from error
         return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
+
+    def root_hint(self, root: str | Path) -> str:
+        """For a --root one level too high: 'ROOT holds hpatches-sequences-release/: did you mean
+        --root ROOT/hpatches-sequences-release?' (the folder this benchmark's download makes,
+        datasets/sources.py), else ''."""
+        from ..datasets.sources import SOURCES
+
+        folders = [s.folder for s in SOURCES.values() if s.benchmark == self.name and s.folder]
+        found = next((f for f in folders if (Path(root) / f).is_dir()), None)
+        if found is None:
+            return ""
+        return f"{root} holds {found}/: did you mean --root {Path(root) / found}?"
 
     def max_side(self, option: int | None) -> int | None:
         """The resize of a run: the option as given (0 = full size), or this benchmark's default

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..options import FULL_RESOLUTION
+from ..suggest import did_you_mean
 
 
 @dataclass(frozen=True)
@@ -38,13 +39,19 @@ class Protocol:
     evaluation: dict = field(default_factory=dict)
     standard: bool = True
     rotation_error: str = "nearest-rotation"
+    notes: dict = field(default_factory=dict)  # {benchmark: what the protocol does there}, after the description
 
     def resize_mode(self, benchmark: str) -> str:
         return self.resize.get(benchmark, "shrink")
 
-    def line(self) -> str:
-        """What a run prints before it starts, so that the settings behind its numbers are on screen."""
-        return f"protocol {self.name}: {self.description}"
+    def line(self, benchmark: str | None = None) -> str:
+        """What a run prints before it starts, so that the settings behind its numbers are on screen:
+        of a benchmark's run, what applies to it only (no word of YFCC on HPatches)."""
+        if benchmark is None:
+            notes = [f"{name}: {note}" for name, note in self.notes.items()]
+            return f"protocol {self.name}: " + "; ".join([self.description, *notes])
+        note = self.notes.get(benchmark)
+        return f"protocol {self.name} on {benchmark}: {self.description}" + (f"; {note}" if note else "")
 
     def eval_fields(self, benchmark: str) -> dict:
         """The EvalSettings fields this protocol sets on `benchmark`."""
@@ -53,14 +60,17 @@ class Protocol:
 
 PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol(
-        "default", "e3cm-bench's own (docs/benchmarks.md, Protocols; MegaDepth/YFCC longer side at most 1200, HPatches full size; "
-        "failures count with error inf; YFCC images turned upright)",
+        "default", "e3cm-bench's own (docs/benchmarks.md, Protocols)",
         (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
+        notes={"hpatches": "images at full size",
+               "megadepth": "longer side at most 1200; failures count with error inf",
+               "yfcc": "longer side at most 1200; failures count with error inf; images turned upright"},
     ),
     Protocol(
-        "wxbs", "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), F at 0.25 px "
-        "(WxBS), H at 0.5 px (EVD), confidence 0.999, 100000 iterations; a failed estimate scores 0",
+        "wxbs", "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), confidence "
+        "0.999, 100000 iterations; a failed estimate scores 0",
         ("wxbs", "evd"),
+        notes={"wxbs": "F at 0.25 px", "evd": "H at 0.5 px"},
         evaluation={
             "wxbs": {"opencv_method": "magsac", "fundamental_ransac_px": 0.25, "fundamental_confidence": 0.999,
                      "fundamental_max_iters": 100000},
@@ -80,13 +90,15 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
         evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}}, rotation_error="reference",
     ),
     Protocol(
-        "gluefactory", "glue-factory's evaluation. MegaDepth-1500 (its official LightGlue configs): longer side resized "
-        "to 1600 px (enlarged too), PoseLib's relative pose at 2 px of the resized images (its README's command). "
-        "HPatches (gluefactory/eval/hpatches.py and eval/utils.py): the ground-truth H applied to corner-convention "
-        "coordinates, glue-factory's match precision prec@1px/prec@3px (symmetric H error strictly below t; "
-        "mprec: its median over pairs), PoseLib's H at 1 px, corner error on the corners (0, 0)..(w, h); "
-        "its 480 px short-side resize is not applied: the errors are in the run's pixels",
-        ("megadepth", "hpatches"), max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
+        "gluefactory", "glue-factory's evaluation",
+        ("megadepth", "hpatches"),
+        notes={"megadepth": "its official LightGlue configs: longer side resized to 1600 px (enlarged too), PoseLib's "
+                            "relative pose at 2 px of the resized images (its README's command)",
+               "hpatches": "gluefactory/eval/hpatches.py and eval/utils.py: the ground-truth H applied to "
+                           "corner-convention coordinates, glue-factory's match precision prec@1px/prec@3px "
+                           "(symmetric H error strictly below t; mprec: its median over pairs), PoseLib's H at 1 px, "
+                           "corner error on the corners (0, 0)..(w, h); its 480 px short-side resize is not applied: "
+                           "the errors are in the run's pixels"}, max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
         evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"},
                     "hpatches": {"homography_pixel_origin": "corner", "match_precision_px": (1.0, 3.0),
                                  "estimator": "poselib", "homography_ransac_px": 1.0}},
@@ -115,7 +127,7 @@ def rotation_error(protocol: str) -> str:
 
 def get_protocol(name: str, benchmark: str) -> Protocol:
     if name not in PROTOCOLS:
-        raise ValueError(f"unknown protocol {name!r}; choose one of {', '.join(PROTOCOLS)}")
+        raise ValueError(f"unknown protocol {name!r}{did_you_mean(name, PROTOCOLS)}; choose one of {', '.join(PROTOCOLS)}")
     protocol = PROTOCOLS[name]
     if protocol.benchmarks and benchmark not in protocol.benchmarks:
         raise ValueError(f"protocol {name!r} is defined for {', '.join(protocol.benchmarks)}, not {benchmark}")

@@ -12,8 +12,8 @@ import typer
 
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..benchmarks.protocols import get_protocol
-from ..options import KINDS, METHOD_OPTIONS
-from .common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt
+from ..options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
+from .common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,8 @@ def run_command(bench: Benchmark, given: dict) -> None:
     from ..download import find_root
     from ..method import build_method
     from ..run.launch import run_shards
-    from ..run.shards import parse_shard
+    from ..run.folder import RunFolder
+    from ..run.shards import parse_shard, shard_dir
     from ..run.stage import MatchOptions
     from ..runner import run_benchmark
 
@@ -74,15 +75,22 @@ def run_command(bench: Benchmark, given: dict) -> None:
     protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
-    method = build_method(method_values(method_given), bench, o.device, warn=warn)
+    check_run_flags(o)
+    values = method_values(method_given)
+    check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
+    # A busy folder is refused before torch and the method load (seconds; the lock itself is
+    # taken where the run opens the folder, run/driver.open_run).
+    RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
+    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
+    options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
+                           pair_timeout=o.pair_timeout)
+    root = find_root(bench.name, o.root)
+    method = build_method(values, bench, o.device, warn=warn)
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
         dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
-    console.print(get_protocol(protocol, bench.name).line(), markup=False)
-    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
-    run = dict(benchmark=bench.name, out=o.out, method=method, root=find_root(bench.name, o.root),
-               dataset_options=dataset_options, skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite,
-               viz=o.viz, options=MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch,
-                                               on_matcher_error=o.on_matcher_error, pair_timeout=o.pair_timeout))
+    console.print(get_protocol(protocol, bench.name).line(bench.name), markup=False)
+    run = dict(benchmark=bench.name, out=o.out, method=method, root=root, dataset_options=dataset_options,
+               skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options)
     if o.workers or o.devices:
         devices = scale.device_list(o.device)
         run_shards(run, len(devices), devices=devices, console=console)
@@ -91,6 +99,14 @@ def run_command(bench: Benchmark, given: dict) -> None:
     else:
         run_benchmark(**run, eval_only=o.eval_only, device=o.device, shard=parse_shard(o.shard) if o.shard else None,
                       console=console)
+
+
+def check_run_flags(o: SimpleNamespace) -> None:
+    """The run's numeric flags, before anything loads (run_benchmark checks them again for the API)."""
+    if o.limit is not None and o.limit < 1:
+        raise ValueError(f"--limit must be at least 1, got {o.limit}")
+    if o.viz < 0:
+        raise ValueError(f"--viz must be 0 (no drawings) or more, got {o.viz}")
 
 
 # Options of the benchmark commands.
@@ -117,7 +133,7 @@ COMMON_AFTER = (
     ("skip_bad", SkipBadOpt, False), ("ransac_px", RansacOpt, None), ("pose_estimator", PoseEstimatorOpt, None),
     ("repeats", RepeatsOpt, 1), ("on_matcher_error", OnMatcherErrorOpt, "stop"),
     ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
-    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0),
+    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0), ("plot_format", PlotFormatOpt, "png"),
 )
 
 
@@ -141,7 +157,10 @@ def benchmark_command(bench: Benchmark):
     dataset options (typer reads the signature built here, as it reads a written one)."""
 
     def command(**given) -> None:
-        run_command(bench, given)
+        from ..reporting.formats import plots_as
+
+        with plots_as(given.pop("plot_format")):
+            run_command(bench, given)
 
     common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
                                               annotation=annotation) for name, annotation, default in group]

@@ -94,6 +94,20 @@ def method_values(given: dict) -> dict:
     return values
 
 
+def say(line: str, hang: int = 4) -> None:
+    """A line of plain text on stdout within the terminal's width (80 columns in a pipe or a log:
+    reporting/formats.text_width), words kept whole (a path too), its continuation lines indented
+    `hang` spaces more than it (a listing's entries stay apart)."""
+    import textwrap
+
+    from ..reporting.formats import text_width
+
+    lead = len(line) - len(line.lstrip(" "))
+    lines = textwrap.wrap(line, text_width(console), subsequent_indent=" " * (lead + hang), break_long_words=False,
+                          break_on_hyphens=False) or [""]
+    console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
+
+
 def warn(message: str) -> None:
     """A warning on stderr (method.build_method's `warn`: a precision that will be emulated)."""
     err_console.print(f"[yellow]warning[/]: {escape(message)}", highlight=False, soft_wrap=True)
@@ -258,5 +272,6 @@ OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop
 PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the matcher is stopped with every process it started and the pair fails as --on-matcher-error says (POSIX; default: no limit).")]
 # Help texts are Rich markup: a literal "[word]" needs its backslash, else Rich takes it for a
 # style and drops it (tests/test_startup.py reads every help as Rich renders it).
+PlotFormatOpt = Annotated[str, typer.Option("--format", help="File format of the plots written: png, pdf or svg (vector, for a paper).")]
 PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench\\[poselib]'); --eval-only may change it.")]
 

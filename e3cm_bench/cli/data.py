@@ -11,7 +11,7 @@ import typer
 from ..benchmarks import BENCHMARKS, get_benchmark
 from .benchmarks import option_parameter
 from ..interchange.registry import formats, origin_help
-from .common import OnceEach, app, console, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt
+from .common import OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt, PlotFormatOpt
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
 PixelOriginOpt = Annotated[Optional[str], typer.Option(
@@ -53,9 +53,9 @@ def datasets(
     from ..download import status
 
     to = to or data_dir()
-    console.print(f"data folder: {to} (benchmark commands use it when --root is not given)", markup=False)
+    say(f"data folder: {to} (benchmark commands use it when --root is not given)")
     for source in SOURCES.values():
-        console.print(status(source, to), markup=False, highlight=False, soft_wrap=True)
+        say(status(source, to))
 
 
 
@@ -73,6 +73,7 @@ def import_matches(
     ransac_px: RansacOpt = None,
     pose_estimator: PoseEstimatorOpt = None,
     protocol: ProtocolOpt = None,  # None: the benchmark's default_protocol
+    plot_format: PlotFormatOpt = "png",
     **options,  # one --FORMAT per interchange format (source_parameters) and every benchmark's dataset options
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
@@ -99,8 +100,11 @@ def import_matches(
     (name, paths), = given.items()
     source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
                                 origin=pixel_origin)
-    import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite, viz=viz,
-               console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+    from ..reporting.formats import plots_as
+
+    with plots_as(plot_format):
+        import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite,
+                   viz=viz, console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
 
 
 def _as_declared(bench, name: str, value):

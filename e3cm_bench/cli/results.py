@@ -12,7 +12,7 @@ from rich.text import Text
 from ..demo import METHODS as DEMO_METHODS
 from ..paper import config_names, resolve_config
 from ..stats.noise import CHECK_ALPHA
-from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt
+from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt
 
 
 @app.command()
@@ -22,11 +22,16 @@ def table(
     out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
     reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default: the shipped e3cm_bench/paper/tableN.csv).")] = None,
     compare: CompareOpt = True,
+    latex: Annotated[bool, typer.Option("--latex", help="Also write OUT.tex: a booktabs table for a paper (each number with its interval, the best per column in bold).")] = False,
+    paper: Annotated[bool, typer.Option("--paper/--no-paper", help="The paper's rows above the runs' (--no-paper: the runs' rows only).")] = True,
+    plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
     from ..experiments import write_table
+    from ..reporting.formats import plots_as
 
-    write_table(list(run_dirs), out, reference, compare, console)
+    with plots_as(plot_format):
+        write_table(list(run_dirs), out, reference, compare, console, paper_rows=paper, latex=latex)
 
 
 @app.command()
@@ -86,13 +91,16 @@ def reproduce(
     methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
     launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
+    plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     from ..download import find_root
     from ..experiments import reproduce as reproduce_experiment
+    from ..reporting.formats import check_plot_format, plots_as
     from ..run.shards import parse_shard
     from ..run.launch import check_launcher, check_slurm, run_experiment_shards
 
+    check_plot_format(plot_format)
     check_launcher(launcher)
     if shards and launcher != "slurm":
         raise ValueError(f"--shards {shards} applies to --launcher slurm")
@@ -105,13 +113,14 @@ def reproduce(
     run = dict(config_path=config, root=root, out=out, backbone=backbone, limit=limit, device=device,
                dataset_overrides=overrides, skip_bad=skip_bad, max_side=max_side, compare=compare,
                only=methods.split(",") if methods else None)
-    if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
-        if shard or not shards:
-            raise ValueError("--launcher slurm needs --shards N (and no --shard)")
-        check_slurm(shards)
-        run_experiment_shards(run, shards, console=console)
-    else:
-        reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)
+    with plots_as(plot_format):
+        if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
+            if shard or not shards:
+                raise ValueError("--launcher slurm needs --shards N (and no --shard)")
+            check_slurm(shards)
+            run_experiment_shards(run, shards, console=console)
+        else:
+            reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)
 
 
 @app.command()
@@ -120,15 +129,18 @@ def merge(
     run_dir: Annotated[Path, typer.Argument(help="A sharded run's --out (with shards/), or a sharded reproduce's --out.")],
     viz: VizOpt = 0,
     compare: CompareOpt = True,
+    plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Merge the shards of a run (or of every method of a reproduce) into the usual CSVs, plots and config.yaml."""
     from ..experiments import EXPERIMENT_COPY, merge_experiment
+    from ..reporting.formats import plots_as
     from ..run.shards import merge_run
 
-    if (run_dir / EXPERIMENT_COPY).is_file():
-        merge_experiment(run_dir, compare=compare, console=console)
-    else:
-        merge_run(run_dir, viz=viz, console=console)
+    with plots_as(plot_format):
+        if (run_dir / EXPERIMENT_COPY).is_file():
+            merge_experiment(run_dir, compare=compare, console=console)
+        else:
+            merge_run(run_dir, viz=viz, console=console)
 
 
 @app.command()
@@ -139,13 +151,17 @@ def demo(
     quick: Annotated[bool, typer.Option("--quick", help="Fewer pairs of the same kinds: 10 HPatches-format (viewpoint and illumination), 2 scene pairs.")] = False,
     methods: Annotated[Optional[str], typer.Option("--methods", help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")] = None,
     device: DeviceOpt = "cpu",
+    plot_format: PlotFormatOpt = "png",
 ) -> None:
     """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-release, e3cm-ransac, e3cm-plus,
     direct, dfm and sift (deep ones on EfficientNet-Lite0) on HPatches-format sequences and a non-planar
     scene, prints each method's headline numbers (the runs' full output: OUT/demo.log)."""
     from ..demo import run_demo
+    from ..reporting.formats import plots_as
 
-    run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device, console=console)
+    with plots_as(plot_format):
+        run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device,
+                 console=console)
     console.print(f"demo: tables, plots and match drawings under {out}/ (hpatches_table.md, scenes_table.md, */viz/)",
                   markup=False, highlight=False)
 

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt
+from .common import app, console, say, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -31,6 +31,7 @@ def calibrate(
     unrectified: Annotated[bool, typer.Option("--unrectified", help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).")] = False,
     overwrite: OverwriteOpt = False,
     settings: CalibrateSetOpt = None,
+    plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
     from ..calibration.run import CalibrationSettings, run_calibration
@@ -47,8 +48,11 @@ def calibrate(
         methods.append(build_method(method_values(dict(matcher=name, backbone=backbone, weights=weights,
                                                        max_side=max_side, seed=seed, label=label,
                                                        settings=settings if deep else None))))
-    run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
-                    unrectified=unrectified, overwrite=overwrite, console=console)
+    from ..reporting.formats import plots_as
+
+    with plots_as(plot_format):
+        run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
+                        unrectified=unrectified, overwrite=overwrite, console=console)
 
 
 
@@ -62,9 +66,9 @@ def matchers(
 
     shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
     for line in describe_matchers(shown):
-        console.print(line, markup=False, highlight=False, soft_wrap=True)
+        say(line)
     for name, why in ([] if names else sorted(broken_plugins().items())):
-        console.print(f"{name}  (not loaded) {why}", markup=False, highlight=False, soft_wrap=True)
+        say(f"{name}  (not loaded) {why}")
 
 
 def describe_matchers(shown) -> list[str]:

@@ -192,13 +192,14 @@ def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items:
             job: ExportJob) -> dict:
     """Print what the export did and return its figures."""
     n_matches = sum(len(item.matches) for item in items)
-    say = dict(markup=False, highlight=False, soft_wrap=True)
+    # Wrapped at the console's width, words whole (rich's own width: 80 columns in a pipe or a log).
+    say = dict(markup=False, highlight=False)
     console.print(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} "
                   f"(pixel origin: {origin})", **say)
     if fmt.stores_geometry:
         verified = sum(item.geometry is not None for item in items)
         console.print(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)",
-                      markup=False, highlight=False)
+                      **say)
     found = {"format": fmt.name, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
              "pixel_origin": origin}
     if job.merged is not None:

@@ -41,7 +41,9 @@ from typing import Callable
 from ..backbone_names import DEFAULT_BACKBONE
 from ..devices import check_device
 from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
+from ..suggest import did_you_mean
 from .guards import exit_text
+from .names import BUILTIN_MATCHERS
 from .plugin_code import built_with, code_sha256
 from .plugin_import import bounded, why
 from .user_module import importing
@@ -114,8 +116,24 @@ def get_matcher(name: str, allow_import: bool = False) -> MatcherEntry:
     if isinstance(name, str) and ":" in name:
         raise ValueError(f"matcher {name!r} is not registered here; a package.module:factory is imported only when "
                          "named by --matcher (or an experiment config), never from a run folder's files")
-    raise ValueError(f"unknown matcher {name!r}; choose one of: {', '.join(_REGISTRY)} "
-                     "(or a plugin's, or package.module:factory)")
+    raise _unknown(name, list(_REGISTRY))
+
+
+def _unknown(name: str, names: list[str]) -> ValueError:
+    return ValueError(f"unknown matcher {name!r}{did_you_mean(name, names)}; choose one of: {', '.join(names)} "
+                      "(or a plugin's, or package.module:factory)")
+
+
+def check_name(name: str) -> None:
+    """get_matcher's refusal of an unknown name, without importing anything: the built-ins by
+    name (names.py), the installed plugins by their entry points' names, the entries this process
+    registered, and any ``module:factory`` pass (each is checked when it is loaded). A command
+    asks this before it loads torch, so that a mistyped --matcher is refused at once."""
+    if not isinstance(name, str) or ":" in name or name in BUILTIN_MATCHERS or name in _REGISTRY or name in _BROKEN:
+        return
+    plugins = [point.name for point in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)]
+    if name not in plugins:
+        raise _unknown(name, list(dict.fromkeys([*BUILTIN_MATCHERS, *_REGISTRY, *plugins])))
 
 
 def resolve(name: str, settings: dict, allow_import: bool = False) -> tuple[MatcherEntry, dict]:

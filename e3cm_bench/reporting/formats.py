@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -27,10 +28,19 @@ def format_number(value, key: str, decimals: int = 2, fraction_decimals: int = 2
         return "-"
     if key.startswith("d_"):
         return f"{number:+.{decimals}f}"
-    # Pair counts may come back as floats from a CSV; other integral floats (an MMA of 1.0) stay floats.
-    if isinstance(value, (int, np.integer)) or (key.startswith("n_pairs") and number.is_integer()):
+    # Counts may come back as floats from a CSV; other integral floats (an MMA of 1.0) stay floats.
+    if isinstance(value, (int, np.integer)) or (is_count(key) and number.is_integer()):
         return str(int(number))
     return f"{number:.{fraction_decimals if abs(number) < 1.5 else decimals}f}"
+
+
+# Columns that count things (pairs, failures, images registered, models, 3D points): an
+# integral value is printed as an integer (a mean over pairs, such as n_matches', keeps decimals).
+COUNT_COLUMNS = ("registered_images", "n_images", "points")
+
+
+def is_count(key: str) -> bool:
+    return key.startswith("n_") or key in COUNT_COLUMNS
 
 
 def format_interval(value, lo, hi, key: str, decimals: int = 2, fraction_decimals: int = 2) -> str:
@@ -92,3 +102,40 @@ def text_width(console) -> int:
         return console.width
     columns = os.environ.get("COLUMNS", "")
     return int(columns) if columns.isdigit() and int(columns) > 0 else PIPE_WIDTH
+
+
+# The file format of every plot a command writes (--format). The benchmarks name their plots
+# .png (plot_run, plot_comparison); plots.py saves each in this format instead. It travels in
+# the environment, not as an argument, so that the worker processes of --workers and a SLURM
+# array's tasks (which write a merged run's plots) inherit it; png by default, so that
+# committed results stay byte-identical.
+PLOT_FORMATS = ("png", "pdf", "svg")
+PLOT_FORMAT_ENV = "E3CM_BENCH_PLOT_FORMAT"
+
+
+def plot_format() -> str:
+    """The format plots are saved in now: --format's, else png."""
+    chosen = os.environ.get(PLOT_FORMAT_ENV) or "png"
+    if chosen not in PLOT_FORMATS:
+        raise ValueError(f"{PLOT_FORMAT_ENV}={chosen}: the plot format is one of {', '.join(PLOT_FORMATS)}")
+    return chosen
+
+
+def check_plot_format(chosen: str) -> str:
+    if chosen not in PLOT_FORMATS:
+        raise ValueError(f"--format {chosen}: expected one of {', '.join(PLOT_FORMATS)}")
+    return chosen
+
+
+@contextmanager
+def plots_as(chosen: str):
+    """Plots written inside are saved as `chosen` (png, pdf, svg); the previous setting after."""
+    previous = os.environ.get(PLOT_FORMAT_ENV)
+    os.environ[PLOT_FORMAT_ENV] = check_plot_format(chosen)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(PLOT_FORMAT_ENV, None)
+        else:
+            os.environ[PLOT_FORMAT_ENV] = previous

@@ -22,14 +22,25 @@ from matplotlib.lines import Line2D
 
 from ..files import write_atomically
 from ..metrics import MMA_THRESHOLDS, POSE_AUC_THRESHOLDS as AUC_THRESHOLDS, pose_error_curve
-from .formats import format_number
+from .formats import format_number, plot_format
+
+
+# PDF and SVG carry their creation date unless told not to: without it the same run's plot is
+# the same file, as a PNG is.
+_NO_DATE = {"pdf": {"CreationDate": None}, "svg": {"Date": None}}
 
 
 def _save_figure(fig: Figure, path: str | Path) -> Path:
+    """Save as the path says; a .png path in the format --format chose (formats.plot_format),
+    under the same name with that suffix. Returns the path written."""
     path = Path(path)
-    file_format = path.suffix.lstrip(".") or "png"
+    if path.suffix in ("", ".png"):
+        path = path.with_suffix("." + plot_format())
+    file_format = path.suffix.lstrip(".")
+    metadata = _NO_DATE.get(file_format)
     # bbox "tight" grows the canvas to whatever the legend needs, so long labels are never cut.
-    return write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150, bbox_inches="tight"))
+    return write_atomically(path, lambda tmp: fig.savefig(tmp, format=file_format, dpi=150, bbox_inches="tight",
+                                                          metadata=metadata))
 
 
 def interval(summary: Mapping, key: str) -> tuple[float, float]:

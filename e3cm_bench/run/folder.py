@@ -20,7 +20,10 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
 
 from __future__ import annotations
 
+import fcntl
+import os
 import shutil
+import stat
 from pathlib import Path
 
 from ..cache import MatchCache
@@ -135,6 +138,24 @@ class RunFolder:
         or written."""
         return FolderLock(self.path)
 
+    def check_free(self) -> None:
+        """The lock's refusal of a folder another process holds, now, taking nothing: a command
+        asks before it loads torch and its method (seconds to minutes), then takes the lock as
+        ever. A shared lock is tried and dropped at once; a lock file that is not a regular file
+        is left for the lock itself to refuse with its reason."""
+        lock = FolderLock(self.path)  # only its file and its message: nothing is taken
+        try:
+            fd = os.open(lock.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            return  # no lock file: nobody holds the folder
+        try:
+            if stat.S_ISREG(os.fstat(fd).st_mode):
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # dropped when fd closes
+        except BlockingIOError:
+            raise lock.busy_error(os.read(fd, 4096).decode("utf-8", "replace")) from None
+        finally:
+            os.close(fd)
+
     def read_config(self) -> dict | None:
         """The record as read (a dict), or None for a folder without one (RunConfig.read_if_present)."""
         config = RunConfig.read_if_present(self.config_path)
@@ -187,8 +208,10 @@ class RunFolder:
             self.clear()
             return None
         if changed:
+            differences = changed_values({"benchmark": previous.get("benchmark"), **before},
+                                         {"benchmark": benchmark, **identity}, changed)
             raise ValueError(f"{self.config_path}: the matches in this folder were made with other settings "
-                             f"({', '.join(changed)}); pass --overwrite to replace them or choose another --out")
+                             f"({differences}); pass --overwrite to replace them or choose another --out")
         return previous
 
     # Settings a matcher resolves when it is built, not in the identity: `auto` there may resolve
@@ -267,3 +290,26 @@ class RunFolder:
                 console.print(f"warning: {block} is damaged (unreadable); its pairs (at most {BLOCK_PAIRS}) will be "
                               "matched again into a new file; the damaged file is left as it is", markup=False)
         return cache, [p for p in pairs if p.name not in done]
+
+
+def changed_values(before: dict, now: dict, keys: list[str]) -> str:
+    """Each setting of `keys` that differs, with the folder's value and this run's:
+    'settings.ratio 0.8 -> 0.9, max_side 640 -> 320' (a mapping's changed entries one by one)."""
+    parts = []
+    for key in keys:
+        old, new = before.get(key), now.get(key)
+        if isinstance(old, dict) and isinstance(new, dict):
+            parts += [f"{key}.{k} {_shown(old.get(k))} -> {_shown(new.get(k))}"
+                      for k in sorted(set(old) | set(new), key=str) if old.get(k) != new.get(k)]
+        else:
+            parts.append(f"{key} {_shown(old)} -> {_shown(new)}")
+    return ", ".join(parts)
+
+
+def _shown(value) -> str:
+    """A recorded value in a message: 'none' when absent; a long one (a sha256) cut to its start."""
+    if value is None:
+        return "none"
+    text = str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+

@@ -159,6 +159,7 @@ def test_synthetic_sequence_is_kitti_shaped_and_exact(synthetic):
     assert abs(np.linalg.norm(sequence.t) - 0.54) < 0.02
 
 
+@pytest.mark.slow  # 52 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_calibrate_end_to_end_with_sift(synthetic, tmp_path):
     out = tmp_path / "cal"
     result = invoke("calibrate", "--root", synthetic, "--out", out, "--matcher", "sift", "--frames", 1, "--frames", 5)

@@ -158,7 +158,7 @@ def test_loftr_protocol_resizes_megadepth_to_840(shared_data, tmp_path):
     result = invoke("megadepth", "--root", root, "--scene-info", root / "scene_info" / "kitti00_seq.npz", "--out", out,
                     "--matcher", "sift", "--protocol", "loftr", "--limit", 1)
     assert result.exit_code == 0, result.output
-    assert "protocol loftr: LoFTR's MegaDepth-1500 test config" in result.output  # said before the run
+    assert "protocol loftr on megadepth: LoFTR's MegaDepth-1500 test config" in result.output  # said before the run
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["identity"]["max_side"] == 840 and config["evaluation"]["protocol"] == "loftr"
     # KITTI's 1241 x 376: 840 x round(254.5) = 255, each side floored to a multiple of 8 (LoFTR's df).

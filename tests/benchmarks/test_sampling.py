@@ -76,7 +76,7 @@ def test_wxbs_command_samples_and_uses_the_reference_protocol_by_default(wxbs_ro
     result = invoke("wxbs", "--root", wxbs_root, "--matcher", "sift", "--sample", "3", "--sample-seed", "1",
                     "--out", out, "--viz", "2")
     assert result.exit_code == 0, result.output
-    assert "protocol wxbs:" in result.output and "PROTOCOLS.md" not in result.output
+    assert "protocol wxbs on wxbs:" in result.output and "PROTOCOLS.md" not in result.output
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["evaluation"]["protocol"] == "wxbs" and config["evaluation"]["opencv_method"] == "magsac"
     assert config["dataset"]["sample"] == {"n": 3, "seed": 1, "from": 31, "strata": 6}

@@ -307,6 +307,7 @@ def test_other_matcher_needs_overwrite(hpatches_run, hpatches_root, tmp_path):
 # --------------------------------------------------------------------------- MegaDepth-1500 layout (KITTI)
 
 
+@pytest.mark.slow  # 110 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_megadepth_kitti_end_to_end(megadepth_root, kitti_npz, tmp_path):
     out = tmp_path / "kitti"
     ok("megadepth", "--root", megadepth_root, "--scene-info", kitti_npz, "--out", out, *LITE,
@@ -369,6 +370,7 @@ def test_megadepth_missing_images(megadepth_root, tmp_path):
 # --------------------------------------------------------------------------- YFCC format (ScanNet sample)
 
 
+@pytest.mark.slow  # 122 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_yfcc_scannet_end_to_end(scannet_root, tmp_path):
     out = tmp_path / "scannet"
     ok("yfcc", "--root", scannet_root, "--pairs", scannet_root / "pairs_with_gt.txt", "--out", out, *LITE,
@@ -439,6 +441,7 @@ def assert_same_results(out: Path, reference: Path) -> None:
         pd.testing.assert_frame_equal(read_csv(out / name), read_csv(reference / name), check_exact=True)
 
 
+@pytest.mark.slow  # 128 s with its reference run alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_resume_matches_only_new_pairs(megadepth_root, kitti_npz, kitti_reference, tmp_path, monkeypatch):
     out = tmp_path / "run"
     matched = count_matching(monkeypatch)
@@ -462,6 +465,7 @@ def test_resume_matches_only_new_pairs(megadepth_root, kitti_npz, kitti_referenc
     assert_same_results(out, kitti_reference)
 
 
+@pytest.mark.slow  # 19 s alone on a loaded 2-core machine, with the reference run's 77 s (docs/development.md, Testing)
 def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp_path, monkeypatch):
     out = tmp_path / "run"
     real = runner_module.match_cached_pair
@@ -490,6 +494,7 @@ def test_interrupted_run_resumes(megadepth_root, kitti_npz, kitti_reference, tmp
     assert_same_results(out, kitti_reference)
 
 
+@pytest.mark.slow  # 21 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_a_folder_whose_layout_resolved_otherwise_is_not_resumed(megadepth_root, kitti_npz, tmp_path):
     """memory_format auto is resolved when the backbone is built (not in the identity): a folder
     whose recorded layout differs from today's resolution is refused, its matches kept; a

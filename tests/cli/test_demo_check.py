@@ -31,6 +31,7 @@ def demo_out(demo_run) -> Path:
     return demo_run[0]
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_demo_prints_a_short_account_and_logs_the_rest(demo_run):
     """A line per set and per method with its headline numbers, at most 80 columns;
     the runs' own tables go to demo.log."""
@@ -57,6 +58,7 @@ def test_demo_help_names_every_method_it_runs():
     assert all(method in description for method in DEMO_METHODS), description
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_demo_writes_data_runs_tables_and_pictures(demo_out):
     # The data, in the real layouts.
     assert sorted(p.name for p in (demo_out / "data" / "hpatches").iterdir()) == ["i_hopper1", "v_hopper1"]
@@ -80,6 +82,7 @@ def test_demo_writes_data_runs_tables_and_pictures(demo_out):
     assert (demo_out / "orderings.md").read_text().startswith("- none judged")
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_demo_rerun_reuses_data_and_matches(demo_out):
     result = invoke("demo", "--out", demo_out, "--quick", "--methods", "sift")
     assert result.exit_code == 0
@@ -87,6 +90,7 @@ def test_demo_rerun_reuses_data_and_matches(demo_out):
     assert flat(log).count("found in") == 2 and "matching (" not in log
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_runs_record_their_environment_which_does_not_block_a_resume(demo_out, tmp_path):
     """config.yaml's versions and environment say where the numbers were made; a folder made
     elsewhere (or before the environment was recorded) still resumes, and gets this one's."""
@@ -140,6 +144,7 @@ def degrade(run: Path, column: str, by: float) -> None:
     (run / "per_pair.csv").unlink(missing_ok=True)
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_check_passes_on_equal_summaries(checked, tmp_path):
     runs, baseline = checked
     report = tmp_path / "summary.md"
@@ -149,6 +154,7 @@ def test_check_passes_on_equal_summaries(checked, tmp_path):
     assert "8 metrics checked: 0 regression(s)" in text and "| hpatches | sift | mma@3 |" in text
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_check_fails_naming_each_metric_that_fell(checked, tmp_path):
     runs, baseline = checked
     degrade(runs / "sift", "mma@3", -0.05)  # tolerance 0.01
@@ -166,6 +172,7 @@ def test_check_fails_naming_each_metric_that_fell(checked, tmp_path):
     assert result.exit_code == 0
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_check_reports_a_rise_as_a_notice(checked):
     runs, baseline = checked
     degrade(runs / "sift", "mma@3", +0.05)
@@ -173,6 +180,7 @@ def test_check_reports_a_rise_as_a_notice(checked):
     assert result.exit_code == 0 and "improvement: sift on hpatches: mma@3" in flat(result.output)
 
 
+@pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_check_missing_runs_and_bad_options(checked, tmp_path):
     runs, baseline = checked
     shutil.rmtree(runs / "sift")

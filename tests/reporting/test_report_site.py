@@ -19,6 +19,10 @@ import pytest
 from helpers import invoke, one_line_error
 
 
+# Every test here reads the report of a demo run: 62 s alone on a loaded 2-core machine (docs/development.md, Testing).
+pytestmark = pytest.mark.slow
+
+
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("demo") / "demo"

@@ -435,6 +435,7 @@ def free_space(monkeypatch, free: int) -> None:
     monkeypatch.setattr(shutil, "disk_usage", lambda path: real(path)._replace(free=free))
 
 
+@pytest.mark.slow  # 25 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_a_ten_pair_sift_run_needs_what_it_writes_and_stops_in_one_line_where_that_does_not_fit(
         shared_data, tmp_path, monkeypatch):
     """Ten full-size SIFT pairs write about 0.3 MiB. With 1 MiB free the matches fit and the

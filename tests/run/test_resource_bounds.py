@@ -136,6 +136,7 @@ def small_disk(tmp_path):
     subprocess.run(["umount", "-l", str(folder)], capture_output=True)
 
 
+@pytest.mark.slow  # 42 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_a_run_on_a_full_disk_ends_in_one_line_and_resumes_every_complete_pair(shared_data, small_disk):
     """SIFT on the shared HPatches pairs into a 700 KiB filesystem: the run stops with one line
     (no crash, no HDF5 traceback), the pairs written before are intact, and after the space

@@ -123,6 +123,7 @@ def same_csvs(a: Path, b: Path) -> None:
 # ----------------------------------------------------------------------------- 1. the lock
 
 
+@pytest.mark.slow  # 404 s (the quick check: tests/cli/test_cli_messages.py) alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_a_second_run_into_the_same_folder_is_refused_while_the_first_runs(hpatches_copy, tmp_path):
     out = tmp_path / "run"
     # The first run holds the lock, stopped after its first pair until it is sent Ctrl-C, so it
@@ -152,6 +153,7 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_runs(hpatc
 # ----------------------------------------------------------------------------- 2. identity
 
 
+@pytest.mark.slow  # 226 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_another_seed_of_a_random_matcher_is_another_set_of_matches(hpatches_copy, tmp_path):
     out = tmp_path / "run"
     common = ["hpatches", "--root", hpatches_copy, "--out", out, "--matcher", "dfm", *LITE, "--max-side", 200, "--limit", 1]
@@ -181,6 +183,7 @@ def test_precision_thresholds_reach_the_metrics(shared_data, tmp_path):
 # ----------------------------------------------------------------------------- 3. bad ground truth
 
 
+@pytest.mark.slow  # 50 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_singular_or_non_finite_homography_is_an_error_or_a_counted_skip(hpatches_copy, tmp_path):
     np.savetxt(hpatches_copy / "v_boat" / "H_1_4", np.zeros((3, 3)))
     args = ["hpatches", "--root", hpatches_copy, "--matcher", "sift", "--max-side", 320]
@@ -334,6 +337,7 @@ def test_experiment_configs_are_checked_whole_before_any_run(hpatches_copy, tmp_
 # ----------------------------------------------------------------------------- 9. tracebacks
 
 
+@pytest.mark.slow  # 22 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_an_image_too_large_for_memory_is_one_line(tmp_path):
     """A real allocation failure: the process may grow by 3 GiB, the image needs more at full size."""
     big = tmp_path / "big"
@@ -401,6 +405,7 @@ def interrupt_args(shared_data, tmp_path_factory):
     return args, reference
 
 
+@pytest.mark.slow  # 81-109 s each, 74 s for its first run alone on a loaded 2-core machine (docs/development.md, Testing)
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_a_signalled_run_resumes_to_the_same_csvs(interrupt_args, tmp_path, sig):
     args, reference = interrupt_args
@@ -419,6 +424,7 @@ def test_a_signalled_run_resumes_to_the_same_csvs(interrupt_args, tmp_path, sig)
     same_csvs(out, reference)
 
 
+@pytest.mark.slow  # 31 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_two_runs_with_the_same_seed_give_identical_csvs(interrupt_args, tmp_path):
     args, reference = interrupt_args
     again = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", *map(str, args), "--out", str(tmp_path / "again")],

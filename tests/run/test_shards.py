@@ -50,6 +50,7 @@ def test_shard_slices_cover_the_pairs_once():
             parse_shard(bad)
 
 
+@pytest.mark.slow  # 82 s, and its reference run's 50 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_three_concurrent_shards_merge_to_the_unsharded_csvs(deep_args, reference, tmp_path):
     """Real processes started together; the last to finish merges; the result is byte-identical."""
     out = tmp_path / "run"
@@ -90,6 +91,7 @@ def test_a_shard_of_another_method_is_refused(shared_data, tmp_path):
     assert not (out / "summary.csv").exists()
 
 
+@pytest.mark.slow  # 21 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_submitit_launcher_runs_locally_without_slurm(shared_data, tmp_path, monkeypatch):
     submitit = pytest.importorskip("submitit")
     # submitit picks SLURM wherever srun is on PATH (tests/run/test_slurm_cluster.py runs that case)
@@ -114,6 +116,7 @@ def test_workers_run_shards_in_parallel_processes(shared_data, tmp_path):
     assert "--shard and --workers do not go together" in line
 
 
+@pytest.mark.slow  # 30 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_sharded_reproduce_writes_the_table_when_the_last_shard_ends(shared_data, tmp_path):
     config = tmp_path / "exp.yaml"
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "max_side": 320, "methods": [

@@ -1,0 +1,130 @@
+"""The command line at once and in plain words: a mistyped name or a busy folder refused before
+torch loads, 'did you mean', a refused rerun naming each setting with both values, a --root one
+level too high naming the folder it should be, the protocol line of the benchmark run only,
+counts as integers, listings within 80 columns."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from e3cm_bench.benchmarks.protocols import get_protocol
+from e3cm_bench.files import FolderLock
+from e3cm_bench.matchers import registry
+from e3cm_bench.matchers.names import BUILTIN_MATCHERS
+from e3cm_bench.reporting.formats import format_number
+from e3cm_bench.run.folder import RunFolder
+from helpers import flat, invoke, one_line_error
+
+REPO = Path(__file__).resolve().parents[2]
+
+# The command line run in a fresh interpreter, which then says whether torch was imported.
+PROBE = """
+import sys
+from e3cm_bench.cli import app
+try:
+    app(sys.argv[1:], prog_name="e3cm-bench")
+except SystemExit as done:
+    print(f"exit={done.code} torch={'torch' in sys.modules}")
+"""
+
+
+def probe(*args) -> tuple[str, str]:
+    done = subprocess.run([sys.executable, "-c", PROBE, *map(str, args)], capture_output=True, text=True, timeout=300,
+                          cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "COLUMNS": "300"})
+    return done.stdout.strip().splitlines()[-1], done.stderr
+
+
+def test_a_mistyped_matcher_is_refused_before_torch_loads(tmp_path):
+    last, stderr = probe("hpatches", "--out", tmp_path / "run", "--matcher", "sfit")
+    assert last == "exit=2 torch=False", (last, stderr)
+    assert "unknown matcher 'sfit' (did you mean 'sift'?)" in stderr and stderr.count("\n") == 1
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_busy_folder_is_refused_before_torch_loads(tmp_path, shared_data):
+    out = tmp_path / "run"
+    with FolderLock(out):
+        last, stderr = probe("hpatches", "--out", out, "--root", shared_data / "hpatches-sequences-release",
+                             "--matcher", "e3cm", "--backbone", "efficientnet_lite0")
+    assert last == "exit=2 torch=False", (last, stderr)
+    assert "another run is using this folder" in stderr and "pid " in stderr
+
+
+def test_check_free_takes_nothing(tmp_path):
+    RunFolder(tmp_path).check_free()  # no lock file
+    with FolderLock(tmp_path):
+        with pytest.raises(ValueError, match="another run is using this folder"):
+            RunFolder(tmp_path).check_free()
+    RunFolder(tmp_path).check_free()
+    with FolderLock(tmp_path):  # the probe left no lock behind
+        pass
+
+
+def test_did_you_mean_for_names(tmp_path):
+    line = one_line_error(invoke("hpatches", "--out", tmp_path / "r", "--matcher", "sfit"))
+    assert "did you mean 'sift'?" in line
+    line = one_line_error(invoke("hpatches", "--out", tmp_path / "r", "--matcher", "e3cm", "--backbone", "vgg91"))
+    assert "--backbone vgg91" in line and "did you mean 'vgg19'?" in line
+    line = one_line_error(invoke("hpatches", "--out", tmp_path / "r", "--protocol", "defualt"))
+    assert "did you mean 'default'?" in line
+    line = one_line_error(invoke("import", "hpatchs", "--out", tmp_path / "r", "--npz", tmp_path))
+    assert "unknown benchmark 'hpatchs' (did you mean 'hpatches'?)" in line
+    result = invoke("hpatchs", "--out", tmp_path / "r")
+    assert result.exit_code == 2 and "Did you mean 'hpatches'" in result.output
+    # nothing close: no suggestion, the list as before
+    line = one_line_error(invoke("hpatches", "--out", tmp_path / "r", "--matcher", "zzzz"))
+    assert "did you mean" not in line and "choose one of: e3cm" in line
+
+
+def test_the_builtin_names_are_the_registrys():
+    registry._load()
+    assert tuple(name for name, e in registry._REGISTRY.items() if e.origin == "built-in") == BUILTIN_MATCHERS
+
+
+def test_a_refused_rerun_names_each_setting_with_both_values(tmp_path, shared_data):
+    hp = shared_data / "hpatches-sequences-release"
+    common = ["--root", hp, "--out", tmp_path / "run", "--matcher", "sift", "--limit", 1, "--sequences", "v_boat"]
+    assert invoke("hpatches", *common, "--max-side", 160).exit_code == 0
+    line = one_line_error(invoke("hpatches", *common, "--max-side", 120))
+    assert "made with other settings (max_side 160 -> 120)" in line
+    line = one_line_error(invoke("hpatches", *common, "--max-side", 120, "--set", "max_keypoints=500"))
+    assert "max_side 160 -> 120" in line and "settings.max_keypoints none -> 500" in line
+
+
+@pytest.mark.parametrize("benchmark, folder", [("hpatches", "hpatches-sequences-release"), ("evd", "EVD")])
+def test_a_root_one_level_too_high_names_the_folder(benchmark, folder, tmp_path, shared_data):
+    if not (shared_data / folder).is_dir():
+        pytest.skip(f"{folder} not in the shared data")
+    line = one_line_error(invoke(benchmark, "--root", shared_data, "--out", tmp_path / "r", "--matcher", "sift"))
+    assert f"{shared_data} holds {folder}/: did you mean --root {shared_data / folder}?" in line
+
+
+def test_the_protocol_line_says_what_applies_to_the_run():
+    hpatches = get_protocol("default", "hpatches").line("hpatches")
+    assert hpatches.startswith("protocol default on hpatches:") and "full size" in hpatches
+    assert "YFCC" not in hpatches and "MegaDepth" not in hpatches and "1200" not in hpatches
+    yfcc = get_protocol("default", "yfcc").line("yfcc")
+    assert "upright" in yfcc and "1200" in yfcc
+    evd = get_protocol("wxbs", "evd").line("evd")
+    assert "H at 0.5 px" in evd and "F at 0.25" not in evd
+
+
+def test_counts_print_as_integers():
+    assert format_number(20.0, "registered_images") == "20"
+    assert format_number(1577.0, "points") == "1577"
+    assert format_number(3.0, "n_models") == "3" and format_number(15.0, "n_pairs") == "15"
+    assert format_number(1577.4, "n_matches") == "1577.40"  # a mean over pairs keeps its decimals
+    assert format_number(1.0, "mma@3") == "1.00"
+
+
+def test_listings_fit_80_columns(shared_data):
+    for args in (("matchers",), ("datasets", "--to", shared_data)):
+        result = invoke(*args)
+        assert result.exit_code == 0
+        assert max(len(line) for line in result.output.splitlines()) <= 80, result.output
+    assert "hpatches: incomplete at" in invoke("datasets", "--to", shared_data).output
+    assert "cascade=true, estimator=top8" in flat(invoke("matchers").output)
