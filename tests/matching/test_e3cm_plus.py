@@ -87,6 +87,7 @@ def plus_matcher():
     return MethodSpec.create("e3cm-plus", "efficientnet_lite0").build("cpu")
 
 
+@pytest.mark.slow  # 49 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_e3cm_plus_on_a_rotated_zoomed_hpatches_pair(shared_data, plus_matcher):
     """v_boat 1-4 at full resolution (turned 51 degrees, zoomed 1.6x): e3cm-ransac gets 20
     matches and a 1102 px corner error; e3cm-plus warps, realigns and measured 3755 matches,

@@ -177,6 +177,7 @@ def kitti_precision(shared_data, backbone):
 #   direct 0.892 / 2502, top8 0.926 / 1303 (min 259; better than direct on every pair,
 #   +0.011 .. +0.087), ransac 0.998 / 1534 (min 779; +0.056 .. +0.159 per pair).
 # On all 31 pairs: direct 0.893, top8 0.919, ransac 0.998 (top8 loses 0.08 on one pair, 107-113).
+@pytest.mark.slow  # its KITTI matching: 300 s alone on a loaded 2-core machine (docs/development.md, Testing)
 @pytest.mark.parametrize("estimator, margin", [("top8", 0.015), ("ransac", 0.07)])
 def test_cascade_raises_epipolar_precision_on_kitti(kitti_precision, estimator, margin):
     precision, counts = kitti_precision

@@ -75,6 +75,7 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     assert_same_arrays(tmp_path / "reuse", tmp_path / "plain")
 
 
+@pytest.mark.slow  # 38 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_data, tmp_path, monkeypatch):
     """reproduce's joint stage: e3cm, direct and e3cm-release (one backbone setting) on three
     pairs with four distinct images load the weights once and pass each image through the

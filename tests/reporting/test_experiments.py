@@ -82,6 +82,7 @@ def test_table_refuses_mixed_benchmarks(two_runs, tmp_path, shared_data):
     assert str(pose) in line
 
 
+@pytest.mark.slow  # 42 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_reproduce_runs_every_method_and_writes_the_table(tmp_path, shared_data):
     out = tmp_path / "table1"
     args = ["reproduce", CONFIGS / "table1_hpatches.yaml", "--root", shared_data / "hpatches-sequences-release",
