@@ -130,7 +130,12 @@ def _p_value(p: float, n_samples: int) -> str:
 
 def _column(name: str, failure_is_inf: bool = False) -> Callable[[pd.DataFrame], np.ndarray]:
     def read(per_pair: pd.DataFrame) -> np.ndarray:
-        values = pd.to_numeric(per_pair[name], errors="coerce").to_numpy(dtype=np.float64)
+        # a run of several reconstructions (sfm's mapper seeds: NAME_s0, NAME_s1, ...) gives a
+        # pairs x seeds array, compared over both (stats.compare_paired)
+        seeds = [f"{name}_s{k}" for k in range(len(per_pair.columns)) if f"{name}_s{k}" in per_pair.columns]
+        columns = seeds if len(seeds) > 1 else [name]
+        values = per_pair[columns].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=np.float64)
+        values = values if len(columns) > 1 else values[:, 0]
         if failure_is_inf:  # an error the run could not compute is a failure: worse than any value
             values = np.where(np.isnan(values), np.inf, values)
         return values

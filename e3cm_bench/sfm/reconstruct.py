@@ -286,7 +286,7 @@ def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
         ids = {image.name: image.image_id for image in db.read_all_images()}
         for item in items:
             id0, id1 = ids[item.name0], ids[item.name1]
-            counts.append(int(db.read_two_view_geometry_num_inliers(id0, id1))
+            counts.append(len(db.read_two_view_geometry(id0, id1).inlier_matches)
                           if db.exists_two_view_geometry(id0, id1) else 0)
     return counts
 
