@@ -135,15 +135,13 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
 
 
 def matcher_of_run(folder) -> str | None:
-    """The matcher named by a run folder's config.yaml (identity.matcher), or None."""
-    import yaml
+    """The matcher named by a run folder's record (identity.matcher), or None."""
+    from ..run import RunFolder
 
     if folder is None:
         return None
-    path = folder / "config.yaml"
     try:
-        config = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError):
+        config = RunFolder(folder).read_config() or {}
+    except ValueError:  # an unreadable record: the matcher's kind is unknown
         return None
-    identity = (config or {}).get("identity") or {}
-    return identity.get("matcher") or (config or {}).get("method")
+    return (config.get("identity") or {}).get("matcher") or config.get("method")

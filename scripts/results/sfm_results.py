@@ -113,6 +113,8 @@ def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
             target.mkdir(parents=True, exist_ok=True)
             for name in ("config.yaml", "summary.csv", "per_pair.csv"):
                 shutil.copyfile(run_dir / name, target / name)
+            if (run_dir / "sfm" / "per_seed.csv").is_file():  # each mapper seed's numbers
+                shutil.copyfile(run_dir / "sfm" / "per_seed.csv", target / "per_seed.csv")
             multi = pd.read_csv(run_dir / "summary.csv").iloc[0]
             two, _ = two_view(run_dir)
             row = {"set": set_name, "method": label, "n_pairs": int(multi["n_pairs"])}
@@ -123,8 +125,9 @@ def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
                 row[key] = multi[key]
                 row[f"{key}_lo"], row[f"{key}_hi"] = multi[f"{key}_lo"], multi[f"{key}_hi"]
             for key in ("n_failures", "registered_images", "n_images", "n_models", "points", "mean_track_length",
-                        "mean_reprojection_error"):
-                row[key] = multi[key]
+                        "mean_reprojection_error", "auc@10_sd", "mapper", "mapper_seeds", "merge", "verification",
+                        "track_length_database", "repeat_share", "merge_displacement_px"):
+                row[key] = multi.get(key)
             rows.append(row)
         for table in ("table.csv", "table.md"):
             if (out / set_name / table).is_file():

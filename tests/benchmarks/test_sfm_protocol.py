@@ -168,7 +168,7 @@ def test_eval_only_with_another_protocol_on_the_same_matches(room, incremental_r
     # compare pairs the two runs over pairs and seeds
     result = invoke("compare", incremental_run, copy)
     assert result.exit_code == 0, result.output
-    assert "err_pose" in result.output
+    assert "err_pose" in result.output and "seeds" in result.output
 
 
 def test_bags_are_reconstructed_apart(room, tmp_path):
