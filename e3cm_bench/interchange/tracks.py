@@ -149,38 +149,31 @@ def repeat_share(items: Sequence[tuple[str, str, np.ndarray, np.ndarray]], radiu
             blocks.setdefault(name, []).append(np.unique(np.asarray(points, np.float64).reshape(-1, 2), axis=0))
     repeated, total = 0, 0
     for listed in blocks.values():
-        points = np.concatenate(listed)
-        owner = np.repeat(np.arange(len(listed)), [len(b) for b in listed])
-        total += len(points)
-        if len(listed) < 2 or not len(points):
-            continue
-        tree = cKDTree(points)
-        for i, near in enumerate(tree.query_ball_point(points, r=max(float(radius), 0.0))):
-            repeated += bool(np.any(owner[near] != owner[i]))
+        total += sum(len(b) for b in listed)
+        for b, points in enumerate(listed):
+            others = [o for k, o in enumerate(listed) if k != b and len(o)]
+            if not others or not len(points):
+                continue
+            # the nearest location of the image's other pairs, within the radius (inclusive)
+            distance, _ = cKDTree(np.concatenate(others)).query(points, k=1)
+            repeated += int(np.count_nonzero(distance <= max(float(radius), 0.0)))
     return repeated / total if total else float("nan")
 
 
 def track_lengths(n_keypoints: dict[str, int], names: Sequence[tuple[str, str]], pairs: Sequence[np.ndarray]) -> np.ndarray:
-    """Number of images in each connected track (union-find over the matches), for tracks of
-    two images or more: a figure to say what a merge did."""
+    """Number of images in each connected track (the connected components of the keypoints
+    joined by the matches), for tracks of two images or more: a figure to say what a merge did."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     offsets, total = {}, 0
     for name, count in n_keypoints.items():
         offsets[name] = total
         total += int(count)
-    parent = np.arange(total)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for (name0, name1), matches in zip(names, pairs):
-        for a, b in np.asarray(matches, np.int64).reshape(-1, 2):
-            ra, rb = find(offsets[name0] + int(a)), find(offsets[name1] + int(b))
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([find(i) for i in range(total)], np.int64)
+    ends = [np.asarray(m, np.int64).reshape(-1, 2) + [offsets[n0], offsets[n1]] for (n0, n1), m in zip(names, pairs)]
+    ends = np.concatenate(ends) if ends else np.zeros((0, 2), np.int64)
+    graph = coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(total, total))
+    _, roots = connected_components(graph, directed=False)
     image_of = np.repeat(np.arange(len(offsets)), [int(c) for c in n_keypoints.values()])
     seen = np.unique(np.stack([roots, image_of], axis=1), axis=0)
     _, counts = np.unique(seen[:, 0], return_counts=True)

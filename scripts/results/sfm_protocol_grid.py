@@ -6,6 +6,8 @@ default protocol's AUC@10 under --seed 0 and --seed 1).
 
     python scripts/results/sfm_protocol_grid.py grid --runs runs/sfm-results --scratch /tmp/grid --to results/sfm
     python scripts/results/sfm_protocol_grid.py seeds --runs runs/sfm-results --scratch /tmp/grid --to results/sfm
+    python scripts/results/sfm_protocol_grid.py table --parts /tmp/kitti.csv /tmp/synth.csv --to results/sfm \
+        --runs runs/sfm-results --scratch /tmp/grid
 
 RUNS is only read: each method's config.yaml and matches.h5 are copied to SCRATCH/SET/CELL/METHOD
 and evaluated there (--eval-only). seeds evaluates the default protocol into SCRATCH/default/SET/METHOD
@@ -38,7 +40,16 @@ FACTS = ("n_failures", "registered_images", "n_models", "mean_track_length", "me
 
 
 def evaluate_copy(source: Path, target: Path, protocol: dict, seed: int = 0) -> dict:
-    """source's cached matches evaluated in `target` under `protocol` (dataset options)."""
+    """source's cached matches evaluated in `target` under `protocol` (dataset options); a
+    target already evaluated under it (its config.yaml's dataset.protocol, evaluation seed) is
+    read, not evaluated again, so that an interrupted grid resumes."""
+    if (target / "summary.csv").is_file():
+        done = yaml.safe_load((target / "config.yaml").read_text())
+        wanted = get_benchmark("sfm").load_dataset(
+            done["dataset"]["root"], **{k: v for k, v in protocol.items()},
+            **{k: v for k, v in done["dataset_load"]["options"].items() if k in ("scene_info", "window")})
+        if done["dataset"].get("protocol") == wanted.protocol.record() and done["evaluation"]["seed"] == seed:
+            return pd.read_csv(target / "summary.csv").iloc[0].to_dict()
     if not (target / "matches.h5").is_file():
         target.mkdir(parents=True, exist_ok=True)
         for name in ("config.yaml", "matches.h5"):
@@ -113,9 +124,25 @@ def seed_check(runs: Path, scratch: Path, to: Path, sets: list[str], methods: li
     print(f"-> {to / 'seed_stability.csv'}")
 
 
+def wide(to: Path, parts: list[Path]) -> None:
+    """TO/protocol_grid.csv from the grid CSVs `parts` (one per set, say), and its AUC@10 per
+    method side by side, TO/protocol_grid_auc10.csv: each cell "mean [lo, hi] sd S (registered)"."""
+    table = pd.concat([pd.read_csv(p) for p in parts], ignore_index=True)
+    to.mkdir(parents=True, exist_ok=True)
+    table.to_csv(to / "protocol_grid.csv", index=False, float_format="%.6g")
+    keys = ["set", "mapper", "merge", "verification"]
+    table["cell"] = [f"{r['auc@10']:.1f} [{r['auc@10_lo']:.1f}, {r['auc@10_hi']:.1f}] sd {r['auc@10_sd']:.1f} "
+                     f"({r['registered_images']:.0f}/{r['n_models']:.1f})" for _, r in table.iterrows()]
+    shown = table.pivot_table(index=keys, columns="method", values="cell", aggfunc="first", sort=False).reset_index()
+    order = [m for m in METHODS if m in shown.columns]
+    shown[keys + order].to_csv(to / "protocol_grid_auc10.csv", index=False)
+    print(shown[keys + order].to_string())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("step", choices=("grid", "seeds"))
+    parser.add_argument("step", choices=("grid", "seeds", "table"))
+    parser.add_argument("--parts", nargs="*", type=Path, default=[], help="table: the grid CSVs to put together")
     parser.add_argument("--runs", type=Path, required=True, help="the sfm runs: RUNS/SET/METHOD (only read)")
     parser.add_argument("--scratch", type=Path, required=True, help="where the copies are evaluated")
     parser.add_argument("--to", type=Path, default=Path("results/sfm"))
@@ -123,7 +150,9 @@ def main() -> None:
     parser.add_argument("--methods", nargs="*", default=list(METHODS))
     parser.add_argument("--seeds", type=int, default=3, help="mapper seeds per protocol (default 3)")
     args = parser.parse_args()
-    if args.step == "grid":
+    if args.step == "table":
+        wide(args.to, args.parts)
+    elif args.step == "grid":
         grid(args.runs, args.scratch, args.to, args.sets, args.methods, args.seeds)
     else:
         seed_check(args.runs, args.scratch, args.to, args.sets, args.methods)
