@@ -7,8 +7,11 @@ into OUT/SET/METHOD, then the set's table in OUT/SET/table.{csv,md}.
     python scripts/results/sfm_results.py kitti --eval-only --merge-px 2 --out /tmp/sfm-results  # after copying
     python scripts/results/sfm_results.py side --out /tmp/sfm-results --to results/sfm
 
+The runs are made under the sfm benchmark's default protocol; sfm_protocol_grid.py evaluates
+their matches again under others (and under the default with other seeds) on copies.
+
 side: each run's two-view numbers beside its multi-view ones, in TO/two_view_vs_multi_view.csv,
-and each run's config.yaml, summary.csv and per_pair.csv copied to TO/SET/METHOD/. The two-view
+and each run's config.yaml, summary.csv, per_pair.csv and sfm/per_seed.csv copied to TO/SET/METHOD/. The two-view
 numbers are the pose benchmark's (megadepth: the essential-matrix RANSAC of PROTOCOLS §3) on the
 same pairs and the same cached matches, so the two columns differ only in what is made of the
 matches; for KITTI, results/sample/table2_kitti holds the pose benchmark's own 31 pairs too.
