@@ -50,10 +50,11 @@ def evaluate_stage(
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
         summary = benchmark.summarize(rows, ev)
-        summary.update(summary_intervals(benchmark, rows, ev, summary=summary))
+        summary.update(summary_intervals(benchmark, rows, ev, summary=summary,
+                                         indexed=benchmark.interval_summary(rows, ev)))
     summary.update(set_numbers)  # after the intervals: facts of the one set, not resampled
     # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
-    return pd.DataFrame(rows, columns=with_duplicates(benchmark.pair_columns(ev))), summary, failures
+    return pd.DataFrame(rows, columns=with_duplicates(benchmark.row_columns(ev, rows))), summary, failures
 
 
 def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:

@@ -363,8 +363,10 @@ def test_every_method_is_made_through_the_one_path():
     assert callers("MethodSpec.create") and callers("build_method")
 
 
-# The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol.
-OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "benchmarks/protocols.py"}}
+# The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol;
+# COLMAP's own geometric verification, an sfm protocol setting (--verification colmap).
+OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "benchmarks/protocols.py"},
+                  "colmap": {"sfm/protocol.py", "sfm/reconstruct.py"}}
 
 
 def _declared_formats() -> dict[str, str]:

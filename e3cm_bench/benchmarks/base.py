@@ -281,6 +281,15 @@ class Benchmark:
         rows = list(rows)
         return lambda idx: self.summarize([rows[i] for i in idx], ev)
 
+    def interval_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], Mapping] | None:
+        """The summary of a bootstrap resample of pairs (by index) where a benchmark resamples
+        more than its pairs (sfm: the mapper's seeds too); None: indexed_summary's, pairs only."""
+        return None
+
+    def row_columns(self, ev: EvalSettings, rows: Sequence[Mapping]) -> list[str]:
+        """per_pair.csv's columns for these rows (sfm adds one set per mapper seed)."""
+        return self.pair_columns(ev)
+
     def notes(self, pairs: Sequence[Pair], per_pair: pd.DataFrame, ev: EvalSettings) -> list[str]:
         """What a run should say once about its ground truth and how it was scored (one line each)."""
         return []

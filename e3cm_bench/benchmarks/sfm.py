@@ -36,7 +36,8 @@ class SfMBenchmark(Benchmark):
     table_metrics: Mapping[str, str] = field(default_factory=lambda: {
         **{f"auc@{t}": f"auc@{t}" for t in metrics.POSE_AUC_THRESHOLDS}, "mAA": sfm_metrics.MAA})
     table_extras: tuple[str, ...] = ("n_pairs", "n_failures", "registered_images", "n_images", "n_models", "points",
-                                     "mean_track_length", "mean_reprojection_error")
+                                     "mean_track_length", "mean_reprojection_error", "track_length_database", "repeat_share",
+                                     "merge_displacement_px", "mapper_seeds", "auc@10_sd")
     report_columns: tuple[str, ...] = ("n_matches", "n_inliers", "model", "err_pose")
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
@@ -53,6 +54,10 @@ class SfMBenchmark(Benchmark):
         return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
                                 "err_R", "err_t", "err_pose"])
 
+    def row_columns(self, ev: EvalSettings, rows: Sequence[Mapping]) -> list[str]:
+        # the first seed's columns as before, then each seed's (sfm_metrics.SEED_COLUMNS)
+        return self.pair_columns(ev) + sfm_metrics.seed_columns(sfm_metrics.seeds_in(rows))
+
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         raise ValueError("sfm scores the pairs of a set together (evaluate_set), not one at a time")
 
@@ -64,44 +69,46 @@ class SfMBenchmark(Benchmark):
 
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
                      workdir: Path | None) -> tuple[list[dict], dict]:
-        from ..sfm.reconstruct import reconstruct
+        from ..sfm.protocol import Protocol, keypoints_are_detections, matcher_of_run
+        from ..sfm.evaluate import reconstruct_set
 
         if ev.repeats > 1:
-            raise ValueError("--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model")
-        kept = []
-        for m in matches:
-            k, repeats = distinct(m)
-            kept.append((k, repeats))
+            raise ValueError("--repeats does not apply to sfm: its mapper is seeded (--mapper-seeds reruns it)")
+        kept = [distinct(m) for m in matches]
+        given = next((p.meta["protocol"] for p in pairs if "protocol" in p.meta), None)
+        if given is None:  # pairs built outside MultiViewSet: their merge radius as meta, else exact
+            radius = max((float(p.meta.get("merge_px") or 0.0) for p in pairs), default=0.0)
+            given = Protocol(mapper="incremental", mapper_seeds=1, merge_px=radius)
+        folder = Path(workdir) if workdir is not None else None
+        protocol = given.resolved(keypoints_are_detections(matcher_of_run(folder)))
         with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
-            where = Path(workdir) / WORKDIR if workdir is not None else Path(tmp) / WORKDIR
-            # the set's keypoint merge radius travels with its pairs (the dataset's --merge-px)
-            merge_px = max((float(p.meta.get("merge_px") or 0.0) for p in pairs), default=0.0)
-            found, geometries = reconstruct(pairs, [k for k, _ in kept], ev, where, merge_px=merge_px)
-        rows = []
-        for pair, (k, repeats), geometry in zip(pairs, kept, geometries):
-            placed0, placed1 = found.placed(pair.meta["view0"], pair.meta["view1"])
-            rows.append({"pair": pair.name, "n_matches": len(k),
-                         "n_inliers": int(np.count_nonzero(geometry["inliers"])) if geometry else 0,
-                         "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
-                         **sfm_metrics.pair_errors(pair.T_0to1, placed0, placed1), DUPLICATES: repeats})
-        return rows, found.numbers()
+            where = (folder if folder is not None else Path(tmp)) / WORKDIR
+            rows, numbers = reconstruct_set(pairs, [k for k, _ in kept], ev, where, protocol)
+        for row, (_, repeats) in zip(rows, kept):
+            row[DUPLICATES] = repeats
+        if folder is not None:
+            print(f"sfm: {protocol.mapper} mapper, {protocol.mapper_seeds} seed(s), merge {protocol.merge_label()}, "
+                  f"{protocol.verification} verification; COLMAP's log in {where}/**/mapper.log")
+        return rows, numbers
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
-        rows = list(rows)
-        return sfm_metrics.summarize_sfm(np.asarray([float(r["err_pose"]) for r in rows], np.float64),
-                                         np.asarray([float(r["n_matches"]) for r in rows], np.float64))
+        return self.indexed_summary(rows, ev)(range(len(rows)))
 
     def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:
-        # summarize on arrays read once: the same function on the same values, so equal bit for bit
-        rows = list(rows)
-        errors = np.asarray([float(r["err_pose"]) for r in rows], np.float64)
-        n_matches = np.asarray([float(r["n_matches"]) for r in rows], np.float64)
+        # the mean over the mapper's seeds of each seed's summary, on arrays read once
+        errors, n_matches = sfm_metrics.seed_errors(rows)
 
         def summarize(idx: Sequence[int]) -> dict:
             idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-            return sfm_metrics.summarize_sfm(errors[idx], n_matches[idx])
+            return sfm_metrics.summarize_seeds(errors[idx], n_matches[idx])
 
         return summarize
+
+    def interval_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict] | None:
+        """Two levels: the bootstrap's pairs, and with each resample of pairs a resample of the
+        mapper's seeds (sfm_metrics.two_level_summary)."""
+        errors, n_matches = sfm_metrics.seed_errors(rows)
+        return sfm_metrics.two_level_summary(errors, n_matches)
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)
@@ -141,9 +148,20 @@ SFM = SfMBenchmark(
         DatasetOption("max_pairs", "text", "The most pairs the graph may hold (default 20000); the count is "
                       "checked before a pair is made."),
         DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
-                      "tracks form from dense and semi-dense matches (default 0: exact repeats only)."),
+                      "tracks form from dense and semi-dense matches (default: --merge's)."),
+        DatasetOption("merge", "text", "Keypoint merge: auto (exact for a matcher whose keypoints are detections, "
+                      "2 px for the others; default), exact, radius (--merge-px, 2 by default) or quantize "
+                      "(hloc's dense quantization: cell 4 px, max error 4 px)."),
+        DatasetOption("mapper", "text", "global (pycolmap.global_mapping, GLOMAP; default) or incremental "
+                      "(pycolmap.incremental_mapping, COLMAP's)."),
+        DatasetOption("mapper_seeds", "text", "Reconstructions from the same database, seeds evaluation seed + "
+                      "0..K-1; every number is their mean, its interval over pairs and seeds (default 3)."),
+        DatasetOption("verification", "text", "Two-view geometries: estimator (the benchmark's essential-matrix "
+                      "RANSAC inliers; default) or colmap (COLMAP's own verification, pycolmap.verify_matches)."),
+        DatasetOption("score_model", "text", "any (a pair from whichever model holds both images; default) or "
+                      "largest (IMC's: the largest model only)."),
     ),
-    summary="Multi-view: the matches of a set's pair graph reconstructed by pycolmap's incremental mapper; pose "
+    summary="Multi-view: the matches of a set's pair graph reconstructed by pycolmap's mapper; pose "
             "AUC@5/10/20 and IMC mAA of the pairs from the models, images registered, models, points.",
     default_max_side=1200,
 )

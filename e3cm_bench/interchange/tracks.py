@@ -17,6 +17,12 @@ reconstructs nothing; so the keypoints of an image are merged across its pairs h
   of the next is therefore not merged into one, which keeps a merged point within ``merge_px``
   of every location it stands for.
 
+- with ``cell`` (hloc's dense quantization, as ``--merge quantize`` presets it: cell 4 px, max
+  error 4 px) every location falls in a square grid cell of that size; the first location seen
+  in a cell represents it, and a later one in the same cell joins it when within ``max_error``
+  of it, else stays its own keypoint (merged only with its exact repeats). The radius merge is
+  not applied then.
+
 The keypoints of an image are listed in the order their representatives are first seen, pairs
 in the run's order and within a pair in match order, so the lists and the index arrays are a
 pure function of the run and the radius.
@@ -60,7 +66,26 @@ def _representatives(points: np.ndarray, merge_px: float) -> tuple[np.ndarray, n
     return leader[rank[inverse]], distinct_first[np.asarray(kept, np.int64)]
 
 
-def merge_keypoints(items: Iterable[tuple[str, str, np.ndarray, np.ndarray]], merge_px: float = 0.0
+def _quantized(points: np.ndarray, cell: float, max_error: float) -> tuple[np.ndarray, np.ndarray]:
+    """_representatives' result for the grid merge (module docstring): per distinct location,
+    in first-seen order, the first location of its cell if within max_error, else itself."""
+    index, kept = _representatives(points, 0.0)
+    locations = points[kept]
+    cells = np.floor(locations / float(cell)).astype(np.int64)
+    _, first_in_cell = np.unique(cells, axis=0, return_index=True)
+    _, cell_of = np.unique(cells, axis=0, return_inverse=True)
+    leader_of_cell = first_in_cell[np.ravel(cell_of)]  # distinct-location index of its cell's first
+    near = np.linalg.norm(locations - locations[leader_of_cell], axis=1) <= max_error
+    leader = np.where(near, leader_of_cell, np.arange(len(locations)))
+    # renumber the leaders in first-seen order (a leader is always first of its own group)
+    leaders = np.unique(leader)
+    rank = np.full(len(locations), -1, np.int64)
+    rank[leaders] = np.arange(len(leaders))
+    return rank[leader][index], kept[leaders]
+
+
+def merge_keypoints(items: Iterable[tuple[str, str, np.ndarray, np.ndarray]], merge_px: float = 0.0,
+                    cell: float | None = None, max_error: float | None = None
                     ) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
     """Per image one keypoint list, per pair its matches as indices into those lists.
 
@@ -90,34 +115,65 @@ def merge_keypoints(items: Iterable[tuple[str, str, np.ndarray, np.ndarray]], me
     index: dict[str, np.ndarray] = {}
     for name, listed in blocks.items():
         points = np.concatenate(listed) if listed else np.zeros((0, 2))
-        index[name], kept = _representatives(points, merge_px)
+        index[name], kept = (_quantized(points, cell, cell if max_error is None else max_error) if cell
+                             else _representatives(points, merge_px))
         keypoints[name] = points[kept]
     pairs = [np.stack([index[n0][a0:b0], index[n1][a1:b1]], axis=1).astype(np.int64)
              for (n0, a0, b0), (n1, a1, b1) in where]
     return keypoints, pairs
 
 
+def merge_displacement(items: Sequence[tuple[str, str, np.ndarray, np.ndarray]], keypoints: dict[str, np.ndarray],
+                       pairs: Sequence[np.ndarray]) -> float:
+    """Mean distance (px) between each matched location and the keypoint the merge put in its
+    place, over both sides of every match: what the merge moved the matches by (0 when exact)."""
+    moved, count = 0.0, 0
+    for (name0, name1, k0, k1), index in zip(items, pairs):
+        for name, points, side in ((name0, k0, 0), (name1, k1, 1)):
+            points = np.asarray(points, np.float64).reshape(-1, 2)
+            if len(points):
+                moved += float(np.linalg.norm(keypoints[name][index[:, side]] - points, axis=1).sum())
+                count += len(points)
+    return moved / count if count else float("nan")
+
+
+def repeat_share(items: Sequence[tuple[str, str, np.ndarray, np.ndarray]], radius: float) -> float:
+    """Share of the matched locations of an image that another pair of the same image also
+    matched within `radius` px (0: exactly), over every image: how much the pairs' keypoints
+    can chain into tracks before any merge."""
+    from scipy.spatial import cKDTree
+
+    blocks: dict[str, list[np.ndarray]] = {}
+    for name0, name1, k0, k1 in items:
+        for name, points in ((name0, k0), (name1, k1)):
+            blocks.setdefault(name, []).append(np.unique(np.asarray(points, np.float64).reshape(-1, 2), axis=0))
+    repeated, total = 0, 0
+    for listed in blocks.values():
+        total += sum(len(b) for b in listed)
+        for b, points in enumerate(listed):
+            others = [o for k, o in enumerate(listed) if k != b and len(o)]
+            if not others or not len(points):
+                continue
+            # the nearest location of the image's other pairs, within the radius (inclusive)
+            distance, _ = cKDTree(np.concatenate(others)).query(points, k=1)
+            repeated += int(np.count_nonzero(distance <= max(float(radius), 0.0)))
+    return repeated / total if total else float("nan")
+
+
 def track_lengths(n_keypoints: dict[str, int], names: Sequence[tuple[str, str]], pairs: Sequence[np.ndarray]) -> np.ndarray:
-    """Number of images in each connected track (union-find over the matches), for tracks of
-    two images or more: a figure to say what a merge did."""
+    """Number of images in each connected track (the connected components of the keypoints
+    joined by the matches), for tracks of two images or more: a figure to say what a merge did."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     offsets, total = {}, 0
     for name, count in n_keypoints.items():
         offsets[name] = total
         total += int(count)
-    parent = np.arange(total)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for (name0, name1), matches in zip(names, pairs):
-        for a, b in np.asarray(matches, np.int64).reshape(-1, 2):
-            ra, rb = find(offsets[name0] + int(a)), find(offsets[name1] + int(b))
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([find(i) for i in range(total)], np.int64)
+    ends = [np.asarray(m, np.int64).reshape(-1, 2) + [offsets[n0], offsets[n1]] for (n0, n1), m in zip(names, pairs)]
+    ends = np.concatenate(ends) if ends else np.zeros((0, 2), np.int64)
+    graph = coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(total, total))
+    _, roots = connected_components(graph, directed=False)
     image_of = np.repeat(np.arange(len(offsets)), [int(c) for c in n_keypoints.values()])
     seen = np.unique(np.stack([roots, image_of], axis=1), axis=0)
     _, counts = np.unique(seen[:, 0], return_counts=True)

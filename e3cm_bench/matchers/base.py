@@ -106,6 +106,10 @@ class MatcherEntry:
         names and sha256 enter the identity.
     weights_beside: settings -> the library files it still loads when --weights FILE replaces
         its own (e.g. the keypoint extractor); they enter the identity after the file's hash.
+    keypoints_are_detections: its keypoints are an image's detections, the same in every pair of
+        the image (SIFT, SuperPoint, DISK, ALIKED), so that exact repeats chain into tracks; False
+        for dense and semi-dense matchers, which place each point afresh per pair (the sfm
+        benchmark then merges near keypoints by default: sfm/protocol.py).
     origin: "built-in", "plugin DIST VERSION" or "module NAME" (set by the registry).
     source: what the plugin's code is, for the identity: {"package", "version", "sha256"} or
         {"module", "sha256"}, the sha256 of its code (plugin_code.code_sha256); None for
@@ -128,6 +132,7 @@ class MatcherEntry:
     requires: tuple[str, ...] = ()
     weights: Callable[[Any], list] | None = None
     weights_beside: Callable[[Any], list] | None = None
+    keypoints_are_detections: bool = False
     origin: str = "built-in"
     source: dict | None = None
 

@@ -56,5 +56,6 @@ BUILTIN = (
         paper_row="DFM", paper_setting=lambda settings: settings.get("variant", "release") == "release"),
     MatcherEntry(
         "sift", "SIFT + nearest neighbour with Lowe's ratio test (OpenCV)",
-        lambda s: SiftMatcher(s.max_keypoints, s.ratio, s.cross_check), SiftSettings, paper_row="SIFT+NN"),
+        lambda s: SiftMatcher(s.max_keypoints, s.ratio, s.cross_check), SiftSettings, paper_row="SIFT+NN",
+        keypoints_are_detections=True),
 )

@@ -59,6 +59,7 @@ class Comparison:
     confidence: float
     n_samples: int
     seed: int
+    seeded: bool = False  # values of several reconstructions per pair (sfm's mapper seeds)
 
     def table(self) -> pd.DataFrame:
         """compare.csv: one row per metric; a, b: the statistic of A's and B's values over the n
@@ -102,12 +103,14 @@ class Comparison:
         """What the numbers are, said once (below the terminal's table and the report's)."""
         medians = [m.name for m in self.metrics if m.statistic == "median"]
         lower = [m.name for m in self.metrics if not m.higher_is_better]
-        text = "A, B: the mean over the n pairs"
+        text = "A, B: the mean over the n pairs" + (" and each run's mapper seeds" if self.seeded else "")
         if medians:
             text += (f", but {', '.join(medians)}: the median, a failed pair counting as +inf (the worst)")
         text += (f". Lower is better for {', '.join(lower)}, higher for the others. " if lower
                  else ". Higher is better. ")
-        text += (f"B - A: its paired-bootstrap interval ({self.n_samples} resamples, seed {self.seed}); the verdict "
+        text += ("B - A: its paired-bootstrap interval (" + ("pairs resampled together, each run's seeds on their own; "
+                                                          if self.seeded else "")
+                 + f"{self.n_samples} resamples, seed {self.seed}); the verdict "
                  f"names a winner when the interval excludes 0 (bootstrap p < {1 - self.confidence:.2g}).")
         return text
 
@@ -131,7 +134,12 @@ def _p_value(p: float, n_samples: int) -> str:
 
 def _column(name: str, failure_is_inf: bool = False) -> Callable[[pd.DataFrame], np.ndarray]:
     def read(per_pair: pd.DataFrame) -> np.ndarray:
-        values = pd.to_numeric(per_pair[name], errors="coerce").to_numpy(dtype=np.float64)
+        # a run of several reconstructions (sfm's mapper seeds: NAME_s0, NAME_s1, ...) gives a
+        # pairs x seeds array, compared over both (stats.compare_paired)
+        seeds = [f"{name}_s{k}" for k in range(len(per_pair.columns)) if f"{name}_s{k}" in per_pair.columns]
+        columns = seeds if len(seeds) > 1 else [name]
+        values = per_pair[columns].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=np.float64)
+        values = values if len(columns) > 1 else values[:, 0]
         if failure_is_inf:  # an error the run could not compute is a failure: worse than any value
             values = np.where(np.isnan(values), np.inf, values)
         return values
@@ -223,12 +231,13 @@ def compare_runs(
         raise ValueError(f"compare: {run_a.dir} and {run_b.dir} have no pair in common")
     a, b = a.loc[common], b.loc[common]
     chosen = paired_metrics(run_a.benchmark, mma)
-    results = []
+    results, seeded = [], False
     for metric in chosen:
         try:
             values_a, values_b = metric.values(a), metric.values(b)
         except KeyError as missing:
             raise ValueError(f"compare: {metric.name} needs per_pair.csv column {missing} in both runs") from None
+        seeded = seeded or np.ndim(values_a) == 2 or np.ndim(values_b) == 2
         results.append(stats.compare_paired(values_a, values_b, metric.name, higher_is_better=metric.higher_is_better,
                                             statistic=metric.statistic, alpha=alpha, n_samples=n_samples, seed=seed))
     label_a, label_b = run_a.label, run_b.label
@@ -236,7 +245,7 @@ def compare_runs(
         named = (run_a.dir.name, run_b.dir.name)
         label_a, label_b = named if named[0] != named[1] else (str(run_a.dir), str(run_b.dir))
     return Comparison(label_a, label_b, run_a.benchmark.name, len(run_a.per_pair), len(run_b.per_pair),
-                      len(common), results, chosen, 1.0 - alpha, n_samples, seed)
+                      len(common), results, chosen, 1.0 - alpha, n_samples, seed, seeded)
 
 
 def print_comparison(comparison: Comparison, console: Console | None = None) -> None:

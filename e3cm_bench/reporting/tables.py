@@ -68,6 +68,11 @@ def print_summary(summary: Mapping, title: str, console: Console | None = None) 
         table.caption = (table.caption or "") + escape(
             f"; values: the mean over {int(repeats)} repeats of the estimation (each metric's spread: <metric>_sd "
             "in summary.csv)")
+    seeds = bounds.get("mapper_seeds")
+    if seeds is not None and seeds == seeds and int(seeds) > 1:  # sfm: the interval resamples the seeds too
+        table.caption = (table.caption or "") + escape(
+            f" and the mapper's {int(seeds)} seeds; values: the mean over the seeds (their spread: <metric>_sd, "
+            "each seed's numbers: sfm/per_seed.csv)")
     table.add_column("metric")
     if split_bases:
         for header in ("overall", "illumination", "viewpoint"):

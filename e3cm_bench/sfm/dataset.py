@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from . import views as V
+from .protocol import parse_protocol
 from .reconstruct import mapper_settings
 
 
@@ -31,7 +32,9 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
                  pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
-                 merge_px: str | float | None = None, allow_disconnected: bool = False, absolute_paths: bool = False,
+                 merge_px: str | float | None = None, mapper: str | None = None, mapper_seeds: str | int | None = None,
+                 merge: str | None = None, verification: str | None = None, score_model: str | None = None,
+                 allow_disconnected: bool = False, absolute_paths: bool = False,
                  max_pairs: str | int | None = None, skip_bad: bool = False, first: int | None = None) -> None:
         from ..interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
 
@@ -43,7 +46,8 @@ class MultiViewSet(PairList):
             raise DatasetError(f"{self.root}: give exactly one of --scene-info, --colmap-model and --pairs "
                                f"(given: {', '.join(given) or 'none'})")
         self.window = _window(window)
-        self.merge_px = _radius(merge_px)
+        self.protocol = parse_protocol(mapper, mapper_seeds, merge, merge_px, verification, score_model)
+        self.merge_px = self.protocol.merge_px
         self.graph = Path(graph) if graph is not None else None
         self.allow_disconnected, self.absolute_paths = bool(allow_disconnected), bool(absolute_paths)
         if self.window is not None and self.graph is not None:
@@ -102,7 +106,7 @@ class MultiViewSet(PairList):
                 continue
             built.append(Pair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
                               meta={"scene": set_name, "view0": item.view0, "view1": item.view1,
-                                    "merge_px": self.merge_px}))
+                                    "merge_px": self.merge_px, "protocol": self.protocol}))
         return built, bad
 
     def _bags(self) -> list[list[str]]:
@@ -150,7 +154,8 @@ class MultiViewSet(PairList):
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
                 "components": {"count": len(self.components), "sizes": [len(c) for c in self.components]},
                 "allow_disconnected": self.allow_disconnected, "absolute_paths": self.absolute_paths,
-                "max_pairs": self.max_pairs, "merge_px": self.merge_px, "n_views": len(self.views), "reconstruction": mapper_settings()}
+                "max_pairs": self.max_pairs, "merge_px": self.merge_px, "n_views": len(self.views),
+                "protocol": self.protocol.record(), "reconstruction": mapper_settings()}
 
 
 # The pairs a set's graph may hold unless --max-pairs says more: an exhaustive graph grows with
@@ -180,15 +185,3 @@ def _window(value) -> int | None:
     if k < 1:
         raise DatasetError(f"--window must be at least 1, got {k}")
     return k
-
-
-def _radius(value) -> float:
-    if value is None:
-        return 0.0
-    try:
-        radius = float(str(value))
-    except ValueError:
-        raise DatasetError(f"--merge-px must be a radius in pixels, got {value!r}") from None
-    if not radius >= 0:
-        raise DatasetError(f"--merge-px must be 0 or more pixels, got {value}")
-    return radius

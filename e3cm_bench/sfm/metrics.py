@@ -75,3 +75,61 @@ def summarize_sfm(errors: np.ndarray, n_matches: np.ndarray) -> dict:
         summary[f"auc@{threshold}"] = auc
     summary[MAA] = maa(errors)
     return summary
+
+
+# ----------------------------------------------------------------------------- the mapper's seeds
+# per_pair.csv keeps the first seed's err_R, err_t, err_pose and model as before, then each seed
+# k's (evaluation seed + k) as err_R_sK, err_t_sK, err_pose_sK, model_sK.
+SEED_COLUMNS = ("model", "err_R", "err_t", "err_pose")
+SPREAD_KEYS = ("auc@5", "auc@10", "auc@20", MAA)
+
+
+def seed_columns(k: int) -> list[str]:
+    return [f"{name}_s{s}" for s in range(k) for name in SEED_COLUMNS]
+
+
+def seeds_in(rows: Sequence) -> int:
+    """How many seeds the rows hold (0: rows of one reconstruction, without seed columns)."""
+    rows = list(rows)
+    k = 0
+    while rows and f"err_pose_s{k}" in rows[0]:
+        k += 1
+    return k
+
+
+def seed_errors(rows: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    """(pairs x seeds err_pose, n_matches) of sfm rows (a single column without seeds)."""
+    rows = list(rows)
+    k = seeds_in(rows)
+    names = [f"err_pose_s{s}" for s in range(k)] or ["err_pose"]
+    errors = np.asarray([[float(r[n]) for n in names] for r in rows], np.float64).reshape(len(rows), len(names))
+    return errors, np.asarray([float(r["n_matches"]) for r in rows], np.float64)
+
+
+def summarize_seeds(errors: np.ndarray, n_matches: np.ndarray, seeds: Sequence[int] | None = None) -> dict:
+    """The mean over the seeds (columns of errors; `seeds` picks them, repeats allowed) of each
+    seed's summarize_sfm (n_failures too: the mean count)."""
+    errors = np.asarray(errors, np.float64)
+    columns = range(errors.shape[1]) if seeds is None else seeds
+    each = [summarize_sfm(errors[:, s], n_matches) for s in columns]
+    summary = dict(each[0])
+    for key in summary:
+        if key not in ("n_pairs", "n_matches"):
+            summary[key] = float(np.mean([e[key] for e in each]))
+    return summary
+
+
+def two_level_summary(errors: np.ndarray, n_matches: np.ndarray, seed: int = 0):
+    """summarize(idx) for the bootstrap over pairs (idx) that, with each resample of pairs,
+    resamples the mapper's seeds too (with replacement, from its own generator, so that the
+    sequence of resamples is a pure function of `seed`): the interval then holds both the pairs'
+    and the mapper's randomness. With one seed it is the pairs' bootstrap."""
+    errors = np.asarray(errors, np.float64)
+    k = errors.shape[1]
+    rng = np.random.default_rng(seed)
+
+    def summarize(idx) -> dict:
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        return summarize_seeds(errors[idx], n_matches[idx], rng.integers(0, k, k) if k > 1 else None)
+
+    return summarize

@@ -25,7 +25,8 @@ from ..benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicat
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from ..matches import Matches, distinct
 from . import views as V
-from .dataset import _radius, _window
+from .dataset import _window
+from .protocol import _radius
 from .uncalibrated import reconstruct_images, settings as mapper_settings
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
@@ -51,7 +52,7 @@ class ImageFolder(PairList):
                  merge_px: str | float | None = None, camera_model: str = "SIMPLE_RADIAL",
                  single_camera: bool = True, skip_bad: bool = False) -> None:
         self.root = require_directory(root, "image")
-        self.window, self.merge_px = _window(window), _radius(merge_px)
+        self.window, self.merge_px = _window(window), _radius(merge_px) or 0.0  # None: no merge
         self.pairs_file = Path(pairs) if pairs is not None else None
         if self.window is not None and self.pairs_file is not None:
             raise DatasetError(f"{self.pairs_file}: --window and --pairs are two pair graphs; give one")

@@ -1,22 +1,29 @@
-"""A run's matches -> a COLMAP database -> pycolmap's incremental mapper -> the models.
+"""A run's matches -> a COLMAP database -> pycolmap's mapper -> the models.
 
 The database is the export's (interchange/colmap.write_colmap): one PINHOLE camera per image
 from the set's K (kept fixed: the benchmark measures the matches, not self-calibration), one
 keypoint list per image in which a location that several pairs matched appears once (so that
-tracks span more than two views), and per pair the matches and a two-view geometry holding
-the inliers of the evaluation's own essential-matrix RANSAC (estimators.relative_pose, the
-pose benchmarks' estimator, threshold and seed). The mapper then needs no verification of its
-own, so every matcher is judged through the same estimator.
+tracks span more than two views; the protocol's merge says how near two locations must be),
+and per pair the matches and a two-view geometry. The protocol's verification (protocol.py)
+says which: ``estimator``, the inliers of the evaluation's own essential-matrix RANSAC
+(estimators.relative_pose, the pose benchmarks' estimator, threshold and seed), so that every
+matcher is judged through the same estimator; or ``colmap``, COLMAP's own verification
+(pycolmap.verify_matches with hloc's options), as hloc and COLMAP's users reconstruct.
 
-The mapper runs with its seed fixed (pycolmap.set_random_seed and the options' random_seed,
-the evaluation's --seed) and one thread: COLMAP's multi-threaded parts (bundle adjustment, the
-RANSACs of registration) are then deterministic, so a rerun gives the same model.
+The mapper (``global``: pycolmap.global_mapping, GLOMAP; ``incremental``:
+pycolmap.incremental_mapping) runs with its seed fixed (pycolmap.set_random_seed and every
+options' random_seed) and one thread: COLMAP's multi-threaded parts (bundle adjustment, the
+RANSACs of registration) are then deterministic, so a rerun gives the same model. Its log
+(COLMAP's glog and Ceres output, stderr) goes to the workdir's mapper.log.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
+import sys
 from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,40 +49,110 @@ MAPPER_OPTIONS = {
 }
 MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0, "abs_pose_refine_focal_length": False,
                                  "abs_pose_refine_extra_params": False, "num_threads": 1}}
-DATABASE, MODELS = "database.db", "models"
+# The global mapper's (GLOMAP's) options that differ from pycolmap 4.2.1's defaults: the same
+# choices (intrinsics fixed in its bundle adjustment, one thread, no GPU, min_model_size 3).
+GLOBAL_OPTIONS = {"min_model_size": 3, "num_threads": 1}
+GLOBAL_SUB_OPTIONS = {"mapper": {"num_threads": 1},
+                      "mapper.bundle_adjustment": {"refine_focal_length": False, "refine_principal_point": False,
+                                                   "refine_extra_params": False},
+                      "mapper.bundle_adjustment.ceres": {"use_gpu": False},
+                      "mapper.global_positioning": {"use_gpu": False}}
+GLOBAL_SEEDED = ("", "mapper", "mapper.rotation_averaging", "mapper.global_positioning", "mapper.retriangulation")
+# COLMAP's verification as hloc runs it (hloc/reconstruction.py: at most 20000 RANSAC trials,
+# inlier ratio down to 0.1); the rest is pycolmap's TwoViewGeometryOptions (4 px, 15 inliers).
+VERIFY_OPTIONS = {"ransac.max_num_trials": 20000, "ransac.min_inlier_ratio": 0.1}
+DATABASE, MODELS, LOG = "database.db", "models", "mapper.log"
 
 
 def mapper_settings() -> dict:
-    """What config.yaml records of the reconstruction (the seed is the evaluation's)."""
+    """What config.yaml records of the reconstruction (the seed is the evaluation's; which
+    mapper, merge and verification ran: dataset.protocol)."""
     from ..interchange.colmap import pycolmap_module
 
     try:
         version = pycolmap_module().__version__
     except ValueError:
         version = None
-    return {"method": "pycolmap.incremental_mapping", "pycolmap": version, "options": dict(MAPPER_OPTIONS),
-            **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()}, "seed": "evaluation.seed",
-            "two_view_geometry": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
-            "keypoints": "merged per image (interchange.tracks.merge_keypoints): exact repeats, and within "
-                         "dataset.merge_px pixels where it is above 0"}
+    return {"pycolmap": version, "seed": "evaluation.seed + 0..mapper_seeds-1",
+            "incremental": {"method": "pycolmap.incremental_mapping", "options": dict(MAPPER_OPTIONS),
+                            **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()}},
+            "global": {"method": "pycolmap.global_mapping", "options": dict(GLOBAL_OPTIONS),
+                       **{k: dict(v) for k, v in GLOBAL_SUB_OPTIONS.items()}},
+            "verification": {"estimator": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
+                             "colmap": {"method": "pycolmap.verify_matches", "options": dict(VERIFY_OPTIONS),
+                                        "seed": "evaluation.seed"}},
+            "keypoints": "merged per image (interchange.tracks.merge_keypoints) as dataset.protocol.merge says"}
 
 
-def mapper_options(seed: int):
+def _set(options, values: dict, group: str = "") -> None:
+    """Set dotted-group options on a pycolmap options object (its sub-objects are copies:
+    each is set back into its parent)."""
+    if not group:
+        for key, value in values.items():
+            setattr(options, key, value)
+        return
+    head, _, rest = group.partition(".")
+    sub = getattr(options, head)
+    _set(sub, values, rest)
+    setattr(options, head, sub)
+
+
+def mapper_options(seed: int, mapper: str = "incremental", override: dict | None = None):
+    """pycolmap's options of `mapper` as the benchmark sets them, seeded; `override`: more
+    {dotted group: {option: value}} (a caller that refines the intrinsics, say), set last."""
     from ..interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
-    options = pycolmap.IncrementalPipelineOptions()
-    for key, value in MAPPER_OPTIONS.items():
-        setattr(options, key, value)
-    for group, values in MAPPER_SUB_OPTIONS.items():
-        sub = getattr(options, group)
-        for key, value in values.items():
-            setattr(sub, key, value)
-        setattr(options, group, sub)
-    options.random_seed = int(seed)
-    options.mapper.random_seed = int(seed)
-    options.triangulation.random_seed = int(seed)
+    if mapper == "global":
+        options = pycolmap.GlobalPipelineOptions()
+        _set(options, GLOBAL_OPTIONS)
+        for group, values in GLOBAL_SUB_OPTIONS.items():
+            _set(options, values, group)
+        for group in GLOBAL_SEEDED:
+            _set(options, {"random_seed": int(seed)}, group)
+    else:
+        options = pycolmap.IncrementalPipelineOptions()
+        _set(options, MAPPER_OPTIONS)
+        for group, values in MAPPER_SUB_OPTIONS.items():
+            _set(options, values, group)
+        for group in ("", "mapper", "triangulation"):
+            _set(options, {"random_seed": int(seed)}, group)
+    for group, values in (override or {}).items():
+        _set(options, values, group)
     return options
+
+
+def verify_options(seed: int):
+    from ..interchange.colmap import pycolmap_module
+
+    options = pycolmap_module().TwoViewGeometryOptions()
+    for key, value in VERIFY_OPTIONS.items():
+        group, _, name = key.rpartition(".")
+        _set(options, {name: value}, group)
+    _set(options, {"random_seed": int(seed), "num_threads": 1}, "ransac")
+    return options
+
+
+@contextmanager
+def captured_log(path: Path):
+    """COLMAP's log (glog and Ceres write to the process's stderr, file descriptor 2) appended
+    to `path` while the block runs; Python's own stderr is flushed around it."""
+    from ..interchange.colmap import pycolmap_module
+
+    logging = pycolmap_module().logging
+    before = logging.logtostderr, logging.minloglevel
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(path, "ab") as log:
+        os.dup2(log.fileno(), 2)
+        logging.logtostderr, logging.minloglevel = True, 0  # glog writes files under /tmp otherwise
+        try:
+            yield path
+        finally:
+            logging.logtostderr, logging.minloglevel = before
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
 @dataclass
@@ -105,10 +182,15 @@ class Reconstruction:
                 return model.index, model.poses[name]
         return None
 
-    def placed(self, name0: str, name1: str) -> tuple:
+    def placed(self, name0: str, name1: str, largest_only: bool = False) -> tuple:
         """Where a pair's images are: ((model, pose0), (model, pose1)) from the largest model that
         registered both (COLMAP's models may share images: max_model_overlap), else each
-        image's own (model, pose) or None; the models then differ, or an image is unregistered."""
+        image's own (model, pose) or None; the models then differ, or an image is unregistered.
+        largest_only: IMC's rule, only the largest model counts (an image elsewhere: None)."""
+        if largest_only:
+            first = self.models[:1]
+            return tuple((first[0].index, first[0].poses[n]) if first and n in first[0].poses else None
+                         for n in (name0, name1))
         for model in self.models:
             if name0 in model.poses and name1 in model.poses:
                 return (model.index, model.poses[name0]), (model.index, model.poses[name1])
@@ -147,43 +229,88 @@ def image_size(pair, matches, side: int) -> tuple[int, int]:
     return int(image.shape[1]), int(image.shape[0])
 
 
-def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None,
-                merge_px: float = 0.0) -> tuple[Reconstruction, list]:
-    """Write the database of `pairs` (each with meta view0/view1) and their `matches` (each
-    correspondence once) under workdir, run the mapper, and read its models back. Returns the
-    reconstruction and each pair's two-view geometry (None where the estimate failed)."""
-    from ..interchange.colmap import pycolmap_module, write_colmap
+def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protocol=None) -> tuple[list, dict]:
+    """The database of `pairs` (each with meta view0/view1) and their `matches` (each
+    correspondence once) in a fresh workdir, verified as the protocol says (a resolved
+    protocol.Protocol; None: exact merge, the estimator's verification). Returns each pair's
+    {"n_inliers", and the estimator's geometry where it ran} and the tracks' numbers
+    (repeat_share, track_length_database, merge_displacement_px)."""
+    from ..interchange import tracks
+    from ..interchange.colmap import write_colmap
     from ..interchange.export import ExportItem
+    from .protocol import QUANTIZE_MAX_ERROR, Protocol
 
-    pycolmap = pycolmap_module()
+    protocol = protocol or Protocol(merge="exact").resolved(True)
     workdir = Path(workdir)
     if workdir.is_symlink() or workdir.exists() and not workdir.is_dir():
         raise ValueError(f"{workdir}: is not a folder (the reconstruction's files go there); move it away and rerun")
     if workdir.exists():
         shutil.rmtree(workdir)  # a rerun (--eval-only) replaces the last one's products
     workdir.mkdir(parents=True)
-    items, geometries, images = [], [], []
+    items, geometries = [], []
+    by_estimator = protocol.verification == "estimator"
     for pair, m in zip(pairs, matches):
         names = pair.meta["view0"], pair.meta["view1"]
-        for name in names:
-            if name not in images:
-                images.append(name)
-        found = geometry(pair, m, ev) if len(m) >= 5 else None
+        found = geometry(pair, m, ev) if by_estimator and len(m) >= 5 else None
         geometries.append(found)
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m,
                                 pair.K0, pair.K1, found))
-    write_colmap(workdir, items, merge_px=merge_px)
-    models_dir = workdir / MODELS
-    models_dir.mkdir()
-    pycolmap.set_random_seed(int(ev.seed))
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # its progress log is thousands of lines; warnings and errors still show
-    try:
-        found_models = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root or workdir), str(models_dir),
-                                                    options=mapper_options(ev.seed))
-    finally:
-        pycolmap.logging.minloglevel = level
-    models = []
+    listed = [(item.name0, item.name1, item.matches.keypoints0, item.matches.keypoints1) for item in items]
+    quantize = protocol.merge == "quantize"
+    merged = tracks.merge_keypoints(listed, 0.0 if quantize else protocol.merge_px,
+                                    cell=protocol.merge_px if quantize else None, max_error=QUANTIZE_MAX_ERROR)
+    write_colmap(workdir, items, merged=merged)
+    inliers = [int(np.count_nonzero(g["inliers"])) if g else 0 for g in geometries]
+    if not by_estimator:
+        inliers = _colmap_verification(workdir, items, ev.seed)
+    keypoints, indices = merged
+    lengths = tracks.track_lengths({n: len(k) for n, k in keypoints.items()}, [(a, b) for a, b, _, _ in listed], indices)
+    radius = QUANTIZE_MAX_ERROR if quantize else protocol.merge_px
+    numbers = {"repeat_share": tracks.repeat_share(listed, radius),
+               "track_length_database": float(np.mean(lengths)) if len(lengths) else float("nan"),
+               "merge_displacement_px": tracks.merge_displacement(listed, keypoints, indices)}
+    return [{"n_inliers": n, "geometry": g} for n, g in zip(inliers, geometries)], numbers
+
+
+def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
+    """pycolmap.verify_matches over the database's pairs (log in mapper.log); each pair's
+    number of verified matches."""
+    from ..interchange.colmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    listing = workdir / "pairs.txt"
+    listing.write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
+    pycolmap.set_random_seed(int(seed))
+    with captured_log(workdir / LOG):
+        pycolmap.verify_matches(str(workdir / DATABASE), str(listing), options=verify_options(seed))
+    counts = []
+    with pycolmap.Database.open(str(workdir / DATABASE)) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        for item in items:
+            id0, id1 = ids[item.name0], ids[item.name1]
+            counts.append(len(db.read_two_view_geometry(id0, id1).inlier_matches)
+                          if db.exists_two_view_geometry(id0, id1) else 0)
+    return counts
+
+
+def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incremental", models: str = MODELS,
+               root: Path | None = None, options: dict | None = None) -> Reconstruction:
+    """The mapper on workdir's database, its models in workdir/`models`, its log appended to
+    workdir/mapper.log; the models read back, largest first."""
+    from ..interchange.colmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    workdir = Path(workdir)
+    models_dir = workdir / models
+    if models_dir.exists():
+        shutil.rmtree(models_dir)
+    models_dir.mkdir(parents=True)
+    pycolmap.set_random_seed(int(seed))
+    run = pycolmap.global_mapping if mapper == "global" else pycolmap.incremental_mapping
+    with captured_log(workdir / LOG):
+        found_models = run(str(workdir / DATABASE), str(root or workdir), str(models_dir),
+                           options=mapper_options(seed, mapper, options))
+    found = []
     for index, model in sorted(found_models.items()):
         poses = {}
         for image_id in model.reg_image_ids():
@@ -192,9 +319,35 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
             pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
             poses[image.name] = pose
         points = int(model.num_points3D())
-        models.append(Model(int(index), poses, points, int(model.compute_num_observations()),
-                            float(model.compute_mean_track_length()) if points else float("nan"),
-                            float(model.compute_mean_reprojection_error()) if points else float("nan")))
+        found.append(Model(int(index), poses, points, int(model.compute_num_observations()),
+                           float(model.compute_mean_track_length()) if points else float("nan"),
+                           float(model.compute_mean_reprojection_error()) if points else float("nan")))
     # largest first (as IMC picks its model); the mapper's own index breaks ties
-    models.sort(key=lambda m: (-len(m.poses), m.index))
-    return Reconstruction(images, models, workdir / DATABASE), geometries
+    found.sort(key=lambda m: (-len(m.poses), m.index))
+    return Reconstruction(list(images), found, workdir / DATABASE)
+
+
+def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None,
+                merge_px: float = 0.0, protocol=None, options: dict | None = None,
+                seed: int | None = None) -> tuple[Reconstruction, list]:
+    """Write the database of `pairs` (each with meta view0/view1) and their `matches` (each
+    correspondence once) under workdir, run the mapper once, and read its models back. Returns
+    the reconstruction and each pair's two-view geometry (None where the estimate failed, or
+    where COLMAP verified the pairs). protocol: a resolved protocol.Protocol (None: the
+    incremental mapper, keypoints merged within merge_px, the estimator's verification);
+    options: mapper options set over the benchmark's ({dotted group: {option: value}}, e.g.
+    {"": {"ba_refine_focal_length": True}}); seed: the mapper's (default ev.seed)."""
+    from .protocol import Protocol
+
+    if protocol is None:
+        protocol = Protocol(mapper="incremental", merge="radius" if merge_px else "exact",
+                            merge_px=merge_px).resolved(True)
+    found, _ = write_database(pairs, matches, ev, workdir, protocol)
+    images = []
+    for pair in pairs:
+        for name in (pair.meta["view0"], pair.meta["view1"]):
+            if name not in images:
+                images.append(name)
+    seed = ev.seed if seed is None else seed
+    return (run_mapper(workdir, images, seed, protocol.mapper, root=root, options=options),
+            [f["geometry"] for f in found])

@@ -12,6 +12,10 @@ metric, so that the numbers shown beside each other cannot contradict each other
   resamples (the pairs resampled as units, A and B together);
 - the verdict is read from that interval: "B better" or "A better" when it excludes 0 (which
   side is better: `higher_is_better`), else "no difference detectable";
+- values of several reconstructions per pair (sfm: one column per mapper seed, a pairs x seeds
+  array each): the statistic is over all of a method's values, and each bootstrap resample
+  draws the pairs (A and B together) and, for each method on its own, its seeds (with
+  replacement): seeds are not paired, the seed k of A has nothing to do with the seed k of B;
 - p is the same bootstrap's two-sided p: the smallest 1 - confidence at which that interval
   excludes 0, so p < alpha exactly when the verdict names a winner.
 
@@ -133,6 +137,19 @@ def bootstrap_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_sample
     return out
 
 
+def _two_level_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_samples: int, seed: int) -> np.ndarray:
+    """bootstrap_differences for pairs x seeds arrays: the pairs resampled together, each
+    method's seeds resampled on their own (a generator of seed + 1: the pairs' draws stay those
+    of one level)."""
+    idx = resample_indices(a.shape[0], n_samples, seed)
+    rng = np.random.default_rng(seed + 1)
+    out = np.empty(int(n_samples))
+    for s in range(int(n_samples)):
+        seeds_a, seeds_b = rng.integers(0, a.shape[1], a.shape[1]), rng.integers(0, b.shape[1], b.shape[1])
+        out[s] = _difference(_statistic(a[idx[s]][:, seeds_a], statistic), _statistic(b[idx[s]][:, seeds_b], statistic))
+    return out
+
+
 def compare_paired(
     a: np.ndarray,
     b: np.ndarray,
@@ -151,20 +168,22 @@ def compare_paired(
         raise ValueError(f"alpha must lie strictly between 0 and 1, got {alpha!r}")
     if statistic not in STATISTICS:
         raise ValueError(f"statistic must be one of {', '.join(STATISTICS)}, got {statistic!r}")
-    a = np.asarray(a, dtype=float).ravel()
-    b = np.asarray(b, dtype=float).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"a and b must hold the same pairs: {a.size} and {b.size} values")
-    keep = ~(np.isnan(a) | np.isnan(b))
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    seeded = a.ndim == 2 or b.ndim == 2  # pairs x seeds (the module docstring)
+    a, b = (a.reshape(len(a), -1), b.reshape(len(b), -1)) if seeded else (a.ravel(), b.ravel())
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"a and b must hold the same pairs: {a.shape[0]} and {b.shape[0]} values")
+    keep = ~(np.isnan(a).any(axis=1) | np.isnan(b).any(axis=1)) if seeded else ~(np.isnan(a) | np.isnan(b))
     a, b = a[keep], b[keep]
-    n = int(a.size)
+    n = int(a.shape[0])
     if statistic == "mean" and not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise ValueError(f"{metric}: infinite values have no mean; compare them by their median")
     if n == 0:
         return PairedResult(metric, statistic, 0, math.nan, math.nan, math.nan, math.nan, math.nan, 1.0, NO_DIFFERENCE)
     stat_a, stat_b = float(_statistic(a, statistic)), float(_statistic(b, statistic))
     diff = float(_difference(stat_a, stat_b))
-    samples = bootstrap_differences(a, b, statistic, n_samples, seed)
+    samples = (_two_level_differences(a, b, statistic, n_samples, seed) if seeded
+               else bootstrap_differences(a, b, statistic, n_samples, seed))
     lo, hi = percentile_interval(samples, 1.0 - alpha)
     if lo > 0 or hi < 0:
         b_wins = (lo > 0) == higher_is_better

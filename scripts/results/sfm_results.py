@@ -7,8 +7,11 @@ into OUT/SET/METHOD, then the set's table in OUT/SET/table.{csv,md}.
     python scripts/results/sfm_results.py kitti --eval-only --merge-px 2 --out /tmp/sfm-results  # after copying
     python scripts/results/sfm_results.py side --out /tmp/sfm-results --to results/sfm
 
+The runs are made under the sfm benchmark's default protocol; sfm_protocol_grid.py evaluates
+their matches again under others (and under the default with other seeds) on copies.
+
 side: each run's two-view numbers beside its multi-view ones, in TO/two_view_vs_multi_view.csv,
-and each run's config.yaml, summary.csv and per_pair.csv copied to TO/SET/METHOD/. The two-view
+and each run's config.yaml, summary.csv, per_pair.csv and sfm/per_seed.csv copied to TO/SET/METHOD/. The two-view
 numbers are the pose benchmark's (megadepth: the essential-matrix RANSAC of PROTOCOLS §3) on the
 same pairs and the same cached matches, so the two columns differ only in what is made of the
 matches; for KITTI, results/sample/table2_kitti holds the pose benchmark's own 31 pairs too.
@@ -113,6 +116,8 @@ def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
             target.mkdir(parents=True, exist_ok=True)
             for name in ("config.yaml", "summary.csv", "per_pair.csv"):
                 shutil.copyfile(run_dir / name, target / name)
+            if (run_dir / "sfm" / "per_seed.csv").is_file():  # each mapper seed's numbers
+                shutil.copyfile(run_dir / "sfm" / "per_seed.csv", target / "per_seed.csv")
             multi = pd.read_csv(run_dir / "summary.csv").iloc[0]
             two, _ = two_view(run_dir)
             row = {"set": set_name, "method": label, "n_pairs": int(multi["n_pairs"])}
@@ -123,8 +128,9 @@ def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
                 row[key] = multi[key]
                 row[f"{key}_lo"], row[f"{key}_hi"] = multi[f"{key}_lo"], multi[f"{key}_hi"]
             for key in ("n_failures", "registered_images", "n_images", "n_models", "points", "mean_track_length",
-                        "mean_reprojection_error"):
-                row[key] = multi[key]
+                        "mean_reprojection_error", "auc@10_sd", "mapper", "mapper_seeds", "merge", "verification",
+                        "track_length_database", "repeat_share", "merge_displacement_px"):
+                row[key] = multi.get(key)
             rows.append(row)
         for table in ("table.csv", "table.md"):
             if (out / set_name / table).is_file():

@@ -1,0 +1,109 @@
+"""A set's pairs scored under a protocol: one database per bag (a connected component of the
+pair graph, pair.meta["bag"]; one bag without the key), the mapper run once per seed on it, and
+each pair scored in its bag's reconstruction of each seed.
+
+Products under WHERE (the run folder's sfm/): database.db, mapper.log, models/ (the first
+seed), models-sK/ (seed evaluation.seed + K); with several bags the same under bag-B/; and
+per_seed.csv, the summary of each seed (the pairs' AUC and mAA, the models' own numbers).
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import metrics as sfm_metrics
+from .reconstruct import MODELS, Reconstruction, run_mapper, write_database
+
+NUMBERS = ("n_images", "registered_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")
+TRACKS = ("repeat_share", "track_length_database", "merge_displacement_px")
+
+
+def bags(pairs: Sequence) -> dict:
+    """bag -> indices of its pairs, in the pairs' order (one bag, None, without the meta key)."""
+    found: dict = {}
+    for i, pair in enumerate(pairs):
+        found.setdefault(pair.meta.get("bag"), []).append(i)
+    return found
+
+
+def _images(pairs: Sequence) -> list[str]:
+    images = []
+    for pair in pairs:
+        for name in (pair.meta["view0"], pair.meta["view1"]):
+            if name not in images:
+                images.append(name)
+    return images
+
+
+def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protocol) -> tuple[list[dict], dict]:
+    """Per-pair rows (the first seed's columns, then each seed's) and the set's numbers (the
+    mean over seeds of each seed's, the tracks' numbers, the spread of the metrics over seeds,
+    the protocol) of `pairs` under a resolved protocol.Protocol."""
+    where = Path(where)
+    if where.exists():
+        shutil.rmtree(where)  # a rerun replaces every product of the last (bags may differ)
+    where.mkdir(parents=True)
+    grouped = bags(pairs)
+    k = protocol.mapper_seeds
+    rows = [{} for _ in pairs]
+    per_seed = [[] for _ in range(k)]  # per seed, each bag's Reconstruction
+    tracks = []
+    for bag, index in grouped.items():
+        folder = where if len(grouped) == 1 else where / f"bag-{bag}"
+        chosen = [pairs[i] for i in index]
+        verified, numbers = write_database(chosen, [matches[i] for i in index], ev, folder, protocol)
+        tracks.append((len(index), numbers))
+        images = _images(chosen)
+        for s in range(k):
+            found = run_mapper(folder, images, ev.seed + s, protocol.mapper, MODELS if s == 0 else f"{MODELS}-s{s}")
+            per_seed[s].append(found)
+            for i, pair, check in zip(index, chosen, verified):
+                placed = found.placed(pair.meta["view0"], pair.meta["view1"], protocol.score_model == "largest")
+                errors = sfm_metrics.pair_errors(pair.T_0to1, *placed)
+                rows[i].update({f"{name}_s{s}": errors[name] for name in sfm_metrics.SEED_COLUMNS})
+                if s == 0:
+                    rows[i].update({"pair": pair.name, "n_matches": len(matches[i]), "n_inliers": check["n_inliers"],
+                                    "registered0": int(placed[0] is not None),
+                                    "registered1": int(placed[1] is not None), **errors})
+    seeds = _per_seed(rows, per_seed, ev.seed)
+    write_per_seed(seeds, where / "per_seed.csv")
+    return rows, set_numbers(seeds, tracks, protocol)
+
+
+def _per_seed(rows: list[dict], per_seed: list[list[Reconstruction]], first: int) -> pd.DataFrame:
+    table = []
+    n_matches = np.asarray([float(r["n_matches"]) for r in rows], np.float64)
+    for s, found in enumerate(per_seed):
+        errors = np.asarray([float(r[f"err_pose_s{s}"]) for r in rows], np.float64)
+        whole = Reconstruction([name for f in found for name in f.images], [m for f in found for m in f.models])
+        table.append({"seed": first + s, **sfm_metrics.summarize_sfm(errors, n_matches), **whole.numbers()})
+    return pd.DataFrame(table)
+
+
+def write_per_seed(table: pd.DataFrame, path: Path) -> None:
+    from ..files import write_csv
+
+    write_csv(table, path)
+
+
+def set_numbers(seeds: pd.DataFrame, tracks: list, protocol) -> dict:
+    """The summary's facts of the reconstructions: the mean over seeds of the models' numbers,
+    each pair metric's standard deviation over seeds (``m_sd``, no interval of its own), the
+    tracks' numbers (the database's: the same for every seed; bags weighted by their pairs) and
+    the protocol that made them."""
+    out = {key: float(seeds[key].mean()) for key in NUMBERS}
+    for key in sfm_metrics.SPREAD_KEYS:
+        out[f"{key}_sd"] = float(seeds[key].std(ddof=1)) if len(seeds) > 1 else 0.0
+    weights = np.asarray([n for n, _ in tracks], np.float64)
+    for key in TRACKS:
+        values = np.asarray([numbers[key] for _, numbers in tracks], np.float64)
+        ok = np.isfinite(values)
+        out[key] = float(np.average(values[ok], weights=weights[ok])) if ok.any() else float("nan")
+    out.update({"mapper": protocol.mapper, "mapper_seeds": protocol.mapper_seeds, "merge": protocol.merge_label(),
+                "verification": protocol.verification, "score_model": protocol.score_model})
+    return out

@@ -1,0 +1,147 @@
+"""The multi-view protocol: what is made of a run's matches before a pair is scored.
+
+Measured on the same cached matches (docs/sfm.md, "The protocol"), the multi-view verdict
+moves more with these choices than with the matcher, so each is a setting, recorded in
+config.yaml (dataset.protocol, dataset.reconstruction) and in each run's summary.csv:
+
+- mapper: ``global`` (pycolmap.global_mapping, GLOMAP) or ``incremental``
+  (pycolmap.incremental_mapping, COLMAP's; hloc's);
+- mapper_seeds: how many reconstructions (seeds evaluation.seed + 0..K-1) from the same
+  database, each pair scored in each: the mapper's own randomness enters the interval;
+- merge: how the keypoints of an image are merged across its pairs into tracks
+  (interchange/tracks.py): ``auto`` (the matcher's kind: ``exact`` for detections, a radius of
+  DENSE_MERGE_PX for the others), ``exact``, ``radius`` (merge_px), or ``quantize`` (hloc's
+  dense quantization: cell QUANTIZE_CELL px, max error QUANTIZE_MAX_ERROR px);
+- verification: ``estimator`` (the pose benchmarks' essential-matrix RANSAC inliers as the
+  two-view geometries) or ``colmap`` (pycolmap.verify_matches, COLMAP's own, hloc's options);
+- score_model: ``any`` (a pair from whichever model holds both images) or ``largest`` (IMC's:
+  the largest model of the pair's bag only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from ..datasets.base import DatasetError
+
+MAPPERS = ("global", "incremental")
+MERGES = ("auto", "exact", "radius", "quantize")
+VERIFICATIONS = ("estimator", "colmap")
+SCORE_MODELS = ("any", "largest")
+# The merge radius of a matcher whose keypoints are not detections (dense, semi-dense, sub-pixel
+# refined): docs/sfm.md's grid measured 2 px (a merge within 1 px still leaves most tracks at
+# two views; hloc's 4 px quantization moves points far enough to cost two-view accuracy).
+DENSE_MERGE_PX = 2.0
+QUANTIZE_CELL, QUANTIZE_MAX_ERROR = 4.0, 4.0  # hloc's dense matching defaults
+DEFAULT_SEEDS = 3
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The protocol as the user set it (merge may still be ``auto``: `resolved` settles it)."""
+
+    mapper: str = "global"
+    mapper_seeds: int = DEFAULT_SEEDS
+    merge: str = "auto"
+    merge_px: float | None = None
+    verification: str = "estimator"
+    score_model: str = "any"
+
+    def resolved(self, detections: bool | None) -> "Protocol":
+        """``auto`` made concrete for a matcher whose keypoints are detections (True), are not
+        (False) or of unknown kind (None: treated as not, the safer error: a merge of 2 px
+        costs detections little, exact merging costs dense matches their tracks)."""
+        merge, radius = self.merge, self.merge_px
+        if merge == "auto":
+            if radius is not None:  # --merge-px given alone
+                merge = "radius" if radius > 0 else "exact"
+            else:
+                merge = "exact" if detections else "radius"
+        if merge == "radius":
+            radius = DENSE_MERGE_PX if radius is None else radius
+            if radius == 0:
+                merge = "exact"
+        if merge == "exact":
+            radius = 0.0
+        elif merge == "quantize":
+            radius = QUANTIZE_CELL
+        return Protocol(self.mapper, self.mapper_seeds, merge, float(radius), self.verification, self.score_model)
+
+    def merge_label(self) -> str:
+        if self.merge == "radius":
+            return f"radius {self.merge_px:g}"
+        if self.merge == "quantize":
+            return f"quantize cell {QUANTIZE_CELL:g} max error {QUANTIZE_MAX_ERROR:g}"
+        return self.merge
+
+    def record(self) -> dict:
+        return asdict(self)
+
+
+def parse_protocol(mapper=None, mapper_seeds=None, merge=None, merge_px=None, verification=None,
+                   score_model=None) -> Protocol:
+    """The dataset options' text as a Protocol; bad values in one line (DatasetError)."""
+    default = Protocol()
+    seeds = default.mapper_seeds if mapper_seeds is None else _whole(mapper_seeds, "--mapper-seeds")
+    return Protocol(_choice(mapper, MAPPERS, "--mapper", default.mapper), seeds,
+                    _choice(merge, MERGES, "--merge", default.merge), _radius(merge_px),
+                    _choice(verification, VERIFICATIONS, "--verification", default.verification),
+                    _choice(score_model, SCORE_MODELS, "--score-model", default.score_model))
+
+
+def _choice(value, choices: tuple[str, ...], flag: str, default: str) -> str:
+    if value is None:
+        return default
+    text = str(value).strip().lower()
+    if text not in choices:
+        raise DatasetError(f"{flag} must be one of {', '.join(choices)}, got {value!r}")
+    return text
+
+
+def _whole(value, flag: str) -> int:
+    try:
+        k = int(str(value))
+    except ValueError:
+        raise DatasetError(f"{flag} must be a whole number, got {value!r}") from None
+    if k < 1:
+        raise DatasetError(f"{flag} must be at least 1, got {k}")
+    return k
+
+
+def _radius(value) -> float | None:
+    if value is None:
+        return None
+    try:
+        radius = float(str(value))
+    except ValueError:
+        raise DatasetError(f"--merge-px must be a radius in pixels, got {value!r}") from None
+    if not radius >= 0:
+        raise DatasetError(f"--merge-px must be 0 or more pixels, got {value}")
+    return radius
+
+
+def keypoints_are_detections(matcher: str | None) -> bool | None:
+    """What the matcher's registry entry declares (MatcherEntry.keypoints_are_detections), or
+    None when the name resolves to no registered matcher (a plugin not installed here)."""
+    if not matcher:
+        return None
+    from ..matchers.registry import get_matcher
+
+    try:
+        entry = get_matcher(matcher)
+    except ValueError:
+        return None
+    return bool(entry.keypoints_are_detections)
+
+
+def matcher_of_run(folder) -> str | None:
+    """The matcher named by a run folder's record (identity.matcher), or None."""
+    from ..run import RunFolder
+
+    if folder is None:
+        return None
+    try:
+        config = RunFolder(folder).read_config() or {}
+    except ValueError:  # an unreadable record: the matcher's kind is unknown
+        return None
+    return (config.get("identity") or {}).get("matcher") or config.get("method")
