@@ -1,8 +1,7 @@
 """Reading and writing the files of a run: atomic writes, YAML, CSV, hashes, versions, environment.
 
-Every file the toolkit writes goes through `write_atomically`, so an interrupted write
-leaves the old file or the new one, never a truncated mix. Every reader turns a broken
-file into a one-line ValueError that names the file.
+Every file is written through `write_atomically` (an interrupted write leaves the old file or the
+new one); every reader turns a broken file into a one-line ValueError that names the file.
 """
 
 from __future__ import annotations
@@ -26,8 +25,7 @@ import pandas as pd
 import yaml
 
 PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headless", "h5py", "pandas")
-# Environment variables that choose the CPU kernels (oneDNN's convolutions, ATen's vectorised ops),
-# and the CPU flags that decide which kernels the defaults pick.
+# Variables that choose the CPU kernels (oneDNN, ATen), and the CPU flags the defaults pick them by.
 ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
 CPU_FLAGS = ("avx512_bf16", "amx_bf16", "avx512f", "avx2")
 # The flags of those with which a CPU computes bf16 natively (oneDNN's bf16 kernels need one).
@@ -389,8 +387,7 @@ class FolderLock:
             self._fd = None
 
 
-# Folder locks held here, closed in a forked child (a --pair-timeout matcher's process): its
-# flock(LOCK_UN) on a shared copy would release the parent's lock and let a second run in.
+# Held folder locks, closed in a forked child: its flock(LOCK_UN) would release the parent's lock.
 _HELD_LOCKS: set[int] = set()
 os.register_at_fork(after_in_child=lambda: [os.close(fd) for fd in _HELD_LOCKS] and _HELD_LOCKS.clear())
 
