@@ -312,16 +312,7 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
                            options=mapper_options(seed, mapper, options))
     found = []
     for index, model in sorted(found_models.items()):
-        poses = {}
-        for image_id in model.reg_image_ids():
-            image = model.image(image_id)
-            pose = np.eye(4)
-            pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
-            poses[image.name] = pose
-        points = int(model.num_points3D())
-        found.append(Model(int(index), poses, points, int(model.compute_num_observations()),
-                           float(model.compute_mean_track_length()) if points else float("nan"),
-                           float(model.compute_mean_reprojection_error()) if points else float("nan")))
+        found.append(model_of(int(index), model))
     # largest first (as IMC picks its model); the mapper's own index breaks ties
     found.sort(key=lambda m: (-len(m.poses), m.index))
     return Reconstruction(list(images), found, workdir / DATABASE)
@@ -351,3 +342,18 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
     seed = ev.seed if seed is None else seed
     return (run_mapper(workdir, images, seed, protocol.mapper, root=root, options=options),
             [f["geometry"] for f in found])
+
+
+def model_of(index: int, model) -> Model:
+    """A pycolmap Reconstruction as a Model: each registered image's world-to-camera pose, by name,
+    and its numbers (NaN track length and error without a point)."""
+    poses = {}
+    for image_id in model.reg_image_ids():
+        image = model.image(image_id)
+        pose = np.eye(4)
+        pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
+        poses[image.name] = pose
+    points = int(model.num_points3D())
+    return Model(index, poses, points, int(model.compute_num_observations()),
+                 float(model.compute_mean_track_length()) if points else float("nan"),
+                 float(model.compute_mean_reprojection_error()) if points else float("nan"))

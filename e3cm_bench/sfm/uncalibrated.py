@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .reconstruct import Model, Reconstruction, image_size
+from .reconstruct import Reconstruction, image_size, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
 
@@ -134,7 +134,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         folder.mkdir(parents=True)
         model.write_binary(str(folder))
         model.write_text(str(folder))
-        models.append(_model(rank, model))
+        models.append(model_of(rank, model))
     return Reconstruction(images, models, workdir / DATABASE), verified
 
 
@@ -147,16 +147,3 @@ def _verified(pycolmap, database: Path, items) -> list[int]:
                 if db.exists_two_view_geometry(ids[i.name0], ids[i.name1]) else 0 for i in items]
     finally:
         db.close()
-
-
-def _model(index: int, model) -> Model:
-    poses = {}
-    for image_id in model.reg_image_ids():
-        image = model.image(image_id)
-        pose = np.eye(4)
-        pose[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
-        poses[image.name] = pose
-    points = int(model.num_points3D())
-    return Model(index, poses, points, int(model.compute_num_observations()),
-                 float(model.compute_mean_track_length()) if points else float("nan"),
-                 float(model.compute_mean_reprojection_error()) if points else float("nan"))
