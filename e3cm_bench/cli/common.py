@@ -137,7 +137,7 @@ def os_error_line(exc: OSError, resumes: bool = False) -> str:
     the command is a benchmark's or one of RESUMING_COMMANDS)."""
     import errno
 
-    where = exc.filename or ""
+    where = str(exc.filename or "")  # pathlib's errors name a Path
     text = exc.strerror or str(exc)
     disk_full = getattr(sys.modules.get("e3cm_bench.cache"), "DiskFullError", ())  # raised only once imported
     if isinstance(exc, disk_full) or exc.errno != errno.ENOSPC:

@@ -45,6 +45,8 @@ def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protoco
     mean over seeds of each seed's, the tracks' numbers, the spread of the metrics over seeds,
     the protocol) of `pairs` under a resolved protocol.Protocol."""
     where = Path(where)
+    if where.is_symlink() or where.exists() and not where.is_dir():  # never removed: it is not ours
+        raise ValueError(f"{where}: is not a folder (the reconstruction's files go there); move it away and rerun")
     if where.exists():
         shutil.rmtree(where)  # a rerun replaces every product of the last (bags may differ)
     where.mkdir(parents=True)
