@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..datasets.base import DatasetError, Pair, PairList, require_directory
 from . import views as V
-from .protocol import parse_protocol
+from .protocol import _whole, parse_protocol
 from .reconstruct import mapper_settings
 
 
@@ -164,15 +164,7 @@ DEFAULT_MAX_PAIRS = 20_000
 
 
 def _count(value, option: str) -> int | None:
-    if value is None:
-        return None
-    try:
-        n = int(str(value))
-    except ValueError:
-        raise DatasetError(f"{option} must be a whole number, got {value!r}") from None
-    if n < 1:
-        raise DatasetError(f"{option} must be at least 1, got {n}")
-    return n
+    return None if value is None else _whole(value, option)
 
 
 def _window(value) -> int | None:
