@@ -27,7 +27,8 @@ _EXPORTS = {
     "get_benchmark": ".benchmarks", "register": ".benchmarks",
     "Matcher": ".matchers", "MatcherEntry": ".matchers", "build_matcher": ".matchers", "get_matcher": ".matchers",
     "matcher_names": ".matchers", "register_matcher": ".matchers",
-    "Matches": ".matches", "MethodSpec": ".method", "match_pair": ".runner", "run_benchmark": ".runner",
+    "Matches": ".ground.matches", "MethodSpec": ".method.spec", "match_pair": ".pipeline.runner",
+    "run_benchmark": ".pipeline.runner",
 }
 _RENAMED = {"register_matcher": "register"}
 
@@ -52,9 +53,9 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # what type checkers and the documentation's static reader see
-    from .benchmarks import BENCHMARKS, Benchmark, EvalSettings, get_benchmark, register
-    from .matchers import Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
-    from .matchers import register as register_matcher
-    from .matches import Matches
-    from .method import MethodSpec
-    from .runner import match_pair, run_benchmark
+    from e3cm_bench.benchmarks import BENCHMARKS, Benchmark, EvalSettings, get_benchmark, register
+    from e3cm_bench.matchers import Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
+    from e3cm_bench.matchers import register as register_matcher
+    from e3cm_bench.ground.matches import Matches
+    from e3cm_bench.method.spec import MethodSpec
+    from e3cm_bench.pipeline.runner import match_pair, run_benchmark

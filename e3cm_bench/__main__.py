@@ -16,12 +16,12 @@ INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command ended by C
 
 def main() -> None:
     try:
-        from .cli import app
+        from e3cm_bench.cli import app
     except KeyboardInterrupt:
         print("error: interrupted (Ctrl-C) while starting; nothing was done", file=sys.stderr)
         raise SystemExit(INTERRUPTED) from None
     except ImportError as exc:  # a broken OpenCV, h5py or PyYAML: one line, even for --help
-        from .library_errors import broken_library_line
+        from e3cm_bench.ground.library_errors import broken_library_line
 
         line = None if os.environ.get("E3CM_BENCH_DEBUG") else broken_library_line(exc)
         if line is None:

@@ -16,8 +16,8 @@ import pytest
 import e3cm_bench as eb
 from e3cm_bench.benchmarks import BENCHMARKS, HomographyBenchmark
 from e3cm_bench.datasets.base import Pair, PairList
-from e3cm_bench.synth.textures import demo_homography, procedural_scene
-from e3cm_bench.experiments import write_table
+from e3cm_bench.apps.synth.textures import demo_homography, procedural_scene
+from e3cm_bench.pipeline.experiments import write_table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -169,6 +169,6 @@ def test_method_spec_rejects_bad_options_before_any_model_loads(tmp_path):
 
 
 def test_importing_the_package_does_not_load_torch():
-    code = "import sys, e3cm_bench, e3cm_bench.cache, e3cm_bench.reporting.tables; print('torch' in sys.modules)"
+    code = "import sys, e3cm_bench, e3cm_bench.storage.cache, e3cm_bench.reporting.tables; print('torch' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.stdout.strip() == "False", done.stderr

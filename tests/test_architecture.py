@@ -77,7 +77,7 @@ def test_the_scan_finds_a_run_file_name_built_into_a_path(tmp_path):
 
 # interchange's hloc format writes hloc's own files, features.h5 and matches.h5: the same name as
 # the run folder's match cache, another tool's file in another folder. Exempt by file and name only.
-FOREIGN = {("e3cm_bench/interchange/export.py", "matches.h5"), ("e3cm_bench/interchange/hloc.py", "matches.h5")}
+FOREIGN = {("e3cm_bench/pipeline/export.py", "matches.h5"), ("e3cm_bench/interchange/hloc.py", "matches.h5")}
 
 
 def _exempt(line: str) -> bool:
@@ -95,7 +95,7 @@ def test_only_the_run_folder_names_its_files():
             in_prose += found[1]
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
-    assert not as_path, "run-folder file names outside e3cm_bench/run/folder.py and run/config.py:\n" + "\n".join(as_path)
+    assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and run/config.py:\n" + "\n".join(as_path)
 
 
 def test_the_owner_names_them():
@@ -126,9 +126,9 @@ def test_the_import_graph_reads_relative_and_lazy_imports():
     the module x, a function's import only with module_level=False."""
     shape = code_shape()
     eager, every = shape.import_graph(), shape.import_graph(module_level=False)
-    assert "e3cm_bench.run" in eager["e3cm_bench.runner"]  # from .run import RunFolder: the package
-    assert "e3cm_bench.run.folder" in eager["e3cm_bench.run"]
-    assert "e3cm_bench.metrics" in eager["e3cm_bench.benchmarks.base"]  # from .. import metrics
+    assert "e3cm_bench.storage" in eager["e3cm_bench.pipeline.runner"]  # from .run import RunFolder: the package
+    assert "e3cm_bench.storage.folder" in eager["e3cm_bench.storage"]
+    assert "e3cm_bench.geometry.metrics" in eager["e3cm_bench.benchmarks.base"]  # from .. import metrics
     lazy = {(a, b) for a in every for b in every[a] - eager[a]}  # torch-free start, cycles: imports in functions
     assert len(lazy) > 50 and all(every[a] >= eager[a] for a in eager)
 
@@ -158,20 +158,20 @@ def test_importing_a_submodule_runs_its_packages(tmp_path):
 # docs/cli.md "Startup").
 CYCLE_CLOSING = {
     # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
-    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones"),
+    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones.loading"),
     ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
     # run/folder.py imports RunConfig at its top; RunConfig asks RunFolder for config.yaml's path
-    ("e3cm_bench.run.config", "e3cm_bench.run.folder"),
+    ("e3cm_bench.storage.record", "e3cm_bench.storage.folder"),
 }
 # The function-level imports on a cycle of the graph of every import: modules that reach each
 # other only inside functions (at run time, each after the other has loaded), and CYCLE_CLOSING.
 IN_CYCLES = CYCLE_CLOSING | {
-    ("e3cm_bench.benchmarks.base", "e3cm_bench.method"),  # resolve_method -> build_method
-    ("e3cm_bench.method", "e3cm_bench.benchmarks"),  # build_method reads the benchmark's protocol
-    ("e3cm_bench.run.config", "e3cm_bench.benchmarks"),  # RunConfig's benchmark and evaluation settings
-    ("e3cm_bench.run.config", "e3cm_bench.method"),  # RunConfig.method_spec
+    ("e3cm_bench.benchmarks.base", "e3cm_bench.method.spec"),  # resolve_method -> build_method
+    ("e3cm_bench.method.spec", "e3cm_bench.benchmarks"),  # build_method reads the benchmark's protocol
+    ("e3cm_bench.storage.record", "e3cm_bench.benchmarks"),  # RunConfig's benchmark and evaluation settings
+    ("e3cm_bench.storage.record", "e3cm_bench.method.spec"),  # RunConfig.method_spec
     ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),  # pixel origins, through interchange/__init__
-    ("e3cm_bench.interchange", "e3cm_bench.interchange.export"),  # export_run on first use (its __getattr__)
+    ("e3cm_bench.interchange", "e3cm_bench.pipeline.export"),  # export_run on first use (its __getattr__)
 }
 
 

@@ -19,7 +19,7 @@ import pytest
 
 from e3cm_bench.reporting import tables as report
 from e3cm_bench.benchmarks import BENCHMARKS
-from e3cm_bench.experiments import load_experiment
+from e3cm_bench.pipeline.experiments import load_experiment
 from e3cm_bench.paper import CONFIG_DIR, PAPER_DIR, config_names, resolve_config
 from helpers import flat, invoke, one_line_error
 

@@ -18,7 +18,7 @@ SLEEPY = '''
 import time
 from pathlib import Path
 
-import e3cm_bench.experiments as experiments
+import e3cm_bench.pipeline.experiments as experiments
 from helpers import invoke
 
 

@@ -41,7 +41,7 @@ def test_help_a_typo_and_the_version_load_neither_torch_nor_scipy(args):
 
 def test_the_probe_sees_torch_when_it_is_loaded():
     # The check above could pass by looking at the wrong interpreter; here it must find torch.
-    assert "torch" in loaded_by("import e3cm_bench.backbones")
+    assert "torch" in loaded_by("import e3cm_bench.backbones.loading")
 
 
 def test_version(tmp_path):
@@ -54,7 +54,7 @@ def test_version(tmp_path):
 
 
 def test_the_backbone_names_are_those_the_backbones_build():
-    from e3cm_bench import backbone_names, backbones
+    from e3cm_bench.backbones import names as backbone_names, loading as backbones
 
     assert tuple(backbones.SPECS) == backbone_names.BACKBONES
     assert backbone_names.DEFAULT_BACKBONE in backbones.SPECS and backbone_names.OFFLINE_BACKBONE in backbones.SPECS

@@ -13,10 +13,10 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from ..suggest import did_you_mean
-from .base import Benchmark, DatasetOption, EvalSettings
-from .homography import HomographyBenchmark
-from .pose import PoseBenchmark
+from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings
+from e3cm_bench.benchmarks.homography import HomographyBenchmark
+from e3cm_bench.benchmarks.pose import PoseBenchmark
 
 BENCHMARKS: dict[str, Benchmark] = {}
 

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import metrics
-from ..datasets.base import Pair, PairList
-from ..matches import Matches
-from ..options import DATASET_KINDS
+from e3cm_bench.geometry import metrics
+from e3cm_bench.datasets.base import Pair, PairList
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.method.options import DATASET_KINDS
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ class EvalSettings:
     repeats: int = 1
 
     def __post_init__(self) -> None:
-        from ..estimators import check_estimator
+        from e3cm_bench.geometry.estimators import check_estimator
 
         check_estimator(self.estimator)
         if self.homography_pixel_origin not in ("center", "corner"):
@@ -197,7 +197,7 @@ class Benchmark:
         """For a --root one level too high: 'ROOT holds hpatches-sequences-release/: did you mean
         --root ROOT/hpatches-sequences-release?' (the folder this benchmark's download makes,
         datasets/sources.py), else ''."""
-        from ..datasets.sources import SOURCES
+        from e3cm_bench.datasets.sources import SOURCES
 
         folders = [s.folder for s in SOURCES.values() if s.benchmark == self.name and s.folder]
         found = next((f for f in folders if (Path(root) / f).is_dir()), None)
@@ -208,7 +208,7 @@ class Benchmark:
     def max_side(self, option: int | None) -> int | None:
         """The resize of a run: the option as given (0 = full size), or this benchmark's default
         (options.resolved_side: None is full size in the spec)."""
-        from ..options import resolved_side
+        from e3cm_bench.method.options import resolved_side
 
         return resolved_side(self.default_max_side if option is None else option, "--max-side")
 
@@ -227,14 +227,14 @@ class Benchmark:
         benchmark, else the benchmark's default; 0 is full size. The protocol's matcher
         settings (num_levels, channel order) apply to deep matchers where `settings` gives
         none; its resize and upright rule apply to every matcher."""
-        from ..method import build_method
+        from e3cm_bench.method.spec import build_method
 
         return build_method({"matcher": matcher, "protocol": protocol, **options}, benchmark=self, available=available)
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:
         """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
-        from .protocols import get_protocol
+        from e3cm_bench.method.protocols import get_protocol
 
         values = get_protocol(protocol or self.default_protocol, self.name).eval_fields(self.name)
         if estimator:

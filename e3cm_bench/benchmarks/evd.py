@@ -27,13 +27,13 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from ..datasets.base import DatasetError, Pair, PairList, require_directory
-from ..datasets.hpatches import read_homography
-from ..estimators import homography_geometry, load_estimator
-from ..geometry import warp_points
-from ..matches import Matches
-from .base import Benchmark, EvalSettings, with_duplicates
-from .wxbs import DEFAULT_MAX_SIDE, threshold_curves_figure
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.hpatches import read_homography
+from e3cm_bench.geometry.estimators import homography_geometry, load_estimator
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.benchmarks.base import Benchmark, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.wxbs import DEFAULT_MAX_SIDE, threshold_curves_figure
 
 # The reference's np.logspace(np.log2(1.0), np.log2(20), 10, base=2.0): 1 .. 20 px.
 THRESHOLDS = tuple(float(t) for t in np.logspace(np.log2(1.0), np.log2(20.0), 10, base=2.0))
@@ -205,7 +205,7 @@ class EVDBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         names = {label: f"{label} (mAA {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[accuracy_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import metrics
+from e3cm_bench.geometry import metrics
 
-from ..datasets.base import Pair
-from ..datasets.hpatches import HPatches
-from ..geometry import warp_points
-from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.datasets.base import Pair
+from e3cm_bench.datasets.hpatches import HPatches
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,7 @@ class HomographyBenchmark(Benchmark):
     def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
         """H by the evaluation's estimator, threshold and seed, on the matches as stored (the
         pixel-centre convention), with the matches within the threshold as its inliers."""
-        from ..estimators import homography_geometry
+        from e3cm_bench.geometry.estimators import homography_geometry
 
         return homography_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
                                    ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
@@ -108,12 +108,12 @@ class HomographyBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *(f"mma@{t}" for t in metrics.MMA_THRESHOLDS), *self.table_metrics.values()]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         plots.plot_mma_curves({label: summary}, out / "mma.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         summaries = {label: summary for label, (summary, _) in runs.items()}
         # The headline (h_acc, the table's columns) first, then the MMA curves of the paper's Fig. 5.
@@ -124,7 +124,7 @@ class HomographyBenchmark(Benchmark):
 def _in_origin(points: np.ndarray, ev: EvalSettings) -> np.ndarray:
     """Keypoints (ours: centre convention) as float64 in the convention the ground-truth H is
     applied in (EvalSettings.homography_pixel_origin)."""
-    from ..interchange.pixels import to_origin
+    from e3cm_bench.interchange.pixels import to_origin
 
     return to_origin(points, ev.homography_pixel_origin)
 

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import metrics
+from e3cm_bench.geometry import metrics
 
-from ..datasets.base import Pair
-from ..datasets.megadepth import MegaDepth1500
-from ..datasets.yfcc import YFCC100M
-from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
-from .protocols import rotation_error
+from e3cm_bench.datasets.base import Pair
+from e3cm_bench.datasets.megadepth import MegaDepth1500
+from e3cm_bench.datasets.yfcc import YFCC100M
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.method.protocols import rotation_error
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class PoseBenchmark(Benchmark):
     def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
         """The relative pose by the evaluation's estimator, threshold (ransac_px) and seed, with
         its RANSAC's inliers."""
-        from ..estimators import pose_geometry
+        from e3cm_bench.geometry.estimators import pose_geometry
 
         sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
         return pose_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.K0,
@@ -116,12 +116,12 @@ class PoseBenchmark(Benchmark):
         return distances < ev.precision_thresholds[0]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from ..reporting import plots
+        from e3cm_bench.drawing import plots
 
         bars = stem.with_name(stem.stem + "_pose_auc.png")
         cdf = stem.with_name(stem.stem + "_pose_cdf.png")

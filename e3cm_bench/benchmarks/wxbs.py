@@ -28,11 +28,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from ..datasets.base import DatasetError, Pair, PairList, require_directory
-from ..estimators import fundamental
-from ..geometry import to_homogeneous
-from ..matches import Matches
-from .base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.geometry.estimators import fundamental
+from e3cm_bench.geometry.two_view import to_homogeneous
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -326,7 +326,7 @@ class WxBSBenchmark(Benchmark):
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         # WxBS has no ground-truth F; the one the hand-labelled correspondences themselves give
         # (normalised 8-point on all of them) stands in for it in drawings only, never in a metric.
-        from ..geometry import estimate_fundamental
+        from e3cm_bench.geometry.two_view import estimate_fundamental
 
         corrs = pair.meta["corrs"]
         F = estimate_fundamental(corrs[:, :2], corrs[:, 2:4], "8point")
@@ -345,7 +345,7 @@ class WxBSBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from ..reporting import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         names = {label: f"{label} (mAA@10px {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[recall_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}

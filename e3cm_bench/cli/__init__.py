@@ -7,12 +7,12 @@ is imported, in the order `e3cm-bench --help` lists them: match, the benchmark c
 data commands.
 """
 
-from . import match  # noqa: F401, I001 - each module adds its commands to app, in this order
-from . import benchmarks  # noqa: F401
-from . import reconstruct  # noqa: F401
-from . import results  # noqa: F401
-from . import tools  # noqa: F401
-from . import data  # noqa: F401
-from .common import app, os_error_line, parse_settings
+from e3cm_bench.cli import match  # noqa: F401, I001 - each module adds its commands to app, in this order
+from e3cm_bench.cli import benchmarks  # noqa: F401
+from e3cm_bench.cli import reconstruct  # noqa: F401
+from e3cm_bench.cli import results  # noqa: F401
+from e3cm_bench.cli import tools  # noqa: F401
+from e3cm_bench.cli import data  # noqa: F401
+from e3cm_bench.cli.common import app, os_error_line, parse_settings
 
 __all__ = ["app", "os_error_line", "parse_settings"]

@@ -1,6 +1,6 @@
 """`python -m e3cm_bench.cli`, the same as `python -m e3cm_bench` and the `e3cm-bench` command."""
 
-from ..__main__ import main
+from e3cm_bench.__main__ import main
 
 if __name__ == "__main__":
     main()

@@ -10,10 +10,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..benchmarks import BENCHMARKS, Benchmark
-from ..benchmarks.protocols import get_protocol
-from ..options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
-from .common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
+from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
+from e3cm_bench.method.protocols import get_protocol
+from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
+from e3cm_bench.cli.common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class Scale:
     shards: int = 0
 
     def check(self, eval_only: bool = False, device: str = "cpu") -> None:
-        from ..run.launch import check_launcher, check_workers
+        from e3cm_bench.pipeline.launch import check_launcher, check_workers
 
         check_launcher(self.launcher)
         several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
@@ -48,7 +48,7 @@ class Scale:
         if self.shards and self.launcher != "slurm":
             raise ValueError(f"--shards {self.shards} applies to --launcher slurm (local processes: --workers N)")
         if self.launcher == "slurm":
-            from ..run.launch import check_slurm
+            from e3cm_bench.pipeline.launch import check_slurm
 
             check_slurm(self.shards)
 
@@ -61,13 +61,13 @@ def run_command(bench: Benchmark, given: dict) -> None:
     """What every benchmark command does with its options (the commands are made by
     benchmark_command): `given` holds the method options (options.METHOD_OPTIONS), the
     benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
-    from ..download import find_root
-    from ..method import build_method
-    from ..run.launch import run_shards
-    from ..run.folder import RunFolder
-    from ..run.shards import parse_shard, shard_dir
-    from ..run.stage import MatchOptions
-    from ..runner import run_benchmark
+    from e3cm_bench.data.download import find_root
+    from e3cm_bench.method.spec import build_method
+    from e3cm_bench.pipeline.launch import run_shards
+    from e3cm_bench.storage.folder import RunFolder
+    from e3cm_bench.pipeline.shards import parse_shard, shard_dir
+    from e3cm_bench.pipeline.stage import MatchOptions
+    from e3cm_bench.pipeline.runner import run_benchmark
 
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
@@ -157,7 +157,7 @@ def benchmark_command(bench: Benchmark):
     dataset options (typer reads the signature built here, as it reads a written one)."""
 
     def command(**given) -> None:
-        from ..reporting.formats import plots_as
+        from e3cm_bench.drawing.formats import plots_as
 
         with plots_as(given.pop("plot_format")):
             run_command(bench, given)

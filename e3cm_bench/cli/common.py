@@ -23,11 +23,11 @@ from rich.console import Console
 from rich.markup import escape
 from typer.core import TyperCommand
 
-from .. import __version__
-from ..benchmarks import BENCHMARKS
-from ..benchmarks.protocols import PROTOCOLS
-from ..matching import ESTIMATORS
-from ..options import METHOD_OPTIONS
+from e3cm_bench import __version__
+from e3cm_bench.benchmarks import BENCHMARKS
+from e3cm_bench.method.protocols import PROTOCOLS
+from e3cm_bench.matching import ESTIMATORS
+from e3cm_bench.method.options import METHOD_OPTIONS
 
 
 app = typer.Typer(
@@ -83,7 +83,7 @@ FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", 
 def method_values(given: dict) -> dict:
     """A command's method options as typed -> as method.build_method takes them: the
     comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; the others as given."""
-    from ..method import parse_numbers
+    from e3cm_bench.method.spec import parse_numbers
 
     values = dict(given)
     for name in ("sampson_px", "ratio"):
@@ -100,7 +100,7 @@ def say(line: str, hang: int = 4) -> None:
     `hang` spaces more than it (a listing's entries stay apart)."""
     import textwrap
 
-    from ..reporting.formats import text_width
+    from e3cm_bench.drawing.formats import text_width
 
     lead = len(line) - len(line.lstrip(" "))
     lines = textwrap.wrap(line, text_width(console), subsequent_indent=" " * (lead + hang), break_long_words=False,
@@ -116,7 +116,7 @@ def warn(message: str) -> None:
 def parse_settings(pairs: list[str] | None) -> dict:
     """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML
     values). --precision and --channel-order join them in method.build_method (deep_settings)."""
-    from ..files import load_yaml_text
+    from e3cm_bench.ground.files import load_yaml_text
 
     settings = {}
     for item in pairs or []:
@@ -139,7 +139,7 @@ def os_error_line(exc: OSError, resumes: bool = False) -> str:
 
     where = str(exc.filename or "")  # pathlib's errors name a Path
     text = exc.strerror or str(exc)
-    disk_full = getattr(sys.modules.get("e3cm_bench.cache"), "DiskFullError", ())  # raised only once imported
+    disk_full = getattr(sys.modules.get("e3cm_bench.storage.cache"), "DiskFullError", ())  # raised only once imported
     if isinstance(exc, disk_full) or exc.errno != errno.ENOSPC:
         return f"{where}: {text}" if where and where not in text else text
     # The free space of the filesystem that filled: the nearest existing folder of the file
@@ -160,7 +160,7 @@ def _bad_input_errors() -> tuple[type[BaseException], ...]:
     only in modules already imported (an exception of a module never imported cannot have been
     raised), so that the wrapper needs neither torch nor OpenCV to exist."""
     found: list[type[BaseException]] = [ValueError, FileNotFoundError, KeyError]
-    for module, name in (("e3cm_bench.datasets.base", "DatasetError"), ("e3cm_bench.backbones", "BackboneError")):
+    for module, name in (("e3cm_bench.datasets.base", "DatasetError"), ("e3cm_bench.backbones.loading", "BackboneError")):
         cls = getattr(sys.modules.get(module), name, None)
         if cls is not None:
             found.append(cls)
@@ -203,7 +203,7 @@ def friendly_errors(command):
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             if not _out_of_address_space(exc):
-                from ..library_errors import broken_library_line
+                from e3cm_bench.ground.library_errors import broken_library_line
 
                 line = broken_library_line(exc)
                 if line is None:

@@ -8,10 +8,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..benchmarks import BENCHMARKS, get_benchmark
-from .benchmarks import option_parameter
-from ..interchange.registry import formats, origin_help
-from .common import OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt, PlotFormatOpt
+from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
+from e3cm_bench.cli.benchmarks import option_parameter
+from e3cm_bench.interchange.registry import formats, origin_help
+from e3cm_bench.cli.common import OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt, PlotFormatOpt
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
 PixelOriginOpt = Annotated[Optional[str], typer.Option(
@@ -31,9 +31,9 @@ def download(
     check: Annotated[bool, typer.Option("--check", help="Only check what is in place (counts against a complete copy).")] = False,
 ) -> None:
     """Fetch a benchmark's data (progress, resume, sha256), unpack it safely, and check it."""
-    from ..datasets.sources import data_dir, get_source
-    from ..download import check as check_data
-    from ..download import download as fetch_data
+    from e3cm_bench.datasets.sources import data_dir, get_source
+    from e3cm_bench.data.download import check as check_data
+    from e3cm_bench.data.download import download as fetch_data
 
     source = get_source(name)
     to = to or data_dir()
@@ -49,8 +49,8 @@ def datasets(
     to: Annotated[Optional[Path], typer.Option("--to", help="The data folder (default: $E3CM_BENCH_DATA, else ./data).")] = None,
 ) -> None:
     """Where each benchmark's data is looked for, and whether it is missing, incomplete or complete."""
-    from ..datasets.sources import SOURCES, data_dir
-    from ..download import status
+    from e3cm_bench.datasets.sources import SOURCES, data_dir
+    from e3cm_bench.data.download import status
 
     to = to or data_dir()
     say(f"data folder: {to} (benchmark commands use it when --root is not given)")
@@ -77,9 +77,9 @@ def import_matches(
     **options,  # one --FORMAT per interchange format (source_parameters) and every benchmark's dataset options
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
-    from ..imported import import_run
-    from ..download import find_root
-    from ..run import RunConfig
+    from e3cm_bench.pipeline.imported import import_run
+    from e3cm_bench.data.download import find_root
+    from e3cm_bench.storage import RunConfig
 
     known = formats()
     given = {name: options.pop(name) for name in known if options.get(name) is not None}
@@ -100,7 +100,7 @@ def import_matches(
     (name, paths), = given.items()
     source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
                                 origin=pixel_origin)
-    from ..reporting.formats import plots_as
+    from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
         import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite,
@@ -170,7 +170,7 @@ def synth_stereo(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the scene, the rig's drift and its path.")] = 0,
 ) -> None:
     """A stereo rig with a drifted extrinsic (about 1 degree each angle) moving through the demo's room scene."""
-    from ..synth.stereo import write_stereo_sequence
+    from e3cm_bench.apps.synth.stereo import write_stereo_sequence
 
     root = write_stereo_sequence(out, frames=frames, seed=seed)
     console.print(f"synth stereo: {frames} frames in {root} (image_0/, image_1/, calib.txt, poses.txt)", markup=False)
@@ -188,7 +188,7 @@ def export_matches(
     merge_px: Annotated[float, typer.Option("--merge-px", help=f"{MERGING}: write an image's keypoints within this many pixels of one another as one (exact repeats always are), for dense matchers.")] = 0.0,
 ) -> None:
     """Write a run's matches for another tool, in one of the formats of --to (docs: Matches in and out)."""
-    from ..interchange import export_run
+    from e3cm_bench.interchange import export_run
 
     export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console, merge_px=merge_px)
 

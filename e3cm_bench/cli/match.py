@@ -9,8 +9,8 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from ..backbone_names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
-from .common import app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
+from e3cm_bench.backbones.names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
+from e3cm_bench.cli.common import app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt, EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt, friendly_errors
 
 
 # match's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -40,10 +40,10 @@ def match(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also print how the memory allocator was set up (a run folder's config.yaml records it as environment.allocator).")] = False,
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
-    from ..devices import keep_freed_memory
-    from ..files import writable_folder
-    from ..method import build_method
-    from ..runner import match_pair
+    from e3cm_bench.ground.devices import keep_freed_memory
+    from e3cm_bench.ground.files import writable_folder
+    from e3cm_bench.method.spec import build_method
+    from e3cm_bench.pipeline.runner import match_pair
 
     if (image0 is None) != (image1 is None):
         raise ValueError("give two images, or none for the built-in demo pair")
@@ -76,8 +76,8 @@ def match(
 def _images(image0: Path | None, image1: Path | None, backbone: str | None):
     """The two images, the demo pair's homography (None for the user's images) and the backbone:
     the given one, else the offline one for the demo pair and the paper's for the user's."""
-    from ..images import load_image
-    from ..synth.textures import demo_pair
+    from e3cm_bench.ground.images import load_image
+    from e3cm_bench.apps.synth.textures import demo_pair
 
     if image0 is None:
         img0, img1, H = demo_pair()
@@ -89,12 +89,12 @@ def _images(image0: Path | None, image1: Path | None, backbone: str | None):
 
 def _write_and_say(result, img0, img1, H, method, matcher: str, out: Path) -> None:
     """OUT/matches.npz and OUT/matches.png (green/red by the demo pair's ground truth), and the count."""
-    from ..benchmarks import EvalSettings, get_benchmark
-    from ..datasets.base import Pair
-    from ..evaluate import drawn
-    from ..files import save_npz, writable_folder
-    from ..matchers import get_matcher
-    from ..viz import draw_matches, save_image
+    from e3cm_bench.benchmarks import EvalSettings, get_benchmark
+    from e3cm_bench.datasets.base import Pair
+    from e3cm_bench.pipeline.evaluate import drawn
+    from e3cm_bench.ground.files import save_npz, writable_folder
+    from e3cm_bench.matchers import get_matcher
+    from e3cm_bench.drawing.matches import draw_matches, save_image
 
     k0, k1 = result.keypoints0, result.keypoints1
     writable_folder(out)

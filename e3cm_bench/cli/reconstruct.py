@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt, DeviceOpt,
+from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt, DeviceOpt,
                      FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors)
 
@@ -50,13 +50,13 @@ def reconstruct(
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
-    from ..benchmarks import EvalSettings
-    from ..matchers import get_matcher
-    from ..method import build_method
-    from ..run.stage import MatchOptions
-    from ..runner import run_benchmark
-    from ..sfm.own_images import RECONSTRUCT
-    from ..sfm.uncalibrated import SPARSE
+    from e3cm_bench.benchmarks import EvalSettings
+    from e3cm_bench.matchers import get_matcher
+    from e3cm_bench.method.spec import build_method
+    from e3cm_bench.pipeline.stage import MatchOptions
+    from e3cm_bench.pipeline.runner import run_benchmark
+    from e3cm_bench.sfm.own_images import RECONSTRUCT
+    from e3cm_bench.sfm.uncalibrated import SPARSE
 
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
                  channel_order=channel_order, seed=seed,

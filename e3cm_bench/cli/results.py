@@ -9,10 +9,10 @@ from typing import Annotated, Optional
 import typer
 from rich.text import Text
 
-from ..demo import METHODS as DEMO_METHODS
-from ..paper import config_names, resolve_config
-from ..stats.noise import CHECK_ALPHA
-from .common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt
+from e3cm_bench.apps.demo import METHODS as DEMO_METHODS
+from e3cm_bench.paper import config_names, resolve_config
+from e3cm_bench.stats.noise import CHECK_ALPHA
+from e3cm_bench.cli.common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt
 
 
 @app.command()
@@ -27,8 +27,8 @@ def table(
     plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
-    from ..experiments import write_table
-    from ..reporting.formats import plots_as
+    from e3cm_bench.pipeline.experiments import write_table
+    from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
         write_table(list(run_dirs), out, reference, compare, console, paper_rows=paper, latex=latex)
@@ -43,7 +43,7 @@ def report(
 ) -> None:
     """A static site of runs: the paper-layout table, plots, every pair per method (sortable, filterable)
     and match drawings of the worst and a sample of pairs; opens from the file system, no server."""
-    from ..reporting.site import write_report
+    from e3cm_bench.reporting.site import write_report
 
     write_report(list(run_dirs), out, console=console, compare=compare)
 
@@ -60,8 +60,8 @@ def compare_command(
     """Two runs of one benchmark, pair by pair on the pairs both hold: per metric B - A of one
     statistic (the mean; the median of an error, a failure counting as +inf) with its
     paired-bootstrap interval, and the verdict read from that interval."""
-    from ..reporting.compare import compare_runs, parse_mma, print_comparison, write_comparison
-    from ..reporting.tables import load_run
+    from e3cm_bench.reporting.compare import compare_runs, parse_mma, print_comparison, write_comparison
+    from e3cm_bench.reporting.tables import load_run
 
     first, second = load_run(run_a), load_run(run_b)
     columns = set(first.per_pair.columns) & set(second.per_pair.columns)
@@ -94,11 +94,11 @@ def reproduce(
     plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
-    from ..download import find_root
-    from ..experiments import reproduce as reproduce_experiment
-    from ..reporting.formats import check_plot_format, plots_as
-    from ..run.shards import parse_shard
-    from ..run.launch import check_launcher, check_slurm, run_experiment_shards
+    from e3cm_bench.data.download import find_root
+    from e3cm_bench.pipeline.experiments import reproduce as reproduce_experiment
+    from e3cm_bench.drawing.formats import check_plot_format, plots_as
+    from e3cm_bench.pipeline.shards import parse_shard
+    from e3cm_bench.pipeline.launch import check_launcher, check_slurm, run_experiment_shards
 
     check_plot_format(plot_format)
     check_launcher(launcher)
@@ -107,7 +107,7 @@ def reproduce(
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
-        from ..experiments import load_experiment
+        from e3cm_bench.pipeline.experiments import load_experiment
 
         root = find_root(load_experiment(config)["benchmark"], None)
     run = dict(config_path=config, root=root, out=out, backbone=backbone, limit=limit, device=device,
@@ -132,9 +132,9 @@ def merge(
     plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Merge the shards of a run (or of every method of a reproduce) into the usual CSVs, plots and config.yaml."""
-    from ..experiments import EXPERIMENT_COPY, merge_experiment
-    from ..reporting.formats import plots_as
-    from ..run.shards import merge_run
+    from e3cm_bench.pipeline.experiments import EXPERIMENT_COPY, merge_experiment
+    from e3cm_bench.drawing.formats import plots_as
+    from e3cm_bench.pipeline.shards import merge_run
 
     with plots_as(plot_format):
         if (run_dir / EXPERIMENT_COPY).is_file():
@@ -156,8 +156,8 @@ def demo(
     """The whole toolkit offline: writes embedded data, runs e3cm, e3cm-release, e3cm-ransac, e3cm-plus,
     direct, dfm and sift (deep ones on EfficientNet-Lite0) on HPatches-format sequences and a non-planar
     scene, prints each method's headline numbers (the runs' full output: OUT/demo.log)."""
-    from ..demo import run_demo
-    from ..reporting.formats import plots_as
+    from e3cm_bench.apps.demo import run_demo
+    from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
         run_demo(out, seed=seed, quick=quick, methods=methods.split(",") if methods else None, device=device,
@@ -186,7 +186,7 @@ def check(
     rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
     the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
     settings differ from its baseline row's, one line names each difference (information)."""
-    from ..reporting import check as regression
+    from e3cm_bench.gate import check as regression
 
     runs = regression.find_runs(run_dirs)
     if update:
@@ -194,7 +194,7 @@ def check(
         return
     if not 0 < alpha < 1:
         raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
-    from ..reporting.formats import text_width
+    from e3cm_bench.drawing.formats import text_width
 
     width = text_width(console)  # 80 columns in a CI log or a pipe
     # First: a broken per-pair baseline is refused before the noise gate reads it.
@@ -230,7 +230,7 @@ def _noise_gate(runs, baseline: Path, alpha: float, width: int) -> tuple[int, li
     """check's gate under the noise ensemble beside the baseline, where there is one: the
     regressions it found, the lines saying them, its Markdown, the runs it does not hold (left
     to the tolerances) and how many metrics it checked."""
-    from ..reporting import check as regression
+    from e3cm_bench.gate import check as regression
 
     if not regression.has_noise_model(baseline):
         return 0, [], "", runs, 0
@@ -245,8 +245,8 @@ def _noise_gate(runs, baseline: Path, alpha: float, width: int) -> tuple[int, li
 
 def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | None) -> None:
     """check --update: the baseline files, and with --ensemble K its noise draws."""
-    from ..reporting import check as regression
-    from ..reporting.ensemble import build_ensemble, write_noise
+    from e3cm_bench.gate import check as regression
+    from e3cm_bench.gate.ensemble import build_ensemble, write_noise
 
     if ensemble < 0:
         raise ValueError(f"--ensemble must be 0 (none) or a number of draws, got {ensemble}")

@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..backbone_names import DEFAULT_BACKBONE
-from .common import app, console, say, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
+from e3cm_bench.backbones.names import DEFAULT_BACKBONE
+from e3cm_bench.cli.common import app, console, say, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
@@ -34,9 +34,9 @@ def calibrate(
     plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Stereo rig self-calibration (paper Sec. 4.4): extrinsic errors per window of frames, per matcher."""
-    from ..calibration.run import CalibrationSettings, run_calibration
-    from ..matchers import get_matcher
-    from ..method import build_method
+    from e3cm_bench.apps.calibration.run import CalibrationSettings, run_calibration
+    from e3cm_bench.matchers import get_matcher
+    from e3cm_bench.method.spec import build_method
 
     given = " ".join(item.strip() for item in settings or [])
     methods = []
@@ -48,7 +48,7 @@ def calibrate(
         methods.append(build_method(method_values(dict(matcher=name, backbone=backbone, weights=weights,
                                                        max_side=max_side, seed=seed, label=label,
                                                        settings=settings if deep else None))))
-    from ..reporting.formats import plots_as
+    from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
         run_calibration(root, out, methods, CalibrationSettings(frames=tuple(frames), seed=seed), device=device,
@@ -62,7 +62,7 @@ def matchers(
     names: Annotated[Optional[list[str]], typer.Argument(help="Only these matchers (names or package.module:factory).")] = None,
 ) -> None:
     """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings and defaults."""
-    from ..matchers import broken_plugins, entries, get_matcher
+    from e3cm_bench.matchers import broken_plugins, entries, get_matcher
 
     shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
     for line in describe_matchers(shown):
@@ -75,7 +75,7 @@ def describe_matchers(shown) -> list[str]:
     """The `matchers` listing: a head line per matcher, then its settings with their defaults."""
     import dataclasses
 
-    from ..matchers import BackboneSettings
+    from e3cm_bench.matchers import BackboneSettings
 
     lines = []
     for entry in shown:

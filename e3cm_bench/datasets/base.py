@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.images import image_file_problem
+from e3cm_bench.ground.images import image_file_problem
 
 
 class DatasetError(ValueError):

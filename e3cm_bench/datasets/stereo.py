@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .base import DatasetError, require_directory
-from .truth import check_intrinsics, check_rotation, check_translation
+from e3cm_bench.datasets.base import DatasetError, require_directory
+from e3cm_bench.datasets.truth import check_intrinsics, check_rotation, check_translation
 
 
 @dataclass

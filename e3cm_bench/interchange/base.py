@@ -11,7 +11,7 @@ import numpy as np
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
-from ..matches import MatchesError
+from e3cm_bench.ground.matches import MatchesError
 
 # The most keypoints (or match entries) one array may declare. A dense matcher at 4K gives a
 # few million; a file declaring more is refused before it is read, so that a 37 KB file that

@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import file_sha256, write_atomically
-from ..matches import Matches, MatchesError
-from .base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
-from .pixels import check_origin, from_origin, to_origin
-from .registry import Format, register
+from e3cm_bench.ground.files import file_sha256, write_atomically
+from e3cm_bench.ground.matches import Matches, MatchesError
+from e3cm_bench.interchange.base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
+from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.registry import Format, register
 
 
 
@@ -105,7 +105,7 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
     for these items, where the caller has it. cameras: image name -> the pycolmap.Camera it gets
     instead of camera_for's (images given the same object share one camera, as COLMAP's
     single_camera makes them)."""
-    from .tracks import merge_keypoints
+    from e3cm_bench.interchange.tracks import merge_keypoints
 
     pycolmap = pycolmap_module()
     shift = _shift(origin)

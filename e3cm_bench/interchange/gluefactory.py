@@ -31,12 +31,12 @@ import numpy as np
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
-from ..files import file_sha256, write_atomically
-from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
-from .hloc import hloc_pair_key, read_dataset
-from .pixels import check_origin, from_origin, to_origin
-from .registry import Format, register
+from e3cm_bench.ground.files import file_sha256, write_atomically
+from e3cm_bench.ground.matches import Matches, MatchesError
+from e3cm_bench.interchange.base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
+from e3cm_bench.interchange.hloc import hloc_pair_key, read_dataset
+from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.registry import Format, register
 
 
 

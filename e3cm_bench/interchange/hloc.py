@@ -42,11 +42,11 @@ import numpy as np
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
-from ..files import file_sha256
-from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
-from .pixels import check_origin, from_origin, to_origin
-from .registry import Format, register
+from e3cm_bench.ground.files import file_sha256
+from e3cm_bench.ground.matches import Matches, MatchesError
+from e3cm_bench.interchange.base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
+from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.registry import Format, register
 
 
 @register
@@ -195,8 +195,8 @@ def write_hloc(out: Path, items, origin: str = HlocFormat.origin, merge_px: floa
     """features.h5, matches.h5 and pairs.txt in OUT for export.ExportItem's (module docstring).
     layout: hloc_layout's result where the caller has it, else made here with merge_px."""
     import h5py
-    from ..files import write_atomically
-    from .tracks import merge_keypoints
+    from e3cm_bench.ground.files import write_atomically
+    from e3cm_bench.interchange.tracks import merge_keypoints
 
     keys: dict[str, str] = {}
     for item in items:

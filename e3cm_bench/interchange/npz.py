@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import file_sha256, save_npz
-from ..matches import Matches, MatchesError
-from .base import MissingPair, source_identity, check_declared, real_points, score_array
-from .pixels import check_origin, from_origin, to_origin
-from .registry import Format, register
+from e3cm_bench.ground.files import file_sha256, save_npz
+from e3cm_bench.ground.matches import Matches, MatchesError
+from e3cm_bench.interchange.base import MissingPair, source_identity, check_declared, real_points, score_array
+from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.registry import Format, register
 
 
 @register

@@ -68,7 +68,7 @@ def half_pixel_check(pairs_and_matches) -> HalfPixelCheck | None:
     A file written in the other convention is off by the same 0.5 px in both images; under a
     homography that is not a pure translation the error does not cancel, so the shifted copy
     fits the ground truth better. None when there is nothing to check."""
-    from ..geometry import warp_points
+    from e3cm_bench.geometry.two_view import warp_points
 
     within = {0.0: [], -0.5: [], 0.5: []}
     for pair, matches in pairs_and_matches:

@@ -14,7 +14,7 @@ import importlib
 import pkgutil
 from pathlib import Path
 
-from .pixels import check_origin
+from e3cm_bench.interchange.pixels import check_origin
 
 FORMATS: dict[str, Format] = {}
 _discovered = False

@@ -8,8 +8,8 @@ matcher is built, so listing names does not load a network.
 
 from __future__ import annotations
 
-from .base import BACKBONE_SETTINGS, CHANNEL_ORDERS, PRECISIONS, BackboneSettings, Matcher, MatcherEntry
-from .registry import (
+from e3cm_bench.matchers.base import BACKBONE_SETTINGS, CHANNEL_ORDERS, PRECISIONS, BackboneSettings, Matcher, MatcherEntry
+from e3cm_bench.matchers.registry import (
     ENTRY_POINT_GROUP, broken_plugins, build_matcher, built_settings, check_settings, entries, get_matcher, matcher_names,
     register, resolve, unregister,
 )

@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..matches import Matches
+from e3cm_bench.ground.matches import Matches
 
 # The network's input channel order, and its precision (fp32 exact; bf16 on CPUs with
 # AVX-512 BF16 / AMX and recent GPUs, fp16 on GPUs: autocast).

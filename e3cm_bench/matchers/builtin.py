@@ -4,14 +4,14 @@ the same `MatcherEntry` every plugin gives. What each name means is fixed (docs/
 
 from __future__ import annotations
 
-from ..matching import RANDOM_ESTIMATORS
-from ..matching.pipeline import E3CMSettings
-from .base import MatcherEntry, always
-from .dfm import DFMMatcher, DFMMatcherSettings
-from .e3cm import DirectSettings, E3CMMatcher
-from .e3cm_plus import E3CMPlusMatcher, E3CMPlusSettings
-from .e3cm_release import E3CMReleaseMatcher, E3CMReleaseSettings
-from .sift import SiftMatcher, SiftSettings
+from e3cm_bench.matching import RANDOM_ESTIMATORS
+from e3cm_bench.matching.pipeline import E3CMSettings
+from e3cm_bench.matchers.base import MatcherEntry, always
+from e3cm_bench.matchers.dfm import DFMMatcher, DFMMatcherSettings
+from e3cm_bench.matchers.e3cm import DirectSettings, E3CMMatcher
+from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, E3CMPlusSettings
+from e3cm_bench.matchers.e3cm_release import E3CMReleaseMatcher, E3CMReleaseSettings
+from e3cm_bench.matchers.sift import SiftMatcher, SiftSettings
 
 
 def _e3cm(settings: E3CMSettings, net, channel_order: str) -> E3CMMatcher:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..matches import Matches
+from e3cm_bench.ground.matches import Matches
 
 ANSWER_HEADER = struct.Struct("!16sQQ")
 NONCE_BYTES = 16

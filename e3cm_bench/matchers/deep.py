@@ -9,10 +9,10 @@ import time
 import numpy as np
 import torch
 
-from ..backbones import Backbone
-from .base import CHANNEL_ORDERS
-from .base import Matcher
-from .feature_cache import FeatureCache, SpillStore
+from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.matchers.base import CHANNEL_ORDERS
+from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
 
 
 def image_to_tensor(image: np.ndarray, device: torch.device | str) -> torch.Tensor:
@@ -202,7 +202,7 @@ def available_memory(device: torch.device) -> int | None:
     None where it cannot be read."""
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0]
-    from ..devices import available_host_memory
+    from e3cm_bench.ground.devices import available_host_memory
 
     return available_host_memory()
 

@@ -15,13 +15,13 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
-from ..backbones import Backbone
-from ..matching.dfm import DFMSettings, match_two_stage
-from ..matching.release import (
+from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.matching.dfm import DFMSettings, match_two_stage
+from e3cm_bench.matching.release import (
     DFM_FIXES, DFMRelease, dfm_release_final, dfm_release_stage0, dfm_release_stage1,
 )
-from .base import Matches
-from .deep import DeepMatcher, level0_cosine
+from e3cm_bench.matchers.base import Matches
+from e3cm_bench.matchers.deep import DeepMatcher, level0_cosine
 
 DFM_VARIANTS = ("release", "corrected", "bench")
 

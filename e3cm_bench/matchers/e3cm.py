@@ -7,11 +7,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..backbones import Backbone
-from ..matching.pipeline import E3CMSettings, match_pyramids
-from ..matching.subpixel import refine_matches
-from .base import Matches
-from .deep import DeepMatcher
+from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids
+from e3cm_bench.matching.subpixel import refine_matches
+from e3cm_bench.matchers.base import Matches
+from e3cm_bench.matchers.deep import DeepMatcher
 
 
 @dataclass

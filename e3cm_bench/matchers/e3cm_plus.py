@@ -33,14 +33,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..backbones import Backbone
-from ..geometry import estimate_homography, local_distortion
-from ..matching import ESTIMATORS
-from ..matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography
-from ..matching.pipeline import E3CMSettings
-from ..matching.subpixel import check_refine, refine_matches
-from .base import Matches
-from .deep import DeepMatcher
+from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.geometry.two_view import estimate_homography, local_distortion
+from e3cm_bench.matching import ESTIMATORS
+from e3cm_bench.matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography
+from e3cm_bench.matching.pipeline import E3CMSettings
+from e3cm_bench.matching.subpixel import check_refine, refine_matches
+from e3cm_bench.matchers.base import Matches
+from e3cm_bench.matchers.deep import DeepMatcher
 
 # "auto" prewarp: warp when the stage-0 homography's local map at B's centre turns by more
 # than this, or scales (either axis, or one against the other) by more than this factor.

@@ -49,7 +49,7 @@ def auto_cache_mb(device: torch.device | str = "cpu") -> float:
     if device.type == "cuda":
         free = torch.cuda.mem_get_info(device)[0]
     else:
-        from ..devices import available_host_memory
+        from e3cm_bench.ground.devices import available_host_memory
 
         free = available_host_memory()
     if free is None:

@@ -36,8 +36,8 @@ from typing import Any, Callable, Iterator
 
 import yaml
 
-from ..files import yaml_plain
-from . import child_answer
+from e3cm_bench.ground.files import yaml_plain
+from e3cm_bench.matchers import child_answer
 
 
 class PluginExit(RuntimeError):
@@ -79,7 +79,7 @@ def describe_matcher(matcher, built_with: dict | None = None) -> dict:
 
 def _defines_config(matcher) -> bool:
     """Whether the matcher's class has a config() of its own (not only Matcher's, its name)."""
-    from .base import Matcher
+    from e3cm_bench.matchers.base import Matcher
 
     return getattr(type(matcher), "config", None) is not Matcher.config
 

@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
-from ..files import file_sha256
+from e3cm_bench.ground.files import file_sha256
 
 SKIPPED_FOLDERS = ("__pycache__",)
 

@@ -12,7 +12,7 @@ import threading
 import time
 from typing import Callable
 
-from .guards import exit_text
+from e3cm_bench.matchers.guards import exit_text
 
 # How long one plugin's import may take. Generous: a plugin importing torch and a model zoo
 # takes seconds on a cold disk; one that never returns must not hang every command.

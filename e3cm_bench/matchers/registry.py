@@ -38,15 +38,15 @@ import importlib.metadata
 import os
 from typing import Callable
 
-from ..backbone_names import DEFAULT_BACKBONE
-from ..devices import check_device
-from .base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
-from ..suggest import did_you_mean
-from .guards import exit_text
-from .names import BUILTIN_MATCHERS
-from .plugin_code import built_with, code_sha256
-from .plugin_import import bounded, why
-from .user_module import importing
+from e3cm_bench.backbones.names import DEFAULT_BACKBONE
+from e3cm_bench.ground.devices import check_device
+from e3cm_bench.matchers.base import BACKBONE_SETTINGS, BackboneSettings, Matcher, MatcherEntry
+from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.matchers.guards import exit_text
+from e3cm_bench.matchers.names import BUILTIN_MATCHERS
+from e3cm_bench.matchers.plugin_code import built_with, code_sha256
+from e3cm_bench.matchers.plugin_import import bounded, why
+from e3cm_bench.matchers.user_module import importing
 
 ENTRY_POINT_GROUP = "e3cm_bench.matchers"
 
@@ -198,7 +198,7 @@ def build_matcher(
         return _built(entry, lambda: entry.build(instance, device=device, weights=weights, pretrained=pretrained))
     if not entry.needs_backbone:
         return _built(entry, lambda: entry.build(instance))
-    from ..backbones import load_backbone
+    from e3cm_bench.backbones.loading import load_backbone
 
     net_settings = BackboneSettings(**net_settings)
     check_device(device)
@@ -250,8 +250,8 @@ def _load(plugins: bool = False) -> None:
     global _loaded, _plugins_loaded
     if not _loaded:
         _loaded = True
-        from .builtin import BUILTIN
-        from .peers import PEERS
+        from e3cm_bench.matchers.builtin import BUILTIN
+        from e3cm_bench.matchers.peers import PEERS
 
         for entry in (*BUILTIN, *PEERS):  # the peers' entries import neither kornia nor transformers
             _REGISTRY[entry.name] = entry

@@ -7,9 +7,9 @@ import functools
 import numpy as np
 import torch
 
-from .. import geometry
-from . import ESTIMATORS
-from .norms import channel_norm
+from e3cm_bench.geometry import two_view as geometry
+from e3cm_bench.matching import ESTIMATORS
+from e3cm_bench.matching.norms import channel_norm
 
 
 class UnitPixels:

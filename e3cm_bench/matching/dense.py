@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .levels import inside
+from e3cm_bench.matching.levels import inside
 
 
 def _top2(sim: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,10 +22,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..geometry import estimate_homography, warp_points
-from .dense import match_dense_level
-from .levels import cell_centres, valid_extent
-from .pipeline import E3CMSettings, match_pyramids
+from e3cm_bench.geometry.two_view import estimate_homography, warp_points
+from e3cm_bench.matching.dense import match_dense_level
+from e3cm_bench.matching.levels import cell_centres, valid_extent
+from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids
 
 # Stage-0 RANSAC threshold, in cells of the deepest level (x its stride = pixels). Stage-0
 # points are cell centres on the stride grid of both images, so a correct match can be off

@@ -18,13 +18,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import SCORED_ESTIMATORS
-from .cascade import (ESTIMATORS, UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
+from e3cm_bench.matching import SCORED_ESTIMATORS
+from e3cm_bench.matching.cascade import (ESTIMATORS, UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
                       pixel_norms, pixel_rows)
-from .dense import match_dense_level
-from .levels import cell_centres, valid_extent
-from .norms import normalize_channels
-from .refine import refine_to_children
+from e3cm_bench.matching.dense import match_dense_level
+from e3cm_bench.matching.levels import cell_centres, valid_extent
+from e3cm_bench.matching.norms import normalize_channels
+from e3cm_bench.matching.refine import refine_to_children
 
 
 # Sampson thresholds (px) for the candidates of levels 0..3, chosen on the shared data with
@@ -84,7 +84,7 @@ class E3CMSettings:
     def __post_init__(self) -> None:
         if self.ratio_at not in ("matched", "own"):
             raise ValueError(f"ratio_at must be 'matched' or 'own', got {self.ratio_at!r}")
-        from .subpixel import check_refine
+        from e3cm_bench.matching.subpixel import check_refine
 
         check_refine(self.refine, self.refine_window)
         if self.estimator not in ESTIMATORS:

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from .dense import passes_ratio
-from .levels import inside
-from .norms import normalize_channels
+from e3cm_bench.matching.dense import passes_ratio
+from e3cm_bench.matching.levels import inside
+from e3cm_bench.matching.norms import normalize_channels
 
 CHILD_OFFSETS = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]])
 

@@ -36,10 +36,10 @@ import cv2
 import numpy as np
 import torch
 
-from ..geometry import warp_points
-from ..perturb import perturb_correspondences
-from .dense import top2_both_ways
-from .refine import first_of_each
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.stats.perturb import perturb_correspondences
+from e3cm_bench.matching.dense import top2_both_ways
+from e3cm_bench.matching.refine import first_of_each
 
 # The release's children: offsets (dx, dy) in this order.
 RELEASE_CHILD_OFFSETS = torch.tensor([[0, 0], [0, 1], [1, 0], [1, 1]])

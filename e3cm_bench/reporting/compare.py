@@ -23,12 +23,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from .. import metrics, stats
-from ..benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
-from ..files import write_atomically, write_csv
-from .escape import markdown_text
-from .formats import format_interval, format_number, text_width
-from .tables import Run
+from e3cm_bench.geometry import metrics
+from e3cm_bench import stats
+from e3cm_bench.benchmarks import Benchmark, HomographyBenchmark, PoseBenchmark
+from e3cm_bench.ground.files import write_atomically, write_csv
+from e3cm_bench.reporting.escape import markdown_text
+from e3cm_bench.drawing.formats import format_interval, format_number, text_width
+from e3cm_bench.reporting.tables import Run
 
 HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
 POSE_ERROR_THRESHOLDS = metrics.POSE_AUC_THRESHOLDS  # degrees: err_pose < t, the AUC's thresholds

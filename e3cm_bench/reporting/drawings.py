@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..run import load_run_pairs
-from .runs import Run
+from e3cm_bench.storage import load_run_pairs
+from e3cm_bench.reporting.runs import Run
 
 N_WORST = 8          # pairs drawn because most methods fail there
 N_SAMPLE = 8         # pairs drawn as an even sample of the rest
@@ -53,9 +53,9 @@ def draw_pairs(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) 
     truth of the run's own dataset (recorded in its config.yaml) when it can be loaded."""
     import cv2
 
-    from ..evaluate import drawn
-    from ..images import load_image
-    from ..viz import draw_matches, save_image
+    from e3cm_bench.pipeline.evaluate import drawn
+    from e3cm_bench.ground.images import load_image
+    from e3cm_bench.drawing.matches import draw_matches, save_image
 
     drawings: dict[str, dict[int, str]] = {name: {} for name in chosen}
     for k, run in enumerate(runs):

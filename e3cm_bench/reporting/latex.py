@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from .. import intervals
-from ..files import write_atomically
-from .formats import format_interval, format_number, is_count
-from .tables import display_cells
+from e3cm_bench.benchmarks import intervals
+from e3cm_bench.ground.files import write_atomically
+from e3cm_bench.drawing.formats import format_interval, format_number, is_count
+from e3cm_bench.reporting.tables import display_cells
 
 # What LaTeX reads as a command in text mode, and what it takes to print it.
 _SPECIALS = {"&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{", "}": r"\}",

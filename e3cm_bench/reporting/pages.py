@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..files import write_atomically
-from .drawings import file_slug
-from .escape import html_text
-from .runs import Run
-from .tables import display_cells
+from e3cm_bench.ground.files import write_atomically
+from e3cm_bench.reporting.drawings import file_slug
+from e3cm_bench.reporting.escape import html_text
+from e3cm_bench.reporting.runs import Run
+from e3cm_bench.reporting.tables import display_cells
 
 
 STYLE = """
@@ -30,7 +30,7 @@ td.t,th.t{text-align:left}td.fail{background:#fbdada}tr.paper td{color:#777}img{
 
 
 def _number(value, column: str = "") -> str:
-    from .formats import format_number
+    from e3cm_bench.drawing.formats import format_number
 
     if value is None or (isinstance(value, float) and np.isnan(value)):
         return "-"

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import intervals
-from ..benchmarks import Benchmark
-from ..files import read_csv, read_keyed_csv
-from ..run import RunConfig, RunFolder
+from e3cm_bench.benchmarks import intervals
+from e3cm_bench.benchmarks import Benchmark
+from e3cm_bench.ground.files import read_csv, read_keyed_csv
+from e3cm_bench.storage import RunConfig, RunFolder
 
 
 @dataclass
@@ -95,8 +95,8 @@ def paper_row_of(run: Run) -> str | None:
     E3CM numbers came from the authors' released code, e3cm-release; its DFM numbers from
     the DFM release), when the run was made as the paper's were (the entry says which
     settings keep it so) on the paper's VGG19. Our variants and ablations have none."""
-    from ..backbone_names import DEFAULT_BACKBONE
-    from ..matchers import get_matcher
+    from e3cm_bench.backbones.names import DEFAULT_BACKBONE
+    from e3cm_bench.matchers import get_matcher
 
     identity = run.run_config.identity or {}
     if identity.get("backbone") not in (None, DEFAULT_BACKBONE):
@@ -133,7 +133,7 @@ def run_intervals(run: Run) -> dict:
 
 def protocol_of(run: Run) -> tuple[str, bool]:
     """The run's evaluation protocol and whether it is a standard one."""
-    from ..benchmarks.protocols import PROTOCOLS
+    from e3cm_bench.method.protocols import PROTOCOLS
 
     name = run.run_config.protocol
     protocol = PROTOCOLS.get(name)

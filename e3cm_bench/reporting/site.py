@@ -29,12 +29,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from ..files import create_new, writable_folder, write_atomically
-from .drawings import choose_pairs, draw_pairs, pair_rows
-from .pages import index_page, script_json, write_pair_page  # noqa: F401 - script_json: its old home
-from .runs import Run, load_run
-from .site_folder import MARKER, REPORT_ENTRIES, report_target, swap_in, terminate_as_exception  # noqa: F401
-from .tables import paper_reference, paper_set_notes, paper_table, without_comparison
+from e3cm_bench.ground.files import create_new, writable_folder, write_atomically
+from e3cm_bench.reporting.drawings import choose_pairs, draw_pairs, pair_rows
+from e3cm_bench.reporting.pages import index_page, script_json, write_pair_page  # noqa: F401 - script_json: its old home
+from e3cm_bench.reporting.runs import Run, load_run
+from e3cm_bench.reporting.site_folder import MARKER, REPORT_ENTRIES, report_target, swap_in, terminate_as_exception  # noqa: F401
+from e3cm_bench.reporting.tables import paper_reference, paper_set_notes, paper_table, without_comparison
 
 @dataclass
 class Report:
@@ -120,7 +120,7 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
 
 def _comparison(runs: list[Run], notes: list[str]):
     """The paired comparison of exactly two runs (compare_runs), or None; why not, in the notes."""
-    from .compare import compare_runs
+    from e3cm_bench.reporting.compare import compare_runs
 
     if len(runs) != 2:
         return None

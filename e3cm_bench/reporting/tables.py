@@ -16,13 +16,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from ..benchmarks import Benchmark, get_benchmark
-from .. import intervals
-from ..files import read_csv, write_atomically, write_csv
-from .escape import markdown_text
-from .formats import fit_columns, format_interval, format_number, text_width
-from ..paper import PAPER_DIR
-from .runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
+from e3cm_bench.benchmarks import Benchmark, get_benchmark
+from e3cm_bench.benchmarks import intervals
+from e3cm_bench.ground.files import read_csv, write_atomically, write_csv
+from e3cm_bench.reporting.escape import markdown_text
+from e3cm_bench.drawing.formats import fit_columns, format_interval, format_number, text_width
+from e3cm_bench.paper import PAPER_DIR
+from e3cm_bench.reporting.runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
                    protocol_of, run_intervals)
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..datasets.base import DatasetError, Pair, PairList, require_directory
-from . import views as V
-from .protocol import _whole, parse_protocol
-from .reconstruct import mapper_settings
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.sfm import views as V
+from e3cm_bench.sfm.protocol import _whole, parse_protocol
+from e3cm_bench.sfm.reconstruct import mapper_settings
 
 
 class MultiViewSet(PairList):
@@ -36,7 +36,7 @@ class MultiViewSet(PairList):
                  merge: str | None = None, verification: str | None = None, score_model: str | None = None,
                  allow_disconnected: bool = False, absolute_paths: bool = False,
                  max_pairs: str | int | None = None, skip_bad: bool = False, first: int | None = None) -> None:
-        from ..interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
+        from e3cm_bench.interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
 
         self.root = require_directory(root, "image set")
         pycolmap_module()  # the reconstruction's: missing, it is said now rather than after every pair is matched

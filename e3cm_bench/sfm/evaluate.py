@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from . import metrics as sfm_metrics
-from .reconstruct import MODELS, Reconstruction, run_mapper, write_database
+from e3cm_bench.sfm import metrics as sfm_metrics
+from e3cm_bench.sfm.reconstruct import MODELS, Reconstruction, run_mapper, write_database
 
 NUMBERS = ("n_images", "registered_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")
 TRACKS = ("repeat_share", "track_length_database", "merge_displacement_px")
@@ -88,7 +88,7 @@ def _per_seed(rows: list[dict], per_seed: list[list[Reconstruction]], first: int
 
 
 def write_per_seed(table: pd.DataFrame, path: Path) -> None:
-    from ..files import write_csv
+    from e3cm_bench.ground.files import write_csv
 
     write_csv(table, path)
 

@@ -28,7 +28,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from .. import metrics
+from e3cm_bench.geometry import metrics
 
 MAA_THRESHOLDS = tuple(range(1, 11))  # degrees, IMC 2020
 MAA = "maa"

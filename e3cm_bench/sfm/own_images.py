@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicates
-from ..datasets.base import DatasetError, Pair, PairList, require_directory
-from ..matches import Matches, distinct
-from . import views as V
-from .dataset import _window
-from .protocol import _radius
-from .uncalibrated import reconstruct_images, settings as mapper_settings
+from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicates
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.ground.matches import Matches, distinct
+from e3cm_bench.sfm import views as V
+from e3cm_bench.sfm.dataset import _window
+from e3cm_bench.sfm.protocol import _radius
+from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
 CAMERA_MODELS = ("SIMPLE_RADIAL", "PINHOLE")

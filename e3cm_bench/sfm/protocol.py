@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from ..datasets.base import DatasetError
+from e3cm_bench.datasets.base import DatasetError
 
 MAPPERS = ("global", "incremental")
 MERGES = ("auto", "exact", "radius", "quantize")
@@ -125,7 +125,7 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
     None when the name resolves to no registered matcher (a plugin not installed here)."""
     if not matcher:
         return None
-    from ..matchers.registry import get_matcher
+    from e3cm_bench.matchers.registry import get_matcher
 
     try:
         entry = get_matcher(matcher)
@@ -136,7 +136,7 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
 
 def matcher_of_run(folder) -> str | None:
     """The matcher named by a run folder's record (identity.matcher), or None."""
-    from ..run import RunFolder
+    from e3cm_bench.storage import RunFolder
 
     if folder is None:
         return None

@@ -67,7 +67,7 @@ DATABASE, MODELS, LOG = "database.db", "models", "mapper.log"
 def mapper_settings() -> dict:
     """What config.yaml records of the reconstruction (the seed is the evaluation's; which
     mapper, merge and verification ran: dataset.protocol)."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     try:
         version = pycolmap_module().__version__
@@ -100,7 +100,7 @@ def _set(options, values: dict, group: str = "") -> None:
 def mapper_options(seed: int, mapper: str = "incremental", override: dict | None = None):
     """pycolmap's options of `mapper` as the benchmark sets them, seeded; `override`: more
     {dotted group: {option: value}} (a caller that refines the intrinsics, say), set last."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     if mapper == "global":
@@ -123,7 +123,7 @@ def mapper_options(seed: int, mapper: str = "incremental", override: dict | None
 
 
 def verify_options(seed: int):
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     options = pycolmap_module().TwoViewGeometryOptions()
     for key, value in VERIFY_OPTIONS.items():
@@ -137,7 +137,7 @@ def verify_options(seed: int):
 def captured_log(path: Path):
     """COLMAP's log (glog and Ceres write to the process's stderr, file descriptor 2) appended
     to `path` while the block runs; Python's own stderr is flushed around it."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     logging = pycolmap_module().logging
     before = logging.logtostderr, logging.minloglevel
@@ -213,8 +213,8 @@ class Reconstruction:
 def geometry(pair, matches, ev) -> dict | None:
     """The evaluation's own relative pose on these matches and its inliers (export's rule, with
     the pose benchmarks' RANSAC threshold)."""
-    from ..benchmarks.pose import PoseBenchmark
-    from ..interchange.export import estimate_geometry
+    from e3cm_bench.benchmarks.pose import PoseBenchmark
+    from e3cm_bench.pipeline.export import estimate_geometry
 
     return estimate_geometry(PoseBenchmark, pair, matches, ev)
 
@@ -223,7 +223,7 @@ def image_size(pair, matches, side: int) -> tuple[int, int]:
     size = matches.info.get(f"size{side}")
     if size is not None:
         return tuple(int(v) for v in size)
-    from ..images import load_image
+    from e3cm_bench.ground.images import load_image
 
     image = load_image(pair.image0 if side == 0 else pair.image1)
     return int(image.shape[1]), int(image.shape[0])
@@ -235,10 +235,10 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     protocol.Protocol; None: exact merge, the estimator's verification). Returns each pair's
     {"n_inliers", and the estimator's geometry where it ran} and the tracks' numbers
     (repeat_share, track_length_database, merge_displacement_px)."""
-    from ..interchange import tracks
-    from ..interchange.colmap import write_colmap
-    from ..interchange.export import ExportItem
-    from .protocol import QUANTIZE_MAX_ERROR, Protocol
+    from e3cm_bench.interchange import tracks
+    from e3cm_bench.interchange.colmap import write_colmap
+    from e3cm_bench.pipeline.export import ExportItem
+    from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, Protocol
 
     protocol = protocol or Protocol(merge="exact").resolved(True)
     workdir = Path(workdir)
@@ -275,7 +275,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
 def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
     """pycolmap.verify_matches over the database's pairs (log in mapper.log); each pair's
     number of verified matches."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     listing = workdir / "pairs.txt"
@@ -297,7 +297,7 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
                root: Path | None = None, options: dict | None = None) -> Reconstruction:
     """The mapper on workdir's database, its models in workdir/`models`, its log appended to
     workdir/mapper.log; the models read back, largest first."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)
@@ -328,7 +328,7 @@ def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Pat
     incremental mapper, keypoints merged within merge_px, the estimator's verification);
     options: mapper options set over the benchmark's ({dotted group: {option: value}}, e.g.
     {"": {"ba_refine_focal_length": True}}); seed: the mapper's (default ev.seed)."""
-    from .protocol import Protocol
+    from e3cm_bench.sfm.protocol import Protocol
 
     if protocol is None:
         protocol = Protocol(mapper="incremental", merge="radius" if merge_px else "exact",

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .reconstruct import Reconstruction, image_size, model_of
+from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
 
@@ -40,7 +40,7 @@ MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0}}
 
 def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
     """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     try:
         version = pycolmap_module().__version__
@@ -56,7 +56,7 @@ def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
 
 
 def mapper_options(seed: int):
-    from ..interchange.colmap import mapper_options as checked_options, pycolmap_module
+    from e3cm_bench.interchange.colmap import mapper_options as checked_options, pycolmap_module
 
     options = checked_options(pycolmap_module(), calibrated=False)
     for key, value in MAPPER_OPTIONS.items():
@@ -75,7 +75,7 @@ def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_came
     the focal length from EXIF where the file has it, else 1.2 x the longer side; the principal
     point at the centre); with single_camera, images whose cameras come out the same (size,
     model, parameters, whether the focal is a prior) share one object, so one camera."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     options = pycolmap.ImageReaderOptions()
@@ -95,8 +95,8 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     """The database of `pairs` (meta view0/view1: the images' names under `root`) and their
     `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
     returns the reconstruction and each pair's number of verified matches."""
-    from ..interchange.colmap import pycolmap_module, write_colmap
-    from ..interchange.export import ExportItem
+    from e3cm_bench.interchange.colmap import pycolmap_module, write_colmap
+    from e3cm_bench.pipeline.export import ExportItem
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)

@@ -25,10 +25,10 @@ from typing import Iterator
 
 import numpy as np
 
-from ..datasets.base import DatasetError, name_pairs
-from ..datasets.truth import check_image_size, check_intrinsics, check_pose, check_quaternion, check_world_pose
-from ..datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
-from ..datasets.yfcc import YFCC100M
+from e3cm_bench.datasets.base import DatasetError, name_pairs
+from e3cm_bench.datasets.truth import check_image_size, check_intrinsics, check_pose, check_quaternion, check_world_pose
+from e3cm_bench.datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
+from e3cm_bench.datasets.yfcc import YFCC100M
 
 MIN_VIEWS = 2
 
@@ -109,7 +109,7 @@ def views_from_colmap(model: Path, root: Path, anywhere: bool = False) -> list[V
     """The views of a COLMAP sparse model (cameras + images, text or binary), in name order;
     every image must be under ROOT and every camera a pinhole one without distortion (the
     matches are made on the stored images, which K must describe)."""
-    from ..interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     model = Path(model)

@@ -5,14 +5,14 @@ aggregate: the Poisson-binomial count of successes and resampled aggregates over
 paired: two methods on the same pairs, one statistic's paired-bootstrap interval, its p and verdict (`compare_paired`).
 """
 
-from .aggregate import (
+from e3cm_bench.stats.aggregate import (
     count_bounds,
     count_tail,
     poisson_binomial_cdf,
     poisson_binomial_pmf,
     resample_aggregate,
 )
-from .bootstrap import (
+from e3cm_bench.stats.bootstrap import (
     BOOTSTRAP_SAMPLES,
     BOOTSTRAP_SEED,
     CONFIDENCE,
@@ -29,7 +29,7 @@ _PAIRED = ("PairedResult", "compare_paired", "verdict_line")
 
 def __getattr__(name: str):
     if name in _PAIRED:
-        from . import paired
+        from e3cm_bench.stats import paired
 
         return getattr(paired, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from .aggregate import _pick_blocks
+from e3cm_bench.stats.aggregate import _pick_blocks
 
 BOOTSTRAP_SAMPLES = 1000
 CONFIDENCE = 0.95

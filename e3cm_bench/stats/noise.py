@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .aggregate import count_tail, poisson_binomial_pmf
+from e3cm_bench.stats.aggregate import count_tail, poisson_binomial_pmf
 
 # A check's false-alarm rate: the chance that a check of runs made on another machine, with
 # nothing else changed, flags anything. Split evenly over the metrics it gates (Bonferroni).

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bootstrap import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, percentile_interval, resample_indices
+from e3cm_bench.stats.bootstrap import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, percentile_interval, resample_indices
 
 STATISTICS = ("mean", "median")
 NO_DIFFERENCE = "no difference detectable"

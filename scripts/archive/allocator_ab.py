@@ -36,8 +36,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
 from pair_speed import synthetic_pair  # noqa: E402 - the same pair as the per-pair figures
 
-from e3cm_bench.files import cpu_info, cpu_isa  # noqa: E402
-from e3cm_bench.method import MethodSpec  # noqa: E402
+from e3cm_bench.ground.files import cpu_info, cpu_isa  # noqa: E402
+from e3cm_bench.method.spec import MethodSpec  # noqa: E402
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_MMAP_MAX = -1, -3, -4
 

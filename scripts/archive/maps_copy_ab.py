@@ -22,9 +22,9 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench import backbones
-from e3cm_bench.files import cpu_info, cpu_isa
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.backbones import loading as backbones
+from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.method.spec import MethodSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
 from pair_speed import alternate  # noqa: E402 - the speed scripts' side-by-side timing

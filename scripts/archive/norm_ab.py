@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.ground.files import cpu_info, cpu_isa
 from e3cm_bench.matching import norms
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench import backbones
-from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.backbones import loading as backbones
+from e3cm_bench.ground.files import cpu_info, cpu_isa
 from e3cm_bench.matchers.deep import image_to_tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))

@@ -6,7 +6,7 @@ REF.npz has the layout of ../shared/parity (see its README; keys r09_*/r095_* fo
 release, dfm_* for the DFM release; lists missing from the file are skipped). A.png / B.png
 are the images the reference was run on (RGB as the references read them; already resized),
 W a torchvision VGG19 state dict (the file's weights). Prints each list's agreement, with the
-disagreements accepted as measured ties (e3cm_bench/parity.py), and exits 1 if any check fails,
+disagreements accepted as measured ties (tests/parity.py), and exits 1 if any check fails,
 2 (one line naming the key and its shape) if the file holds an array of a shape it cannot read.
 A reference F stacked by OpenCV's 7-point algorithm (9x3 or 6x3) is compared by its first
 solution, the one the release used.
@@ -39,9 +39,9 @@ def main() -> int:
     parser.add_argument("--scale", type=float, default=None, help="noise, relative to each map's RMS (default 1e-5)")
     args = parser.parse_args()
 
-    from e3cm_bench import parity
+    import parity
     from e3cm_bench.matchers import build_matcher
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     n = args.perturbations or parity.N_PERTURBATIONS
     if args.scale is not None:

@@ -53,7 +53,7 @@ def main() -> int:
     lines = run.stdout.splitlines() + run.stderr.splitlines()
     help_text = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", "demo", "--help"], capture_output=True,
                                text=True, env={**os.environ, "COLUMNS": "200"}).stdout
-    from e3cm_bench.demo import METHODS
+    from e3cm_bench.apps.demo import METHODS
 
     hpatches = pd.read_csv(out / "hpatches_table.csv").set_index("method")
     scenes = pd.read_csv(out / "scenes_table.csv").set_index("method")

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.ground.files import cpu_info, cpu_isa
 from e3cm_bench.matching import pipeline
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.method.spec import MethodSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "measure"))
 from pair_speed import add_allocator_option, synthetic_pair, use_allocator  # noqa: E402
@@ -41,7 +41,7 @@ from pair_speed import add_allocator_option, synthetic_pair, use_allocator  # no
 def pipeline_of(rev: str, folder: Path):
     """REV's matching/pipeline.py, imported as e3cm_bench_rev.matching.pipeline from `folder`."""
     root = Path(__file__).resolve().parents[2]
-    archive = subprocess.run(["git", "-C", str(root), "archive", rev, "e3cm_bench/matching", "e3cm_bench/geometry.py"],
+    archive = subprocess.run(["git", "-C", str(root), "archive", rev, "e3cm_bench/matching", "e3cm_bench/geometry/two_view.py"],
                              capture_output=True, check=True).stdout
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
         tar.extractall(folder, filter="data")

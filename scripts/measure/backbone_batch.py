@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench.backbones import load_backbone
-from e3cm_bench.files import cpu_info, cpu_isa
+from e3cm_bench.backbones.loading import load_backbone
+from e3cm_bench.ground.files import cpu_info, cpu_isa
 
 
 def device_name(device: torch.device) -> str:

@@ -49,13 +49,13 @@ import torch
 import torchvision
 from rich.console import Console
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.images import load_image
-from e3cm_bench.files import cpu_info, cpu_isa
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.run.stage import MatchOptions, match_stage
-from e3cm_bench.synth.textures import procedural_scene
+from e3cm_bench.ground.images import load_image
+from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.apps.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from pair_speed import ReleaseRunner, add_allocator_option, use_allocator  # noqa: E402 - the release loader lives with the per-pair benchmark

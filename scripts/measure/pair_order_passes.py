@@ -23,7 +23,7 @@ import torch
 
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
-from e3cm_bench.pair_order import most_alive, reuse_order
+from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 
 
 def passes(order: list[Pair], resident: int) -> int:
@@ -155,7 +155,7 @@ def default_budgets(pairs: list[Pair], images: int, spill_folder: Path) -> list[
     """Passes with this machine's default budgets (memory: auto_cache_mb; disk: auto_spill_mb
     at spill_folder) for the backbones, sizes and precisions of the tables, pyramid sizes
     measured by each backbone (random weights; the size does not depend on them)."""
-    from e3cm_bench.backbones import load_backbone
+    from e3cm_bench.backbones.loading import load_backbone
     from e3cm_bench.matchers.feature_cache import auto_cache_mb, auto_spill_mb
 
     memory_mb, disk_mb = auto_cache_mb("cpu"), auto_spill_mb(spill_folder)

@@ -30,11 +30,11 @@ import cv2
 import numpy as np
 import torch
 
-from e3cm_bench.backbones import load_backbone
-from e3cm_bench.devices import allocator, keep_freed_memory
-from e3cm_bench.files import cpu_info, cpu_isa
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.synth.textures import demo_homography, procedural_scene
+from e3cm_bench.backbones.loading import load_backbone
+from e3cm_bench.ground.devices import allocator, keep_freed_memory
+from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.apps.synth.textures import demo_homography, procedural_scene
 
 
 def synthetic_pair(w: int, h: int) -> tuple[np.ndarray, np.ndarray]:

@@ -18,8 +18,8 @@ import numpy as np
 
 from e3cm_bench.matchers import plugin_import
 from e3cm_bench.matchers.guards import StoppableWorker
-from e3cm_bench.matches import Matches
-from e3cm_bench.run.pair import checked_match, match_worker
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.pipeline.pair import checked_match, match_worker
 
 
 class Nothing:

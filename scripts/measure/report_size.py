@@ -11,10 +11,10 @@ import argparse
 import time
 from pathlib import Path
 
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.reporting.site import write_report
-from e3cm_bench.runner import run_benchmark
-from e3cm_bench.synth.layouts import write_hpatches
+from e3cm_bench.pipeline.runner import run_benchmark
+from e3cm_bench.apps.synth.layouts import write_hpatches
 
 
 def size(path: Path) -> int:

@@ -16,8 +16,8 @@ import pandas as pd
 from rich.console import Console
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.files import load_yaml, write_csv
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.ground.files import load_yaml, write_csv
+from e3cm_bench.pipeline.runner import run_benchmark
 
 # sample -> (benchmark, root below --data, dataset options, metrics to compare)
 SAMPLES = {

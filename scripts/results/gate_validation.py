@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from e3cm_bench.reporting import noise_gate
+from e3cm_bench.gate import noise_gate
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.cache import MatchCache
-from e3cm_bench.reporting.check import baseline_metrics, read_baseline
-from e3cm_bench.reporting.ensemble import noise_path, read_noise
-from e3cm_bench.evaluate import evaluate_pair
-from e3cm_bench.matches import Matches
+from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.gate.check import baseline_metrics, read_baseline
+from e3cm_bench.gate.ensemble import noise_path, read_noise
+from e3cm_bench.pipeline.evaluate import evaluate_pair
+from e3cm_bench.ground.matches import Matches
 from e3cm_bench.reporting.tables import Run, load_run
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.geometry import rotation_angle_deg
+from e3cm_bench.geometry.two_view import rotation_angle_deg
 from e3cm_bench.interchange.colmap import mapper_options
 
 

@@ -22,9 +22,9 @@ import pandas as pd
 import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.images import load_image, resize_max_side
+from e3cm_bench.ground.images import load_image, resize_max_side
 from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, prewarp_decision
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.method.spec import MethodSpec
 
 
 def read_run(folder: Path) -> tuple[dict, pd.DataFrame]:

@@ -28,8 +28,8 @@ import pandas as pd
 import yaml
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.demo import METHODS
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.apps.demo import METHODS
+from e3cm_bench.pipeline.runner import run_benchmark
 
 MAPPERS = ("incremental", "global")
 MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": "2"}, "quantize": {"merge": "quantize"}}

@@ -17,7 +17,7 @@ same pairs and the same cached matches, so the two columns differ only in what i
 matches; for KITTI, results/sample/table2_kitti holds the pose benchmark's own 31 pairs too.
 
 kitti: the shared KITTI 00 frames (../shared/data/megadepth_test_1500, kitti00_seq.npz), pair
-synth: the room scene rendered from 10 views (e3cm_bench/synth/multiview.py, written under
+synth: the room scene rendered from 10 views (e3cm_bench/apps/synth/multiview.py, written under
 OUT/data). Both with the pair graph a sequential window of 3 (each image with the next 3).
 """
 
@@ -29,10 +29,10 @@ from pathlib import Path
 import pandas as pd
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.demo import BACKBONE, METHODS
-from e3cm_bench.experiments import write_table
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import run_methods
+from e3cm_bench.apps.demo import BACKBONE, METHODS
+from e3cm_bench.pipeline.experiments import write_table
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.runner import run_methods
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "megadepth_test_1500"
 
@@ -56,7 +56,7 @@ def main() -> None:
     if args.set == "kitti":
         root, options = SHARED, {"scene_info": SHARED / "scene_info" / "kitti00_seq.npz", "window": str(args.window)}
     else:
-        from e3cm_bench.synth.multiview import write_multiview
+        from e3cm_bench.apps.synth.multiview import write_multiview
 
         root = args.out / "data" / "room"
         options = {"scene_info": write_multiview(root, n_views=args.views), "window": str(args.window)}
@@ -69,7 +69,7 @@ def main() -> None:
             for label in args.methods]
     load = {"root": str(Path(root).resolve()), "skip_bad": False, "options": {k: str(v) for k, v in options.items()}}
     if args.eval_only:  # the reconstruction and metrics again, from the cached matches
-        from e3cm_bench.runner import run_benchmark
+        from e3cm_bench.pipeline.runner import run_benchmark
 
         for run_dir, _ in runs:
             run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=EvalSettings(seed=0), eval_only=True)
@@ -83,8 +83,8 @@ def two_view(run_dir: Path) -> tuple[dict, pd.DataFrame]:
     and IMC's stereo mAA of the same errors with its interval."""
     import yaml
 
-    from e3cm_bench.evaluate import evaluate_stage
-    from e3cm_bench.run import RunFolder
+    from e3cm_bench.pipeline.evaluate import evaluate_stage
+    from e3cm_bench.storage import RunFolder
     from e3cm_bench.sfm.metrics import maa
     from e3cm_bench.stats.bootstrap import bootstrap_interval
 

@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.calibration import estimate_extrinsics, extrinsic_errors, vertical_disparity
+from e3cm_bench.apps.calibration import estimate_extrinsics, extrinsic_errors, vertical_disparity
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.datasets.stereo import load_stereo_sequence
-from e3cm_bench.synth.stereo import rig_extrinsics
+from e3cm_bench.apps.synth.stereo import rig_extrinsics
 from helpers import invoke, one_line_error
 
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])

@@ -11,8 +11,8 @@ import pytest
 
 from e3cm_bench.benchmarks import BENCHMARKS
 from e3cm_bench.datasets import DatasetError, HPatches, MegaDepth1500, YFCC100M
-from e3cm_bench.geometry import warp_points
-from e3cm_bench.metrics import evaluate_pose_pair
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.geometry.metrics import evaluate_pose_pair
 from helpers import gluefactory_layout
 
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from e3cm_bench import estimators
+from e3cm_bench.geometry import estimators
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.geometry import warp_points
-from e3cm_bench.matches import Matches
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.matches import Matches
 
 
 def plane_matches(n: int = 200, outliers: int = 40, seed: int = 3):

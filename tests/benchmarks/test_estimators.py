@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import yaml
 
-from e3cm_bench import metrics
+from e3cm_bench.geometry import metrics
 from e3cm_bench.benchmarks import EvalSettings
-from e3cm_bench.estimators import homography, relative_pose
+from e3cm_bench.geometry.estimators import homography, relative_pose
 from helpers import invoke, one_line_error, rotation
 
 pytest.importorskip("poselib", reason="PoseLib (the poselib extra) is not installed")
@@ -68,7 +68,7 @@ def test_the_estimator_is_an_evaluation_setting_recorded_and_changed_by_eval_onl
 
 
 def test_the_gluefactory_protocol_sets_poselib_at_its_threshold():
-    from e3cm_bench.benchmarks.protocols import get_protocol
+    from e3cm_bench.method.protocols import get_protocol
 
     protocol = get_protocol("gluefactory", "megadepth")
     ev = EvalSettings(**protocol.eval_fields("megadepth"))

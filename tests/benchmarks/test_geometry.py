@@ -1,4 +1,4 @@
-"""Two-view geometry (e3cm_bench.geometry) on synthetic scenes and hand-computed cases."""
+"""Two-view geometry (e3cm_bench.geometry.two_view) on synthetic scenes and hand-computed cases."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from e3cm_bench import geometry
+from e3cm_bench.geometry import two_view as geometry
 from helpers import rotation
 
 K0 = np.array([[520.0, 0.0, 310.0], [0.0, 515.0, 245.0], [0.0, 0.0, 1.0]])
@@ -210,7 +210,7 @@ def test_an_opencv_assertion_in_the_f_estimator_reads_as_no_f(monkeypatch):
     pair) instead of returning no model: that must read as 'no F', as RANSAC's None does."""
     import cv2
 
-    from e3cm_bench import geometry
+    from e3cm_bench.geometry import two_view as geometry
 
     def asserts(*args, **kwargs):
         raise cv2.error("OpenCV(5.0.0) estimator.cpp:418: error: (-215:Assertion failed) !model.empty()")

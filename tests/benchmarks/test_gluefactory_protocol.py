@@ -12,11 +12,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench import metrics
+from e3cm_bench.geometry import metrics
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.benchmarks.protocols import get_protocol
+from e3cm_bench.method.protocols import get_protocol
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 from helpers import invoke
 
 # image 0 -> image 1: four times larger, shifted; the true matches below are exact in the

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import rotation
-from e3cm_bench.metrics import (
+from e3cm_bench.geometry.metrics import (
     HPATCHES_PAIR_COLUMNS,
     MMA_THRESHOLDS,
     POSE_PAIR_COLUMNS,

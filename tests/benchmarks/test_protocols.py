@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from e3cm_bench.metrics import summarize_pose
-from e3cm_bench.run.pair import match_pair, unrotate_points
+from e3cm_bench.geometry.metrics import summarize_pose
+from e3cm_bench.pipeline.pair import match_pair, unrotate_points
 from helpers import invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
@@ -43,7 +43,7 @@ def test_a_pair_stored_rotated_is_matched_upright_and_mapped_back(shared_data, l
     matches equal those of the upright pair (B's keypoints mapped into the stored frame), and
     matching the stored images as they are finds far fewer correct ones (CNN features are not
     rotation invariant)."""
-    from e3cm_bench.images import load_image
+    from e3cm_bench.ground.images import load_image
 
     seq = shared_data / "hpatches-sequences-release" / "v_boat"
     image0 = cv2.resize(load_image(seq / "1.ppm"), None, fx=0.4, fy=0.4, interpolation=cv2.INTER_AREA)
@@ -77,8 +77,8 @@ def test_a_pair_stored_rotated_is_matched_upright_and_mapped_back(shared_data, l
 
 def test_yfcc_pairs_carry_their_rotations_to_the_runner(tmp_path):
     from e3cm_bench.datasets.yfcc import YFCC100M
-    from e3cm_bench.method import MethodSpec
-    from e3cm_bench.run.pair import pair_rotations
+    from e3cm_bench.method.spec import MethodSpec
+    from e3cm_bench.pipeline.pair import pair_rotations
 
     for name in ("a.jpg", "b.jpg"):
         cv2.imwrite(str(tmp_path / name), np.full((32, 48, 3), 128, np.uint8))
@@ -99,7 +99,7 @@ def test_jpeg_with_an_orientation_tag_is_read_turned_as_opencv_and_the_reference
     applies the EXIF orientation; so does load_image."""
     from PIL import Image
 
-    from e3cm_bench.images import load_image
+    from e3cm_bench.ground.images import load_image
 
     pixels = np.zeros((40, 60, 3), np.uint8)
     pixels[:10, :20] = (255, 0, 0)  # a red block top-left of the stored pixels
@@ -162,7 +162,7 @@ def test_loftr_protocol_resizes_megadepth_to_840(shared_data, tmp_path):
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["identity"]["max_side"] == 840 and config["evaluation"]["protocol"] == "loftr"
     # KITTI's 1241 x 376: 840 x round(254.5) = 255, each side floored to a multiple of 8 (LoFTR's df).
-    from e3cm_bench.cache import MatchCache
+    from e3cm_bench.storage.cache import MatchCache
 
     assert config["identity"]["resize"] == "exact-div8"
     cache = MatchCache(out / "matches.h5")
@@ -174,7 +174,7 @@ def test_resize_modes_give_the_reference_loaders_sizes_and_pixels(size):
     """exact = SuperGlue's process_resize (`--resize N`), exact-div8 = LoFTR's get_resized_wh then
     get_divisible_wh(df=8): the longer side scaled to N, enlarging too, Python's round; then
     cv2.resize with its default (bilinear) interpolation. shrink never enlarges."""
-    from e3cm_bench.images import resize_max_side
+    from e3cm_bench.ground.images import resize_max_side
 
     w, h = size
     image = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
@@ -195,7 +195,7 @@ def test_resize_modes_give_the_reference_loaders_sizes_and_pixels(size):
 def test_superglue_protocol_enlarges_to_1600_as_its_eval_command(shared_data, tmp_path):
     """ScanNet's 1296 x 968 frames (YFCC pair-list format): the default shrinks them to 1200,
     `--protocol superglue` resizes them to 1600 x 1195, as match_pairs.py --resize 1600 does."""
-    from e3cm_bench.cache import MatchCache
+    from e3cm_bench.storage.cache import MatchCache
 
     root = shared_data / "scannet_sample"
     sizes = {}
@@ -219,7 +219,7 @@ def test_a_ransac_threshold_in_matched_pixels_is_superglues_normalised_threshold
     from e3cm_bench.benchmarks import get_benchmark
     from e3cm_bench.benchmarks.base import EvalSettings
     from e3cm_bench.datasets.base import Pair
-    from e3cm_bench.matches import Matches
+    from e3cm_bench.ground.matches import Matches
 
     K0 = np.array([[1065.0, 0, 512], [0, 1065.0, 384], [0, 0, 1]])
     K1 = np.array([[900.0, 0, 400], [0, 900.0, 300], [0, 0, 1]])
@@ -260,7 +260,7 @@ def test_a_protocol_of_another_benchmark_is_a_one_line_error(tmp_path):
 def test_the_default_protocol_holds_for_a_benchmark_added_later():
     """A new benchmark module needs no line in protocols.py: `default` sets nothing of its own."""
     from e3cm_bench.benchmarks import HomographyBenchmark
-    from e3cm_bench.benchmarks.protocols import get_protocol
+    from e3cm_bench.method.protocols import get_protocol
     from e3cm_bench.datasets.hpatches import HPatches
 
     assert get_protocol("default", "added-later").name == "default"
@@ -289,8 +289,8 @@ def test_bf16_backbone_is_recorded_and_stays_close_to_fp32(shared_data):
     match identity. On v_boat 1-2 at 480 px its matches stay about as correct as fp32's."""
     import torch
 
-    from e3cm_bench.images import load_image
-    from e3cm_bench.method import MethodSpec
+    from e3cm_bench.ground.images import load_image
+    from e3cm_bench.method.spec import MethodSpec
 
     if not hasattr(torch.backends, "mkldnn") or not torch.backends.mkldnn.is_available():
         pytest.skip("no oneDNN CPU backend for bf16 here")

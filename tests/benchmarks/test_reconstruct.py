@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.sfm.own_images import ImageFolder, image_names
 from helpers import invoke, one_line_error
@@ -24,7 +24,7 @@ KITTI = "megadepth_test_1500/Undistorted_SfM/kitti00/images"
 @pytest.fixture(scope="module")
 def room(tmp_path_factory) -> Path:
     """Five views of the synthetic room (synth/multiview.py), their images only: no ground truth."""
-    from e3cm_bench.synth.multiview import write_multiview
+    from e3cm_bench.apps.synth.multiview import write_multiview
 
     root = tmp_path_factory.mktemp("room")
     write_multiview(root, n_views=5)

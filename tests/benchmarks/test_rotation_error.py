@@ -12,9 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from e3cm_bench.benchmarks.protocols import PROTOCOLS, rotation_error
-from e3cm_bench.geometry import nearest_rotation, rotation_angle_deg, rotation_deviation
-from e3cm_bench.metrics import rotation_note
+from e3cm_bench.method.protocols import PROTOCOLS, rotation_error
+from e3cm_bench.geometry.two_view import nearest_rotation, rotation_angle_deg, rotation_deviation
+from e3cm_bench.geometry.metrics import rotation_note
 from helpers import invoke, rotation
 
 SCALE = 1.00045 ** (1 / 3)  # det 1.00045, as in the RGB-D sequence where this was found

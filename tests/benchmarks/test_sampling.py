@@ -12,7 +12,7 @@ import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair, stratified_sample, stratum
-from e3cm_bench.viz import drawn_pairs
+from e3cm_bench.drawing.matches import drawn_pairs
 from helpers import invoke, one_line_error
 
 

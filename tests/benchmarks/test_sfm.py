@@ -19,7 +19,7 @@ import pytest
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import DatasetError, Pair
 from e3cm_bench.datasets.megadepth import load_scene_info
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 from helpers import invoke, one_line_error
 
 pycolmap = pytest.importorskip("pycolmap", reason="the sfm benchmark needs pycolmap (the colmap extra)")

@@ -1,7 +1,7 @@
 """The sfm benchmark's protocol (sfm/protocol.py): the mapper, its seeds in the interval, the
 keypoint merge's per-matcher default and hloc's quantization, COLMAP's verification, the
 largest-model rule, bags, and `compare` over pairs and seeds. On the synthetic room
-(e3cm_bench/synth/multiview.py) with SIFT: 6 views, a window of 2 (9 pairs), seconds per
+(e3cm_bench/apps/synth/multiview.py) with SIFT: 6 views, a window of 2 (9 pairs), seconds per
 reconstruction."""
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def test_compare_over_pairs_and_seeds():
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory) -> tuple[Path, Path]:
-    from e3cm_bench.synth.multiview import write_multiview
+    from e3cm_bench.apps.synth.multiview import write_multiview
 
     root = tmp_path_factory.mktemp("room")
     return root, write_multiview(root, n_views=6)
@@ -174,7 +174,7 @@ def test_eval_only_with_another_protocol_on_the_same_matches(room, incremental_r
 def test_bags_are_reconstructed_apart(room, tmp_path):
     """Two bags (pair.meta['bag'], set where the graph splits): one folder and one database each,
     every pair scored in its own bag's reconstruction."""
-    from e3cm_bench.images import load_image
+    from e3cm_bench.ground.images import load_image
     from e3cm_bench.matchers.sift import SiftMatcher
 
     root, scene_info = room

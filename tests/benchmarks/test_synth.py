@@ -8,10 +8,10 @@ import pytest
 
 from e3cm_bench.datasets import YFCC100M, HPatches
 from e3cm_bench.matchers.sift import SiftMatcher
-from e3cm_bench.metrics import epipolar_precision
-from e3cm_bench.synth.layouts import scene_cameras, texture_maker, write_hpatches, write_scene_pairs
-from e3cm_bench.synth.scene import Plane, intrinsics, look_at, relative_pose, render, room_scene
-from e3cm_bench.synth.textures import sample_photo
+from e3cm_bench.geometry.metrics import epipolar_precision
+from e3cm_bench.apps.synth.layouts import scene_cameras, texture_maker, write_hpatches, write_scene_pairs
+from e3cm_bench.apps.synth.scene import Plane, intrinsics, look_at, relative_pose, render, room_scene
+from e3cm_bench.apps.synth.textures import sample_photo
 
 
 @pytest.fixture(scope="module")

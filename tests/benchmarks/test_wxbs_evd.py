@@ -10,11 +10,11 @@ from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.benchmarks import evd as evd_module
 from e3cm_bench.benchmarks import wxbs as wxbs_module
 from e3cm_bench.benchmarks.base import EvalSettings
-from e3cm_bench.benchmarks.protocols import get_protocol
+from e3cm_bench.method.protocols import get_protocol
 from e3cm_bench.datasets.base import DatasetError
-from e3cm_bench.estimators import fundamental, homography
-from e3cm_bench.geometry import warp_points
-from e3cm_bench.matches import Matches
+from e3cm_bench.geometry.estimators import fundamental, homography
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.matches import Matches
 
 
 # ----------------------------------------------------------------------------- loaders
@@ -44,14 +44,14 @@ def test_evd_on_the_shared_data(evd_root):
     assert fox.image0.parent.name == "1" and fox.image1.parent.name == "2"
     assert fox.H.shape == (3, 3) and fox.H[2, 2] == 1.0
     # the shared copy is the complete release, in the layout `download evd` places
-    from e3cm_bench import download
+    from e3cm_bench.data import download
     from e3cm_bench.datasets.sources import get_source
 
     assert "complete (15 pairs)" in download.check(get_source("evd"), evd_root.parent)
 
 
 def test_the_shared_wxbs_copy_is_the_release_layout_short_of_one_test_pair(wxbs_root):
-    from e3cm_bench import download
+    from e3cm_bench.data import download
     from e3cm_bench.datasets.sources import get_source
 
     # ../shared/data lacks WLABS/ministry (its first image is missing from the copy reachable here)
@@ -299,7 +299,7 @@ def test_sources_unpack_the_release_zips_into_the_layouts_the_loaders_read(tmp_p
     and `download --check` accept: WxBS/v1.1/<category>/<pair>/ and EVD/{1,2,h}/."""
     import zipfile
 
-    from e3cm_bench import download
+    from e3cm_bench.data import download
     from e3cm_bench.datasets.sources import get_source
 
     wxbs, evd = get_source("wxbs"), get_source("evd")

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import e3cm_bench.datasets.sources as sources
-from e3cm_bench.run import RunFolder
+from e3cm_bench.storage import RunFolder
 from helpers import flat, invoke, one_line_error
 from http_server import Server, answer
 
@@ -74,7 +74,7 @@ def test_reproduce_by_name_table_check_compare_and_report(wxbs_root, tmp_path):
 
 def test_reproduce_evd_by_name_holds_every_built_in_method():
     from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.experiments import experiment_method, load_experiment
+    from e3cm_bench.pipeline.experiments import experiment_method, load_experiment
     from e3cm_bench.paper import resolve_config
 
     for name in ("wxbs", "evd"):

@@ -22,9 +22,9 @@ import pytest
 import torch
 import yaml
 
-import e3cm_bench.run.stage as runner_module
-from e3cm_bench.cache import MatchCache
-from e3cm_bench.method import MethodSpec
+import e3cm_bench.pipeline.stage as runner_module
+from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.method.spec import MethodSpec
 from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
@@ -48,7 +48,7 @@ def read_csv(path: Path) -> pd.DataFrame:
 
 def point_columns(summary: pd.DataFrame) -> list[str]:
     """summary.csv's metric columns, without the intervals beside them (tests/reporting/test_intervals.py)."""
-    from e3cm_bench.intervals import is_interval_key
+    from e3cm_bench.benchmarks.intervals import is_interval_key
 
     return [c for c in summary.columns if not is_interval_key(c)]
 

@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 import pytest
 
-import e3cm_bench.backbones as backbones_module
-from e3cm_bench import geometry
+import e3cm_bench.backbones.loading as backbones_module
+from e3cm_bench.geometry import two_view as geometry
 from e3cm_bench.datasets.hpatches import read_homography
-from e3cm_bench.synth.textures import demo_pair
+from e3cm_bench.apps.synth.textures import demo_pair
 from helpers import flat, invoke, one_line_error
 
 

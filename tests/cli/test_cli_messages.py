@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from e3cm_bench.benchmarks.protocols import get_protocol
-from e3cm_bench.files import FolderLock
+from e3cm_bench.method.protocols import get_protocol
+from e3cm_bench.ground.files import FolderLock
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.names import BUILTIN_MATCHERS
-from e3cm_bench.reporting.formats import format_number
-from e3cm_bench.run.folder import RunFolder
+from e3cm_bench.drawing.formats import format_number
+from e3cm_bench.storage.folder import RunFolder
 from helpers import flat, invoke, one_line_error
 
 REPO = Path(__file__).resolve().parents[2]

@@ -10,7 +10,7 @@ import pytest
 import torch
 import yaml
 
-from e3cm_bench.demo import METHODS as DEMO_METHODS
+from e3cm_bench.apps.demo import METHODS as DEMO_METHODS
 from helpers import flat, invoke, one_line_error
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from e3cm_bench.datasets.sources import Part, Source
-from e3cm_bench.download import LOCK_FILE, DownloadError, download
+from e3cm_bench.data.download import LOCK_FILE, DownloadError, download
 from helpers import invoke, one_line_error
 
 
@@ -93,7 +93,7 @@ def test_download_verifies_records_the_hash_and_unpacks(shared_data, tmp_path):
         import hashlib
 
         assert lock == {"hpatches-sequences-release.zip": hashlib.sha256(data).hexdigest()}
-        from e3cm_bench.download import check
+        from e3cm_bench.data.download import check
 
         assert check(source(""), tmp_path / "data").endswith("complete (3 sequences, 18 images)")
         # the server's file changes: the recorded hash refuses it and keeps it aside

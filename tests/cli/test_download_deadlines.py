@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-import e3cm_bench.download as dl
+import e3cm_bench.data.download as dl
 from e3cm_bench.datasets.sources import SOURCES
 from helpers import invoke, one_line_error
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import e3cm_bench.datasets.sources as sources
-import e3cm_bench.download as dl
+import e3cm_bench.data.download as dl
 from e3cm_bench.datasets.sources import Part, Source
 from helpers import flat, invoke, one_line_error
 from http_server import Server, answer

@@ -1,4 +1,4 @@
-"""A method's options, declared once (e3cm_bench/options.py): the command line, the experiment
+"""A method's options, declared once (e3cm_bench/method/options.py): the command line, the experiment
 configs and MethodSpec's validation are made from the one table; full resolution is one value
 (0) however it is spelled; the committed experiment configs resolve to the same identities as
 before; the launch options refuse what they cannot do in one line."""
@@ -13,13 +13,19 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from e3cm_bench import options as opts
+from e3cm_bench.method import options as opts
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
-from e3cm_bench.benchmarks.protocols import PROTOCOLS, Protocol
+from e3cm_bench.method.protocols import PROTOCOLS, Protocol
 from e3cm_bench.cli import app
-from e3cm_bench.experiments import (EXPERIMENT_KEYS, EXPERIMENT_TYPES, METHOD_KEYS, METHOD_TYPES, experiment_method,
-                                    load_experiment)
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.pipeline.experiments import (
+    EXPERIMENT_KEYS,
+    EXPERIMENT_TYPES,
+    METHOD_KEYS,
+    METHOD_TYPES,
+    experiment_method,
+    load_experiment,
+)
+from e3cm_bench.method.spec import MethodSpec
 
 from helpers import flat, one_line_error
 
@@ -189,8 +195,8 @@ def test_a_side_that_is_neither_full_nor_positive_is_one_line(value):
 def captured(monkeypatch):
     """What the benchmark command hands to the run (run_benchmark, or run_shards), not run."""
     calls = []
-    monkeypatch.setattr("e3cm_bench.runner.run_benchmark", lambda **kw: calls.append(("run", kw)))
-    monkeypatch.setattr("e3cm_bench.run.launch.run_shards",
+    monkeypatch.setattr("e3cm_bench.pipeline.runner.run_benchmark", lambda **kw: calls.append(("run", kw)))
+    monkeypatch.setattr("e3cm_bench.pipeline.launch.run_shards",
                         lambda run, n, devices=None, launcher="local", console=None: calls.append(
                             ("shards", {"n": n, "devices": devices, "launcher": launcher, **run})))
     return calls

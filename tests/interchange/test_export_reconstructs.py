@@ -11,11 +11,11 @@ import h5py
 import numpy as np
 import pytest
 
-from e3cm_bench.geometry import rotation_angle_deg
+from e3cm_bench.geometry.two_view import rotation_angle_deg
 from e3cm_bench.interchange import HlocSource
-from e3cm_bench.interchange.export import ExportItem
+from e3cm_bench.pipeline.export import ExportItem
 from e3cm_bench.interchange.hloc import ORDER_KEY, write_hloc
-from e3cm_bench.matches import Matches, MatchesError
+from e3cm_bench.ground.matches import Matches, MatchesError
 from helpers import invoke
 
 

@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.files import file_sha256
+from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.interchange import MissingPair, from_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 
 
 @register

@@ -9,8 +9,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.cache import MatchCache
-from e3cm_bench.imported import hloc_pair_key
+from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.pipeline.imported import hloc_pair_key
 from helpers import invoke, one_line_error
 
 

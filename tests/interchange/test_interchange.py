@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.interchange import MAX_POINTS, from_origin, to_origin
 from e3cm_bench.interchange.gluefactory import hpatches_keys
 from helpers import flat, invoke, one_line_error

@@ -1,4 +1,4 @@
-"""Backbones as feature pyramids (e3cm_bench.backbones): shapes, truncation, weights handling."""
+"""Backbones as feature pyramids (e3cm_bench.backbones.loading): shapes, truncation, weights handling."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from e3cm_bench import backbones
-from e3cm_bench.backbones import BACKBONES, SPECS, BackboneError, load_backbone
+from e3cm_bench.backbones import loading as backbones
+from e3cm_bench.backbones.loading import BACKBONES, SPECS, BackboneError, load_backbone
 
 H, W = 97, 131  # an odd size: padding to the deepest stride is exercised
 

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.backbones import load_backbone
-from e3cm_bench.geometry import warp_points
-from e3cm_bench.images import load_image, resize_max_side, to_original_pixels
+from e3cm_bench.backbones.loading import load_backbone
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.images import load_image, resize_max_side, to_original_pixels
 from e3cm_bench.matchers.dfm import DFMMatcher
 
 

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from e3cm_bench.matchers.e3cm_plus import E3CMPlusSettings
 from e3cm_bench.matching.pipeline import subpixel_offsets
-from e3cm_bench.method import MethodSpec
+from e3cm_bench.method.spec import MethodSpec
 
 
 def smooth_field(c: int, h: int, w: int, seed: int) -> torch.Tensor:
@@ -94,7 +94,7 @@ def test_e3cm_plus_on_a_rotated_zoomed_hpatches_pair(shared_data, plus_matcher):
     MMA@3 0.978, corner error 1.70 px. Margins: MMA@3 >= 0.93, corner error <= 2.5 px. The
     same seed gives the same matches."""
     from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     hp = get_benchmark("hpatches")
     pair = next(p for p in hp.load_dataset(shared_data / "hpatches-sequences-release", sequences=["v_boat"])
@@ -112,7 +112,7 @@ def test_e3cm_plus_on_a_kitti_pair_leaves_forward_motion_unwarped(shared_data, p
     is not warped; measured 2013 matches, precision@1e-4 1.000, pose error 0.79 degrees.
     Margins: precision >= 0.99, pose error <= 3 degrees."""
     from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     md = get_benchmark("megadepth")
     root = shared_data / "megadepth_test_1500"

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from e3cm_bench import metrics
-from e3cm_bench.backbones import load_backbone
+from e3cm_bench.geometry import metrics
+from e3cm_bench.backbones.loading import load_backbone
 from e3cm_bench.datasets.hpatches import HPatches
 from e3cm_bench.datasets.megadepth import MegaDepth1500
-from e3cm_bench.images import load_image
+from e3cm_bench.ground.images import load_image
 from e3cm_bench.matchers.deep import image_to_tensor
 from e3cm_bench.matchers.e3cm import E3CMMatcher
 from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids

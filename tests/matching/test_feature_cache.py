@@ -12,14 +12,14 @@ import torch
 import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore, compact
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.images import load_image
-from e3cm_bench.run import RunFolder
-from e3cm_bench.run.pair import matcher_input
-from e3cm_bench.run.stage import MatchOptions
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.ground.images import load_image
+from e3cm_bench.storage import RunFolder
+from e3cm_bench.pipeline.pair import matcher_input
+from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import assert_same_arrays, replay_stage
 
 MiB = 2**20
@@ -236,12 +236,12 @@ import json, sys
 from pathlib import Path
 import cv2, numpy as np
 from rich.console import Console
-import e3cm_bench.run.stage as stage
-from e3cm_bench.run.stage import MatchOptions
-from e3cm_bench.cache import MatchCache
+import e3cm_bench.pipeline.stage as stage
+from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.synth.textures import procedural_scene
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.apps.synth.textures import procedural_scene
 
 import ctypes
 libc = ctypes.CDLL("libc.so.6")

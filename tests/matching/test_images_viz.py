@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.images import load_image, resize_max_side, to_original_pixels
-from e3cm_bench.viz import draw_matches, save_image
+from e3cm_bench.ground.images import load_image, resize_max_side, to_original_pixels
+from e3cm_bench.drawing.matches import draw_matches, save_image
 
 
 

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import yaml
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.matchers.plugin_code import code_sha256
 from e3cm_bench.matchers import MatcherEntry, get_matcher, matcher_names, register, registry, unregister
-from e3cm_bench.matches import Matches
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import flat, invoke, one_line_error
 
 REPO = Path(__file__).resolve().parents[2]

@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from e3cm_bench import geometry
+from e3cm_bench.geometry import two_view as geometry
 from e3cm_bench.matching.cascade import (UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
                                          pixel_norms, pixel_rows)
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio

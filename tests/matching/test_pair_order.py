@@ -10,7 +10,7 @@ import torch
 
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
-from e3cm_bench.pair_order import most_alive, reuse_order
+from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from helpers import replay_stage
 
 

@@ -5,7 +5,7 @@ random VGG19 weights; here the same weights are regenerated (their hash checked 
 manifest.json). Each stage runs on the reference's own inputs where the file holds them, the
 chained levels end to end; every list must contain at least 99% of the reference's matches
 (to 1e-3 px) with at most 1% extra, a disagreement counting only where perturbing the
-features at the rounding scale flips it too (e3cm_bench/parity.py; the same checks on any
+features at the rounding scale flips it too (tests/parity.py; the same checks on any
 reference file: scripts/maintain/check_parity.py). The agreement and the ties accepted per list are printed
 (pytest -s) for the README's parity table.
 """
@@ -62,7 +62,7 @@ def load_pair(name: str) -> tuple[np.ndarray, np.ndarray, dict]:
 
 def agreement(ours0: np.ndarray, ours1: np.ndarray, ref0: np.ndarray, ref1: np.ndarray) -> tuple[int, int, int]:
     """(reference count, our count, reference matches we have too), to 1e-3 px per coordinate."""
-    from e3cm_bench.parity import compare
+    from parity import compare
 
     c = compare("", (ours0, ours1), (ref0, ref1))
     return c.n_ref, c.n_ours, c.n_both
@@ -111,8 +111,8 @@ def release_maps(matchers):
 def test_e3cm_release_each_stage_from_the_references_inputs(release_maps, name, tag):
     """Dense matching at conv5_3, then each refinement from the reference's own parent list:
     99% shared / 1% extra, a disagreement counted only where features perturbed at the
-    rounding scale flip it too (e3cm_bench/parity.py)."""
-    from e3cm_bench.parity import release_levels_by_stage
+    rounding scale flip it too (tests/parity.py)."""
+    from parity import release_levels_by_stage
 
     maps0, maps1, ref = release_maps(name)
     assert_all(release_levels_by_stage(maps0, maps1, ref, tag))
@@ -122,7 +122,7 @@ def test_e3cm_release_each_stage_from_the_references_inputs(release_maps, name, 
 @pytest.mark.parametrize("tag", ("r09", "r095"))
 def test_e3cm_release_levels_end_to_end(release_maps, name, tag):
     """The chained levels (the uncascaded matcher) against every reference list, ties measured."""
-    from e3cm_bench.parity import release_levels_end_to_end
+    from parity import release_levels_end_to_end
 
     maps0, maps1, ref = release_maps(name)
     assert_all(release_levels_end_to_end(maps0, maps1, ref, tag))
@@ -133,7 +133,7 @@ def test_e3cm_release_levels_end_to_end(release_maps, name, tag):
 def test_released_cascade_on_the_references_lists_is_the_references_cascade(name, tag):
     """Fed the reference's per-level lists, the released cascade gives the reference's result,
     every level's survivors and every F exactly: no tie is accepted here."""
-    from e3cm_bench.parity import fundamental_differences, release_cascade_from_reference
+    from parity import fundamental_differences, release_cascade_from_reference
 
     if not (PARITY / f"{name}.npz").is_file():
         pytest.skip(f"parity fixtures not found at {PARITY} (the ../shared checkout is absent)")
@@ -159,8 +159,8 @@ def test_e3cm_release_matcher_end_to_end(matchers, release_maps, name):
     tie flipped, the two proven stages above stand for it: a RANSAC on a list that differs by
     one match may pick another F, and the residual filter amplifies that."""
     from e3cm_bench.matching.release import release_cascade
-    from e3cm_bench.parity import compare, release_lists
-    from e3cm_bench.runner import match_pair
+    from parity import compare, release_lists
+    from e3cm_bench.pipeline.runner import match_pair
 
     image0, image1, ref = load_pair(name)
     m = match_pair(matchers["e3cm-release"], image0, image1, max_side=None, seed=0)
@@ -185,8 +185,8 @@ def test_dfm_matcher_reproduces_the_dfm_release(matchers, name):
     """Stage 0's homography is the reference's (to OpenCV's rounding across CPUs, or through a
     measured tie); stage 1 from the reference's own H_init is at parity, ties measured; end
     to end, the matcher's output is stage 1 under its own H, at parity with ties measured."""
-    from e3cm_bench.parity import dfm_stage0, dfm_stage1
-    from e3cm_bench.runner import match_pair
+    from parity import dfm_stage0, dfm_stage1
+    from e3cm_bench.pipeline.runner import match_pair
 
     image0, image1, ref = load_pair(name)
     dfm = matchers["dfm"]
@@ -216,7 +216,7 @@ def test_tie_acceptance_does_not_pass_another_algorithm(release_maps):
     not make it pass for the release's, on any level of a pair."""
     from e3cm_bench.matching.release import release_refine
     from e3cm_bench.matching.release import level_points
-    from e3cm_bench.parity import compare, to_cells, under_perturbation
+    from parity import compare, to_cells, under_perturbation
 
     maps0, maps1, ref = release_maps("graf12_640")
     failed = 0
@@ -241,7 +241,7 @@ def test_direct_with_the_releases_ratio_index_reproduces_r09(seed0_weights, name
     handling and its child order; on pairs without padding, switching the index alone
     (ratio_at=own) reproduces the release's level-0 list (parity README, behaviour 2)."""
     from e3cm_bench.matchers import build_matcher
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     image0, image1, ref = load_pair(name)
     own = build_matcher("direct", "vgg19", str(seed0_weights), settings={"ratio_at": "own"})
@@ -259,7 +259,7 @@ def test_dfm_corrected_differs_only_where_the_release_slips(matchers, seed0_weig
     wider than tall (KITTI) the release's filter (y < padded width - 16) never bites, the
     corrected one (y < height - 16) drops the bottom band."""
     from e3cm_bench.matchers import build_matcher
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     image0, image1, _ = load_pair("kitti_640")
     corrected = match_pair(build_matcher("dfm", "vgg19", str(seed0_weights), settings={"variant": "corrected"}),

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench import parity
+import parity
 from test_parity import REPO_ROOT, seed0_weights  # noqa: F401 - a fixture
 
 SEQUENCE = "hpatches-sequences-release/i_leuven"
@@ -34,7 +34,7 @@ KERNELS = {"Haswell": ("avx2", "fma"), "SkylakeX": ("avx512f", "avx512bw", "avx5
 STAGE0_IN_A_CHILD = """
 import json, sys
 import numpy as np, torch
-from e3cm_bench import parity
+import parity
 from e3cm_bench.matching.release import DFMRelease, dfm_release_stage0
 maps = np.load(sys.argv[1])
 top0, top1, level = torch.from_numpy(maps["top0"]), torch.from_numpy(maps["top1"]), int(maps["level"])

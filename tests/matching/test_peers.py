@@ -18,10 +18,10 @@ pytest.importorskip("transformers", reason="the peers extra (transformers) is no
 
 import torch  # noqa: E402
 
-from e3cm_bench.images import load_image, resize_max_side  # noqa: E402
+from e3cm_bench.ground.images import load_image, resize_max_side  # noqa: E402
 from e3cm_bench.matchers import build_matcher, get_matcher  # noqa: E402
-from e3cm_bench.method import MethodSpec  # noqa: E402
-from e3cm_bench.run.pair import checked_match, match_pair  # noqa: E402
+from e3cm_bench.method.spec import MethodSpec  # noqa: E402
+from e3cm_bench.pipeline.pair import checked_match, match_pair  # noqa: E402
 
 PEERS = ("loftr", "superpoint+superglue", "superpoint+lightglue", "disk+lightglue", "aliked+lightglue")
 # Random networks score nothing above the reference thresholds: open them so that matches come out.
@@ -113,8 +113,8 @@ def test_weights_are_found_in_the_libraries_caches_and_enter_the_identity(tmp_pa
         from pathlib import Path
         import torch, kornia.feature as KF
         from transformers import SuperGlueConfig, SuperGlueForKeypointMatching, SuperPointConfig
-        from e3cm_bench.method import MethodSpec
-        from e3cm_bench.runner import run_benchmark
+        from e3cm_bench.method.spec import MethodSpec
+        from e3cm_bench.pipeline.runner import run_benchmark
 
         torch.manual_seed(1)
         loftr = KF.LoFTR(pretrained=None)
@@ -270,8 +270,8 @@ def test_a_superglue_release_pth_runs_from_weights_file_with_superpoint_from_the
         from pathlib import Path
         import numpy as np, torch
         from transformers import SuperPointConfig, SuperPointForKeypointDetection
-        from e3cm_bench.images import load_image, resize_max_side
-        from e3cm_bench.method import MethodSpec
+        from e3cm_bench.ground.images import load_image, resize_max_side
+        from e3cm_bench.method.spec import MethodSpec
 
         torch.manual_seed(5)
         superpoint = SuperPointForKeypointDetection(SuperPointConfig())

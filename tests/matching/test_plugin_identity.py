@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.files import file_sha256
+from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.matchers import get_matcher, registry, unregister
 from e3cm_bench.matchers.plugin_code import bound_defaults, code_sha256
 from helpers import invoke, one_line_error

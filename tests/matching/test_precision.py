@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-import e3cm_bench.devices as devices
+import e3cm_bench.ground.devices as devices
 from e3cm_bench.cli import app
-from e3cm_bench.method import deep_settings
+from e3cm_bench.method.spec import deep_settings
 
 
 @pytest.mark.parametrize("native, device, precision, expected, warns", [
@@ -36,7 +36,7 @@ def test_auto_is_resolved_before_the_identity(monkeypatch):
 def test_the_cpu_flags_decide_native_bf16(monkeypatch, tmp_path):
     from pathlib import Path
 
-    import e3cm_bench.files as files
+    import e3cm_bench.ground.files as files
 
     real_read_text = Path.read_text
     for flags, native in (("fpu avx2 avx512f avx512_bf16", True), ("fpu avx2 amx_bf16", True), ("fpu sse4_2 avx2", False)):

@@ -51,7 +51,7 @@ def survivors_under_each_solution(ref: dict, f_level: int, level: int) -> list[b
 def test_released_cascade_equals_the_releases_survivors_and_F(name):
     """Every level's survivors, the result and every F (the stacked one by the solution the
     release used) are the release's exactly; an F on one side only would be another cascade."""
-    from e3cm_bench.parity import fundamental_differences, fundamental_mismatches, release_cascade_from_reference
+    from parity import fundamental_differences, fundamental_mismatches, release_cascade_from_reference
 
     ref = load(name)
     checks, out = release_cascade_from_reference(ref, TAG)
@@ -63,7 +63,7 @@ def test_released_cascade_equals_the_releases_survivors_and_F(name):
 
 
 def test_seven_survivors_give_three_stacked_solutions_and_the_first_filters_the_next_level():
-    from e3cm_bench.parity import release_cascade_from_reference
+    from parity import release_cascade_from_reference
 
     ref = load(SEVEN)
     assert len(ref[f"{TAG}_cascL2_A"]) == 7 and ref[f"{TAG}_F2"].shape == (9, 3)
@@ -77,7 +77,7 @@ def test_seven_survivors_give_three_stacked_solutions_and_the_first_filters_the_
 
 
 def test_levels_with_fewer_than_8_matches_are_skipped_and_the_stacked_F_above_filters_level_0():
-    from e3cm_bench.parity import release_cascade_from_reference
+    from parity import release_cascade_from_reference
 
     ref = load(SKIPPED)
     assert [len(ref[f"{TAG}_L{level}_A"]) for level in (2, 1)] == [7, 7]
@@ -94,7 +94,7 @@ def test_levels_with_fewer_than_8_matches_are_skipped_and_the_stacked_F_above_fi
 
 
 def test_a_reference_F_of_an_unknown_shape_is_named_with_its_shape():
-    from e3cm_bench.parity import check_reference, fundamental_differences, release_cascade_from_reference
+    from parity import check_reference, fundamental_differences, release_cascade_from_reference
 
     ref = load(SEVEN)
     _, out = release_cascade_from_reference(ref, TAG)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from e3cm_bench.images import load_image
+from e3cm_bench.ground.images import load_image
 from e3cm_bench.matchers.sift import SiftMatcher
 
 

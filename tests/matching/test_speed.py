@@ -18,15 +18,15 @@ import pytest
 import torch
 import yaml
 
-from e3cm_bench import backbones
+from e3cm_bench.backbones import loading as backbones
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.images import ImageError
+from e3cm_bench.ground.images import ImageError
 from e3cm_bench.matching import norms
 from e3cm_bench.matching.cascade import UnitPixels
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.run.stage import MatchOptions, decoded_ahead
-from e3cm_bench.runner import run_benchmark, run_methods
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.stage import MatchOptions, decoded_ahead
+from e3cm_bench.pipeline.runner import run_benchmark, run_methods
 from helpers import assert_same_arrays
 
 GLIBC = platform.libc_ver()[0] == "glibc"  # keep_freed_memory tunes glibc's malloc only
@@ -82,7 +82,7 @@ def test_methods_matched_together_share_maps_and_give_the_same_matches(shared_da
     network once between them (4 passes, not 3 x 6), and each method's matches equal those
     of its own run. The normalised maps e3cm and direct make of an image are made once and
     shared too (FeatureCache.derived), and change nothing either."""
-    import e3cm_bench.backbones as backbones
+    import e3cm_bench.backbones.loading as backbones
 
     loads = []
     real_load = backbones.load_backbone
@@ -139,7 +139,7 @@ def test_a_6000_by_4000_pair_fits_or_names_max_side():
     """The real machine: VGG19 (random weights) on a 6000 x 4000 pair either fits in the free
     memory or stops before allocating, naming --max-side."""
     from e3cm_bench.matchers.deep import available_memory
-    from e3cm_bench.runner import match_pair
+    from e3cm_bench.pipeline.runner import match_pair
 
     matcher = MethodSpec.create("e3cm", "vgg19").build("cpu", pretrained=False)
     need = 6 * matcher.backbone.pyramid_bytes(4000, 6000)
@@ -228,8 +228,8 @@ import cv2, hashlib, json, torch
 from e3cm_bench import devices
 from e3cm_bench.matching import norms
 from e3cm_bench.matching.cascade import UnitPixels
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.synth.textures import demo_homography, procedural_scene
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.apps.synth.textures import demo_homography, procedural_scene
 
 torch.manual_seed(0)
 matcher = MethodSpec.create("e3cm", "vgg19").build("cpu", pretrained=False)

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.geometry import warp_points
-from e3cm_bench.images import load_image
+from e3cm_bench.geometry.two_view import warp_points
+from e3cm_bench.ground.images import load_image
 from e3cm_bench.matching.pipeline import E3CMSettings
 from e3cm_bench.matching.subpixel import (ADAPTIVE_MIN_PASS, REFINE_MODES, local_contrast, refine_lk, refine_lk_auto,
                                           refine_matches, refine_ncc)
@@ -228,7 +228,7 @@ def test_e3cm_plus_takes_the_refine_setting_and_it_only_moves_or_drops_its_match
     from e3cm_bench import build_matcher, match_pair
     from e3cm_bench.matchers.e3cm_plus import E3CMPlusSettings
 
-    from e3cm_bench.method import MethodSpec
+    from e3cm_bench.method.spec import MethodSpec
 
     assert E3CMPlusSettings().refine == "lk-auto" and E3CMPlusSettings(refine="ncc").refine == "ncc"
     assert MethodSpec.create("e3cm-plus", "efficientnet_lite0").identity()["settings"] == {"refine": "lk-auto"}

@@ -12,12 +12,12 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.images import load_image
+from e3cm_bench.ground.images import load_image
 from e3cm_bench.matchers import get_matcher, matcher_names
 from e3cm_bench.matching.subpixel import REFINE_MODES, refine_lk, refine_matches
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import match_pair
-from e3cm_bench.synth.textures import procedural_scene, sample_photo
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.runner import match_pair
+from e3cm_bench.apps.synth.textures import procedural_scene, sample_photo
 
 # The built-in matchers that need no downloaded model (the peers, LoFTR and the like, do).
 BUILTIN = [name for name in matcher_names() if not get_matcher(name).model and not get_matcher(name).source]

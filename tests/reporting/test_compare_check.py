@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench import intervals
+from e3cm_bench.benchmarks import intervals
 from e3cm_bench.benchmarks import get_benchmark
 from helpers import invoke, one_line_error
 

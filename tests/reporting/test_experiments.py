@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.experiments import experiment_method, load_experiment
+from e3cm_bench.pipeline.experiments import experiment_method, load_experiment
 from e3cm_bench.paper import CONFIG_DIR as CONFIGS
 from helpers import invoke, one_line_error
 

@@ -15,12 +15,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench import intervals
+from e3cm_bench.benchmarks import intervals
 
 from e3cm_bench.reporting import tables as report
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.reporting.compare import compare_runs, parse_mma
-from e3cm_bench.experiments import write_table
+from e3cm_bench.pipeline.experiments import write_table
 from e3cm_bench.paper import PAPER_DIR
 from helpers import invoke, one_line_error
 

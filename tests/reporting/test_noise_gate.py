@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 import torch
 
-from e3cm_bench import estimators, geometry
-from e3cm_bench.perturb import Perturbation, perturb_correspondences, perturb_map, perturbed
+from e3cm_bench.geometry import estimators, two_view as geometry
+from e3cm_bench.stats.perturb import Perturbation, perturb_correspondences, perturb_map, perturbed
 from e3cm_bench.stats.noise import PairMove, count_gate, member_picks, metric_alpha, resampled_gate
 from helpers import flat, invoke, one_line_error
 
@@ -167,8 +167,8 @@ def test_a_baseline_with_a_repeated_row_is_refused(sift_demo, tmp_path):
 
 
 def _shift_keypoints(run: Path, by: float) -> None:
-    from e3cm_bench.cache import MatchCache
-    from e3cm_bench.matches import Matches
+    from e3cm_bench.storage.cache import MatchCache
+    from e3cm_bench.ground.matches import Matches
 
     cache = MatchCache(run / "matches.h5")
     for name in cache.names():

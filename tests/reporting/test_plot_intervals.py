@@ -10,7 +10,7 @@ from matplotlib.collections import PolyCollection
 
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.benchmarks.wxbs import threshold_curves_figure
-from e3cm_bench.reporting import plots
+from e3cm_bench.drawing import plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -11,11 +11,11 @@ import pytest
 import yaml
 from rich.console import Console
 
-from e3cm_bench.reporting import plots
+from e3cm_bench.drawing import plots
 
 from e3cm_bench.reporting import tables as report
-from e3cm_bench.files import write_csv
-from e3cm_bench.metrics import pose_error_curve
+from e3cm_bench.ground.files import write_csv
+from e3cm_bench.geometry.metrics import pose_error_curve
 from e3cm_bench.paper import PAPER_DIR
 
 PAPER_METHODS = [

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from e3cm_bench.datasets.megadepth import load_scene_info
-from e3cm_bench.run import launch
+from e3cm_bench.pipeline import launch
 from helpers import flat, invoke, one_line_error
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -51,7 +51,7 @@ def limit_kb(tmp_path_factory) -> int:
     the bounded commands stay far below it; what main did (6 GB and more) meets it."""
     if not Path("/proc/self/status").is_file():
         pytest.skip("reads VmSize from /proc (Linux)")
-    probe = "import re, e3cm_bench.cli, e3cm_bench.runner, cv2, h5py, torch\n" \
+    probe = "import re, e3cm_bench.cli, e3cm_bench.pipeline.runner, cv2, h5py, torch\n" \
             "print(re.search(r'VmSize:\\s+(\\d+)', open('/proc/self/status').read()).group(1))"
     done = subprocess.run([sys.executable, "-c", probe], env={**os.environ, "PYTHONPATH": str(ROOT)},
                           cwd=tmp_path_factory.mktemp("probe"), capture_output=True, text=True, check=True, timeout=300)

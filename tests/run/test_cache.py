@@ -6,8 +6,8 @@ import h5py
 import numpy as np
 import pytest
 
-from e3cm_bench.cache import BLOCK_PAIRS, MatchCache
-from e3cm_bench.matches import Matches
+from e3cm_bench.storage.cache import BLOCK_PAIRS, MatchCache
+from e3cm_bench.ground.matches import Matches
 
 
 def make_matches(n: int, seed: int = 0) -> Matches:

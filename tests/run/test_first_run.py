@@ -13,11 +13,11 @@ import pytest
 import yaml
 from rich.console import Console
 
-import e3cm_bench.backbones as backbones_module
-from e3cm_bench import files as files_module
-from e3cm_bench.files import FolderLock
-from e3cm_bench.matches import Matches
-from e3cm_bench.run import RunFolder
+import e3cm_bench.backbones.loading as backbones_module
+from e3cm_bench.ground import files as files_module
+from e3cm_bench.ground.files import FolderLock
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.storage import RunFolder
 from helpers import flat, invoke, one_line_error
 
 SMALL = ["--sequences", "v_boat", "--limit", "1", "--max-side", "240"]
@@ -116,7 +116,7 @@ def test_a_lock_taken_on_a_removed_file_is_taken_again(tmp_path, monkeypatch):
 def test_an_import_is_labelled_by_its_source_name(tmp_path, fmt, attribute, path, label):
     from types import SimpleNamespace
 
-    from e3cm_bench.imported import source_label
+    from e3cm_bench.pipeline.imported import source_label
 
     assert source_label(SimpleNamespace(format=fmt, **{attribute: tmp_path / path})) == label
 

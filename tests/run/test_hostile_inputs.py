@@ -19,12 +19,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.cache import MAX_PAIR_MATCHES, MatchCache
+from e3cm_bench.storage.cache import MAX_PAIR_MATCHES, MatchCache
 from e3cm_bench.datasets import megadepth
 from e3cm_bench.datasets.megadepth import load_scene_info
 from e3cm_bench.matchers import MatcherEntry, register, registry, unregister
 from e3cm_bench.matchers.guards import PairTimeout, PluginExit, describe_matcher, no_exit, pair_time_limit
-from e3cm_bench.matches import Matches, distinct
+from e3cm_bench.ground.matches import Matches, distinct
 from helpers import flat, invoke, one_line_error
 
 @pytest.fixture(scope="module")
@@ -470,7 +470,7 @@ def test_a_disk_with_no_room_for_one_pair_stops_before_the_first_write(boat, tmp
 
 def test_the_reports_room_counts_each_drawing_at_its_images_size(tmp_path):
     from e3cm_bench.datasets.base import Pair
-    from e3cm_bench.evaluate import PLOT_BYTES, report_bytes
+    from e3cm_bench.pipeline.evaluate import PLOT_BYTES, report_bytes
 
     per_pair = pd.DataFrame({"pair": [f"s/{i}" for i in range(100)], "n_matches": range(100)})
     tables = report_bytes(per_pair, {"n_pairs": 100}, [], [], [])

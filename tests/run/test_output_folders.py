@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench import files
+from e3cm_bench.ground import files
 from e3cm_bench.reporting.site import MARKER, script_json
 from helpers import invoke, one_line_error
 

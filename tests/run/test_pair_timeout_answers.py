@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from e3cm_bench.matches import Matches
-from e3cm_bench.run import RunFolder
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.storage import RunFolder
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[2]
 HOSTILE = '''
 import gc, os, pickle, socket, struct, sys
 import numpy as np
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 
 CALLS = os.environ["HOSTILE_CALLS"]
 

@@ -21,12 +21,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.guards import PairTimeout, StoppableWorker, pair_time_limit
 from e3cm_bench.matchers.user_module import USER_FILES_ENV
-from e3cm_bench.matches import Matches
-from e3cm_bench.run import FAILED_ATTR, RunFolder
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.storage import FAILED_ATTR, RunFolder
 from helpers import assert_same_arrays, flat, invoke, one_line_error
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,7 +64,7 @@ def command(args: list, cwd: Path, timeout: float, env: dict | None = None, limi
 HOSTILE = '''
 import os, signal, time
 import numpy as np
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 
 CALLS = os.environ["HOSTILE_CALLS"]   # one line per call, kept across the matcher's processes
 WRITES = os.environ["HOSTILE_WRITES"]  # what a forked grandchild writes while it lives
@@ -210,7 +210,7 @@ def test_a_plugin_whose_import_holds_the_interpreter_lock_is_given_up_on_in_time
 
 MINE = '''
 import numpy as np
-from e3cm_bench.matches import Matches
+from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers import MatcherEntry
 
 class Fixed:
@@ -273,7 +273,7 @@ def vm_kb_after_import(tmp_path: Path) -> int:
     """The address space of a process that has imported what the command imports to match."""
     # torch too: the command's matcher registry loads it before a SIFT run matches (the
     # command line itself no longer does), and the limit is meant to be met after the imports.
-    probe = "import re, e3cm_bench.cli, e3cm_bench.runner, cv2, h5py, torch\n" \
+    probe = "import re, e3cm_bench.cli, e3cm_bench.pipeline.runner, cv2, h5py, torch\n" \
             "print(re.search(r'VmSize:\\s+(\\d+)', open('/proc/self/status').read()).group(1))"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return int(subprocess.run([sys.executable, "-c", probe], env=env, cwd=tmp_path, capture_output=True, text=True,
@@ -323,7 +323,7 @@ def test_where_cuda_is_in_use_the_limit_runs_in_process_says_so_and_refuses_a_la
     import types
 
     from e3cm_bench.matchers import MatcherEntry, register, unregister
-    from e3cm_bench.run import stage
+    from e3cm_bench.pipeline import stage
 
     fake_torch = types.SimpleNamespace(cuda=types.SimpleNamespace(is_initialized=lambda: True))
     monkeypatch.setitem(sys.modules, "torch", fake_torch)

@@ -22,9 +22,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import e3cm_bench.cache as cache_module
-from e3cm_bench.cache import DiskFullError, MatchCache
-from e3cm_bench.matches import Matches
+import e3cm_bench.storage.cache as cache_module
+from e3cm_bench.storage.cache import DiskFullError, MatchCache
+from e3cm_bench.ground.matches import Matches
 from helpers import invoke, one_line_error
 
 
@@ -176,7 +176,7 @@ def test_workers_die_with_their_parent(tmp_path):
     """A parent killed with SIGKILL (no chance to clean up) takes its pool's workers with it."""
     code = """
 import os, time
-from e3cm_bench.run.launch import worker_pool
+from e3cm_bench.pipeline.launch import worker_pool
 pool = worker_pool(2)
 futures = [pool.submit(time.sleep, 120) for _ in range(2)]
 time.sleep(3)
@@ -363,7 +363,7 @@ def test_match_on_a_pair_too_large_for_memory_is_one_line(shared_data, tmp_path,
 
 
 def test_a_full_disk_while_the_reports_are_written_is_one_line_and_keeps_the_matches(shared_data, tmp_path, monkeypatch):
-    import e3cm_bench.evaluate as evaluate
+    import e3cm_bench.pipeline.evaluate as evaluate
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "run" / "mma.png"))

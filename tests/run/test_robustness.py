@@ -20,11 +20,11 @@ import pandas as pd
 import pytest
 import yaml
 
-import e3cm_bench.cache as cache_module
+import e3cm_bench.storage.cache as cache_module
 from e3cm_bench.benchmarks import EvalSettings
-from e3cm_bench.cache import MatchCache
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]
@@ -51,7 +51,7 @@ def cli(*args, **kwargs) -> subprocess.Popen:
 _PARK_AFTER_PAIRS = """
 import os, sys, threading, time
 from pathlib import Path
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 
 after, marker = int(sys.argv.pop(1)), Path(sys.argv.pop(1))
 store, stored = MatchCache.write, []
@@ -284,7 +284,7 @@ def test_missing_homography_and_empty_sequence_are_skipped(hpatches_copy, tmp_pa
 
 
 def test_an_image_that_fails_to_decode_mid_run_keeps_the_pairs_before_it(hpatches_copy, tmp_path, monkeypatch):
-    import e3cm_bench.images as images_module
+    import e3cm_bench.ground.images as images_module
 
     real = images_module.image_file_problem
     bad = hpatches_copy / "v_boat" / "4.ppm"
@@ -437,7 +437,7 @@ def test_an_undecodable_image_ahead_of_a_batch_is_met_at_its_own_pair(hpatches_c
     """--backbone-batch decodes the coming pairs to batch their images: a pair whose image
     cannot be decoded is left out of the batch, and its error (or, with --skip-bad, its
     skipping) comes at its own pair, as without batching."""
-    import e3cm_bench.images as images_module
+    import e3cm_bench.ground.images as images_module
 
     real = images_module.image_file_problem
     bad = hpatches_copy / "v_boat" / "4.ppm"

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.run import RunConfig, RunFolder, load_run_pairs
+from e3cm_bench.storage import RunConfig, RunFolder, load_run_pairs
 from helpers import invoke, one_line_error
 
 PACKAGE = Path(__file__).resolve().parents[2] / "e3cm_bench"
@@ -107,7 +107,7 @@ def test_without_dataset_load_the_dataset_block_gives_the_same_pairs(limited_run
 
 def test_every_reloader_gives_the_same_pairs(limited_run):
     from e3cm_bench.reporting.drawings import _dataset_pairs
-    from e3cm_bench.reporting.ensemble import _dataset_of
+    from e3cm_bench.gate.ensemble import _dataset_of
     from e3cm_bench.reporting.runs import load_run
 
     run = load_run(limited_run)

@@ -11,15 +11,16 @@ import pytest
 import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.cache import MatchCache
-from e3cm_bench.calibration.run import CalibrationSettings, run_calibration
-from e3cm_bench.imported import import_run
+from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.apps.calibration.run import CalibrationSettings, run_calibration
+from e3cm_bench.pipeline.imported import import_run
 from e3cm_bench.interchange import NpzSource
-from e3cm_bench.method import MethodSpec
-from e3cm_bench.reporting.ensemble import build_ensemble
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.gate.ensemble import build_ensemble
 from e3cm_bench.reporting.runs import load_run
-from e3cm_bench.run import RunFolder, driver
-from e3cm_bench.runner import run_benchmark
+from e3cm_bench.storage import RunFolder
+from e3cm_bench.pipeline import driver
+from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import invoke
 
 SEQUENCES = {"sequences": ["v_boat"]}

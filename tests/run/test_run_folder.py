@@ -14,12 +14,12 @@ import pytest
 import yaml
 
 from e3cm_bench.benchmarks import BENCHMARKS
-from e3cm_bench.cache import MatchCache
+from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.sources import default_sources
 from e3cm_bench.matchers import MatcherEntry, register, unregister
-from e3cm_bench.matches import Matches
-from e3cm_bench.run import FAILED_ATTR, RunConfig, RunFolder
-from e3cm_bench.run.stage import MatchOptions
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.storage import FAILED_ATTR, RunConfig, RunFolder
+from e3cm_bench.pipeline.stage import MatchOptions
 from helpers import flat, invoke, one_line_error
 
 SIFT = ("--matcher", "sift", "--max-side", 320)

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.run.shards import parse_shard, shard_slice
+from e3cm_bench.pipeline.shards import parse_shard, shard_slice
 from helpers import flat, invoke, one_line_error
 
 LITE = ["--backbone", "efficientnet_lite0"]

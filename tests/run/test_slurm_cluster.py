@@ -18,7 +18,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.run.folder import RunFolder
+from e3cm_bench.storage.folder import RunFolder
 from slurm_cluster import job_lines, slurm_cluster, wait_for  # noqa: F401 - slurm_cluster is a fixture
 
 # The tests that need the cluster: starting it (about 25 s) and its real arrays, cancels and time
@@ -95,7 +95,7 @@ def shard_config(out: Path, shard: str) -> dict:
 
 def test_a_shard_records_the_command_that_reruns_it():
     """Without a cluster: the launch options of the command line become --shard K/N."""
-    from e3cm_bench.run.shards import shard_command
+    from e3cm_bench.pipeline.shards import shard_command
 
     for argv in (["/venv/bin/e3cm-bench", "hpatches", "--out", "my runs", "--launcher", "slurm", "--shards", "4"],
                  ["/src/e3cm_bench/cli/__main__.py", "hpatches", "--out", "my runs", "--launcher=slurm", "--shards=4"],

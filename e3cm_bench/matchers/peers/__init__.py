@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..base import MatcherEntry
-from .weights import HubFile, HubModel
+from e3cm_bench.matchers.base import MatcherEntry
+from e3cm_bench.matchers.peers.weights import HubFile, HubModel
 
 LOFTR_WEIGHTS = ("outdoor", "indoor", "indoor_new")
 
@@ -93,20 +93,20 @@ class AlikedLightGlueSettings(LightGlueSettings):
 
 
 def _loftr(settings, **model):
-    from .loftr import LoFTRMatcher
+    from e3cm_bench.matchers.peers.loftr import LoFTRMatcher
 
     return LoFTRMatcher(settings, **model)
 
 
 def _superglue(settings, **model):
-    from .superglue import SuperGlueMatcher
+    from e3cm_bench.matchers.peers.superglue import SuperGlueMatcher
 
     return SuperGlueMatcher(settings, **model)
 
 
 def _lightglue(kind: str):
     def build(settings, **model):
-        from .lightglue import LightGlueMatcher
+        from e3cm_bench.matchers.peers.lightglue import LightGlueMatcher
 
         return LightGlueMatcher(kind, settings, **model)
 
@@ -126,8 +126,8 @@ def _lightglue_weights(kind: str):
         import kornia.feature as KF
         from kornia.core.download import hf_url
 
-        from .common import SUPERPOINT_REPO
-        from .lightglue import lightglue_file_name
+        from e3cm_bench.matchers.peers.common import SUPERPOINT_REPO
+        from e3cm_bench.matchers.peers.lightglue import lightglue_file_name
 
         if kind == "superpoint":
             extractor = HubModel(SUPERPOINT_REPO)
@@ -153,14 +153,14 @@ def _lightglue_extractor(kind: str):
 
 
 def _superglue_weights(settings: SuperGlueSettings) -> list:
-    from .superglue import SUPERGLUE_REPOS
+    from e3cm_bench.matchers.peers.superglue import SUPERGLUE_REPOS
 
     return [HubModel(SUPERGLUE_REPOS[settings.weights])]
 
 
 def _superpoint_weights(settings) -> list:
     """With --weights FILE (SuperGlue's release .pth), SuperPoint comes from transformers' cache."""
-    from .common import SUPERPOINT_REPO
+    from e3cm_bench.matchers.peers.common import SUPERPOINT_REPO
 
     return [HubModel(SUPERPOINT_REPO)]
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...matches import Matches
-from ..base import Matcher
-from .common import grey, numpy
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.peers.common import grey, numpy
 
 # kornia puts the pretrained models' output in the reference frame, where the centre of pixel
 # (x, y) is (x + 0.5, y + 0.5) (kornia.feature.LoFTR's docstring); ours has it at (x, y).

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...matches import Matches
-from ..base import Matcher
-from .common import SUPERPOINT_REPO, grey, numpy, superpoint_keypoints
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.peers.common import SUPERPOINT_REPO, grey, numpy, superpoint_keypoints
 
 SUPERGLUE_REPOS = {"outdoor": "magic-leap-community/superglue_outdoor",
                    "indoor": "magic-leap-community/superglue_indoor"}

@@ -1,0 +1,1 @@
+"""The applications built on the rest: the demo, stereo calibration, the synthetic scenes."""

@@ -1,0 +1,1 @@
+"""Getting the data: downloads, HTTP, safe unpacking, the data folder's record."""

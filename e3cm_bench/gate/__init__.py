@@ -1,0 +1,1 @@
+"""The regression gate: check against a baseline, tolerances, the noise gate and its ensemble."""

@@ -1,0 +1,204 @@
+"""The evaluate stage of a run: cached matches + ground truth -> per-pair rows, the summary,
+and the reports (CSVs, the run's plot, --viz drawings). Shared by the runner, merged shards
+and imported matches; it never matches."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+import pandas as pd
+from rich.console import Console
+
+from e3cm_bench.benchmarks import Benchmark, EvalSettings
+from e3cm_bench.benchmarks.base import DUPLICATES, with_duplicates
+from e3cm_bench.storage.cache import MatchCache, check_free_space
+from e3cm_bench.datasets.base import Pair
+from e3cm_bench.ground.files import CSV_FLOAT_FORMAT, write_csv
+from e3cm_bench.ground.images import load_image
+from e3cm_bench.benchmarks.intervals import metric_keys, summary_intervals
+from e3cm_bench.ground.matches import Matches, distinct
+from e3cm_bench.storage import FAILED_ATTR, RunFolder
+from e3cm_bench.drawing.matches import draw_matches, drawn_pairs, save_image
+
+
+def evaluate_stage(
+    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings, workdir: Path | None = None
+) -> tuple[pd.DataFrame, dict, list[tuple[str, str]]]:
+    """Every pair's row from its cached matches and ground truth, the summary of the rows, and
+    (pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair),
+    each pair read from the cache once.
+
+    The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
+    ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
+    """
+    rows, failures, read = [], [], []
+    for pair in pairs:
+        matches = cache.read(pair.name)
+        if benchmark.evaluates_set:  # scored together below, from every pair's matches
+            read.append(matches)
+        else:
+            rows.append(evaluate_pair(benchmark, pair, matches, ev))
+        if FAILED_ATTR in matches.info:
+            failures.append((pair.name, str(matches.info[FAILED_ATTR])))
+    set_numbers = {}
+    if benchmark.evaluates_set:
+        rows, set_numbers = benchmark.evaluate_set(pairs, read, ev, workdir)
+    if ev.repeats > 1:
+        summary = repeated_summary(benchmark, pairs, cache, ev, rows)
+    else:
+        summary = benchmark.summarize(rows, ev)
+        summary.update(summary_intervals(benchmark, rows, ev, summary=summary,
+                                         indexed=benchmark.interval_summary(rows, ev)))
+    summary.update(set_numbers)  # after the intervals: facts of the one set, not resampled
+    # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
+    return pd.DataFrame(rows, columns=with_duplicates(benchmark.row_columns(ev, rows))), summary, failures
+
+
+def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+    """The pair's row, each correspondence scored once, and how many repeats were set aside.
+
+    Every consumer of a run's per-pair numbers goes through here (and `drawn`), so that a
+    matcher cannot raise its MMA or precision by returning a correct match many times."""
+    kept, repeats = distinct(matches)
+    return {**benchmark.evaluate_pair(pair, kept, ev), DUPLICATES: repeats}
+
+
+def drawn(matches: Matches) -> Matches:
+    """The matches a drawing shows: the ones the evaluation scored (each correspondence once),
+    so that the drawing's count is the row's n_matches."""
+    return distinct(matches)[0]
+
+
+def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
+                     first: list[dict]) -> dict:
+    """--repeats K: the summary of each of K evaluations (seeds ev.seed + r; the first is
+    `first`, the run's own), their mean as the run's numbers, each metric's standard deviation
+    over the repeats (``<metric>_sd``), and the bootstrap interval over pairs of that mean.
+    per_pair.csv keeps the first repeat's rows."""
+    repeats = [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
+                          for pair in pairs] for r in range(1, ev.repeats)]
+    each = [benchmark.summarize(rows, ev) for rows in repeats]
+    keys = metric_keys(each[0])
+    summary = dict(each[0])
+    for key in keys:
+        values = np.array([s[key] for s in each], float)
+        summary[key] = float(np.mean(values))
+        summary[f"{key}_sd"] = float(np.std(values, ddof=1))
+    summary["repeats"] = ev.repeats
+    indexed = [benchmark.indexed_summary(rows, ev) for rows in repeats]
+
+    def mean_over_repeats(idx) -> dict:
+        picked = [f(idx) for f in indexed]
+        return {key: float(np.mean([p[key] for p in picked])) for key in keys}
+
+    summary.update(summary_intervals(benchmark, first, ev, summary=summary, indexed=mean_over_repeats))
+    return summary
+
+
+def write_reports(
+    benchmark: Benchmark, folder: RunFolder, label: str, per_pair: pd.DataFrame, summary: dict,
+    pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
+) -> None:
+    """per_pair.csv, summary.csv, the run's plot, and drawings of `viz` pairs spread over the run's
+    (viz.drawn_pairs)."""
+    write_csv(per_pair, folder.per_pair_path)
+    write_csv(pd.DataFrame([summary]), folder.summary_path)
+    benchmark.plot_run(label, summary, per_pair, folder.path)
+    for pair in drawn_pairs(pairs, viz):
+        matches = drawn(cache.read(pair.name))
+        canvas = draw_matches(
+            load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
+            correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
+        )
+        save_image(folder.drawing_path(pair.name), canvas)
+
+
+# The reports' room, checked before the first of them is written, follows what they hold: the
+# CSVs as write_csv renders them, a bound on the run's plot, and each drawing's canvas
+# uncompressed (PNG stores a photograph in fewer bytes, plus a filter byte per row and a header).
+PLOT_BYTES = 1 << 20     # the run's plot: the demo's are about 50 KiB each
+DRAWING_BYTES = 8 << 20  # a drawing of images whose sizes neither the cache nor their headers give
+PNG_HEADER_BYTES = 4096
+
+
+def report_bytes(per_pair: pd.DataFrame, summary: dict, skipped: list[tuple[str, str]],
+                 failures: list[tuple[str, str]], drawings: list[tuple[Pair, Matches]]) -> int:
+    """About how many bytes write_skipped, write_failures and write_reports will write."""
+    tables = [per_pair, pd.DataFrame([summary]), pd.DataFrame(skipped), pd.DataFrame(failures)]
+    need = sum(len(t.to_csv(index=False, float_format=CSV_FLOAT_FORMAT).encode()) for t in tables if len(t))
+    need += PLOT_BYTES
+    for pair, matches in drawings:
+        sizes = [matches.info.get(f"size{i}") for i in (0, 1)]
+        if any(size is None for size in sizes):
+            sizes = [_header_size(path) for path in (pair.image0, pair.image1)]
+        if any(size is None for size in sizes):
+            need += DRAWING_BYTES
+            continue
+        (w0, h0), (w1, h1) = ((int(v) for v in size) for size in sizes)
+        height = max(h0, h1)
+        need += height * ((w0 + w1) * 3 + 1) + PNG_HEADER_BYTES
+    return need
+
+
+def _header_size(path: Path) -> tuple[int, int] | None:
+    """(w, h) from an image file's header, without decoding it; None where PIL cannot tell."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError):
+        return None
+
+
+def evaluate_and_report(
+    benchmark: Benchmark, out: RunFolder | Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
+    ev: EvalSettings, viz: int, console: Console,
+) -> tuple[list[Pair], dict]:
+    """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
+    skipped ones; returns the pairs evaluated and the summary."""
+    folder = out if isinstance(out, RunFolder) else RunFolder(out)
+    out = folder.path
+    failed = {name for name, _ in skipped}
+    pairs = [p for p in pairs if p.name not in failed]
+    if not pairs:
+        raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
+    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out)
+    if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
+        summary["n_skipped"] = len(skipped)
+    if failures:  # scored as failures (no matches); the count says how many were the matcher's
+        summary["n_failed"] = len(failures)
+    repeats = int(per_pair[DUPLICATES].sum()) if len(per_pair) else 0
+    if repeats:
+        console.print(f"{repeats} repeated correspondence(s) in {int((per_pair[DUPLICATES] > 0).sum())} pair(s) "
+                      f"counted once (per_pair.csv: {DUPLICATES})", markup=False)
+    for note in benchmark.notes(pairs, per_pair, ev):
+        console.print(f"warning: {note}", markup=False, soft_wrap=True)
+    drawings = [(pair, cache.read(pair.name)) for pair in drawn_pairs(pairs, viz)]
+    check_free_space(out, report_bytes(per_pair, summary, skipped, failures, drawings), "the run's reports")
+    write_skipped(skipped, folder.skipped_path, console)
+    write_failures(failures, folder.failures_path, console)
+    write_reports(benchmark, folder, label, per_pair, summary, pairs, cache, ev, viz)
+    return pairs, summary
+
+
+def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) -> None:
+    """skipped.csv (pair, reason) when pairs were skipped; no stale file when none were."""
+    if not skipped:
+        path.unlink(missing_ok=True)
+        return
+    write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
+    console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
+
+
+def write_failures(failures: list[tuple[str, str]], path: Path, console: Console) -> None:
+    """failures.csv (pair, error) when the matcher failed on pairs; no stale file when it did not."""
+    if not failures:
+        path.unlink(missing_ok=True)
+        return
+    write_csv(pd.DataFrame(failures, columns=["pair", "error"]), path)
+    console.print(f"{len(failures)} pair(s) failed in the matcher and count as failures, listed in {path} "
+                  f"(first: {failures[0][1]})", markup=False)

@@ -1,0 +1,251 @@
+"""Paper experiments: paper/configs/*.yaml -> one run per method -> the paper-layout table and plots.
+
+An experiment config (YAML) names a benchmark, dataset options and a list of methods;
+`reproduce` runs every method into OUT/<label>/ (each run reuses its cached matches; the
+methods are matched together, pair by pair, so that each image's feature maps are computed
+once for all methods sharing a backbone) and writes the table and the comparison plots into
+OUT/.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from rich.console import Console
+from rich.markup import escape
+
+from e3cm_bench.reporting import tables as report
+from e3cm_bench.benchmarks import BENCHMARKS, Benchmark, get_benchmark
+from e3cm_bench.method.protocols import get_protocol
+from e3cm_bench.ground.files import absolute_paths, load_yaml, save_yaml
+from e3cm_bench.backbones.names import DEFAULT_BACKBONE
+from e3cm_bench.matchers import get_matcher
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.method.options import KINDS, config_keys
+from e3cm_bench.paper import resolve_config
+from e3cm_bench.storage import RunFolder
+from e3cm_bench.pipeline.runner import run_benchmark, run_methods
+
+EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
+# The keys of a config and the kind of each value (options.KINDS), made from the method options'
+# declarations (options.METHOD_OPTIONS: where a config takes each); the experiment's own besides.
+METHOD_TYPES = config_keys("method")
+EXPERIMENT_TYPES = {"name": "text", "benchmark": "text", "dataset": "mapping", **config_keys("experiment")}
+METHOD_KEYS = set(METHOD_TYPES)
+EXPERIMENT_KEYS = set(EXPERIMENT_TYPES) | {"methods"}
+
+
+def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = ()) -> None:
+    """A one-line ValueError naming the file and the first key whose value is not of its kind,
+    checked before anything reads it (a label of 123 used as a folder name, a max_side of "big"
+    compared with 0); `nullable` keys may also be null: the default."""
+    for key, kind in types.items():
+        if key not in values or values[key] is None and key in nullable:
+            continue
+        if not KINDS[kind].test(values[key]):
+            raise ValueError(f"{path}: {where}{key!r} must be {KINDS[kind].wanted}, got {values[key]!r}")
+
+
+def experiment_method(
+    entry: dict, experiment: dict, benchmark: Benchmark, backbone_override: str | None = None,
+    max_side_override: int | None = None, available: bool = True,
+) -> MethodSpec:
+    """The MethodSpec of one `methods:` entry of an experiment config.
+
+    The default label follows the method's own backbone and estimator; a backbone forced on
+    every deep method (reproduce --backbone) is appended in brackets.
+    """
+    matcher = entry["matcher"]
+    own_backbone = entry.get("backbone", experiment.get("backbone", DEFAULT_BACKBONE))
+    max_side = max_side_override if max_side_override is not None else entry.get("max_side", experiment.get("max_side"))
+    spec = benchmark.resolve_method(
+        matcher, protocol=experiment.get("protocol", "default"), backbone=backbone_override or own_backbone,
+        weights=entry.get("weights"), estimator=entry.get("estimator"), sampson_px=entry.get("sampson_px"),
+        ratio=entry.get("ratio"), max_side=max_side, seed=int(experiment.get("seed", 0)),
+        settings=entry.get("settings"), available=available,
+    )
+    deep = spec.backbone is not None
+    # The default label names the method's own backbone; a forced one is added in brackets.
+    label = entry.get("label") or replace(spec, backbone=own_backbone if spec.backbone else None).default_label()
+    if backbone_override and deep and backbone_override != own_backbone:
+        label = f"{label} [{backbone_override}]"
+    return spec.with_label(label)
+
+
+def load_experiment(path: Path) -> dict:
+    """Read and check an experiment config (paper/configs/*.yaml, or one of one's own)."""
+    config = load_yaml(path, what="experiment config")
+    unknown = set(config) - EXPERIMENT_KEYS
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has {', '.join(sorted(EXPERIMENT_KEYS))}")
+    if not isinstance(config.get("dataset") or {}, dict):
+        raise ValueError(f"{path}: 'dataset' must be a mapping of dataset options")
+    _check_types(path, "", config, EXPERIMENT_TYPES, nullable=("dataset",))
+    if config.get("benchmark") not in BENCHMARKS:
+        raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
+    benchmark = get_benchmark(config["benchmark"])
+    kinds = {o.name: o.kind for o in benchmark.command_options()}
+    _check_types(path, "dataset: ", config.get("dataset") or {}, kinds, nullable=tuple(kinds))
+    methods = config.get("methods")
+    if not isinstance(methods, list) or not methods:
+        raise ValueError(f"{path}: 'methods' must be a non-empty list")
+    labels = set()
+    for i, method in enumerate(methods):
+        if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
+            raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
+        _check_types(path, f"methods[{i}]: ", method, METHOD_TYPES, nullable=tuple(set(METHOD_TYPES) - {"matcher"}))
+        try:
+            get_matcher(method["matcher"], allow_import=True)
+        except ValueError as exc:
+            raise ValueError(f"{path}: methods[{i}]: {exc}") from None
+        unknown = set(method) - METHOD_KEYS
+        if unknown:
+            raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")
+        try:
+            spec = experiment_method(method, config, benchmark, available=False)
+        except ValueError as exc:
+            raise ValueError(f"{path}: methods[{i}]: {exc}") from None
+        label = spec.label
+        # The label names the run's folder under --out: '../x' or '/abs' would write outside it.
+        if spec.folder in ("", ".", "..") or any(c in spec.folder for c in "/\\\0"):
+            raise ValueError(f"{path}: methods[{i}]: label {label!r} is not a plain folder name "
+                             "(no '/', '\\', '..' or empty label); its run folder must lie inside --out")
+        if label in labels:
+            raise ValueError(f"{path}: two methods are labelled {label!r}")
+        labels.add(label)
+    unknown = set(config.get("dataset") or {}) - set(benchmark.option_names)
+    if unknown:
+        raise ValueError(f"{path}: dataset option(s) {', '.join(sorted(unknown))} do not apply to {benchmark.name}")
+    return config
+
+
+def reproduce(
+    config_path: Path | str,
+    root: Path,
+    out: Path,
+    backbone: str | None = None,
+    limit: int | None = None,
+    device: str = "cpu",
+    dataset_overrides: dict | None = None,
+    skip_bad: bool = False,
+    max_side: int | None = None,
+    compare: bool = True,
+    console: Console | None = None,
+    shard: tuple[int, int] | None = None,
+    only: list[str] | None = None,
+) -> tuple[Path, Path] | None:
+    """Run every method of an experiment config (or those labelled in `only`), then write its
+    table and plots. config_path: a YAML file, or a shipped config's name (``table1``; paper.config_names).
+
+    backbone: replaces the backbone of every deep method (e.g. efficientnet_lite0 offline);
+    the labels then say so. shard=(K, N): every method runs its K-th shard; the table is
+    written once every method's shards are merged. Returns the table's CSV and Markdown
+    paths (None while shards are missing).
+    """
+    console = console or Console()
+    config_path = resolve_config(config_path)
+    experiment = load_experiment(config_path)
+    benchmark = get_benchmark(experiment["benchmark"])
+    options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
+    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
+    protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
+    ev = benchmark.resolve_eval(experiment.get("protocol", "default"), seed=int(experiment.get("seed", 0)))
+    out = Path(out)
+    methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
+    save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
+    load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
+            "skip_bad": skip_bad}
+    console.print(protocol.line(benchmark.name), markup=False)
+    if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
+        console.rule(f"{experiment.get('name', config_path.stem)}: {', '.join(m.label for m in methods)}")
+        run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev, limit=limit,
+                    device=device, console=console)
+    else:
+        for method in methods:
+            console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
+            run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev,
+                          limit=limit, device=device, shard=shard, console=console)
+    run_dirs = [out / m.folder for m in methods]
+    if shard is not None and not all(RunFolder(d).is_run() and "shards" in RunFolder(d).read_config() for d in run_dirs):
+        console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
+                      f"(or: e3cm-bench merge {out})", markup=False)
+        return None
+    return _table_and_report(run_dirs, out, compare, console)
+
+
+def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, backbone: str | None,
+             max_side: int | None, only: list[str] | None) -> list[MethodSpec]:
+    """The methods reproduce runs: every one of the config's, or those labelled in `only`."""
+    entries = experiment["methods"]
+    if only:
+        # the config's own labels (a backbone forced on the deep methods adds to them later)
+        labels = [experiment_method(e, experiment, benchmark, None, max_side, available=False).label for e in entries]
+        unknown = sorted(set(only) - set(labels))
+        if unknown:
+            raise ValueError(f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}")
+        entries = [e for e, label in zip(entries, labels) if label in only]
+    methods = []
+    for entry in entries:
+        try:
+            methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
+        except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
+            raise ValueError(f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)") from None
+    return methods
+
+
+def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None) -> tuple[Path, Path]:
+    """OUT/table.{csv,md} with its plots, and the report site OUT/report/ for the same runs."""
+    from e3cm_bench.reporting.site import write_report
+
+    written = write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
+    write_report(run_dirs, Path(out) / "report", console=console, compare=compare)
+    return written
+
+
+def merge_experiment(out: Path, compare: bool = True, console: Console | None = None) -> tuple[Path, Path]:
+    """Merge every method of a sharded reproduce in OUT, then write its table."""
+    from e3cm_bench.pipeline.shards import merge_run
+
+    experiment = load_yaml(Path(out) / EXPERIMENT_COPY)
+    run_dirs = [Path(out) / folder for folder in experiment["runs"]]
+    for run_dir in run_dirs:
+        merge_run(run_dir, console=console)
+    return _table_and_report(run_dirs, Path(out), compare, console)
+
+
+def write_table(
+    run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
+    console: Console | None = None, paper_rows: bool = True, latex: bool = False,
+) -> tuple[Path, Path]:
+    """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
+
+    compare=False drops the measured - paper difference columns: on data other than the
+    paper's full benchmark (e.g. the shared samples) the differences mean nothing.
+    Every measured number carries its bootstrap interval (``<col>_lo``, ``<col>_hi`` in the CSV;
+    ``0.73 [0.47, 0.93]`` in the Markdown and on the terminal); a difference whose paper number
+    lies outside that interval says so.
+    paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
+    latex=True also writes ``<out_path>.tex``, a booktabs table for a paper (reporting/latex.py).
+    """
+    console = console or Console()
+    runs = [report.load_run(d) for d in run_dirs]
+    benchmark = runs[0].benchmark
+    if reference is None and benchmark.paper_table and paper_rows:
+        candidate = report.paper_reference(benchmark)
+        reference = candidate if candidate.is_file() else None
+        if reference is None:
+            console.print(f"[yellow]note[/]: {escape(str(candidate))} not found; the table has no paper reference rows")
+    table = report.paper_table(runs, benchmark, reference)
+    if not compare:
+        table = report.without_comparison(table)
+    csv_path, md_path = report.write_paper_table(table, out_path)
+    written = [csv_path, md_path]
+    if latex:
+        from e3cm_bench.reporting.latex import write_latex_table
+
+        written.append(write_latex_table(table, out_path))
+    benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
+    report.print_paper_table(table, console)  # the Markdown's cells, within the terminal's width
+    console.print(f"table: {', '.join(str(p) for p in written)}", markup=False)
+    return csv_path, md_path

@@ -1,0 +1,224 @@
+"""A run's config.yaml: its one writer and its one reader (`RunConfig`), and the one way to
+load a run's pairs again (`load_run_pairs`).
+
+Every module that needs what a run recorded (its benchmark, its identity, its evaluation
+settings, where its pairs came from, the environment its numbers were made in, a shard's
+command) asks a `RunConfig` read with `RunConfig.read`; none reads the YAML itself, so that
+what a missing, broken or incomplete record means is decided here, in one line naming the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import NamedTuple
+
+from e3cm_bench.ground.files import load_yaml, package_versions, run_environment
+
+# What a dataset_load's options may hold besides a benchmark's own options: --sample's draw
+# (Benchmark.load_dataset takes them among the options).
+SAMPLE_OPTIONS = ("sample", "sample_seed")
+
+
+@dataclass
+class RunConfig:
+    """What config.yaml records, in the order it is written. The optional blocks are written
+    only where they apply (a shard, a merge, an import, a calibration)."""
+
+    benchmark: str | None
+    method: str
+    identity: dict | None
+    matcher: dict | None = None
+    device: str | None = None
+    dataset: dict = field(default_factory=dict)
+    evaluation: dict | None = None
+    # Where the numbers were made (this stage's); not part of the identity that decides whether
+    # a folder may be resumed.
+    versions: dict = field(default_factory=package_versions)
+    environment: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+    feature_reuse: dict | None = None
+    dataset_load: dict | None = None
+    shard: dict | None = None
+    shards: dict | None = None
+    imported_files: dict | None = None
+    pixel_origin_check: dict | None = None  # an import's half-pixel check (interchange.pixels)
+    # a calibration's (calibration/run.py): the sequence and its settings
+    command: str | None = None
+    sequence: dict | None = None
+    calibration: dict | None = None
+    # Not written: the file a record was read from (named in errors), and the record as read,
+    # keys of older e3cm-bench versions included (RunFolder.previous reads `match_options`).
+    path: Path | None = field(default=None, repr=False, compare=False)
+    record: dict | None = field(default=None, repr=False, compare=False)
+
+    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "pixel_origin_check", "command",
+                "sequence", "calibration")
+    UNWRITTEN = ("path", "record")
+
+    def as_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.UNWRITTEN
+                and not (f.name in self.OPTIONAL and getattr(self, f.name) is None)}
+
+    @classmethod
+    def from_dict(cls, record: dict, path: str | Path | None = None) -> RunConfig:
+        """The record as a RunConfig (keys it does not know kept in `record` only)."""
+        names = {f.name for f in fields(cls)} - set(cls.UNWRITTEN)
+        values = {k: v for k, v in record.items() if k in names}
+        for name, default in (("benchmark", None), ("method", ""), ("identity", None)):
+            values.setdefault(name, default)
+        for name in ("dataset", "environment", "timing", "versions"):
+            if not isinstance(values.get(name), dict):
+                values[name] = {}  # absent (an older record; not this package's versions), or no mapping
+        return cls(**values, path=None if path is None else Path(path), record=dict(record))
+
+    # ---- reading
+    @classmethod
+    def read(cls, path: str | Path) -> RunConfig:
+        """A run's config.yaml (or that of the run folder `path`); ValueError in one line naming
+        the file when it is missing, unreadable, not a mapping, or records no ``benchmark``."""
+        path = _config_file(path)
+        record = load_yaml(path, what="config.yaml (every run folder needs one)")
+        if "benchmark" not in record:
+            raise ValueError(f"{path}: records no benchmark (not a run's config.yaml, or cut short)")
+        return cls.from_dict(record, path)
+
+    @classmethod
+    def read_if_present(cls, path: str | Path) -> RunConfig | None:
+        """`read`, or None where the file does not exist (a new folder); its other problems are errors."""
+        path = _config_file(path)
+        if not path.exists():
+            return None
+        record = load_yaml(path, what="run record (config.yaml)")
+        return cls.from_dict(record, path)
+
+    @property
+    def where(self) -> str:
+        """The file named in errors."""
+        return str(self.path) if self.path is not None else "the run's config.yaml"
+
+    # ---- what readers need
+    def benchmark_object(self):
+        """The registered Benchmark the run was made on; ValueError naming the file if none is."""
+        from e3cm_bench.benchmarks import get_benchmark
+
+        try:
+            return get_benchmark(self.benchmark)
+        except ValueError as error:
+            raise ValueError(f"{self.where}: {error}") from None
+
+    def eval_settings(self, seed: int | None = None):
+        """The EvalSettings the run was evaluated with (its `evaluation` block; defaults for fields
+        an older record lacks), with another RANSAC seed if given; ValueError naming the file when
+        the block cannot be read as settings."""
+        from e3cm_bench.benchmarks import EvalSettings
+
+        try:
+            return EvalSettings.from_record(self.evaluation, **({} if seed is None else {"seed": int(seed)}))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{self.where}: its evaluation settings cannot be read ({error})") from None
+
+    @property
+    def protocol(self) -> str:
+        """The evaluation protocol's name (benchmarks/protocols.py)."""
+        return (self.evaluation or {}).get("protocol", "default")
+
+    def method_spec(self):
+        """The MethodSpec that made the run, from its identity. Only built-in matchers: a record is
+        data and never names code to run (a plugin's run is not rebuilt)."""
+        from e3cm_bench.method.spec import MethodSpec
+
+        identity = dict(self.identity or {})
+        if not identity or identity.get("plugin"):
+            raise ValueError(f"{self.where}: only a built-in matcher's run can be rebuilt (no identity, or a plugin's)")
+        return MethodSpec.from_identity(identity, label=str(self.method or ""))
+
+    @property
+    def limit(self) -> int | None:
+        """The run's --limit (the first N pairs of its dataset), or None."""
+        limit = self.dataset.get("limit")
+        return limit if isinstance(limit, int) and not isinstance(limit, bool) and limit > 0 else None
+
+    def dataset_source(self, benchmark=None) -> tuple[str, bool, dict]:
+        """(root, skip_bad, options) that load the run's dataset again: its ``dataset_load`` (absolute
+        paths, the options as given, --sample's draw among them), else its ``dataset`` block (runs
+        made before dataset_load, or from a dataset object). Options that do not apply to the
+        benchmark are dropped."""
+        benchmark = benchmark or self.benchmark_object()
+        load, dataset = self.dataset_load, self.dataset
+        if isinstance(load, dict) and load.get("root"):
+            root, skip_bad, options = load["root"], bool(load.get("skip_bad")), dict(load.get("options") or {})
+        elif dataset.get("root"):
+            root, skip_bad = dataset["root"], bool(dataset.get("skip_bad"))
+            options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
+            sample = dataset.get("sample")
+            if isinstance(sample, dict) and sample.get("n"):
+                options.update(sample=sample["n"], sample_seed=sample.get("seed", 0))
+        else:
+            raise ValueError(f"{self.where}: records no dataset root; the run's pairs cannot be loaded again")
+        allowed = set(benchmark.option_names) | set(SAMPLE_OPTIONS)
+        return str(root), skip_bad, {k: v for k, v in options.items() if k in allowed}
+
+    @property
+    def shard_key(self) -> tuple[int, int] | None:
+        """(K, N) of a shard's record, else None."""
+        shard = self.shard
+        return (int(shard["index"]), int(shard["count"])) if isinstance(shard, dict) else None
+
+    @property
+    def shard_complete(self) -> bool:
+        return bool((self.shard or {}).get("complete"))
+
+    @property
+    def rerun_command(self) -> str | None:
+        """The command line that runs (or resumes) this shard, as it recorded it (shards.shard_command)."""
+        return (self.shard or {}).get("command") or None
+
+    # ---- writing
+    @staticmethod
+    def dataset_load_of(root: str | Path, skip_bad: bool, options: dict | None) -> dict:
+        """How to load the same pairs again (merging shards and exporting need the ground truth),
+        with absolute paths: a merge may run in another working directory (a SLURM task's)."""
+        from e3cm_bench.ground.files import absolute_paths
+
+        return {"root": str(Path(root).resolve()), "skip_bad": skip_bad,
+                "options": {k: absolute_paths(v) for k, v in (options or {}).items() if v is not None}}
+
+    @staticmethod
+    def environment_now() -> dict:
+        """The environment block: CPU dispatch, threads, allocator (files.run_environment)."""
+        from e3cm_bench.ground.devices import allocator
+
+        return {**run_environment(), "allocator": allocator()}
+
+
+def _config_file(path: str | Path) -> Path:
+    """The config.yaml at `path`, or that of the run folder `path` (RunFolder names the file)."""
+    from e3cm_bench.storage.folder import RunFolder
+
+    path = Path(path)
+    return RunFolder(path).config_path if path.is_dir() else path
+
+
+class RunPairs(NamedTuple):
+    """A run's pairs loaded again, with their ground truth: `load_run_pairs`."""
+
+    benchmark: object  # the Benchmark
+    config: RunConfig
+    root: Path  # the dataset's root, resolved
+    pairs: list  # the run's pairs, in its order (its --limit applied)
+    options: dict  # the dataset options they were loaded with
+    dataset: object  # the PairList they come from (before the limit), for a rerun of the run
+
+
+def load_run_pairs(run: str | Path | RunConfig) -> RunPairs:
+    """The pairs of a run (a run folder, its config.yaml, or its RunConfig) as the run loaded them:
+    the dataset it recorded (`RunConfig.dataset_source`: dataset_load, else the dataset block),
+    with the bad-pair policy it recorded (skip_bad), cut to its --limit. Merging shards,
+    exporting, the noise ensemble and the report's drawings all reload pairs here."""
+    config = run if isinstance(run, RunConfig) else RunConfig.read(run)
+    benchmark = config.benchmark_object()
+    root, skip_bad, options = config.dataset_source(benchmark)
+    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, limit=config.limit, **options)
+    pairs = list(dataset)[:config.limit] if config.limit else list(dataset)
+    return RunPairs(benchmark, config, Path(root).resolve(), pairs, options, dataset)
