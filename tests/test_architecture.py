@@ -15,8 +15,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
-# The run folder's owners: run/folder.py (the layout) and run/config.py (config.yaml's record), where it is.
-OWNERS = tuple(p for p in (PACKAGE / "run" / "folder.py", PACKAGE / "run" / "config.py") if p.is_file())
+# The run folder's owners: storage/folder.py (the layout) and storage/record.py (config.yaml's record).
+OWNERS = (PACKAGE / "storage" / "folder.py", PACKAGE / "storage" / "record.py")
 RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skipped.csv", "failures.csv", ".feature-spill")
 
 
@@ -95,7 +95,7 @@ def test_only_the_run_folder_names_its_files():
             in_prose += found[1]
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
-    assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and run/config.py:\n" + "\n".join(as_path)
+    assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and storage/record.py:\n" + "\n".join(as_path)
 
 
 def test_the_owner_names_them():
@@ -126,9 +126,9 @@ def test_the_import_graph_reads_relative_and_lazy_imports():
     the module x, a function's import only with module_level=False."""
     shape = code_shape()
     eager, every = shape.import_graph(), shape.import_graph(module_level=False)
-    assert "e3cm_bench.storage" in eager["e3cm_bench.pipeline.runner"]  # from .run import RunFolder: the package
+    assert "e3cm_bench.storage" in eager["e3cm_bench.pipeline.runner"]  # from e3cm_bench.storage import RunFolder: the package
     assert "e3cm_bench.storage.folder" in eager["e3cm_bench.storage"]
-    assert "e3cm_bench.geometry.metrics" in eager["e3cm_bench.benchmarks.base"]  # from .. import metrics
+    assert "e3cm_bench.geometry.metrics" in eager["e3cm_bench.benchmarks.base"]  # from e3cm_bench.geometry import metrics
     lazy = {(a, b) for a in every for b in every[a] - eager[a]}  # torch-free start, cycles: imports in functions
     assert len(lazy) > 50 and all(every[a] >= eager[a] for a in eager)
 
@@ -157,22 +157,12 @@ def test_importing_a_submodule_runs_its_packages(tmp_path):
 # function-level import only defers a heavy or rarely used import (torch, scipy, matplotlib;
 # docs/cli.md "Startup").
 CYCLE_CLOSING = {
-    # backbones -> matchers.base runs matchers/__init__ -> registry; builtin -> e3cm -> backbones
-    ("e3cm_bench.matchers.registry", "e3cm_bench.backbones.loading"),
-    ("e3cm_bench.matchers.registry", "e3cm_bench.matchers.builtin"),
     # run/folder.py imports RunConfig at its top; RunConfig asks RunFolder for config.yaml's path
     ("e3cm_bench.storage.record", "e3cm_bench.storage.folder"),
 }
 # The function-level imports on a cycle of the graph of every import: modules that reach each
 # other only inside functions (at run time, each after the other has loaded), and CYCLE_CLOSING.
-IN_CYCLES = CYCLE_CLOSING | {
-    ("e3cm_bench.benchmarks.base", "e3cm_bench.method.spec"),  # resolve_method -> build_method
-    ("e3cm_bench.method.spec", "e3cm_bench.benchmarks"),  # build_method reads the benchmark's protocol
-    ("e3cm_bench.storage.record", "e3cm_bench.benchmarks"),  # RunConfig's benchmark and evaluation settings
-    ("e3cm_bench.storage.record", "e3cm_bench.method.spec"),  # RunConfig.method_spec
-    ("e3cm_bench.benchmarks.homography", "e3cm_bench.interchange"),  # pixel origins, through interchange/__init__
-    ("e3cm_bench.interchange", "e3cm_bench.pipeline.export"),  # export_run on first use (its __getattr__)
-}
+IN_CYCLES = CYCLE_CLOSING
 
 
 def test_function_level_imports_close_exactly_the_listed_cycles():
@@ -357,15 +347,15 @@ def test_every_method_is_made_through_the_one_path():
     """A MethodSpec comes from a user's options through method.build_method only (the benchmark
     commands, `reproduce`, `match`, `calibrate` and `demo` alike, Benchmark.resolve_method being
     build_method with a benchmark); from a run's record through MethodSpec.from_identity."""
-    made = [where for where in callers("MethodSpec.create") if not where.startswith("method.py:")]
-    direct = [where for where in callers("MethodSpec") if not where.startswith("method.py:")]
+    made = [where for where in callers("MethodSpec.create") if not where.startswith("method/spec.py:")]
+    direct = [where for where in callers("MethodSpec") if not where.startswith("method/spec.py:")]
     assert not made and not direct, f"MethodSpec.create outside method.py: {made}; MethodSpec(...) outside method.py: {direct}"
     assert callers("MethodSpec.create") and callers("build_method")
 
 
 # The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol;
 # COLMAP's own geometric verification, an sfm protocol setting (--verification colmap).
-OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "benchmarks/protocols.py"},
+OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "method/protocols.py"},
                   "colmap": {"sfm/protocol.py", "sfm/reconstruct.py"}}
 
 
@@ -399,8 +389,8 @@ def test_every_kind_of_run_opens_its_folder_through_the_driver():
     run/driver.py's open_run (the noise ensemble's draws are benchmark runs); nothing else takes
     a run folder's lock but the driver and export (which reads a run under it, never writes one)."""
     openers = {where.split(":")[0] for where in callers("driver.open_run")}
-    assert openers >= {"runner.py", "imported.py", "calibration/run.py", "run/shards.py"}, sorted(openers)
+    assert openers >= {"pipeline/runner.py", "pipeline/imported.py", "apps/calibration/run.py", "pipeline/shards.py"}, sorted(openers)
     locks = [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
              for line, name in _calls(path) if name.endswith(".lock") and name != "RunFolder.lock"]
-    others = [where for where in locks if not where.startswith(("run/driver.py:", "interchange/export.py:"))]
+    others = [where for where in locks if not where.startswith(("pipeline/driver.py:", "pipeline/export.py:"))]
     assert locks and not others, f"a run folder locked outside the driver: {others}"

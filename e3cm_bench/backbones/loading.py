@@ -28,7 +28,7 @@ from e3cm_bench.backbones.specs import MAX_LEVELS, SPECS, BackboneSpec
 from e3cm_bench.stats.perturb import perturb_map
 from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.ground.suggest import did_you_mean
-from e3cm_bench.matchers.base import MEMORY_FORMATS, PRECISIONS
+from e3cm_bench.backbones.names import MEMORY_FORMATS, PRECISIONS
 
 
 class BackboneError(RuntimeError):

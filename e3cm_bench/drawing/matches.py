@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from e3cm_bench.ground.matches import Matches, distinct
+
 
 GREEN = (0, 255, 0)  # RGB: the canvas is RGB, and cv2 drawing just writes channel values
 RED = (255, 0, 0)
@@ -14,6 +16,12 @@ BANNER_TEXT = (255, 255, 255)
 BANNER_BACKGROUND = (0, 0, 0)
 SUBPIXEL_BITS = 4  # cv2 drawing "shift": endpoints at 1/16 pixel instead of rounded
 VIZ_SEED = 0  # the drawn pairs are the same in every run of a dataset, so drawings can be compared
+
+
+def drawn(matches: Matches) -> Matches:
+    """The matches a drawing shows: the ones the evaluation scored (each correspondence once),
+    so that the drawing's count is the row's n_matches."""
+    return distinct(matches)[0]
 
 
 def drawn_pairs(pairs: list, n: int) -> list:

@@ -58,6 +58,7 @@ from e3cm_bench.gate.tolerances import (
     parse_tolerances,
     read_tolerance_file,
 )
+from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.storage import RunFolder
 
 KEYS = ("benchmark", "method")
@@ -356,7 +357,7 @@ def gate(runs: list[Run], baseline_path: Path, check_alpha: float = CHECK_ALPHA
         plans.append((run, values, measured))
     alpha = metric_alpha(sum(len(values) for _, values, _ in plans), check_alpha)
     verdicts = [noise_gate.gate_run(run, models[(run.benchmark.name, run.label)], values, measured, alpha,
-                                    run.run_config.eval_settings()) for run, values, measured in plans]
+                                    evaluation_of(run.run_config)) for run, values, measured in plans]
     return verdicts, others, alpha
 
 

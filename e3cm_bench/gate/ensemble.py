@@ -21,7 +21,8 @@ from rich.console import Console
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.ground.files import read_csv, read_keyed_csv, write_csv
 from e3cm_bench.stats.perturb import Perturbation, perturbed
-from e3cm_bench.storage import RunConfig, RunFolder, load_run_pairs
+from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs, method_of
+from e3cm_bench.storage import RunConfig, RunFolder
 
 NOISE_SUFFIX = ".noise.csv"
 DRAW_COLUMNS = ("benchmark", "method", "pair", "draw")
@@ -34,7 +35,7 @@ def noise_path(baseline: Path) -> Path:
 
 
 def _dataset_of(config: RunConfig):
-    """The run's pairs as it loaded them (run.config.load_run_pairs: dataset_load, skip_bad and
+    """The run's pairs as it loaded them (benchmarks.records.load_run_pairs: dataset_load, skip_bad and
     --limit as recorded), as a pair list the runner takes."""
     loaded = load_run_pairs(config)
     dataset = copy.copy(loaded.dataset)  # a PairList cut to the run's pairs, as PairList.sampled cuts one
@@ -64,9 +65,9 @@ def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Co
             t = time.perf_counter()
             # the method each run recorded (RunConfig.method_spec: built-in matchers only; a plugin's
             # run is checked without an ensemble, since a record never names code to run)
-            folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, run.run_config.method_spec())
+            folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, method_of(run.run_config))
                        for run in members]
-            ev = members[0].run_config.eval_settings(seed=draw if reseed else None)
+            ev = evaluation_of(members[0].run_config, seed=draw if reseed else None)
             with perturbed(Perturbation(draw=draw)):
                 run_methods(benchmark, folders, dataset, ev=ev, console=Console(quiet=True))
             for run, (folder, _) in zip(members, folders):

@@ -13,15 +13,6 @@ from e3cm_bench.interchange.pixels import ORIGINS, from_origin, half_pixel_check
 from e3cm_bench.interchange.registry import Format, formats, get_format, register
 
 __all__ = ["MAX_POINTS", "ORIGINS", "ColmapSource", "Format", "GluefactorySource", "HlocSource", "MissingPair",
-           "NpzSource", "export_run", "formats", "from_origin", "get_format", "half_pixel_check", "hloc_pair_key",
+           "NpzSource", "formats", "from_origin", "get_format", "half_pixel_check", "hloc_pair_key",
            "register", "to_origin"]
 
-
-def __getattr__(name: str):
-    # export_run on first use: export.py loads the run machinery (and h5py), which the command
-    # line, reading the format registry through this package, does not need to answer
-    if name == "export_run":
-        from e3cm_bench.pipeline.export import export_run
-
-        return export_run
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -4,6 +4,7 @@ size, checked before a byte of it is read; an HDF5 file, that it holds all its d
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import numpy as np
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
-from e3cm_bench.ground.matches import MatchesError
+from e3cm_bench.ground.matches import Matches, MatchesError
 
 # The most keypoints (or match entries) one array may declare. A dense matcher at 4K gives a
 # few million; a file declaring more is refused before it is read, so that a 37 KB file that
@@ -144,3 +145,21 @@ def matched(index: np.ndarray, n1: int, what: str) -> np.ndarray:
 def _kind(dtype: np.dtype) -> str:
     return {"c": "complex numbers", "b": "booleans", "S": "bytes", "U": "text", "O": "objects",
             "f": "floats", "V": "records"}.get(dtype.kind, str(dtype))
+
+
+@dataclass
+class ExportItem:
+    """One pair on its way out: its names in the dataset, its images' sizes (w, h) and
+    intrinsics where the benchmark has them, its matches, and (colmap) the geometry the
+    evaluation estimates from them."""
+
+    name: str
+    pair: object
+    name0: str
+    name1: str
+    size0: tuple[int, int]
+    size1: tuple[int, int]
+    matches: Matches
+    K0: np.ndarray | None = None
+    K1: np.ndarray | None = None
+    geometry: dict | None = None

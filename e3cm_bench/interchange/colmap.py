@@ -99,7 +99,7 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
 
 def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None,
                  cameras=None) -> list[Path]:
-    """database.db in OUT for export.ExportItem's: one keypoint list per image, a location that
+    """database.db in OUT for base.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
     mapper can chain pairs into tracks of more than two views. merged: merge_keypoints' result
     for these items, where the caller has it. cameras: image name -> the pycolmap.Camera it gets

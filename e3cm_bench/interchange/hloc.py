@@ -192,7 +192,7 @@ def hloc_layout(items, merged) -> tuple[dict[str, np.ndarray], list[tuple[np.nda
 
 
 def write_hloc(out: Path, items, origin: str = HlocFormat.origin, merge_px: float = 0.0, layout=None) -> list[Path]:
-    """features.h5, matches.h5 and pairs.txt in OUT for export.ExportItem's (module docstring).
+    """features.h5, matches.h5 and pairs.txt in OUT for base.ExportItem's (module docstring).
     layout: hloc_layout's result where the caller has it, else made here with merge_px."""
     import h5py
     from e3cm_bench.ground.files import write_atomically

@@ -44,7 +44,7 @@ class Format:
         raise NotImplementedError
 
     def write(self, out: Path, items: list, origin: str, job) -> list[Path]:
-        """Write export.ExportItem's into OUT in `origin`; job: export.ExportJob (the run's
+        """Write base.ExportItem's into OUT in `origin`; job: export.ExportJob (the run's
         benchmark, root, options, merge_px and merged keypoints). Returns the files written."""
         raise NotImplementedError
 

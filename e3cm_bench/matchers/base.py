@@ -14,11 +14,7 @@ import numpy as np
 
 from e3cm_bench.ground.matches import Matches
 
-# The network's input channel order, and its precision (fp32 exact; bf16 on CPUs with
-# AVX-512 BF16 / AMX and recent GPUs, fp16 on GPUs: autocast).
-CHANNEL_ORDERS = ("rgb", "bgr")
-PRECISIONS = ("fp32", "bf16", "fp16")
-MEMORY_FORMATS = ("auto", "nchw", "channels_last")
+from e3cm_bench.backbones.names import CHANNEL_ORDERS, MEMORY_FORMATS, PRECISIONS
 
 
 class Matcher:

@@ -21,7 +21,7 @@ from e3cm_bench.ground.images import load_image
 from e3cm_bench.benchmarks.intervals import metric_keys, summary_intervals
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.storage import FAILED_ATTR, RunFolder
-from e3cm_bench.drawing.matches import draw_matches, drawn_pairs, save_image
+from e3cm_bench.drawing.matches import draw_matches, drawn, drawn_pairs, save_image
 
 
 def evaluate_stage(
@@ -64,12 +64,6 @@ def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSe
     matcher cannot raise its MMA or precision by returning a correct match many times."""
     kept, repeats = distinct(matches)
     return {**benchmark.evaluate_pair(pair, kept, ev), DUPLICATES: repeats}
-
-
-def drawn(matches: Matches) -> Matches:
-    """The matches a drawing shows: the ones the evaluation scored (each correspondence once),
-    so that the drawing's count is the row's n_matches."""
-    return distinct(matches)[0]
 
 
 def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,

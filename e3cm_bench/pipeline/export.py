@@ -1,6 +1,6 @@
 """A run's matches out to another tool: ``export_run(RUN, FORMAT, OUT)``.
 
-The run's pairs are loaded again as the run loaded them (run.config.load_run_pairs: its
+The run's pairs are loaded again as the run loaded them (benchmarks.records.load_run_pairs: its
 config.yaml's dataset_load, else its dataset block, its skip_bad and --limit); every pair of the run
 with matches in its cache is written (pairs it skipped have none), in the run's pair order.
 COLMAP and hloc get one keypoint list per image (tracks.py; ``merge_px`` merges within a
@@ -18,30 +18,13 @@ import numpy as np
 from rich.console import Console
 
 from e3cm_bench.ground.files import writable_folder
-from e3cm_bench.storage import RunFolder, load_run_pairs
+from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+from e3cm_bench.storage import RunFolder
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.ground.matches import Matches, distinct
-from e3cm_bench.interchange.base import image_name
+from e3cm_bench.interchange.base import ExportItem, image_name
 from e3cm_bench.interchange.pixels import check_origin
 from e3cm_bench.interchange.registry import formats, get_format
-
-
-@dataclass
-class ExportItem:
-    """One pair on its way out: its names in the dataset, its images' sizes (w, h) and
-    intrinsics where the benchmark has them, its matches, and (colmap) the geometry the
-    evaluation estimates from them."""
-
-    name: str
-    pair: object
-    name0: str
-    name1: str
-    size0: tuple[int, int]
-    size1: tuple[int, int]
-    matches: Matches
-    K0: np.ndarray | None = None
-    K1: np.ndarray | None = None
-    geometry: dict | None = None
 
 
 def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
@@ -151,7 +134,7 @@ def _eval_settings(fmt, config):
     geometry (so that the stored inliers are the ones the evaluation found); the format's library
     checked first."""
     fmt.check_available()  # before any work: one line if an extra is not installed
-    return config.eval_settings() if fmt.stores_geometry else None
+    return evaluation_of(config) if fmt.stores_geometry else None
 
 
 def _items(run_dir: Path, benchmark, root: Path, pairs: list, ev) -> list[ExportItem]:

@@ -21,7 +21,8 @@ import pandas as pd
 from rich.console import Console
 
 from e3cm_bench.pipeline import driver
-from e3cm_bench.storage.record import RunConfig, load_run_pairs
+from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+from e3cm_bench.storage.record import RunConfig
 from e3cm_bench.storage.folder import RunFolder
 
 # The most shards one run may have: a merge lists every one of them (E3CM_SHARDS=1000000000
@@ -181,7 +182,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
             shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
         )
         _, summary = driver.finish_run(
-            benchmark, folder, config, pairs, skipped, cache, loaded.config.eval_settings(), viz, console,
+            benchmark, folder, config, pairs, skipped, cache, evaluation_of(loaded.config), viz, console,
             lambda done: f"{benchmark.name} - {first['method']} ({done} pairs, {n} shards merged) -> {out}",
             count_evaluated=True)
     return pd.DataFrame([summary])

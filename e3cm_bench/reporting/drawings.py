@@ -1,6 +1,6 @@
 """The report's match drawings: which pairs are drawn (those most methods fail, then an even
 sample of the rest) and each run's drawing of them, from its cached matches, coloured by the
-ground truth of its own pairs (loaded again as the run loaded them: run.config.load_run_pairs).
+ground truth of its own pairs (loaded again as the run loaded them: benchmarks.records.load_run_pairs).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from e3cm_bench.storage import load_run_pairs
+from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
 from e3cm_bench.reporting.runs import Run
 
 N_WORST = 8          # pairs drawn because most methods fail there
@@ -53,16 +53,15 @@ def draw_pairs(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) 
     truth of the run's own dataset (recorded in its config.yaml) when it can be loaded."""
     import cv2
 
-    from e3cm_bench.pipeline.evaluate import drawn
     from e3cm_bench.ground.images import load_image
-    from e3cm_bench.drawing.matches import draw_matches, save_image
+    from e3cm_bench.drawing.matches import draw_matches, drawn, save_image
 
     drawings: dict[str, dict[int, str]] = {name: {} for name in chosen}
     for k, run in enumerate(runs):
         cache = run.folder.cache()
         cached = set(cache.names())
         pairs = _dataset_pairs(run, notes)
-        ev = run.run_config.eval_settings()
+        ev = evaluation_of(run.run_config)
         for name in chosen:
             if name not in cached or name not in pairs:
                 continue

@@ -17,6 +17,7 @@ import pandas as pd
 from e3cm_bench.benchmarks import intervals
 from e3cm_bench.benchmarks import Benchmark
 from e3cm_bench.ground.files import read_csv, read_keyed_csv
+from e3cm_bench.benchmarks.records import benchmark_of, evaluation_of
 from e3cm_bench.storage import RunConfig, RunFolder
 
 
@@ -82,7 +83,7 @@ def load_run(run_dir: str | Path) -> Run:
     folder = RunFolder(run_dir)
     run_dir = folder.path
     config = RunConfig.read(folder.config_path)
-    benchmark = config.benchmark_object()
+    benchmark = benchmark_of(config)
     summary = _read_summary(folder.summary_path, benchmark)
     per_pair_path = folder.per_pair_path
     per_pair = _read_per_pair(per_pair_path, benchmark) if per_pair_path.is_file() else pd.DataFrame()
@@ -114,7 +115,7 @@ def eval_settings_of(run: Run):
     """The EvalSettings a run was evaluated with (its config.yaml's evaluation block; defaults for
     fields it lacks); None when the block cannot be read as settings."""
     try:
-        return run.run_config.eval_settings()
+        return evaluation_of(run.run_config)
     except ValueError:
         return None
 

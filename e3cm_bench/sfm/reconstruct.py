@@ -214,9 +214,8 @@ def geometry(pair, matches, ev) -> dict | None:
     """The evaluation's own relative pose on these matches and its inliers (export's rule, with
     the pose benchmarks' RANSAC threshold)."""
     from e3cm_bench.benchmarks.pose import PoseBenchmark
-    from e3cm_bench.pipeline.export import estimate_geometry
 
-    return estimate_geometry(PoseBenchmark, pair, matches, ev)
+    return PoseBenchmark.two_view_geometry(pair, matches, ev)
 
 
 def image_size(pair, matches, side: int) -> tuple[int, int]:
@@ -237,7 +236,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     (repeat_share, track_length_database, merge_displacement_px)."""
     from e3cm_bench.interchange import tracks
     from e3cm_bench.interchange.colmap import write_colmap
-    from e3cm_bench.pipeline.export import ExportItem
+    from e3cm_bench.interchange.base import ExportItem
     from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, Protocol
 
     protocol = protocol or Protocol(merge="exact").resolved(True)

@@ -96,7 +96,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
     returns the reconstruction and each pair's number of verified matches."""
     from e3cm_bench.interchange.colmap import pycolmap_module, write_colmap
-    from e3cm_bench.pipeline.export import ExportItem
+    from e3cm_bench.interchange.base import ExportItem
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)

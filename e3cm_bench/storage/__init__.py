@@ -3,6 +3,6 @@ the one writer and reader of config.yaml) and the match cache (MatchCache). Impo
 ground floor: what a run folder holds is read here, what runs into it is the pipeline's."""
 
 from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
-from e3cm_bench.storage.record import RunConfig, RunPairs, load_run_pairs
+from e3cm_bench.storage.record import RunConfig
 
-__all__ = ["FAILED_ATTR", "RunConfig", "RunFolder", "RunPairs", "load_run_pairs"]
+__all__ = ["FAILED_ATTR", "RunConfig", "RunFolder"]

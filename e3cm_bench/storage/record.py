@@ -1,5 +1,6 @@
-"""A run's config.yaml: its one writer and its one reader (`RunConfig`), and the one way to
-load a run's pairs again (`load_run_pairs`).
+"""A run's config.yaml: its one writer and its one reader (`RunConfig`), a plain record that
+imports only the ground floor (what it rebuilds, a benchmark, its settings, a method, the
+run's pairs, is benchmarks/records.py's).
 
 Every module that needs what a run recorded (its benchmark, its identity, its evaluation
 settings, where its pairs came from, the environment its numbers were made in, a shard's
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import NamedTuple
 
 from e3cm_bench.ground.files import load_yaml, package_versions, run_environment
 
@@ -98,66 +98,16 @@ class RunConfig:
         return str(self.path) if self.path is not None else "the run's config.yaml"
 
     # ---- what readers need
-    def benchmark_object(self):
-        """The registered Benchmark the run was made on; ValueError naming the file if none is."""
-        from e3cm_bench.benchmarks import get_benchmark
-
-        try:
-            return get_benchmark(self.benchmark)
-        except ValueError as error:
-            raise ValueError(f"{self.where}: {error}") from None
-
-    def eval_settings(self, seed: int | None = None):
-        """The EvalSettings the run was evaluated with (its `evaluation` block; defaults for fields
-        an older record lacks), with another RANSAC seed if given; ValueError naming the file when
-        the block cannot be read as settings."""
-        from e3cm_bench.benchmarks import EvalSettings
-
-        try:
-            return EvalSettings.from_record(self.evaluation, **({} if seed is None else {"seed": int(seed)}))
-        except (TypeError, ValueError) as error:
-            raise ValueError(f"{self.where}: its evaluation settings cannot be read ({error})") from None
-
     @property
     def protocol(self) -> str:
         """The evaluation protocol's name (benchmarks/protocols.py)."""
         return (self.evaluation or {}).get("protocol", "default")
-
-    def method_spec(self):
-        """The MethodSpec that made the run, from its identity. Only built-in matchers: a record is
-        data and never names code to run (a plugin's run is not rebuilt)."""
-        from e3cm_bench.method.spec import MethodSpec
-
-        identity = dict(self.identity or {})
-        if not identity or identity.get("plugin"):
-            raise ValueError(f"{self.where}: only a built-in matcher's run can be rebuilt (no identity, or a plugin's)")
-        return MethodSpec.from_identity(identity, label=str(self.method or ""))
 
     @property
     def limit(self) -> int | None:
         """The run's --limit (the first N pairs of its dataset), or None."""
         limit = self.dataset.get("limit")
         return limit if isinstance(limit, int) and not isinstance(limit, bool) and limit > 0 else None
-
-    def dataset_source(self, benchmark=None) -> tuple[str, bool, dict]:
-        """(root, skip_bad, options) that load the run's dataset again: its ``dataset_load`` (absolute
-        paths, the options as given, --sample's draw among them), else its ``dataset`` block (runs
-        made before dataset_load, or from a dataset object). Options that do not apply to the
-        benchmark are dropped."""
-        benchmark = benchmark or self.benchmark_object()
-        load, dataset = self.dataset_load, self.dataset
-        if isinstance(load, dict) and load.get("root"):
-            root, skip_bad, options = load["root"], bool(load.get("skip_bad")), dict(load.get("options") or {})
-        elif dataset.get("root"):
-            root, skip_bad = dataset["root"], bool(dataset.get("skip_bad"))
-            options = {k: dataset[k] for k in benchmark.option_names if dataset.get(k) is not None}
-            sample = dataset.get("sample")
-            if isinstance(sample, dict) and sample.get("n"):
-                options.update(sample=sample["n"], sample_seed=sample.get("seed", 0))
-        else:
-            raise ValueError(f"{self.where}: records no dataset root; the run's pairs cannot be loaded again")
-        allowed = set(benchmark.option_names) | set(SAMPLE_OPTIONS)
-        return str(root), skip_bad, {k: v for k, v in options.items() if k in allowed}
 
     @property
     def shard_key(self) -> tuple[int, int] | None:
@@ -198,27 +148,3 @@ def _config_file(path: str | Path) -> Path:
 
     path = Path(path)
     return RunFolder(path).config_path if path.is_dir() else path
-
-
-class RunPairs(NamedTuple):
-    """A run's pairs loaded again, with their ground truth: `load_run_pairs`."""
-
-    benchmark: object  # the Benchmark
-    config: RunConfig
-    root: Path  # the dataset's root, resolved
-    pairs: list  # the run's pairs, in its order (its --limit applied)
-    options: dict  # the dataset options they were loaded with
-    dataset: object  # the PairList they come from (before the limit), for a rerun of the run
-
-
-def load_run_pairs(run: str | Path | RunConfig) -> RunPairs:
-    """The pairs of a run (a run folder, its config.yaml, or its RunConfig) as the run loaded them:
-    the dataset it recorded (`RunConfig.dataset_source`: dataset_load, else the dataset block),
-    with the bad-pair policy it recorded (skip_bad), cut to its --limit. Merging shards,
-    exporting, the noise ensemble and the report's drawings all reload pairs here."""
-    config = run if isinstance(run, RunConfig) else RunConfig.read(run)
-    benchmark = config.benchmark_object()
-    root, skip_bad, options = config.dataset_source(benchmark)
-    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, limit=config.limit, **options)
-    pairs = list(dataset)[:config.limit] if config.limit else list(dataset)
-    return RunPairs(benchmark, config, Path(root).resolve(), pairs, options, dataset)

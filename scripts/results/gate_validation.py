@@ -22,6 +22,7 @@ import pandas as pd
 from e3cm_bench.gate import noise_gate
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.storage.cache import MatchCache
+from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.gate.check import baseline_metrics, read_baseline
 from e3cm_bench.gate.ensemble import noise_path, read_noise
 from e3cm_bench.pipeline.evaluate import evaluate_pair
@@ -35,7 +36,7 @@ SHIFTS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 
 def summarized(run: Run, per_pair: pd.DataFrame) -> Run:
     """run with per_pair as its pairs and the summary they give."""
-    ev = run.run_config.eval_settings()
+    ev = evaluation_of(run.run_config)
     summary = run.benchmark.summarize(per_pair.to_dict("records"), ev)
     return replace(run, per_pair=per_pair, summary=summary)
 
@@ -54,7 +55,7 @@ def verdicts(runs: list[Run], baseline: Path, models: dict | None = None, alpha:
         key = (run.benchmark.name, run.label)
         values = {m: float(rows[key][m]) for m in metrics}
         out.append(noise_gate.gate_run(run, models[key], values, baseline_metrics(run), alpha,
-                                       run.run_config.eval_settings(), n_samples=2000))
+                                       evaluation_of(run.run_config), n_samples=2000))
     return out
 
 
@@ -117,7 +118,7 @@ def other_aggregates(name: str, table: Path, demo: Path, baseline: Path, set_nam
 def degraded(run: Run, pairs, change) -> Run:
     """run re-evaluated from its cached matches after change(matches, pair) -> matches."""
     cache = MatchCache(run.dir / "matches.h5")
-    ev = run.run_config.eval_settings()
+    ev = evaluation_of(run.run_config)
     rows = [evaluate_pair(run.benchmark, pair, change(cache.read(pair.name), pair), ev) for pair in pairs]
     return summarized(run, pd.DataFrame(rows, columns=run.benchmark.pair_columns(ev)))
 

@@ -13,7 +13,7 @@ import pytest
 
 from e3cm_bench.geometry.two_view import rotation_angle_deg
 from e3cm_bench.interchange import HlocSource
-from e3cm_bench.pipeline.export import ExportItem
+from e3cm_bench.interchange.base import ExportItem
 from e3cm_bench.interchange.hloc import ORDER_KEY, write_hloc
 from e3cm_bench.ground.matches import Matches, MatchesError
 from helpers import invoke

@@ -336,7 +336,7 @@ def test_merge_px_is_recorded_and_refused_where_it_means_nothing(kitti_run, tmp_
                    for name, extra in (("exact", ()), ("near", ("--merge-px", "2"))))
     assert exact.exit_code == near.exit_code == 0
     assert "(exact repeats merged)" in flat(exact.output) and "points within 2 px merged" in flat(near.output)
-    from e3cm_bench.interchange import export_run
+    from e3cm_bench.pipeline.export import export_run
 
     found = export_run(out, "hloc", tmp_path / "again", merge_px=2.0)
     assert found["merge_px"] == 2.0 and found["n_keypoints_merged"] > 0 and found["mean_track_length"] >= 2

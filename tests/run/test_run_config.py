@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.storage import RunConfig, RunFolder, load_run_pairs
+from e3cm_bench.benchmarks.records import dataset_source, evaluation_of, load_run_pairs
+from e3cm_bench.storage import RunConfig, RunFolder
 from helpers import invoke, one_line_error
 
 PACKAGE = Path(__file__).resolve().parents[2] / "e3cm_bench"
@@ -63,10 +64,10 @@ def test_an_unreadable_evaluation_block_is_named(tmp_path):
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump({"benchmark": "hpatches", "method": "x", "evaluation": "fast"}))
     with pytest.raises(ValueError) as error:
-        RunConfig.read(path).eval_settings()
+        evaluation_of(RunConfig.read(path))
     assert str(error.value).startswith(f"{path}: its evaluation settings cannot be read")
     path.write_text(yaml.safe_dump({"benchmark": "hpatches", "method": "x", "evaluation": {"seed": 4, "newer": 1}}))
-    assert RunConfig.read(path).eval_settings(seed=9).seed == 9  # a key of a newer record is ignored
+    assert evaluation_of(RunConfig.read(path), seed=9).seed == 9  # a key of a newer record is ignored
 
 
 # --------------------------------------------------------------------------- one reload of a run's pairs
@@ -94,7 +95,7 @@ def test_the_reload_gives_the_run_s_pairs(limited_run):
     names = [p.name for p in loaded.pairs]
     assert names == _run_pair_names(limited_run) and len(names) == 7
     assert {n.split("/")[0] for n in names} <= {"v_boat", "i_leuven"}
-    assert loaded.config.limit == 7 and loaded.options["sequences"] and loaded.config.dataset_source()[1] is True
+    assert loaded.config.limit == 7 and loaded.options["sequences"] and dataset_source(loaded.config)[1] is True
     assert all(p.H is not None for p in loaded.pairs)  # with their ground truth
 
 
