@@ -15,6 +15,8 @@ from pathlib import Path
 
 from e3cm_bench.ground.files import load_yaml, package_versions, run_environment
 
+# The record's file in a run folder (RunFolder.config_path names it from here).
+CONFIG_FILE = "config.yaml"
 # What a dataset_load's options may hold besides a benchmark's own options: --sample's draw
 # (Benchmark.load_dataset takes them among the options).
 SAMPLE_OPTIONS = ("sample", "sample_seed")
@@ -143,8 +145,6 @@ class RunConfig:
 
 
 def _config_file(path: str | Path) -> Path:
-    """The config.yaml at `path`, or that of the run folder `path` (RunFolder names the file)."""
-    from e3cm_bench.storage.folder import RunFolder
-
+    """The config.yaml at `path`, or that of the run folder `path`."""
     path = Path(path)
-    return RunFolder(path).config_path if path.is_dir() else path
+    return path / CONFIG_FILE if path.is_dir() else path
