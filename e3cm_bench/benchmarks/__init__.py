@@ -28,13 +28,23 @@ def register(benchmark: Benchmark) -> Benchmark:
     return benchmark
 
 
+# Modules of this package that define no benchmark (the base classes, a run's intervals, what a
+# record rebuilds), and the benchmark modules that live with their own package: the multi-view
+# benchmark is sfm's (it sits above this package, so it is found by name, as a plugin would be).
+NOT_BENCHMARKS = ("base", "intervals", "records")
+ELSEWHERE = {"sfm": "e3cm_bench.sfm.benchmark"}
+
+
 def _discover() -> None:
-    """Register the BENCHMARKS of every module of this package, in the modules' name order
-    after the three of the paper (the order `e3cm-bench --help` lists their commands in)."""
-    names = sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+    """Register the BENCHMARKS of every module of this package (and ELSEWHERE's), in the modules'
+    name order after the three of the paper (the order `e3cm-bench --help` lists their commands in)."""
+    modules = {m.name: f"{__name__}.{m.name}" for m in pkgutil.iter_modules(__path__)
+               if not m.name.startswith("_") and m.name not in NOT_BENCHMARKS}
+    modules.update(ELSEWHERE)
+    names = sorted(modules)
     first = [n for n in ("homography", "pose") if n in names]
     for name in first + [n for n in names if n not in first]:
-        module = importlib.import_module(f"{__name__}.{name}")
+        module = importlib.import_module(modules[name])
         for benchmark in getattr(module, "BENCHMARKS", ()):
             BENCHMARKS.setdefault(benchmark.name, benchmark)
 

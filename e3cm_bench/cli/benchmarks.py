@@ -67,6 +67,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     from e3cm_bench.storage.folder import RunFolder
     from e3cm_bench.pipeline.shards import parse_shard, shard_dir
     from e3cm_bench.pipeline.stage import MatchOptions
+    from e3cm_bench.pipeline.request import RunRequest
     from e3cm_bench.pipeline.runner import run_benchmark
 
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
@@ -89,16 +90,16 @@ def run_command(bench: Benchmark, given: dict) -> None:
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
         dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
     console.print(get_protocol(protocol, bench.name).line(bench.name), markup=False)
-    run = dict(benchmark=bench.name, out=o.out, method=method, root=root, dataset_options=dataset_options,
-               skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options)
+    request = RunRequest(bench.name, o.out, method, root=root, dataset_options=dataset_options, skip_bad=o.skip_bad,
+                         ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options, device=o.device,
+                         eval_only=o.eval_only, shard=parse_shard(o.shard) if o.shard else None)
     if o.workers or o.devices:
         devices = scale.device_list(o.device)
-        run_shards(run, len(devices), devices=devices, console=console)
+        run_shards(request, len(devices), devices=devices, console=console)
     elif o.launcher == "slurm":
-        run_shards(run, o.shards, devices=[o.device], launcher="slurm", console=console)
+        run_shards(request, o.shards, devices=[o.device], launcher="slurm", console=console)
     else:
-        run_benchmark(**run, eval_only=o.eval_only, device=o.device, shard=parse_shard(o.shard) if o.shard else None,
-                      console=console)
+        run_benchmark(request, console=console)
 
 
 def check_run_flags(o: SimpleNamespace) -> None:

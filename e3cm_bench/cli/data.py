@@ -78,6 +78,7 @@ def import_matches(
 ) -> None:
     """Evaluate matches made by another tool: writes a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs, plots)."""
     from e3cm_bench.pipeline.imported import import_run
+    from e3cm_bench.pipeline.request import RunRequest
     from e3cm_bench.data.download import find_root
     from e3cm_bench.storage import RunConfig
 
@@ -103,8 +104,9 @@ def import_matches(
     from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
-        import_run(bench, dataset, root, out, source, ev=ev, label=label, skip_bad=skip_bad, overwrite=overwrite,
-                   viz=viz, console=console, limit=limit, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+        request = RunRequest(bench, out, root=root, dataset=dataset, skip_bad=skip_bad, ev=ev, limit=limit,
+                             overwrite=overwrite, viz=viz, dataset_load=RunConfig.dataset_load_of(root, skip_bad, options))
+        import_run(request, source, label=label, console=console)
 
 
 def _as_declared(bench, name: str, value):

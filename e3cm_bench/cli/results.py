@@ -12,7 +12,7 @@ from rich.text import Text
 from e3cm_bench.apps.demo import METHODS as DEMO_METHODS
 from e3cm_bench.paper import config_names, resolve_config
 from e3cm_bench.stats.noise import CHECK_ALPHA
-from e3cm_bench.cli.common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt
+from e3cm_bench.cli.common import app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt, PairTimeoutOpt
 
 
 @app.command()
@@ -91,11 +91,14 @@ def reproduce(
     methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers).")] = None,
     launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
+    pair_timeout: PairTimeoutOpt = None,
     plot_format: PlotFormatOpt = "png",
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     from e3cm_bench.data.download import find_root
-    from e3cm_bench.pipeline.experiments import reproduce as reproduce_experiment
+    from e3cm_bench.pipeline.experiments import load_experiment, reproduce as reproduce_experiment
+    from e3cm_bench.pipeline.request import RunRequest
+    from e3cm_bench.pipeline.stage import MatchOptions
     from e3cm_bench.drawing.formats import check_plot_format, plots_as
     from e3cm_bench.pipeline.shards import parse_shard
     from e3cm_bench.pipeline.launch import check_launcher, check_slurm, run_experiment_shards
@@ -107,20 +110,19 @@ def reproduce(
     config = resolve_config(config)
     overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
     if root is None:
-        from e3cm_bench.pipeline.experiments import load_experiment
-
         root = find_root(load_experiment(config)["benchmark"], None)
-    run = dict(config_path=config, root=root, out=out, backbone=backbone, limit=limit, device=device,
-               dataset_overrides=overrides, skip_bad=skip_bad, max_side=max_side, compare=compare,
-               only=methods.split(",") if methods else None)
+    request = RunRequest(load_experiment(config)["benchmark"], out, root=root, dataset_options=overrides,
+                         skip_bad=skip_bad, limit=limit, device=device, shard=parse_shard(shard) if shard else None,
+                         options=MatchOptions(pair_timeout=pair_timeout))
+    choices = dict(backbone=backbone, max_side=max_side, compare=compare, only=methods.split(",") if methods else None)
     with plots_as(plot_format):
         if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
             if shard or not shards:
                 raise ValueError("--launcher slurm needs --shards N (and no --shard)")
             check_slurm(shards)
-            run_experiment_shards(run, shards, console=console)
+            run_experiment_shards(config, request, choices, shards, console=console)
         else:
-            reproduce_experiment(**run, console=console, shard=parse_shard(shard) if shard else None)
+            reproduce_experiment(config, request, console=console, **choices)
 
 
 @app.command()

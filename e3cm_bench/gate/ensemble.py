@@ -63,7 +63,7 @@ def build_ensemble(runs: Sequence, draws: Sequence[int], work: Path, console: Co
         dataset = _dataset_of(members[0].run_config)
         for draw in draws:
             t = time.perf_counter()
-            # the method each run recorded (RunConfig.method_spec: built-in matchers only; a plugin's
+            # the method each run recorded (records.method_of: built-in matchers only; a plugin's
             # run is checked without an ensemble, since a record never names code to run)
             folders = [(work / bench_name / f"draw-{draw:03d}" / run.dir.name, method_of(run.run_config))
                        for run in members]

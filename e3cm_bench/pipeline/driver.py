@@ -1,27 +1,33 @@
-"""The one run driver: every kind of run (a benchmark run, an import, a calibration, a merge of
-shards, the noise ensemble's reruns) goes open -> produce matches -> evaluate -> finish here.
+"""The one run pipeline: every kind of run (a benchmark run, an import, a merge of shards, a
+calibration; the noise ensemble's draws are benchmark runs) goes through `run_pipeline`:
 
-- open (`open_run`): lock the folder before anything in it is read or written, clear it on
-  --overwrite, make sure it exists. Whether its matches may be kept (the identity check) is
-  RunFolder's (RunFolder.previous, check_resolved, check_imported, check_frames, check_shards).
-- produce matches: the caller's hook (the match stage, an import source, shards' caches).
-- evaluate and finish (`finish_run`): the per-pair evaluation and, where the benchmark scores
-  the whole set, the set's (evaluate.evaluate_stage), the CSVs and plots, then config.yaml's
-  record and the printed summary.
+1. open: lock the folder before anything in it is read or written, clear it on --overwrite,
+   then the kind's `open` hook: the identity check against the folder's previous record
+   (RunFolder.previous and its checks), the pairs still to match, the new record.
+2. record: config.yaml written (the folder is claimed and described before any model loads).
+3. produce matches: the kind's `produce` hook, once for all the runs of that kind (the match
+   stage matches several methods' pairs in one pass; an import reads a source; a merge reads
+   the shards' caches).
+4. evaluate: the kind's `evaluate` hook (PairRun's: the per-pair evaluation, the set's where
+   the benchmark scores it, the CSVs and plots; a calibration's: its windows).
+5. finish: the record again (with what the stages counted), and the printed summary.
 
-Like glue-factory's evaluation pipeline, one driver holds the order of the steps and the kinds
-of run differ only in how their matches are made.
+Like glue-factory's EvalPipeline, one driver holds the order of the steps; the kinds of run
+are small hook objects that differ only in how they open, make their matches and score them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
 
 from rich.console import Console
 
-from e3cm_bench.storage.record import RunConfig
-from e3cm_bench.storage.folder import RunFolder
+from e3cm_bench.benchmarks import Benchmark, EvalSettings
+from e3cm_bench.pipeline.evaluate import evaluate_and_report
+from e3cm_bench.reporting.tables import print_summary
+from e3cm_bench.storage import RunConfig, RunFolder
 
 
 @contextmanager
@@ -34,21 +40,78 @@ def open_run(folder: RunFolder, overwrite: bool = False) -> Iterator[RunFolder]:
         yield folder
 
 
-def finish_run(benchmark, folder: RunFolder, config: RunConfig, pairs: list, skipped: list, cache, ev, viz: int,
-               console: Console, title: Callable[[int], str], count_evaluated: bool = False) -> tuple[list, dict]:
-    """Evaluate the matches in `cache` (per pair, and per set where the benchmark has one),
-    write the CSVs and the config record, print the summary under `title(n_pairs_evaluated)`;
-    returns the pairs evaluated and the summary. count_evaluated: record how many pairs were
-    evaluated (a merge's record is made from its shards', which counted their own)."""
-    from e3cm_bench.pipeline.evaluate import evaluate_and_report
-    from e3cm_bench.reporting.tables import print_summary
+class RunHook:
+    """A kind of run as the pipeline drives it. A subclass sets `folder` and `overwrite`, makes
+    `config` in `open`, and overrides the steps that differ from these defaults."""
 
-    pairs, summary = evaluate_and_report(benchmark, folder, config.method, pairs, skipped, cache, ev, viz, console)
-    if count_evaluated:
-        config.dataset["n_pairs_evaluated"] = len(pairs)
-    config.dataset["n_skipped"] = len(skipped)
-    if config.shard is not None:
-        config.shard["complete"] = True  # written before the merge check (shards.merge_when_complete)
-    folder.write_config(config)
-    print_summary(summary, title(len(pairs)), console=console)
-    return pairs, summary
+    folder: RunFolder
+    overwrite: bool = False
+    config: RunConfig
+
+    def open(self, console: Console) -> None:
+        """The identity check and the new record (self.config), the folder held."""
+        raise NotImplementedError
+
+    def record(self) -> None:
+        """config.yaml before the matches are made."""
+        self.folder.write_config(self.config)
+
+    @classmethod
+    def produce(cls, runs: Sequence[RunHook], console: Console) -> None:
+        """Make the matches the runs of this kind lack (one call for all of them)."""
+
+    def evaluate(self, console: Console) -> dict | None:
+        """Score the matches and write the run's tables; returns the summary to print (or None)."""
+        raise NotImplementedError
+
+    def title(self, summary: dict) -> str:
+        return str(self.folder.path)
+
+
+def run_pipeline(runs: Sequence[RunHook], console: Console) -> list[dict | None]:
+    """Every run through open -> record -> produce -> evaluate -> finish; each run's summary."""
+    with ExitStack() as locks:
+        for run in runs:
+            locks.enter_context(open_run(run.folder, run.overwrite))
+            run.open(console)
+            run.record()
+        kinds: dict[type, list[RunHook]] = {}
+        for run in runs:
+            kinds.setdefault(type(run), []).append(run)
+        for kind, group in kinds.items():
+            kind.produce(group, console)
+        return [finish_run(run, run.evaluate(console), console) for run in runs]
+
+
+def finish_run(run: RunHook, summary: dict | None, console: Console) -> dict | None:
+    if run.config.shard is not None:
+        run.config.shard["complete"] = True  # written before the merge check (shards.merge_when_complete)
+    run.folder.write_config(run.config)
+    if summary is not None:
+        print_summary(summary, run.title(summary), console=console)
+    return summary
+
+
+@dataclass
+class PairRun(RunHook):
+    """A run scored pair by pair against a benchmark's ground truth: a benchmark run, an import,
+    a merge. `pairs`, `skipped` and `cache` are filled by its `open` hook."""
+
+    benchmark: Benchmark
+    folder: RunFolder
+    ev: EvalSettings
+    viz: int = 0
+    overwrite: bool = False
+    pairs: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    cache: object = None
+    count_evaluated: bool = False  # a merge's count is its own; a run's is recorded when it opens
+
+    def evaluate(self, console: Console) -> dict:
+        pairs, summary = evaluate_and_report(self.benchmark, self.folder, self.config.method, self.pairs,
+                                             self.skipped, self.cache, self.ev, self.viz, console)
+        if self.count_evaluated:
+            self.config.dataset["n_pairs_evaluated"] = len(pairs)
+        self.config.dataset["n_skipped"] = len(self.skipped)
+        self.evaluated = len(pairs)
+        return summary

@@ -25,6 +25,7 @@ from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.method.options import KINDS, config_keys
 from e3cm_bench.paper import resolve_config
 from e3cm_bench.storage import RunFolder
+from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
@@ -120,52 +121,42 @@ def load_experiment(path: Path) -> dict:
     return config
 
 
-def reproduce(
-    config_path: Path | str,
-    root: Path,
-    out: Path,
-    backbone: str | None = None,
-    limit: int | None = None,
-    device: str = "cpu",
-    dataset_overrides: dict | None = None,
-    skip_bad: bool = False,
-    max_side: int | None = None,
-    compare: bool = True,
-    console: Console | None = None,
-    shard: tuple[int, int] | None = None,
-    only: list[str] | None = None,
-) -> tuple[Path, Path] | None:
+def reproduce(config_path: Path | str, request: RunRequest, *, backbone: str | None = None, max_side: int | None = None,
+              only: list[str] | None = None, compare: bool = True, console: Console | None = None) -> tuple[Path, Path] | None:
     """Run every method of an experiment config (or those labelled in `only`), then write its
     table and plots. config_path: a YAML file, or a shipped config's name (``table1``; paper.config_names).
 
+    request: the run's own choices (out, root, limit, device, skip_bad, shard, the match stage's
+    options; dataset_options: overrides of the config's), each method's run made from it.
     backbone: replaces the backbone of every deep method (e.g. efficientnet_lite0 offline);
-    the labels then say so. shard=(K, N): every method runs its K-th shard; the table is
-    written once every method's shards are merged. Returns the table's CSV and Markdown
-    paths (None while shards are missing).
+    the labels then say so. max_side: replaces every method's resize. request.shard=(K, N):
+    every method runs its K-th shard; the table is written once every method's shards are
+    merged. Returns the table's CSV and Markdown paths (None while shards are missing).
     """
     console = console or Console()
     config_path = resolve_config(config_path)
     experiment = load_experiment(config_path)
     benchmark = get_benchmark(experiment["benchmark"])
-    options = {**(experiment.get("dataset") or {}), **{k: v for k, v in (dataset_overrides or {}).items() if v}}
-    dataset = benchmark.load_dataset(root, skip_bad=skip_bad, **options)
+    options = {**(experiment.get("dataset") or {}), **{k: v for k, v in request.dataset_options.items() if v}}
+    dataset = benchmark.load_dataset(request.root, skip_bad=request.skip_bad, **options)
     protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
     ev = benchmark.resolve_eval(experiment.get("protocol", "default"), seed=int(experiment.get("seed", 0)))
-    out = Path(out)
+    out = Path(request.out)
     methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
-    load = {"root": str(Path(root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
-            "skip_bad": skip_bad}
+    load = {"root": str(Path(request.root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
+            "skip_bad": request.skip_bad}
+    run = request.but(benchmark=benchmark, dataset=dataset, dataset_options=options, dataset_load=load, ev=ev)
     console.print(protocol.line(benchmark.name), markup=False)
+    name, shard = experiment.get("name", config_path.stem), request.shard
     if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
-        console.rule(f"{experiment.get('name', config_path.stem)}: {', '.join(m.label for m in methods)}")
-        run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev, limit=limit,
-                    device=device, console=console)
+        console.rule(f"{name}: {', '.join(m.label for m in methods)}")
+        run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev,
+                    limit=run.limit, device=run.device, options=run.options, console=console)
     else:
         for method in methods:
-            console.rule(f"{experiment.get('name', config_path.stem)}: {method.label}")
-            run_benchmark(benchmark, out / method.folder, method, dataset=dataset, dataset_load=load, ev=ev,
-                          limit=limit, device=device, shard=shard, console=console)
+            console.rule(f"{name}: {method.label}")
+            run_benchmark(run.but(out=out / method.folder, method=method), console=console)
     run_dirs = [out / m.folder for m in methods]
     if shard is not None and not all(RunFolder(d).is_run() and "shards" in RunFolder(d).read_config() for d in run_dirs):
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "

@@ -16,7 +16,7 @@ warning when half a pixel fits the ground truth clearly better.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from rich.console import Console
@@ -31,63 +31,79 @@ from e3cm_bench.interchange.hloc import hloc_pair_key
 from e3cm_bench.ground.matches import MatchesError, check_in_image
 from e3cm_bench.interchange.registry import source_label
 from e3cm_bench.storage import RunConfig, RunFolder
-from e3cm_bench.pipeline import driver
+from e3cm_bench.pipeline.driver import PairRun, run_pipeline
+from e3cm_bench.pipeline.request import RunRequest
 
 # The sources live in e3cm_bench.interchange (its registry: registry.formats()); these names stay importable from here.
 __all__ = ["ColmapSource", "GluefactorySource", "HlocSource", "MissingPair", "NpzSource", "hloc_pair_key",
            "image_name", "import_run"]
 
 
-def import_run(
-    benchmark: Benchmark, dataset: PairList, root: Path, out: Path, source,
-    ev: EvalSettings | None = None, label: str | None = None, skip_bad: bool = False, overwrite: bool = False,
-    viz: int = 0, console: Console | None = None, limit: int | None = None, dataset_load: dict | None = None,
-) -> dict:
-    """Write another tool's matches for every benchmark pair into OUT's cache, then evaluate
-    them as any run; returns the summary. A pair the source lacks or holds bad matches for
-    (wrong shapes, NaN, outside the image) is an error naming it, or with skip_bad is
-    skipped and listed in skipped.csv. An interrupted import resumes: pairs already in the
-    cache are kept. limit: only the first N pairs of the dataset (as a benchmark run's --limit).
-    dataset_load: how to load the pairs again (RunConfig.dataset_load_of), so that the run can
-    be exported or its matches drawn later."""
+def import_run(request: RunRequest, source, label: str | None = None, console: Console | None = None) -> dict:
+    """Write another tool's matches for every pair of the request's dataset (request.dataset,
+    request.root: the images' folder) into request.out's cache, then evaluate them as any run;
+    returns the summary. A pair the source lacks or holds bad matches for (wrong shapes, NaN,
+    outside the image) is an error naming it, or with request.skip_bad is skipped and listed in
+    skipped.csv. An interrupted import resumes: pairs already in the cache are kept.
+    request.limit: only the first N pairs of the dataset (as a benchmark run's --limit).
+    request.dataset_load: how to load the pairs again (RunConfig.dataset_load_of), so that the
+    run can be exported or its matches drawn later."""
     console = console or Console()
-    ev = ev or EvalSettings()
-    out = Path(out)
-    if viz < 0:
-        raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
-    if limit is not None and limit < 1:
-        raise ValueError(f"--limit must be at least 1, got {limit}")
-    root = Path(root).resolve()
-    pairs = list(dataset)[:limit] if limit else list(dataset)
-    files = source.files(pairs)
-    identity = {"imported": source.identity(files)}
-    label = label or source_label(source)
-    folder = RunFolder(out)
-    with driver.open_run(folder, overwrite):
-        cache, todo = folder.resume(pairs)
-        done = {p.name for p in pairs} - {p.name for p in todo}
+    run = ImportRun.of(request, source, label)
+    summary, = run_pipeline([run], console)
+    return summary
+
+
+@dataclass
+class ImportRun(PairRun):
+    """The import hook: the matches read from another tool's files (a format's source)."""
+
+    request: RunRequest = None
+    source: object = None
+    label: str = ""
+    done: set = field(default_factory=set)
+
+    @classmethod
+    def of(cls, request: RunRequest, source, label: str | None) -> ImportRun:
+        return cls(request.bench, RunFolder(request.out), request.ev, request.viz, request.overwrite, request=request,
+                   source=source, label=label or source_label(source))
+
+    def open(self, console: Console) -> None:
+        """The sources' identity against what the folder holds, and the record."""
+        request, source, folder = self.request, self.source, self.folder
+        limit, dataset = request.limit, request.dataset
+        self.pairs = list(dataset)[:limit] if limit else list(dataset)
+        files = source.files(self.pairs)
+        identity = {"imported": source.identity(files)}
+        self.cache, todo = folder.resume(self.pairs)
+        self.done = {p.name for p in self.pairs} - {p.name for p in todo}
         previous = folder.read_config()
-        if previous is not None and done:
-            folder.check_imported(previous, benchmark.name, identity, files if source.per_pair else None, done)
+        if previous is not None and self.done:
+            folder.check_imported(previous, self.benchmark.name, identity, files if source.per_pair else None, self.done)
         elif previous is not None and previous.get("identity") != identity:  # nothing imported: nothing to mix with
-            console.print(f"{out}: holds no matches of its earlier sources; importing these", markup=False,
+            console.print(f"{request.out}: holds no matches of its earlier sources; importing these", markup=False,
                           highlight=False, soft_wrap=True)
-        config = RunConfig(
-            benchmark=benchmark.name, method=label, identity=identity,
+        self.config = RunConfig(
+            benchmark=self.benchmark.name, method=self.label, identity=identity,
             matcher={"imported": source.format, **source.location()}, device=None,
-            dataset={**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(pairs)},
-            evaluation=asdict(ev), environment=RunConfig.environment_now(), dataset_load=dataset_load,
+            dataset={**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(self.pairs)},
+            evaluation=asdict(self.ev), environment=RunConfig.environment_now(), dataset_load=request.dataset_load,
             # each pair's file, so that a resume can tell what changed
             imported_files=files if source.per_pair else None,
         )
-        folder.write_config(config)
-        skipped = list(dataset.skipped)
-        config.timing = _import_all(source, pairs, done, root, cache, skip_bad, skipped)
-        config.pixel_origin_check = _convention_check(pairs, cache, source, console)
-        _, summary = driver.finish_run(
-            benchmark, folder, config, pairs, skipped, cache, ev, viz, console,
-            lambda n: f"{benchmark.name} - {label} ({n} pairs, imported from {source.format}) -> {out}")
-    return summary
+        self.skipped = list(dataset.skipped)
+
+    @classmethod
+    def produce(cls, runs: list[ImportRun], console: Console) -> None:
+        for run in runs:
+            root = Path(run.request.root).resolve()
+            run.config.timing = _import_all(run.source, run.pairs, run.done, root, run.cache, run.request.skip_bad,
+                                            run.skipped)
+            run.config.pixel_origin_check = _convention_check(run.pairs, run.cache, run.source, console)
+
+    def title(self, summary: dict) -> str:
+        return (f"{self.benchmark.name} - {self.label} ({self.evaluated} pairs, imported from {self.source.format}) "
+                f"-> {self.request.out}")
 
 
 def _import_all(source, pairs: list[Pair], done: set[str], root: Path, cache: MatchCache, skip_bad: bool,

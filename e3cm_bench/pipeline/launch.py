@@ -13,7 +13,6 @@ from rich.console import Console
 from e3cm_bench.matchers.user_module import no_folder_on_path
 from e3cm_bench.reporting.tables import print_summary
 from e3cm_bench.storage.folder import RunFolder
-from e3cm_bench.pipeline.stage import MatchOptions
 
 
 WORKER_BYTES = 2 << 30  # memory one local CPU worker may take (torch, a backbone, two images' pyramids)
@@ -103,33 +102,34 @@ def worker_pool(n: int):
                                                   initializer=_die_with_parent, initargs=(os.getpid(),))
 
 
-def run_shard_job(kwargs: dict) -> dict:
-    """One shard in this process (what a local worker or a SLURM array task runs)."""
+def run_shard_job(job: dict) -> dict:
+    """One shard in this process (what a local worker or a SLURM array task runs): job holds its
+    RunRequest ("request") and how it was launched (argv, threads, quiet)."""
     import torch
 
     from e3cm_bench.pipeline.runner import run_benchmark  # in the worker: a shard loads the models
 
-    _as_launched(kwargs.pop("argv", None))
-    method = kwargs.get("method")
+    _as_launched(job.get("argv"))
+    method = job["request"].method
     if method is not None and ":" in method.matcher:
         from e3cm_bench.matchers import get_matcher
 
         # a package.module:factory named by --matcher was imported in the process that launched
         # this one; a worker or an array task is a new interpreter and imports it again
         get_matcher(method.matcher, allow_import=True)
-    threads = kwargs.pop("threads", None)
-    if threads:
-        torch.set_num_threads(threads)
-    summary = run_benchmark(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
+    if job.get("threads"):
+        torch.set_num_threads(job["threads"])
+    summary = run_benchmark(job["request"], console=Console(quiet=job.get("quiet", False)))
     return summary.iloc[0].to_dict()
 
 
-def run_experiment_shard_job(kwargs: dict) -> None:
-    """Shard K/N of every method of an experiment (reproduce), in this process (a SLURM array task)."""
+def run_experiment_shard_job(job: dict) -> None:
+    """Shard K/N of every method of an experiment (reproduce), in this process (a SLURM array task):
+    job holds the config, its RunRequest and reproduce's own choices (run_experiment_shards)."""
     from e3cm_bench.pipeline.experiments import reproduce
 
-    _as_launched(kwargs.pop("argv", None))
-    reproduce(console=Console(quiet=kwargs.pop("quiet", False)), **kwargs)
+    _as_launched(job.get("argv"))
+    reproduce(job["config_path"], job["request"], console=Console(quiet=job.get("quiet", False)), **job["choices"])
 
 
 def _as_launched(argv: list[str] | None) -> None:
@@ -189,21 +189,23 @@ def submit_array(function, jobs: list[dict], folder, console: Console, out, slur
     return [job.result() for job in submitted]
 
 
-def run_experiment_shards(kwargs: dict, n: int, console: Console | None = None, slurm: dict | None = None) -> list:
+def run_experiment_shards(config_path, request, choices: dict, n: int, console: Console | None = None,
+                          slurm: dict | None = None) -> list:
     """reproduce --launcher slurm --shards N: a SLURM array of N tasks; task K runs shard K/N of
-    every method (experiments.reproduce_experiment with shard=(K, N)); the last to finish writes
-    the table (or: e3cm-bench merge OUT)."""
+    every method (experiments.reproduce with request.shard=(K, N)); the last to finish writes
+    the table (or: e3cm-bench merge OUT). choices: reproduce's keyword arguments."""
     console = console or Console()
-    jobs = [{**kwargs, "shard": (k, n), "quiet": True, "argv": launched_argv((k, n))} for k in range(1, n + 1)]
-    folder = RunFolder(kwargs["out"]).shards_dir / "slurm"
-    return submit_array(run_experiment_shard_job, jobs, folder, console, kwargs["out"], slurm)
+    jobs = [{"config_path": config_path, "request": request.but(shard=(k, n)), "choices": choices, "quiet": True,
+             "argv": launched_argv((k, n))} for k in range(1, n + 1)]
+    folder = RunFolder(request.out).shards_dir / "slurm"
+    return submit_array(run_experiment_shard_job, jobs, folder, console, request.out, slurm)
 
 
-def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher: str = "local",
+def run_shards(request, n: int, devices: list[str] | None = None, launcher: str = "local",
                console: Console | None = None, slurm: dict | None = None) -> list:
-    """Run the N shards of one run: `launcher` local (one process each, at most len(devices)
-    at once, torch threads divided among them on a CPU) or slurm (a submitit array; runs
-    locally, one process per shard, where no SLURM is found). Returns each shard's summary
+    """Run the N shards of one run (a RunRequest): `launcher` local (one process each, at most
+    len(devices) at once, torch threads divided among them on a CPU) or slurm (a submitit array;
+    runs locally, one process per shard, where no SLURM is found). Returns each shard's summary
     (local) or the submitted jobs (slurm)."""
     console = console or Console()
     devices = devices or ["cpu"]
@@ -212,27 +214,26 @@ def run_shards(kwargs: dict, n: int, devices: list[str] | None = None, launcher:
         device = devices[(k - 1) % len(devices)]
         # local CPU workers divide the cores; a SLURM task keeps torch's default, the CPUs it was given
         threads = threads_per_worker(len(devices)) if device == "cpu" and launcher == "local" else None
-        job = {**kwargs, "shard": (k, n), "device": device, "threads": threads, "quiet": True,
-               "argv": launched_argv((k, n), None if device == "cpu" else device)}
-        options = kwargs.get("options") or MatchOptions()
-        if launcher == "local" and device == "cpu" and options.feature_cache_mb is None:
+        shard = request.but(shard=(k, n), device=device)
+        if launcher == "local" and device == "cpu" and request.options.feature_cache_mb is None:
             from e3cm_bench.matchers.feature_cache import auto_cache_mb
 
             # local CPU workers share the host's memory: each gets its part of the default budget
-            job["options"] = replace(options, feature_cache_mb=auto_cache_mb("cpu") / sum(d == "cpu" for d in devices))
-        jobs.append(job)
+            budget = auto_cache_mb("cpu") / sum(d == "cpu" for d in devices)
+            shard = shard.but(options=replace(request.options, feature_cache_mb=budget))
+        jobs.append({"request": shard, "threads": threads, "quiet": True,
+                     "argv": launched_argv((k, n), None if device == "cpu" else device)})
     if launcher == "slurm":
-        return submit_array(run_shard_job, jobs, RunFolder(kwargs["out"]).shards_dir / "slurm", console,
-                            kwargs["out"], slurm)
+        return submit_array(run_shard_job, jobs, RunFolder(request.out).shards_dir / "slurm", console,
+                            request.out, slurm)
     with no_folder_on_path(), worker_pool(len(devices)) as pool:  # workers import nothing from the current folder
         futures = [pool.submit(run_shard_job, job) for job in jobs]
         results = []
         for k, future in enumerate(futures, start=1):
             results.append(future.result())
             console.print(f"shard {k}-of-{n} done", markup=False)
-    merged = RunFolder(kwargs["out"]).summary_path
+    merged = RunFolder(request.out).summary_path
     if merged.is_file():  # the last worker merged; show what a single run would have shown
         summary = pd.read_csv(merged).iloc[0].to_dict()
-        print_summary(summary, f"{n} shards merged -> {kwargs['out']}", console=console)
+        print_summary(summary, f"{n} shards merged -> {request.out}", console=console)
     return results
-

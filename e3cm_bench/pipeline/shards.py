@@ -15,12 +15,13 @@ from __future__ import annotations
 import os
 import shlex
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
 from rich.console import Console
 
-from e3cm_bench.pipeline import driver
+from e3cm_bench.pipeline.driver import PairRun, run_pipeline
 from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
 from e3cm_bench.storage.record import RunConfig
 from e3cm_bench.storage.folder import RunFolder
@@ -161,31 +162,48 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
                          "it resumes what it matched" + rerun_commands(configs, sorted(missing + unfinished)))
     RunFolder(out).check_shards(configs)
     first = configs[(1, n)]
-    load = first.get("dataset_load")
-    if not load:
+    if not first.get("dataset_load"):
         raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
     loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
-    benchmark, pairs = loaded.benchmark, loaded.pairs
-    cache, skipped = _merged_matches(out, n, pairs)
-    folder = RunFolder(out)
-    with driver.open_run(folder):
-        timings = {f"{k}-of-{n}": configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
-        config = RunConfig(
+    run = MergeRun(loaded.benchmark, RunFolder(out), evaluation_of(loaded.config), viz, pairs=loaded.pairs,
+                   count_evaluated=True, configs=configs, n=n)
+    summary, = run_pipeline([run], console)
+    return pd.DataFrame([summary])
+
+
+@dataclass
+class MergeRun(PairRun):
+    """The merge hook: the matches are the shards' caches, read as one; the record is made from
+    the first shard's (every shard's timing kept)."""
+
+    configs: dict = field(default_factory=dict)
+    n: int = 0
+
+    def open(self, console: Console) -> None:
+        first, n = self.configs[(1, self.n)], self.n
+        timings = {f"{k}-of-{n}": self.configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
+        self.config = RunConfig(
             benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
             matcher=first.get("matcher"), device=first.get("device"),
-            dataset=dict(first["dataset"]),  # its counts are the merge's own (driver.finish_run)
+            dataset=dict(first["dataset"]),  # its counts are the merge's own (PairRun.evaluate)
             evaluation=first["evaluation"], environment=first.get("environment") or {},
             timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
                     "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
-            dataset_load=load,
+            dataset_load=first.get("dataset_load"),
             shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
         )
-        _, summary = driver.finish_run(
-            benchmark, folder, config, pairs, skipped, cache, evaluation_of(loaded.config), viz, console,
-            lambda done: f"{benchmark.name} - {first['method']} ({done} pairs, {n} shards merged) -> {out}",
-            count_evaluated=True)
-    return pd.DataFrame([summary])
+
+    def record(self) -> None:
+        """Nothing before the merge's own evaluation: OUT is written when it is whole."""
+
+    @classmethod
+    def produce(cls, runs: list[MergeRun], console: Console) -> None:
+        for run in runs:
+            run.cache, run.skipped = _merged_matches(run.folder.path, run.n, run.pairs)
+
+    def title(self, summary: dict) -> str:
+        return f"{self.benchmark.name} - {self.config.method} ({self.evaluated} pairs, {self.n} shards merged) -> {self.folder.path}"
 
 
 def _merged_matches(out: Path, n: int, pairs: list) -> tuple[ShardedCache, list]:

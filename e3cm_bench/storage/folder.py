@@ -48,6 +48,11 @@ class RunFolder:
     VIZ = "viz"
     SHARDS = "shards"
     SPILL = ".feature-spill"
+    # A calibration's (apps/calibration/run.py): every window's errors, and in the folder of a
+    # set of methods the set's record and its two plots.
+    WINDOWS = "windows.csv"
+    CALIBRATION_SET = "calibrate.yaml"
+    CALIBRATION_PLOTS = ("calibration_boxplot.png", "calibration_vs_frames.png")
     # What a new run replaces (--overwrite), besides the match cache.
     RESULTS = (CONFIG, PER_PAIR, SUMMARY, SKIPPED, FAILURES)
 
@@ -96,6 +101,14 @@ class RunFolder:
     @property
     def shards_dir(self) -> Path:
         return self.path / self.SHARDS
+
+    @property
+    def windows_path(self) -> Path:
+        return self.path / self.WINDOWS
+
+    @property
+    def calibration_set_path(self) -> Path:
+        return self.path / self.CALIBRATION_SET
 
     def drawing_path(self, pair_name: str) -> Path:
         return self.viz_dir / (pair_name.replace("/", "__") + ".png")

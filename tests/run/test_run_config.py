@@ -163,11 +163,11 @@ def test_the_scan_finds_a_raw_reader():
 # Every YAML file the package reads, by the function that reads it: a run's config.yaml in
 # run/config.py only; the others are not run records.
 YAML_READERS = {
-    ("run/config.py", "RunConfig.read"), ("run/config.py", "RunConfig.read_if_present"),  # config.yaml
-    ("experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
-    ("experiments.py", "merge_experiment"),  # the experiment config copied into a reproduce's OUT
-    ("calibration/run.py", "run_calibration"),  # a calibration folder's set file (calibrate.yaml)
-    ("files.py", "safe_yaml"), ("files.py", "load_yaml_text"), ("files.py", "load_yaml"),  # the loader itself
+    ("storage/record.py", "RunConfig.read"), ("storage/record.py", "RunConfig.read_if_present"),  # config.yaml
+    ("pipeline/experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
+    ("pipeline/experiments.py", "merge_experiment"),  # the experiment config copied into a reproduce's OUT
+    ("apps/calibration/run.py", "run_calibration"),  # a calibration folder's set file (calibrate.yaml)
+    ("ground/files.py", "safe_yaml"), ("ground/files.py", "load_yaml_text"), ("ground/files.py", "load_yaml"),  # the loader itself
 }
 YAML_CALLS = {"load_yaml", "safe_yaml", "safe_load", "full_load", "unsafe_load"}
 
@@ -199,7 +199,7 @@ def test_the_yaml_scan_names_the_reading_function():
 
 
 def test_no_module_but_run_config_reads_config_yaml():
-    assert (PACKAGE / "run" / "config.py").is_file(), PACKAGE  # the scan reads the package, not an empty folder
+    assert (PACKAGE / "storage" / "record.py").is_file(), PACKAGE  # the scan reads the package, not an empty folder
     readers = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         source, name = path.read_text(), path.relative_to(PACKAGE).as_posix()
@@ -209,4 +209,4 @@ def test_no_module_but_run_config_reads_config_yaml():
         others = {(name, scope) for scope in yaml_reads(source)} - YAML_READERS
         if others:
             readers[name] = sorted(others)
-    assert not readers, f"read config.yaml through RunConfig.read (run/config.py): {readers}"
+    assert not readers, f"read config.yaml through RunConfig.read (storage/record.py): {readers}"

@@ -1,5 +1,5 @@
-"""Every kind of run goes through the one run driver (run/driver.py: open_run, finish_run), and
-every refusal to mix matches is RunFolder's."""
+"""Every kind of run goes through the one run pipeline (pipeline/driver.py: run_pipeline, whose
+steps open_run and finish_run are spied on here), and every refusal to mix matches is RunFolder's."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from e3cm_bench.gate.ensemble import build_ensemble
 from e3cm_bench.reporting.runs import load_run
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.pipeline import driver
+from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import invoke
 
@@ -36,9 +37,9 @@ def spy(monkeypatch):
         seen.opened.append(Path(folder.path))
         return open_run(folder, overwrite)
 
-    def finishing(benchmark, folder, *args, **kwargs):
-        seen.finished.append(Path(folder.path))
-        return finish_run(benchmark, folder, *args, **kwargs)
+    def finishing(run, *args, **kwargs):
+        seen.finished.append(Path(run.folder.path))
+        return finish_run(run, *args, **kwargs)
 
     monkeypatch.setattr(driver, "open_run", opening)
     monkeypatch.setattr(driver, "finish_run", finishing)
@@ -69,8 +70,8 @@ def test_a_benchmark_run_and_an_import_go_through_the_driver(hpatches, spy, tmp_
     assert spy.opened == spy.finished == [tmp_path / "run"]
     benchmark = get_benchmark("hpatches")
     dataset = benchmark.load_dataset(hpatches, **SEQUENCES)
-    import_run(benchmark, dataset, hpatches, tmp_path / "imported", NpzSource(npz_folder(tmp_path / "run", tmp_path / "npz")),
-               limit=2)
+    import_run(RunRequest(benchmark, tmp_path / "imported", root=hpatches, dataset=dataset, limit=2),
+               NpzSource(npz_folder(tmp_path / "run", tmp_path / "npz")))
     assert spy.opened == spy.finished == [tmp_path / "run", tmp_path / "imported"]
     assert (tmp_path / "imported" / "summary.csv").read_bytes() == (tmp_path / "run" / "summary.csv").read_bytes()
 
@@ -89,7 +90,7 @@ def test_a_calibration_opens_each_method_folder_through_the_driver(spy, tmp_path
     root = tmp_path / "seq"
     assert invoke("synth", "stereo", "--out", root, "--frames", 3, "--seed", 2).exit_code == 0
     run_calibration(root, tmp_path / "cal", [MethodSpec.create("sift")], CalibrationSettings(frames=(1,)))
-    assert spy.opened == [tmp_path / "cal" / "sift"]
+    assert spy.opened == spy.finished == [tmp_path / "cal" / "sift"]
 
 
 def test_the_noise_ensemble_reruns_through_the_driver(hpatches, spy, tmp_path):
@@ -115,12 +116,13 @@ def test_every_refusal_to_mix_matches_is_run_folders(hpatches, tmp_path):
     benchmark = get_benchmark("hpatches")
     dataset = benchmark.load_dataset(hpatches, **SEQUENCES)
     npz = npz_folder(out, tmp_path / "npz")
-    import_run(benchmark, dataset, hpatches, tmp_path / "imported", NpzSource(npz), limit=2)
+    imported = RunRequest(benchmark, tmp_path / "imported", root=hpatches, dataset=dataset, limit=2)
+    import_run(imported, NpzSource(npz))
     first = sorted(npz.rglob("*.npz"))[0]
     with np.load(first) as m:
         np.savez(first, keypoints0=m["keypoints0"][:-1], keypoints1=m["keypoints1"][:-1], scores=m["scores"][:-1])
     with pytest.raises(ValueError, match="imported pair file") as excinfo:  # other sources
-        import_run(benchmark, dataset, hpatches, tmp_path / "imported", NpzSource(npz), limit=2)
+        import_run(imported, NpzSource(npz))
     assert raised_in_run_folder(excinfo)
 
     sharded = tmp_path / "sharded"

@@ -25,7 +25,7 @@ from e3cm_bench.ground.images import load_image
 from e3cm_bench.method.spec import MethodSpec, identity_changes
 from e3cm_bench.reporting.tables import print_summary
 from e3cm_bench.storage import RunConfig, RunFolder
-from e3cm_bench.pipeline import driver
+from e3cm_bench.pipeline.driver import RunHook, run_pipeline
 from e3cm_bench.pipeline.stage import match_stage
 from e3cm_bench.apps.calibration.extrinsics import (
     ERROR_COLUMNS,
@@ -35,7 +35,6 @@ from e3cm_bench.apps.calibration.extrinsics import (
 )
 
 FRAMES = (1, 3, 5, 10)
-WINDOWS_FILE = "windows.csv"  # every window's errors (a calibration's per-pair table)
 
 
 @dataclass(frozen=True)
@@ -47,9 +46,6 @@ class CalibrationSettings:
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
     seed: int = 0
-
-
-SET_FILE = "calibrate.yaml"  # the folder's sequence, settings and methods
 
 
 def windows(n_frames: int, size: int) -> list[range]:
@@ -93,26 +89,44 @@ def summarize(windows_df: pd.DataFrame) -> pd.DataFrame:
     return summary
 
 
-def _calibrate_one(folder: RunFolder, method: MethodSpec, sequence: StereoSequence, pairs: list[Pair],
-                   settings: CalibrationSettings, device: str, image_size, console: Console) -> pd.DataFrame:
-    """One method's calibration in its folder (held by driver.open_run): the previous record
-    checked by RunFolder, the frames matched (the produce-matches hook: the match stage), then
-    every window evaluated into windows.csv and summary.csv; returns its windows."""
-    config = RunConfig(benchmark=None, method=method.label, identity=method.identity(), device=device,
-                       environment=RunConfig.environment_now(), command="calibrate",
-                       sequence=sequence.describe(), calibration=asdict(settings))
-    before = folder.previous(config.identity, None, changes=identity_changes, console=console)
-    folder.check_frames(before, str(sequence.root))
-    cache, todo = folder.resume(pairs, console)
-    folder.write_config(config)
-    if todo:
-        console.rule(f"calibrate: {method.label}")
-        match_stage(method, todo, cache, device, console)
-    matches = [cache.read(p.name) for p in pairs]
-    table = calibrate_windows(sequence, matches, settings, image_size)
-    write_csv(table, folder.path / WINDOWS_FILE)
-    write_csv(summarize(table), folder.summary_path)
-    return table.assign(method=method.label)
+@dataclass
+class CalibrationRun(RunHook):
+    """The calibration hook: one method's frames matched by the match stage (cached and
+    resumable like a benchmark run), then scored by its windows (windows.csv, summary.csv)."""
+
+    folder: RunFolder
+    method: MethodSpec
+    sequence: StereoSequence
+    pairs: list[Pair]
+    settings: CalibrationSettings
+    device: str
+    image_size: tuple[int, int]
+    overwrite: bool = False
+
+    def open(self, console: Console) -> None:
+        """The previous record checked by RunFolder (the same method and frames), the frames left."""
+        self.config = RunConfig(benchmark=None, method=self.method.label, identity=self.method.identity(),
+                                device=self.device, environment=RunConfig.environment_now(), command="calibrate",
+                                sequence=self.sequence.describe(), calibration=asdict(self.settings))
+        before = self.folder.previous(self.config.identity, None, changes=identity_changes, console=console)
+        self.folder.check_frames(before, str(self.sequence.root))
+        self.cache, self.todo = self.folder.resume(self.pairs, console)
+
+    @classmethod
+    def produce(cls, runs: list[CalibrationRun], console: Console) -> None:
+        for run in runs:
+            if run.todo:
+                console.rule(f"calibrate: {run.method.label}")
+                match_stage(run.method, run.todo, run.cache, run.device, console)
+
+    def evaluate(self, console: Console) -> None:
+        """Every window evaluated into windows.csv and summary.csv (the set's tables print later)."""
+        matches = [self.cache.read(p.name) for p in self.pairs]
+        table = calibrate_windows(self.sequence, matches, self.settings, self.image_size)
+        write_csv(table, self.folder.windows_path)
+        write_csv(summarize(table), self.folder.summary_path)
+        self.windows = table.assign(method=self.method.label)
+        return None
 
 
 def run_calibration(
@@ -136,7 +150,7 @@ def run_calibration(
     # The folder holds one calibration (sequence and settings) and the set of every method
     # calibrated into it: a later run with other methods adds to the set, and the top-level
     # tables cover all of them; another sequence or other settings are refused.
-    record_path = out / SET_FILE
+    record_path = RunFolder(out).calibration_set_path
     record = {"sequence": str(sequence.root), "calibration": asdict(settings), "methods": {}}
     if record_path.is_file() and not overwrite:
         before = load_yaml(record_path)
@@ -146,22 +160,23 @@ def run_calibration(
         record["methods"] = dict(before.get("methods") or {})
     all_windows = {}
     for method in methods:
-        folder = RunFolder(out / method.folder)
-        with driver.open_run(folder, overwrite):
-            all_windows[method.label] = _calibrate_one(folder, method, sequence, pairs, settings, device, (width, height),
-                                                       console)
+        run = CalibrationRun(RunFolder(out / method.folder), method, sequence, pairs, settings, device, (width, height),
+                             overwrite)
+        run_pipeline([run], console)
+        all_windows[method.label] = run.windows
         record["methods"][method.label] = method.folder
         save_yaml(record, record_path)
     for label, folder in record["methods"].items():
         if label not in all_windows:  # calibrated by an earlier run into this folder
-            all_windows[label] = read_csv(out / folder / WINDOWS_FILE, what=f"{label}'s windows.csv").assign(method=label)
+            all_windows[label] = read_csv(RunFolder(out / folder).windows_path, what=f"{label}'s windows.csv").assign(method=label)
     windows_df = pd.concat(all_windows.values(), ignore_index=True)
-    write_csv(windows_df, out / WINDOWS_FILE)
+    write_csv(windows_df, RunFolder(out).windows_path)
     summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows.values()])
     summary = summary[["method", *[c for c in summary.columns if c != "method"]]]
     write_csv(summary, RunFolder(out).summary_path)  # the set's table, where a run keeps its summary
-    plots.plot_calibration_boxplots(windows_df, max(settings.frames), out / "calibration_boxplot.png")
-    plots.plot_calibration_vs_frames(summary, out / "calibration_vs_frames.png")
+    boxplot, vs_frames = (out / name for name in RunFolder.CALIBRATION_PLOTS)
+    plots.plot_calibration_boxplots(windows_df, max(settings.frames), boxplot)
+    plots.plot_calibration_vs_frames(summary, vs_frames)
     for _, row in summary[summary["frames"] == max(settings.frames)].iterrows():
         print_summary({k: row[k] for k in ("n_windows", *ERROR_COLUMNS, "vdisp_before", "vdisp_after", "vdisp_after_truth")},
                       f"{row['method']}: mean |error| over windows of {row['frames']} frames (degrees; unit t)", console)

@@ -1,0 +1,67 @@
+"""What a run is asked to do, in one value: `RunRequest`.
+
+The command line builds one (cli/benchmarks.py, cli/reconstruct.py), `reproduce` builds one per
+method from its own (pipeline/experiments.py), the Python API builds one from keywords
+(runner.run_benchmark), and a launched shard receives one (pipeline/launch.py). It travels
+unchanged to the stage that reads each field: `options` (pair_timeout among them) to the match
+stage, `ev` to the evaluate stage, the rest to the pipeline's open step. A new run option is
+one field here (or in MatchOptions), one row of the option table and its one consumer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from e3cm_bench.benchmarks import Benchmark, EvalSettings, get_benchmark
+from e3cm_bench.datasets.base import PairList
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.stage import MatchOptions
+
+
+@dataclass
+class RunRequest:
+    """One run (or, with run_methods, one run per method over the same pairs).
+
+    benchmark: a registered name or a Benchmark. out: the run folder. method: what makes the
+    matches (None only with eval_only: the folder's own). The pairs come from `dataset`, or
+    from the benchmark's dataset at `root` with `dataset_options`; `dataset_load` says how to
+    load them again where a dataset object is given (merging shards, export). shard=(K, N):
+    only the K-th of N slices of the pairs, in OUT/shards/K-of-N/. options: how the match
+    stage runs (MatchOptions: feature cache, batching, a failing matcher, pair_timeout)."""
+
+    benchmark: str | Benchmark
+    out: Path | None = None
+    method: MethodSpec | None = None
+    root: Path | None = None
+    dataset: PairList | None = None
+    dataset_options: dict = field(default_factory=dict)
+    dataset_load: dict | None = None
+    skip_bad: bool = False
+    ev: EvalSettings = field(default_factory=EvalSettings)
+    limit: int | None = None
+    overwrite: bool = False
+    eval_only: bool = False
+    viz: int = 0
+    device: str = "cpu"
+    shard: tuple[int, int] | None = None
+    options: MatchOptions = field(default_factory=MatchOptions)
+
+    def __post_init__(self) -> None:
+        # None from a caller means "the default", as every field's own default does
+        self.out = None if self.out is None else Path(self.out)
+        self.dataset_options = dict(self.dataset_options or {})
+        self.ev = self.ev or EvalSettings()
+        self.options = self.options or MatchOptions()
+        if self.limit is not None and self.limit < 1:
+            raise ValueError(f"--limit must be at least 1, got {self.limit}")
+        if self.viz < 0:
+            raise ValueError(f"--viz must be 0 (no drawings) or more, got {self.viz}")
+
+    @property
+    def bench(self) -> Benchmark:
+        return get_benchmark(self.benchmark)
+
+    def but(self, **changes) -> RunRequest:
+        """The same request with some fields changed (a method's folder, a shard, a device)."""
+        return replace(self, **changes)
