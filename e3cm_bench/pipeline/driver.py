@@ -108,8 +108,7 @@ class PairRun(RunHook):
     count_evaluated: bool = False  # a merge's count is its own; a run's is recorded when it opens
 
     def evaluate(self, console: Console) -> dict:
-        pairs, summary = evaluate_and_report(self.benchmark, self.folder, self.config.method, self.pairs,
-                                             self.skipped, self.cache, self.ev, self.viz, console)
+        pairs, summary = evaluate_and_report(self, console)
         if self.count_evaluated:
             self.config.dataset["n_pairs_evaluated"] = len(pairs)
         self.config.dataset["n_skipped"] = len(self.skipped)

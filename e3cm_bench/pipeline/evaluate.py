@@ -92,20 +92,18 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
     return summary
 
 
-def write_reports(
-    benchmark: Benchmark, folder: RunFolder, label: str, per_pair: pd.DataFrame, summary: dict,
-    pairs: list[Pair], cache: MatchCache, ev: EvalSettings, viz: int,
-) -> None:
-    """per_pair.csv, summary.csv, the run's plot, and drawings of `viz` pairs spread over the run's
-    (viz.drawn_pairs)."""
+def write_reports(run, per_pair: pd.DataFrame, summary: dict, pairs: list[Pair]) -> None:
+    """per_pair.csv, summary.csv, the run's plot, and drawings of `run.viz` of `pairs` spread over
+    them (drawing.matches.drawn_pairs); run: the pipeline's PairRun (benchmark, folder, cache, ev)."""
+    benchmark, folder = run.benchmark, run.folder
     write_csv(per_pair, folder.per_pair_path)
     write_csv(pd.DataFrame([summary]), folder.summary_path)
-    benchmark.plot_run(label, summary, per_pair, folder.path)
-    for pair in drawn_pairs(pairs, viz):
-        matches = drawn(cache.read(pair.name))
+    benchmark.plot_run(run.config.method, summary, per_pair, folder.path)
+    for pair in drawn_pairs(pairs, run.viz):
+        matches = drawn(run.cache.read(pair.name))
         canvas = draw_matches(
             load_image(pair.image0), load_image(pair.image1), matches.keypoints0, matches.keypoints1,
-            correct=benchmark.correct_mask(pair, matches, ev), max_lines=400,
+            correct=benchmark.correct_mask(pair, matches, run.ev), max_lines=400,
         )
         save_image(folder.drawing_path(pair.name), canvas)
 
@@ -148,16 +146,14 @@ def _header_size(path: Path) -> tuple[int, int] | None:
         return None
 
 
-def evaluate_and_report(
-    benchmark: Benchmark, out: RunFolder | Path, label: str, pairs: list[Pair], skipped: list[tuple[str, str]], cache,
-    ev: EvalSettings, viz: int, console: Console,
-) -> tuple[list[Pair], dict]:
-    """The evaluate stage and the reports of a run (or of merged shards) over its pairs but the
-    skipped ones; returns the pairs evaluated and the summary."""
-    folder = out if isinstance(out, RunFolder) else RunFolder(out)
+def evaluate_and_report(run, console: Console) -> tuple[list[Pair], dict]:
+    """The evaluate stage and the reports of a run (the pipeline's PairRun: benchmark, folder,
+    pairs, skipped, cache, ev, viz; a run or merged shards) over its pairs but the skipped ones;
+    returns the pairs evaluated and the summary."""
+    benchmark, folder, skipped, cache, ev = run.benchmark, run.folder, run.skipped, run.cache, run.ev
     out = folder.path
     failed = {name for name, _ in skipped}
-    pairs = [p for p in pairs if p.name not in failed]
+    pairs = [p for p in run.pairs if p.name not in failed]
     if not pairs:
         raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
     per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out)
@@ -171,11 +167,11 @@ def evaluate_and_report(
                       f"counted once (per_pair.csv: {DUPLICATES})", markup=False)
     for note in benchmark.notes(pairs, per_pair, ev):
         console.print(f"warning: {note}", markup=False, soft_wrap=True)
-    drawings = [(pair, cache.read(pair.name)) for pair in drawn_pairs(pairs, viz)]
+    drawings = [(pair, cache.read(pair.name)) for pair in drawn_pairs(pairs, run.viz)]
     check_free_space(out, report_bytes(per_pair, summary, skipped, failures, drawings), "the run's reports")
     write_skipped(skipped, folder.skipped_path, console)
     write_failures(failures, folder.failures_path, console)
-    write_reports(benchmark, folder, label, per_pair, summary, pairs, cache, ev, viz)
+    write_reports(run, per_pair, summary, pairs)
     return pairs, summary
 
 

@@ -21,9 +21,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from e3cm_bench.benchmarks import Benchmark, EvalSettings
 from e3cm_bench.storage.cache import MatchCache
-from e3cm_bench.datasets.base import Pair, PairList
+from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.interchange import ColmapSource, GluefactorySource, HlocSource, MissingPair, NpzSource, half_pixel_check
 from e3cm_bench.interchange.base import image_name
