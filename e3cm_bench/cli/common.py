@@ -98,14 +98,9 @@ def say(line: str, hang: int = 4) -> None:
     """A line of plain text on stdout within the terminal's width (80 columns in a pipe or a log:
     reporting/formats.text_width), words kept whole (a path too), its continuation lines indented
     `hang` spaces more than it (a listing's entries stay apart)."""
-    import textwrap
+    from ..reporting.formats import print_wrapped
 
-    from ..reporting.formats import text_width
-
-    lead = len(line) - len(line.lstrip(" "))
-    lines = textwrap.wrap(line, text_width(console), subsequent_indent=" " * (lead + hang), break_long_words=False,
-                          break_on_hyphens=False) or [""]
-    console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
+    print_wrapped(console, line, hang)
 
 
 def warn(message: str) -> None:

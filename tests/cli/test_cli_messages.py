@@ -179,3 +179,31 @@ def test_an_error_wraps_on_a_terminal_and_stays_one_line_elsewhere(tmp_path):
     assert shown[0].startswith("error: unknown matcher 'sfit'")
     assert all(line.startswith(" " * 7) and line[7] != " " for line in shown[1:]), shown
     assert " ".join(line.strip() for line in shown) == piped.strip()  # the same words, none cut
+
+
+def test_export_fits_80_columns_in_a_pipe_from_a_wide_terminal(tmp_path, shared_data):
+    # `e3cm-bench export ... > log` typed at a 200-column terminal: stdout is a file, so its
+    # lines are laid out for 80 columns (rich alone would take stdin's terminal's width).
+    import os
+    import pty
+
+    run = tmp_path / "sift"
+    assert invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--sequences", "v_boat",
+                  "--limit", 1, "--max-side", 160, "--out", run, "--matcher", "sift").exit_code == 0
+    import fcntl
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 200, 0, 0))
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    out = tmp_path / "a-long-folder-name" / "exported"
+    done = subprocess.run([sys.executable, "-m", "e3cm_bench", "export", str(run), str(out), "--to", "colmap"],
+                          stdin=slave, capture_output=True, text=True, timeout=300, env={**env, "PYTHONPATH": str(REPO)})
+    os.close(slave)
+    os.close(master)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    # a path longer than a line is kept whole on a line of its own, never cut
+    assert lines and all(len(line) <= 80 or " " not in line.strip() for line in lines), done.stdout
+    assert max(map(len, lines)) < 120 and f"of {run} -> colmap in {out} (pixel origin" in flat(done.stdout)
