@@ -10,6 +10,9 @@ Bounded to stay within a few minutes on a 2-core machine: every command that mat
 `--limit 2` on small images (and the demo `--quick` with two methods), as `bounded` says, and
 the steps that need the network (downloads, the peers' weights) or scale out (tests/run/test_shards.py
 covers those) are left out, each with its reason in SKIPPED.
+
+Beside the walk, what a newcomer meets next: an editable plugin edited between two runs, a
+mistyped `--matcher sfit` (did you mean sift), and a busy folder refused before torch loads.
 """
 
 from __future__ import annotations
@@ -263,6 +266,7 @@ def test_an_edited_editable_plugin_is_refused_or_rematched_never_scored_stale(sh
     first = run()
     assert first.returncode == 0, first.stderr
     assert config()["matcher"]["max_keypoints"] == 5000
+    old = config()["identity"]["plugin"]["sha256"]
     code = source / "e3cm_bench_orb" / "__init__.py"
     code.write_text(code.read_text().replace("max_keypoints: int = 5000", "max_keypoints: int = 1000"))
     again = run()
@@ -271,7 +275,66 @@ def test_an_edited_editable_plugin_is_refused_or_rematched_never_scored_stale(sh
     fresh = run("--overwrite")
     assert fresh.returncode == 0 and "evaluating only" not in fresh.stdout, fresh.stderr
     assert config()["matcher"]["max_keypoints"] == 1000
+    # the refusal named the changed code with both values: the folder's hash and the edited code's
+    new = config()["identity"]["plugin"]["sha256"]
+    assert f"plugin code: sha256 {old[:12]}... -> {new[:12]}..." in again.stderr, again.stderr
     assert config()["identity"]["plugin"]["version"] == "0.1.0"  # the version never changed: the code did
+
+
+def walk_env(*paths: Path) -> dict:
+    """The environment of the walk's commands: no COLUMNS, no debug, `paths` then the repo first."""
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "E3CM_BENCH_DEBUG")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [*map(str, paths), str(REPO), env.get("PYTHONPATH")]))
+    return env
+
+
+def one_line(done: subprocess.CompletedProcess) -> str:
+    """A refusal as the house rule has it: exit 2, one line on stderr, no traceback."""
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), done.stdout + done.stderr
+    return lines[0]
+
+
+# One start-up each (under a second idle): not slow.
+def test_a_mistyped_matcher_suggests_sift(shared_data, tmp_path):
+    entry = entry_point()
+    if entry is None:
+        pytest.skip("the e3cm-bench command is not installed (pip install -e .)")
+    out = tmp_path / "runs" / "sift"
+    done = subprocess.run([entry, "hpatches", "--root", str(shared_data / ROOTS["hpatches"]), *SMALL["hpatches"],
+                           "--out", str(out), "--matcher", "sfit"], env=walk_env(), capture_output=True, text=True,
+                          timeout=300)
+    line = one_line(done)
+    assert "unknown matcher 'sfit' (did you mean 'sift'?)" in line, line
+    assert not out.exists()  # refused before the run folder is made
+
+
+# A torch that says it was imported: on the path of the busy-folder command only.
+TORCH_TRIPWIRE = "import os\nopen(os.environ['TORCH_TRIPWIRE'], 'w').close()\nraise ImportError('torch was imported')\n"
+
+
+def test_a_busy_folder_is_refused_before_the_method_loads(shared_data, tmp_path):
+    """The tour's deep matcher into a folder another run holds: refused in one line, with torch
+    never imported (the tripwire torch first on the path would leave its file), and none of the
+    lines a run prints once its method is built (the protocol line)."""
+    entry = entry_point()
+    if entry is None:
+        pytest.skip("the e3cm-bench command is not installed (pip install -e .)")
+    from e3cm_bench.run.folder import RunFolder
+
+    (tmp_path / "tripwire" / "torch").mkdir(parents=True)
+    (tmp_path / "tripwire" / "torch" / "__init__.py").write_text(TORCH_TRIPWIRE)
+    env = {**walk_env(tmp_path / "tripwire"), "TORCH_TRIPWIRE": str(tmp_path / "torch-imported")}
+    out = tmp_path / "runs" / "e3cm"
+    out.mkdir(parents=True)
+    with RunFolder(out).lock():
+        done = subprocess.run([entry, "hpatches", "--root", str(shared_data / ROOTS["hpatches"]), *SMALL["hpatches"],
+                               "--out", str(out), "--matcher", "e3cm", "--backbone", "efficientnet_lite0"],
+                              env=env, capture_output=True, text=True, timeout=300)
+    line = one_line(done)
+    assert f"{out}: another run is using this folder (pid {os.getpid()}" in line, line
+    assert not (tmp_path / "torch-imported").exists(), line
+    assert "protocol" not in done.stdout and not done.stdout.strip(), done.stdout
 
 
 def broken_rows(text: str) -> list[str]:

@@ -96,21 +96,37 @@ def method_values(given: dict) -> dict:
 
 def say(line: str, hang: int = 4) -> None:
     """A line of plain text on stdout within the terminal's width (80 columns in a pipe or a log:
-    reporting/formats.text_width), words kept whole (a path too), its continuation lines indented
+    drawing/formats.text_width), words kept whole (a path too), its continuation lines indented
     `hang` spaces more than it (a listing's entries stay apart)."""
-    import textwrap
+    from e3cm_bench.drawing.formats import print_wrapped
 
-    from e3cm_bench.drawing.formats import text_width
-
-    lead = len(line) - len(line.lstrip(" "))
-    lines = textwrap.wrap(line, text_width(console), subsequent_indent=" " * (lead + hang), break_long_words=False,
-                          break_on_hyphens=False) or [""]
-    console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
+    print_wrapped(console, line, hang)
 
 
 def warn(message: str) -> None:
     """A warning on stderr (method.build_method's `warn`: a precision that will be emulated)."""
-    err_console.print(f"[yellow]warning[/]: {escape(message)}", highlight=False, soft_wrap=True)
+    tell(message, "warning", "yellow")
+
+
+def tell(message: str, label: str = "error", style: str = "bold red") -> None:
+    """`label: message` on stderr. On a terminal it is wrapped to the terminal's width, words kept
+    whole, its continuation lines indented under the text after the label; anywhere else (a pipe,
+    a log, CI, the tests) it stays one physical line, however long, so that grep or a script
+    reading the last line of stderr gets all of it (docs/cli.md, "Output")."""
+    import textwrap
+
+    try:
+        terminal = err_console.file.isatty()
+    except (AttributeError, ValueError, OSError):
+        terminal = False
+    head = f"{label}: "
+    if not terminal:
+        lines = [head + message]
+    else:  # rich's width: the terminal's, or COLUMNS where set
+        lines = textwrap.wrap(head + message, max(err_console.width, 2 * len(head)), subsequent_indent=" " * len(head),
+                              break_long_words=False, break_on_hyphens=False) or [head]
+    text = "\n".join([f"[{style}]{label}:[/] {escape(lines[0][len(head):])}", *map(escape, lines[1:])])
+    err_console.print(text, highlight=False, soft_wrap=True)  # escape: a path may hold [/]
 
 
 def parse_settings(pairs: list[str] | None) -> dict:
@@ -187,13 +203,13 @@ def friendly_errors(command):
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)  # a path may hold [/]
+            tell(message)
             raise typer.Exit(2) from None
         except MemoryError as exc:
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else "not enough memory"
-            err_console.print(f"[bold red]error:[/] out of memory: {escape(detail)}", highlight=False, soft_wrap=True)
+            tell(f"out of memory: {detail}")
             raise typer.Exit(2) from None
         except ImportError as exc:
             # A library that cannot be mapped into memory (the commands import torch only when they
@@ -208,18 +224,17 @@ def friendly_errors(command):
                 line = broken_library_line(exc)
                 if line is None:
                     raise
-                err_console.print(escape(line), highlight=False, soft_wrap=True)
+                tell(line.removeprefix("error: "))
                 raise typer.Exit(2) from None
-            err_console.print(f"[bold red]error:[/] out of memory: a library could not be loaded ({escape(str(exc))}); "
-                              "raise the address-space or memory limit (ulimit -v) and rerun: matches already "
-                              "written are kept", highlight=False, soft_wrap=True)
+            tell(f"out of memory: a library could not be loaded ({exc}); raise the address-space or memory limit "
+                 "(ulimit -v) and rerun: matches already written are kept")
             raise typer.Exit(2) from None
         except OSError as exc:  # a full disk, a folder that cannot be written: what and where, in one line
             if os.environ.get("E3CM_BENCH_DEBUG"):
                 raise
             name = command.__name__
             line = os_error_line(exc, resumes=name in RESUMING_COMMANDS or name.replace("_", "-") in BENCHMARKS)
-            err_console.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
+            tell(line)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")
@@ -247,8 +262,7 @@ class OnceEach(TyperCommand):
                 continue
             times = sum(given.get(flag, 0) for flag in param.opts)
             if times > 1:
-                err_console.print(f"[bold red]error:[/] {param.opts[0]} is given {times} times; it takes one value, "
-                                  "give it once", highlight=False, soft_wrap=True)
+                tell(f"{param.opts[0]} is given {times} times; it takes one value, give it once")
                 ctx.exit(2)
         return super().parse_args(ctx, args)
 

@@ -104,6 +104,17 @@ def text_width(console) -> int:
     return int(columns) if columns.isdigit() and int(columns) > 0 else PIPE_WIDTH
 
 
+def print_wrapped(console, line: str, hang: int = 4) -> None:
+    """A line of plain text within text_width(console), words kept whole (a path too), its
+    continuation lines indented `hang` spaces more than it (a listing's entries stay apart)."""
+    import textwrap
+
+    lead = len(line) - len(line.lstrip(" "))
+    lines = textwrap.wrap(line, text_width(console), subsequent_indent=" " * (lead + hang), break_long_words=False,
+                          break_on_hyphens=False) or [""]
+    console.print("\n".join(lines), markup=False, highlight=False, soft_wrap=True)
+
+
 # The file format of every plot a command writes (--format). The benchmarks name their plots
 # .png (plot_run, plot_comparison); plots.py saves each in this format instead. It travels in
 # the environment, not as an argument, so that the worker processes of --workers and a SLURM

@@ -11,6 +11,7 @@ writes can land in the run: each is checked).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.interchange.base import ExportItem, image_name
 from e3cm_bench.interchange.pixels import check_origin
 from e3cm_bench.interchange.registry import formats, get_format
+from e3cm_bench.drawing.formats import print_wrapped
 
 
 def _geometry(benchmark, pair, matches: Matches, ev) -> dict | None:
@@ -175,25 +177,23 @@ def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items:
             job: ExportJob) -> dict:
     """Print what the export did and return its figures."""
     n_matches = sum(len(item.matches) for item in items)
-    # Wrapped at the console's width, words whole (rich's own width: 80 columns in a pipe or a log).
-    say = dict(markup=False, highlight=False)
-    console.print(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} "
-                  f"(pixel origin: {origin})", **say)
+    # Within the terminal's width, or 80 columns in a pipe or a log (formats.text_width: rich alone
+    # takes the width of a terminal on stdin, so `export ... > log` wrote lines as wide), words whole.
+    say = functools.partial(print_wrapped, console)
+    say(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} (pixel origin: {origin})")
     if fmt.stores_geometry:
         verified = sum(item.geometry is not None for item in items)
-        console.print(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)",
-                      **say)
+        say(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)")
     found = {"format": fmt.name, "n_pairs": len(items), "n_matches": n_matches, "files": [str(p) for p in written],
              "pixel_origin": origin}
     if job.merged is not None:
         found.update(_merge_figures(items, job.merged, job.layout, job.merge_px))
         how = "exact repeats merged" if job.merge_px == 0 else f"exact repeats and points within {job.merge_px:g} px merged"
-        console.print(f"export: one keypoint list per image: {2 * n_matches} matched keypoints -> "
-                      f"{found['n_keypoints_merged']} ({how}); {found['n_tracks']} tracks, "
-                      f"{found['mean_track_length']:.2f} images each on average", **say)
+        say(f"export: one keypoint list per image: {2 * n_matches} matched keypoints -> {found['n_keypoints_merged']} "
+            f"({how}); {found['n_tracks']} tracks, {found['mean_track_length']:.2f} images each on average")
         if job.layout is not None:
-            console.print(f"export: {found['n_keypoints_appended']} keypoints appended where a pair matched one keypoint "
-                          "of its first image more than once (hloc's matches0 holds one match per keypoint)", **say)
+            say(f"export: {found['n_keypoints_appended']} keypoints appended where a pair matched one keypoint of its "
+                "first image more than once (hloc's matches0 holds one match per keypoint)")
     return found
 
 

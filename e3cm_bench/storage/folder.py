@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import re
 import shutil
 import stat
 from pathlib import Path
@@ -307,22 +308,28 @@ class RunFolder:
 
 def changed_values(before: dict, now: dict, keys: list[str]) -> str:
     """Each setting of `keys` that differs, with the folder's value and this run's:
-    'settings.ratio 0.8 -> 0.9, max_side 640 -> 320' (a mapping's changed entries one by one)."""
+    'settings.ratio 0.8 -> 0.9, max_side 640 -> 320' (a mapping's changed entries one by one;
+    a plugin's code hash as 'plugin code: sha256 8aa51a115606... -> b3d626dbaa42...')."""
     parts = []
     for key in keys:
         old, new = before.get(key), now.get(key)
         if isinstance(old, dict) and isinstance(new, dict):
-            parts += [f"{key}.{k} {_shown(old.get(k))} -> {_shown(new.get(k))}"
+            parts += [f"{LABELS.get(f'{key}.{k}', f'{key}.{k}')} {_shown(old.get(k))} -> {_shown(new.get(k))}"
                       for k in sorted(set(old) | set(new), key=str) if old.get(k) != new.get(k)]
         else:
-            parts.append(f"{key} {_shown(old)} -> {_shown(new)}")
+            parts.append(f"{LABELS.get(key, key)} {_shown(old)} -> {_shown(new)}")
     return ", ".join(parts)
 
 
+# How a setting is named in a refusal where its key alone would not say what changed.
+LABELS = {"plugin.sha256": "plugin code: sha256", "weights_sha256": "weights: sha256"}
+SHA256 = re.compile(r"\b([0-9a-f]{12})[0-9a-f]{52}\b")
+
+
 def _shown(value) -> str:
-    """A recorded value in a message: 'none' when absent; a long one (a sha256) cut to its start."""
+    """A recorded value in a message: 'none' when absent; a sha256 as its first 12 digits (as
+    git shows a commit); another long value cut to its start."""
     if value is None:
         return "none"
-    text = str(value)
+    text = SHA256.sub(r"\1...", str(value))
     return text if len(text) <= 40 else text[:37] + "..."
-

@@ -128,3 +128,82 @@ def test_listings_fit_80_columns(shared_data):
         assert max(len(line) for line in result.output.splitlines()) <= 80, result.output
     assert "hpatches: incomplete at" in invoke("datasets", "--to", shared_data).output
     assert "cascade=true, estimator=top8" in flat(invoke("matchers").output)
+
+
+def stderr_of(args, terminal_columns: int | None) -> str:
+    """The command's stderr as it reaches a terminal `terminal_columns` wide (a pseudo-terminal
+    on stdin and stderr, colours stripped), or a pipe (None); COLUMNS unset either way."""
+    import os
+    import re
+
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "E3CM_BENCH_DEBUG")}
+    env.update(PYTHONPATH=str(REPO), TERM="xterm")
+    command = [sys.executable, "-m", "e3cm_bench", *map(str, args)]
+    if terminal_columns is None:
+        done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+        assert done.returncode == 2, done.stderr
+        return done.stderr
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, terminal_columns, 0, 0))
+    done = subprocess.run(command, stdin=slave, stdout=subprocess.DEVNULL, stderr=slave, env=env, timeout=300)
+    os.close(slave)
+    said = b""
+    while True:
+        try:
+            chunk = os.read(master, 4096)
+        except OSError:  # EIO: the child's end is closed and all of it was read
+            break
+        if not chunk:
+            break
+        said += chunk
+    os.close(master)
+    assert done.returncode == 2, said
+    return re.sub(r"\x1b\[[0-9;]*m", "", said.decode()).replace("\r\n", "\n")
+
+
+def test_an_error_wraps_on_a_terminal_and_stays_one_line_elsewhere(tmp_path):
+    # A terminal gets the error within its width, continuation lines under the text after
+    # "error: "; a pipe (grep, CI, a log, a script reading stderr's last line) gets one physical
+    # line, all of it: the one-line rule is about what a program reads (docs/cli.md, "Output").
+    args = ("hpatches", "--out", tmp_path / "run", "--matcher", "sfit")
+    piped = stderr_of(args, None)
+    assert piped.count("\n") == 1 and len(piped) > 120, piped
+    assert piped.startswith("error: unknown matcher 'sfit' (did you mean 'sift'?); choose one of: e3cm")
+    shown = stderr_of(args, 60).splitlines()
+    assert len(shown) > 2 and max(map(len, shown)) <= 60, shown
+    assert shown[0].startswith("error: unknown matcher 'sfit'")
+    assert all(line.startswith(" " * 7) and line[7] != " " for line in shown[1:]), shown
+    assert " ".join(line.strip() for line in shown) == piped.strip()  # the same words, none cut
+
+
+def test_export_fits_80_columns_in_a_pipe_from_a_wide_terminal(tmp_path, shared_data):
+    # `e3cm-bench export ... > log` typed at a 200-column terminal: stdout is a file, so its
+    # lines are laid out for 80 columns (rich alone would take stdin's terminal's width).
+    import os
+    import pty
+
+    run = tmp_path / "sift"
+    assert invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--sequences", "v_boat",
+                  "--limit", 1, "--max-side", 160, "--out", run, "--matcher", "sift").exit_code == 0
+    import fcntl
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 200, 0, 0))
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    out = tmp_path / "a-long-folder-name" / "exported"
+    done = subprocess.run([sys.executable, "-m", "e3cm_bench", "export", str(run), str(out), "--to", "colmap"],
+                          stdin=slave, capture_output=True, text=True, timeout=300, env={**env, "PYTHONPATH": str(REPO)})
+    os.close(slave)
+    os.close(master)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    # a path longer than a line is kept whole on a line of its own, never cut
+    assert lines and all(len(line) <= 80 or " " not in line.strip() for line in lines), done.stdout
+    assert max(map(len, lines)) < 120 and f"of {run} -> colmap in {out} (pixel origin" in flat(done.stdout)

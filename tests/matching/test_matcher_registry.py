@@ -245,7 +245,9 @@ def test_a_module_factory_runs_and_its_file_hash_is_its_identity(tmp_path, monke
         unregister("my_corners:build")
         line = one_line_error(invoke("hpatches", *hpatches_boat, "--out", out, "--matcher", "my_corners:build",
                                      "--limit", 2))
-        assert "other settings (plugin.sha256 " in line
+        # both hashes, each by its first 12 digits: the code the folder's matches came from, and this one
+        old, new = config["identity"]["plugin"]["sha256"], code_sha256("my_corners")
+        assert f"other settings (plugin code: sha256 {old[:12]}... -> {new[:12]}...)" in line, line
         line = one_line_error(invoke("hpatches", *hpatches_boat, "--out", tmp_path / "x", "--matcher", "my_corners:nothing"))
         assert line.endswith("--matcher my_corners:nothing: module my_corners has no 'nothing'")
     finally:

@@ -98,7 +98,10 @@ def test_a_module_factory_edited_in_its_package_is_refused_then_rematched(tmp_pa
         forget("ratiomod")
         unregister(name)
         line = one_line_error(invoke("hpatches", *boat, "--out", out, "--matcher", name))
-        assert "other settings" in line and "plugin" in line and "--overwrite" in line
+        assert "other settings" in line and "--overwrite" in line
+        # the changed code named with both values (each hash's first 12 digits)
+        old, new = first["identity"]["plugin"]["sha256"], code_sha256("ratiomod")
+        assert f"plugin code: sha256 {old[:12]}... -> {new[:12]}..." in line, line
         (package / "factory.py").write_text((package / "factory.py").read_text().replace("0.8", "0.6"))
         forget("ratiomod")
         unregister(name)
@@ -164,7 +167,9 @@ def test_an_editable_plugin_changed_between_two_runs_is_never_scored_stale(tmp_p
         registry.load_plugins()  # what the next command finds
         assert get_matcher("ratio-plugin").source["version"] == "1.0"
         line = one_line_error(invoke("hpatches", *boat, "--out", out, "--matcher", "ratio-plugin"))
-        assert "made with other settings" in line and "plugin" in line
+        assert "made with other settings" in line, line
+        old, new = before["identity"]["plugin"]["sha256"], code_sha256("ratio_plugin")
+        assert f"plugin code: sha256 {old[:12]}... -> {new[:12]}..." in line, line
         assert config_of(out)["matcher"]["ratio"] == 0.8  # the refusal left the record alone
         result = invoke("hpatches", *boat, "--out", out, "--matcher", "ratio-plugin", "--overwrite")
         assert result.exit_code == 0 and "evaluating only" not in result.output

@@ -161,7 +161,7 @@ def test_the_scan_finds_a_raw_reader():
 
 
 # Every YAML file the package reads, by the function that reads it: a run's config.yaml in
-# run/config.py only; the others are not run records.
+# storage/record.py only; the others are not run records.
 YAML_READERS = {
     ("storage/record.py", "RunConfig.read"), ("storage/record.py", "RunConfig.read_if_present"),  # config.yaml
     ("pipeline/experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
