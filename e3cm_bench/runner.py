@@ -87,7 +87,7 @@ def run_benchmark(
         run_dir = out
     summary, = _run_folders(benchmark, [(run_dir, method)], dataset, ev, limit, overwrite, eval_only, viz, device,
                             console, shard, load, options)
-    if shard is not None and merge_when_complete(out, console):
+    if shard is not None and merge_when_complete(out, console, known=(benchmark,)):
         return pd.read_csv(RunFolder(out).summary_path)
     return pd.DataFrame([summary])
 

@@ -29,8 +29,11 @@ class Scale:
 
     def check(self, eval_only: bool = False, device: str = "cpu") -> None:
         from ..run.launch import check_launcher, check_workers
+        from ..run.shards import parse_shard
 
         check_launcher(self.launcher)
+        if self.shard:
+            parse_shard(self.shard)  # a K/N that is none, before anything loads
         several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
                                                 ("--devices", self.devices), ("--launcher slurm", self.launcher == "slurm"))
                    if given]
@@ -63,11 +66,9 @@ def run_command(bench: Benchmark, given: dict) -> None:
     benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
     from ..download import find_root
     from ..method import build_method
-    from ..run.launch import run_shards
     from ..run.folder import RunFolder
     from ..run.shards import parse_shard, shard_dir
     from ..run.stage import MatchOptions
-    from ..runner import run_benchmark
 
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
@@ -91,14 +92,26 @@ def run_command(bench: Benchmark, given: dict) -> None:
     console.print(get_protocol(protocol, bench.name).line(bench.name), markup=False)
     run = dict(benchmark=bench.name, out=o.out, method=method, root=root, dataset_options=dataset_options,
                skip_bad=o.skip_bad, ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options)
-    if o.workers or o.devices:
-        devices = scale.device_list(o.device)
+    run_scaled(scale, run, o.device, o.eval_only)
+
+
+def run_scaled(scale: Scale, run: dict, device: str, eval_only: bool = False):
+    """A run (run_benchmark's keyword arguments) as `scale` says: in this process (its --shard
+    K/N, or whole), or its shards in local workers or a SLURM array. Returns run_benchmark's
+    summary in this process, else None (the merged summary is OUT's summary.csv, once written)."""
+    from ..run.launch import run_shards
+    from ..run.shards import parse_shard
+    from ..runner import run_benchmark
+
+    if scale.workers or scale.devices:
+        devices = scale.device_list(device)
         run_shards(run, len(devices), devices=devices, console=console)
-    elif o.launcher == "slurm":
-        run_shards(run, o.shards, devices=[o.device], launcher="slurm", console=console)
+    elif scale.launcher == "slurm":
+        run_shards(run, scale.shards, devices=[device], launcher="slurm", console=console)
     else:
-        run_benchmark(**run, eval_only=o.eval_only, device=o.device, shard=parse_shard(o.shard) if o.shard else None,
-                      console=console)
+        return run_benchmark(**run, eval_only=eval_only, device=device,
+                             shard=parse_shard(scale.shard) if scale.shard else None, console=console)
+    return None
 
 
 def check_run_flags(o: SimpleNamespace) -> None:

@@ -135,12 +135,14 @@ def merge(
     from ..experiments import EXPERIMENT_COPY, merge_experiment
     from ..reporting.formats import plots_as
     from ..run.shards import merge_run
+    from ..sfm.own_images import RECONSTRUCT
 
     with plots_as(plot_format):
         if (run_dir / EXPERIMENT_COPY).is_file():
             merge_experiment(run_dir, compare=compare, console=console)
         else:
-            merge_run(run_dir, viz=viz, console=console)
+            # reconstruct's runs merge too: their benchmark is in no registry, so it is named here
+            merge_run(run_dir, viz=viz, console=console, known=(RECONSTRUCT,))
 
 
 @app.command()

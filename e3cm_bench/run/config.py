@@ -211,13 +211,14 @@ class RunPairs(NamedTuple):
     dataset: object  # the PairList they come from (before the limit), for a rerun of the run
 
 
-def load_run_pairs(run: str | Path | RunConfig) -> RunPairs:
+def load_run_pairs(run: str | Path | RunConfig, benchmark=None) -> RunPairs:
     """The pairs of a run (a run folder, its config.yaml, or its RunConfig) as the run loaded them:
     the dataset it recorded (`RunConfig.dataset_source`: dataset_load, else the dataset block),
     with the bad-pair policy it recorded (skip_bad), cut to its --limit. Merging shards,
-    exporting, the noise ensemble and the report's drawings all reload pairs here."""
+    exporting, the noise ensemble and the report's drawings all reload pairs here. benchmark: the
+    Benchmark the record names, where the caller holds it (one in no registry: reconstruct's)."""
     config = run if isinstance(run, RunConfig) else RunConfig.read(run)
-    benchmark = config.benchmark_object()
+    benchmark = benchmark or config.benchmark_object()
     root, skip_bad, options = config.dataset_source(benchmark)
     dataset = benchmark.load_dataset(root, skip_bad=skip_bad, limit=config.limit, **options)
     pairs = list(dataset)[:config.limit] if config.limit else list(dataset)

@@ -137,8 +137,9 @@ def all_shards_complete(out: Path) -> bool:
     return (len(configs) == n and all(m == n and 1 <= k <= n for k, m in configs)
             and all(c["shard"].get("complete") for c in configs.values()))
 
-def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
-    """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
+def merge_run(out: str | Path, viz: int = 0, console: Console | None = None, known: tuple = ()) -> pd.DataFrame:
+    """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml.
+    known: Benchmarks the shards' record may name besides the registry's (reconstruct's is in none)."""
     console = console or Console()
     out = Path(out)
     configs = shard_configs(out)
@@ -164,7 +165,8 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     if not load:
         raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
-    loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
+    named = next((b for b in known if b.name == first["benchmark"]), None)
+    loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path, named)
     benchmark, pairs = loaded.benchmark, loaded.pairs
     cache, skipped = _merged_matches(out, n, pairs)
     folder = RunFolder(out)
@@ -205,16 +207,17 @@ def _merged_matches(out: Path, n: int, pairs: list) -> tuple[ShardedCache, list]
     return cache, skipped
 
 
-def merge_when_complete(out: Path, console: Console) -> bool:
+def merge_when_complete(out: Path, console: Console, known: tuple = ()) -> bool:
     """Merge if every shard is finished; False when some are not, or another process is merging.
 
     Each shard marks itself complete before calling this, so of shards finishing together at
     least the last one sees all of them complete; the folder lock keeps two from merging at once.
+    known: as merge_run's (the shard's own Benchmark, registered or not).
     """
     if not all_shards_complete(out):
         return False
     try:
-        merge_run(out, console=console)
+        merge_run(out, console=console, known=known)
     except ValueError as error:
         if "another run is using this folder" in str(error):
             return False
