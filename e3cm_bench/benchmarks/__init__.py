@@ -49,9 +49,18 @@ def _discover() -> None:
             BENCHMARKS.setdefault(benchmark.name, benchmark)
 
 
+# Benchmarks that are no command, found by the name their runs record: reconstruct's (a folder
+# of one's own images, no ground truth: `e3cm-bench reconstruct`), so that its shards merge and
+# its runs export and draw like any run's.
+UNLISTED = {"reconstruct": ("e3cm_bench.sfm.own_images", "RECONSTRUCT")}
+
+
 def get_benchmark(name: str | Benchmark) -> Benchmark:
     if isinstance(name, Benchmark):
         return name
+    if name not in BENCHMARKS and name in UNLISTED:
+        module, attribute = UNLISTED[name]
+        return getattr(importlib.import_module(module), attribute)
     if name not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {name!r}{did_you_mean(name, BENCHMARKS)}; choose one of {', '.join(BENCHMARKS)}")
     return BENCHMARKS[name]

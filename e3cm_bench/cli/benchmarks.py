@@ -29,8 +29,11 @@ class Scale:
 
     def check(self, eval_only: bool = False, device: str = "cpu") -> None:
         from e3cm_bench.pipeline.launch import check_launcher, check_workers
+        from e3cm_bench.pipeline.shards import parse_shard
 
         check_launcher(self.launcher)
+        if self.shard:
+            parse_shard(self.shard)  # a K/N that is none, before anything loads
         several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
                                                 ("--devices", self.devices), ("--launcher slurm", self.launcher == "slurm"))
                    if given]
@@ -63,12 +66,10 @@ def run_command(bench: Benchmark, given: dict) -> None:
     benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
     from e3cm_bench.data.download import find_root
     from e3cm_bench.method.spec import build_method
-    from e3cm_bench.pipeline.launch import run_shards
     from e3cm_bench.storage.folder import RunFolder
     from e3cm_bench.pipeline.shards import parse_shard, shard_dir
     from e3cm_bench.pipeline.stage import MatchOptions
     from e3cm_bench.pipeline.request import RunRequest
-    from e3cm_bench.pipeline.runner import run_benchmark
 
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
@@ -93,13 +94,24 @@ def run_command(bench: Benchmark, given: dict) -> None:
     request = RunRequest(bench.name, o.out, method, root=root, dataset_options=dataset_options, skip_bad=o.skip_bad,
                          ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options, device=o.device,
                          eval_only=o.eval_only, shard=parse_shard(o.shard) if o.shard else None)
-    if o.workers or o.devices:
-        devices = scale.device_list(o.device)
+    run_scaled(scale, request)
+
+
+def run_scaled(scale: Scale, request):
+    """A run (a RunRequest) as `scale` says: in this process (its --shard K/N, or whole), or its
+    shards in local workers or a SLURM array. Returns run_benchmark's summary in this process,
+    else None (the merged summary is OUT's summary.csv, once written)."""
+    from e3cm_bench.pipeline.launch import run_shards
+    from e3cm_bench.pipeline.runner import run_benchmark
+
+    if scale.workers or scale.devices:
+        devices = scale.device_list(request.device)
         run_shards(request, len(devices), devices=devices, console=console)
-    elif o.launcher == "slurm":
-        run_shards(request, o.shards, devices=[o.device], launcher="slurm", console=console)
+    elif scale.launcher == "slurm":
+        run_shards(request, scale.shards, devices=[request.device], launcher="slurm", console=console)
     else:
-        run_benchmark(request, console=console)
+        return run_benchmark(request, console=console)
+    return None
 
 
 def check_run_flags(o: SimpleNamespace) -> None:

@@ -9,7 +9,8 @@ import typer
 
 from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt, DeviceOpt,
                      FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
-                     SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors)
+                     SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
+                     ShardsOpt, WorkersOpt)
 
 ReconMaxSideOpt = method_option("max_side", help="Match at a longer side of at most N px (default 1200, as sfm; 0: "
                                                  "full resolution); keypoints are mapped back to the images' pixels.")
@@ -47,31 +48,56 @@ def reconstruct(
     skip_bad: SkipBadOpt = False,
     on_matcher_error: OnMatcherErrorOpt = "stop",
     pair_timeout: PairTimeoutOpt = None,
+    shard: ShardOpt = None,
+    workers: WorkersOpt = 0,
+    devices: DevicesOpt = None,
+    launcher: LauncherOpt = "local",
+    shards: ShardsOpt = 0,
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
     from e3cm_bench.benchmarks import EvalSettings
     from e3cm_bench.matchers import get_matcher
     from e3cm_bench.method.spec import build_method
+    from e3cm_bench.pipeline.request import RunRequest
+    from e3cm_bench.pipeline.shards import parse_shard
     from e3cm_bench.pipeline.stage import MatchOptions
-    from e3cm_bench.pipeline.runner import run_benchmark
     from e3cm_bench.sfm.own_images import RECONSTRUCT
-    from e3cm_bench.sfm.uncalibrated import SPARSE
+    from e3cm_bench.cli.benchmarks import Scale, run_scaled
 
+    scale = Scale(shard, workers, devices, launcher, shards)
+    scale.check(device=device)  # the flags first: building the method may download weights
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
                  channel_order=channel_order, seed=seed,
                  max_side=RECONSTRUCT.default_max_side if max_side is None else max_side)
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     if merge_px is None:  # dense matchers move a feature's point from pair to pair; detections repeat exactly
         merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
-    options = {"window": window, "pairs": pairs, "merge_px": merge_px, "camera_model": camera_model,
-               "single_camera": not camera_per_image}
-    summary = run_benchmark(RECONSTRUCT, out, method, root=images, dataset_options=options, skip_bad=skip_bad,
-                            ev=EvalSettings(seed=seed), overwrite=overwrite, device=device, console=console,
-                            options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
-                                                 pair_timeout=pair_timeout))
-    row = summary.iloc[0]
+    # the benchmark as an object: it is in no registry, and a shard's worker is given it so
+    request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
+                         dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
+                                              single_camera=not camera_per_image), ev=EvalSettings(seed=seed),
+                         options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
+                                              pair_timeout=pair_timeout), shard=parse_shard(shard) if shard else None)
+    run_scaled(scale, request)
+    _say_model(Path(out), scale)
+
+
+def _say_model(out: Path, scale) -> None:
+    """Where the model is and what it holds (OUT's summary); a shard's run says when it is made."""
+    import pandas as pd
+
+    from e3cm_bench.pipeline.shards import all_shards_complete
+    from e3cm_bench.sfm.uncalibrated import SPARSE
+    from e3cm_bench.storage.folder import RunFolder
+
+    # a sharded run's model is the merge's: made by the last shard to finish, or by merge
+    if (scale.shard or scale.launcher == "slurm") and not all_shards_complete(out):
+        console.print(f"the model of every image is made when the last shard finishes (or: e3cm-bench merge {out})",
+                      markup=False, soft_wrap=True)
+        return
+    row = pd.read_csv(RunFolder(out).summary_path).iloc[0]
     console.print(f"{int(row['registered_images'])} of {int(row['n_images'])} images registered in "
-                  f"{int(row['n_models'])} model(s); the largest, {Path(out) / SPARSE / '0'}, holds "
+                  f"{int(row['n_models'])} model(s); the largest, {out / SPARSE / '0'}, holds "
                   f"{int(row['largest_model_images'])} (COLMAP binary and text: colmap gui --import_path, "
                   "pycolmap.Reconstruction)", markup=False, soft_wrap=True)

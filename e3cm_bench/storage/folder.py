@@ -278,8 +278,9 @@ class RunFolder:
         for (k, _), config in sorted(configs.items()):
             for key in ("benchmark", "identity", "dataset_load", "evaluation"):
                 if config.get(key) != first.get(key):
-                    raise ValueError(f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s; "
-                                     "shards of one run must be made with one command")
+                    raise ValueError(f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s "
+                                     f"({changed_values(first, config, [key])}); shards of one run must be made "
+                                     "with one command")
 
     def holds_matches(self) -> bool:
         """Whether any pair's matches (or a matcher's failure on it) were written here; a block of

@@ -146,3 +146,58 @@ def test_cameras_are_colmaps_guess_shared_by_size_and_exif(room, tmp_path):
     assert cameras["exif.jpg"].has_prior_focal_length and cameras["exif.jpg"].params[0] != pytest.approx(1.2 * 640)
     apart = cameras_for(folder, names, "PINHOLE", single_camera=False)
     assert len({id(c) for c in apart.values()}) == 5 and apart["a0.png"].model_name == "PINHOLE"
+
+
+@pytest.fixture(scope="module")
+def six_frames(shared_data, tmp_path_factory) -> Path:
+    """Six KITTI frames (links to the shared files, no ground truth with them)."""
+    source = shared_data / KITTI
+    if not source.is_dir():
+        pytest.skip(f"{source} not found")
+    folder = tmp_path_factory.mktemp("six") / "images"
+    folder.mkdir()
+    for path in sorted(source.glob("*.png"))[:6]:
+        (folder / path.name).symlink_to(path)
+    return folder
+
+
+def _model_numbers(out: Path) -> dict:
+    row = pd.read_csv(out / "summary.csv").iloc[0]
+    return {key: row[key] for key in ("n_pairs", "registered_images", "n_models", "points", "mean_track_length")}
+
+
+@pytest.mark.slow  # three runs of 9 SIFT pairs, two of them sharded (worker start-up): about 40 s on 2 cores
+def test_shards_and_workers_make_the_unsharded_model(six_frames, tmp_path):
+    base = ("reconstruct", six_frames, "--matcher", "sift", "--window", 2)
+    assert invoke(*base, "--out", tmp_path / "one").exit_code == 0
+    whole = _model_numbers(tmp_path / "one")
+    assert whole["registered_images"] == 6 and whole["n_pairs"] == 9 and whole["points"] > 500
+    workers = invoke(*base, "--out", tmp_path / "workers", "--workers", 2)
+    assert workers.exit_code == 0 and "6 of 6 images registered" in " ".join(workers.output.split())
+    assert _model_numbers(tmp_path / "workers") == whole
+    first = invoke(*base, "--out", tmp_path / "shards", "--shard", "1/2")
+    # a shard alone makes no model in OUT: the last shard's merge does
+    assert first.exit_code == 0 and "when the last shard finishes" in " ".join(first.output.split())
+    assert not (tmp_path / "shards" / "summary.csv").exists()
+    assert invoke(*base, "--out", tmp_path / "shards", "--shard", "2/2").exit_code == 0
+    assert _model_numbers(tmp_path / "shards") == whole
+    config = yaml.safe_load((tmp_path / "shards" / "config.yaml").read_text())
+    assert config["benchmark"] == "reconstruct" and config["shards"]["count"] == 2
+    assert pycolmap.Reconstruction(str(tmp_path / "shards" / "sparse" / "0")).num_points3D() == whole["points"]
+    # merge from the command line finds reconstruct's benchmark too (it is in no registry)
+    merged = invoke("merge", tmp_path / "shards")
+    assert merged.exit_code == 0 and _model_numbers(tmp_path / "shards") == whole
+
+
+def test_shards_of_two_image_folders_are_refused(six_frames, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(six_frames, other, symlinks=True)  # the same names, another folder
+    shard = lambda images, *more: invoke("reconstruct", images, "--matcher", "sift", "--window", 1,  # noqa: E731
+                                         "--out", tmp_path / "run", "--shard", *more)
+    assert shard(six_frames, "1/2").exit_code == 0
+    line = one_line_error(shard(other, "2/2"))  # the last shard merges, and the merge refuses
+    assert "2-of-2" in line and "dataset_load differs from shard 1-of-2's" in line and "dataset_load.root" in line
+    assert not (tmp_path / "run" / "summary.csv").exists()
+    line = one_line_error(shard(six_frames, "1/2", "--workers", 2))
+    assert "--shard and --workers do not go together" in line
+    assert "--shard 3/2: K must be between 1 and N" in one_line_error(shard(six_frames, "3/2"))
