@@ -52,6 +52,7 @@ def reconstruct(
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
     from e3cm_bench.benchmarks import EvalSettings
     from e3cm_bench.matchers import get_matcher
+    from e3cm_bench.method.protocols import resolve_max_side
     from e3cm_bench.method.spec import build_method
     from e3cm_bench.pipeline.stage import MatchOptions
     from e3cm_bench.pipeline.runner import run_benchmark
@@ -60,7 +61,7 @@ def reconstruct(
 
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
                  channel_order=channel_order, seed=seed,
-                 max_side=RECONSTRUCT.default_max_side if max_side is None else max_side)
+                 max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     if merge_px is None:  # dense matchers move a feature's point from pair to pair; detections repeat exactly
         merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
