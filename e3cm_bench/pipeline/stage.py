@@ -91,14 +91,14 @@ def batch_ahead(job: MatchJob, matcher, batch: int, current: tuple[Pair, object]
 ON_MATCHER_ERROR = ("stop", "fail-pair")
 
 
-def resolve_pair_timeout(given: float | None) -> float | None:
+def resolve_pair_timeout(pair_timeout: float | None) -> float | None:
     """Seconds a matcher may take on one pair: --pair-timeout as given, else (None) no limit, the
     default: a limit runs each matcher in a child process of its own and turns the feature cache
     off, so it is asked for. The one place that default is read: every command, `reproduce` and
     the Python API come through MatchOptions, which resolves its pair_timeout here."""
-    if given is not None and not given > 0:
-        raise ValueError(f"--pair-timeout must be a positive number of seconds, got {given}")
-    return given
+    if pair_timeout is not None and not pair_timeout > 0:
+        raise ValueError(f"--pair-timeout must be a positive number of seconds, got {pair_timeout}")
+    return pair_timeout
 
 
 @dataclass(frozen=True)
