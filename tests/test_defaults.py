@@ -34,6 +34,14 @@ NOT_A_RUN_DEFAULT = {
     # fact, not the default of a new run.
     ("protocol", "e3cm_bench/storage/record.py", "protocol"),
 }
+# Reads in modules being rewritten into one pipeline (issue 63, point 2), left to that rewrite:
+# run_benchmark, run_methods and import_run without `ev` take EvalSettings(), protocol `default`
+# on WxBS and EVD too, where `benchmark.resolve_eval()` gives the benchmark's (wxbs).
+PENDING = {
+    ("protocol", "e3cm_bench/pipeline/runner.py", "run_benchmark"),
+    ("protocol", "e3cm_bench/pipeline/runner.py", "run_methods"),
+    ("protocol", "e3cm_bench/pipeline/imported.py", "import_run"),
+}
 
 
 def _named(node: ast.AST, names: set[str]) -> bool:
@@ -72,11 +80,13 @@ def _parameter_defaults(tree: ast.AST, name: str) -> list[ast.AST]:
 
 def reads(default: str, tree: ast.AST) -> list[ast.AST]:
     """Where a module's source reads `default`'s value when none is given."""
-    if default == "protocol":  # the benchmark's default protocol, or a literal in its place
+    if default == "protocol":  # the benchmark's default protocol, a literal in its place, or EvalSettings' own
+        calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
         return [n for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "default_protocol"] + [
-            n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)
-            and n.func.attr == "get" and len(n.args) == 2 and isinstance(n.args[0], ast.Constant)
-            and n.args[0].value == "protocol"]
+            n for n in calls if isinstance(n.func, ast.Attribute) and n.func.attr == "get" and len(n.args) == 2
+            and isinstance(n.args[0], ast.Constant) and n.args[0].value == "protocol"] + [
+            n for n in calls if _named(n.func, {"EvalSettings"})  # its field's "default", not the benchmark's
+            and not any(k.arg in ("protocol", None) for k in n.keywords)]
     if default == "max_side":  # the benchmark's default side
         return [n for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "default_max_side"]
     if default == "pair_timeout":  # a fallback, a check against a number, a default other than None
@@ -121,9 +131,15 @@ def places(default: str, root: Path = REPO, files=None) -> list[tuple[str, str]]
 @pytest.mark.parametrize("default", RESOLVERS)
 def test_each_default_is_read_in_its_one_resolver(default):
     module, resolver, _ = RESOLVERS[default]
-    found = [(m, f) for m, f in places(default) if (default, m, f) not in NOT_A_RUN_DEFAULT]
+    found = [(m, f) for m, f in places(default) if (default, m, f) not in NOT_A_RUN_DEFAULT | PENDING]
     assert (module, resolver) in found, f"the scan no longer sees {resolver} read the {default} default"
     assert set(found) == {(module, resolver)}, f"the {default} default is read outside {resolver}: {found}"
+
+
+def test_the_pending_reads_are_still_there():
+    # once the pipeline's rewrite resolves them, PENDING must shrink with it
+    for default, module, function in PENDING:
+        assert (module, function) in places(default, REPO, [REPO / module]), (default, module, function)
 
 
 @pytest.mark.parametrize("default", RESOLVERS)
@@ -138,6 +154,7 @@ def test_the_commands_and_the_api_call_the_resolver(default):
 @pytest.mark.parametrize(("default", "source"), [
     ("protocol", "def f(bench, given):\n    return given or bench.default_protocol\n"),
     ("protocol", "def f(experiment):\n    return experiment.get('protocol', 'default')\n"),
+    ("protocol", "def f(seed):\n    return EvalSettings(seed=seed)\n"),
     ("max_side", "def f(bench, side):\n    return bench.default_max_side if side is None else side\n"),
     ("pair_timeout", "def f(o):\n    return o.pair_timeout or 60\n"),
     ("pair_timeout", "def f(pair_timeout: float = 30.0):\n    pass\n"),

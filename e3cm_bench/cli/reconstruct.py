@@ -50,7 +50,6 @@ def reconstruct(
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
-    from e3cm_bench.benchmarks import EvalSettings
     from e3cm_bench.matchers import get_matcher
     from e3cm_bench.method.protocols import resolve_max_side
     from e3cm_bench.method.spec import build_method
@@ -68,7 +67,7 @@ def reconstruct(
     options = {"window": window, "pairs": pairs, "merge_px": merge_px, "camera_model": camera_model,
                "single_camera": not camera_per_image}
     summary = run_benchmark(RECONSTRUCT, out, method, root=images, dataset_options=options, skip_bad=skip_bad,
-                            ev=EvalSettings(seed=seed), overwrite=overwrite, device=device, console=console,
+                            ev=RECONSTRUCT.resolve_eval(seed=seed), overwrite=overwrite, device=device, console=console,
                             options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
                                                  pair_timeout=pair_timeout))
     row = summary.iloc[0]
