@@ -18,7 +18,7 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from e3cm_bench.benchmarks import EvalSettings, get_benchmark
+from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.backbones.names import OFFLINE_BACKBONE
 from e3cm_bench.ground.files import write_atomically
 from e3cm_bench.apps.synth.layouts import write_demo_data
@@ -105,7 +105,7 @@ def _run_set(step: int, set_name: str, data: tuple, out: Path, methods: list[str
     # All methods matched together: each image goes through the backbone once for all. The
     # spinner is drawn on a terminal only; a log or a pipe gets the lines below.
     with console.status(f"{set_name}: matching {len(dataset)} pairs with {len(methods)} methods"):
-        run_methods(benchmark, runs, dataset, ev=EvalSettings(seed=seed), viz=viz, device=device, console=log)
+        run_methods(benchmark, runs, dataset, ev=benchmark.resolve_eval(seed=seed), viz=viz, device=device, console=log)
         csv_path, _ = write_table([run_dir for run_dir, _ in runs], out / f"{set_name}_table", paper_rows=False,
                                   compare=False, console=log)
     table = pd.read_csv(csv_path)

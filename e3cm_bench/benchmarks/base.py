@@ -207,10 +207,12 @@ class Benchmark:
 
     def max_side(self, option: int | None) -> int | None:
         """The resize of a run: the option as given (0 = full size), or this benchmark's default
-        (options.resolved_side: None is full size in the spec)."""
+        (method.protocols.resolve_max_side, under its default protocol; options.resolved_side:
+        None is full size in the spec)."""
         from e3cm_bench.method.options import resolved_side
+        from e3cm_bench.method.protocols import resolve_max_side
 
-        return resolved_side(self.default_max_side if option is None else option, "--max-side")
+        return resolved_side(resolve_max_side(self, option), "--max-side")
 
     def eval_settings(self, seed: int = 0, ransac_px: float | None = None, **values) -> EvalSettings:
         if ransac_px is not None:
@@ -234,9 +236,9 @@ class Benchmark:
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:
         """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
-        from e3cm_bench.method.protocols import get_protocol
+        from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 
-        values = get_protocol(protocol or self.default_protocol, self.name).eval_fields(self.name)
+        values = get_protocol(resolve_protocol(self, protocol), self.name).eval_fields(self.name)
         if estimator:
             values["estimator"] = estimator
         if repeats != 1:

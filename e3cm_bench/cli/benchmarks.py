@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
-from e3cm_bench.method.protocols import get_protocol
+from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
 from e3cm_bench.cli.common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
 
@@ -74,7 +74,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
     o = SimpleNamespace(**given)
-    protocol = method_given["protocol"] or bench.default_protocol  # WxBS and EVD: their reference's (wxbs)
+    protocol = resolve_protocol(bench, method_given["protocol"])  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
     check_run_flags(o)

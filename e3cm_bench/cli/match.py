@@ -89,7 +89,7 @@ def _images(image0: Path | None, image1: Path | None, backbone: str | None):
 
 def _write_and_say(result, img0, img1, H, method, matcher: str, out: Path) -> None:
     """OUT/matches.npz and OUT/matches.png (green/red by the demo pair's ground truth), and the count."""
-    from e3cm_bench.benchmarks import EvalSettings, get_benchmark
+    from e3cm_bench.benchmarks import get_benchmark
     from e3cm_bench.datasets.base import Pair
     from e3cm_bench.pipeline.evaluate import drawn
     from e3cm_bench.ground.files import save_npz, writable_folder
@@ -102,7 +102,8 @@ def _write_and_say(result, img0, img1, H, method, matcher: str, out: Path) -> No
     correct = None
     shown = drawn(result)  # each correspondence once, as the evaluation scores them (matches.npz keeps all)
     if H is not None:
-        correct = get_benchmark("hpatches").correct_mask(Pair("demo", Path(), Path(), H=H), shown, EvalSettings())
+        hpatches = get_benchmark("hpatches")  # scored as an HPatches run without --protocol is
+        correct = hpatches.correct_mask(Pair("demo", Path(), Path(), H=H), shown, hpatches.resolve_eval())
     save_image(out / "matches.png", draw_matches(img0, img1, shown.keypoints0, shown.keypoints1, correct=correct,
                                                  max_lines=500))
     console.print(f"[bold]{len(k0)} matches[/] ({escape(get_matcher(matcher).name)}, "

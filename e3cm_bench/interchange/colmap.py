@@ -31,7 +31,7 @@ import numpy as np
 from e3cm_bench.ground.files import file_sha256, write_atomically
 from e3cm_bench.ground.matches import Matches, MatchesError
 from e3cm_bench.interchange.base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
-from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 
 
@@ -97,7 +97,7 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
                            has_prior_focal_length=True)
 
 
-def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: float = 0.0, merged=None,
+def write_colmap(out: Path, items, origin: str | None = None, merge_px: float = 0.0, merged=None,
                  cameras=None) -> list[Path]:
     """database.db in OUT for base.ExportItem's: one keypoint list per image, a location that
     several pairs matched written once (tracks.merge_keypoints, with merge_px), so that the
@@ -105,6 +105,7 @@ def write_colmap(out: Path, items, origin: str = ColmapFormat.origin, merge_px: 
     for these items, where the caller has it. cameras: image name -> the pycolmap.Camera it gets
     instead of camera_for's (images given the same object share one camera, as COLMAP's
     single_camera makes them)."""
+    origin = resolve_origin(ColmapFormat, origin)
     from e3cm_bench.interchange.tracks import merge_keypoints
 
     pycolmap = pycolmap_module()
@@ -247,7 +248,7 @@ class ColmapSource:
 
     def __init__(self, database: Path, origin: str | None = None) -> None:
         self.database = Path(database)
-        self.origin = check_origin(origin or ColmapFormat.origin)
+        self.origin = resolve_origin(ColmapFormat, origin)
         if not self.database.is_file():
             raise ValueError(f"{self.database}: not found")
         with open(self.database, "rb") as f:

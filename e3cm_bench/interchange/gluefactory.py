@@ -35,7 +35,7 @@ from e3cm_bench.ground.files import file_sha256, write_atomically
 from e3cm_bench.ground.matches import Matches, MatchesError
 from e3cm_bench.interchange.base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
 from e3cm_bench.interchange.hloc import hloc_pair_key, read_dataset
-from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 
 
@@ -85,8 +85,9 @@ def pair_key(benchmark: str, pair, root: Path, hpatches: dict | None = None) -> 
     return hloc_pair_key(image_name(pair.image0, root), image_name(pair.image1, root))
 
 
-def write_gluefactory(out: Path, items, origin: str = GluefactoryFormat.origin, benchmark: str = "", root: Path | None = None,
+def write_gluefactory(out: Path, items, origin: str | None = None, benchmark: str = "", root: Path | None = None,
                       ignore_large: bool = True) -> list[Path]:
+    origin = resolve_origin(GluefactoryFormat, origin)
     import h5py
     hpatches = hpatches_keys(root, ignore_large) if benchmark == "hpatches" else None
     keys: dict[str, str] = {}
@@ -125,7 +126,7 @@ class GluefactorySource:
         import h5py
         self.predictions = Path(predictions)
         self.benchmark = benchmark
-        self.origin = check_origin(origin or GluefactoryFormat.origin)
+        self.origin = resolve_origin(GluefactoryFormat, origin)
         if not self.predictions.is_file():
             raise ValueError(f"{self.predictions}: not found")
         if not h5py.is_hdf5(self.predictions):

@@ -45,7 +45,7 @@ import numpy as np
 from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.ground.matches import Matches, MatchesError
 from e3cm_bench.interchange.base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
-from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 
 
@@ -108,7 +108,7 @@ class HlocSource:
     def __init__(self, features: Path, matches: Path, origin: str | None = None) -> None:
         import h5py
         self.features, self.matches = Path(features), Path(matches)
-        self.origin = check_origin(origin or HlocFormat.origin)
+        self.origin = resolve_origin(HlocFormat, origin)
         for path in (self.features, self.matches):
             if not path.is_file():
                 raise ValueError(f"{path}: not found")
@@ -191,9 +191,10 @@ def hloc_layout(items, merged) -> tuple[dict[str, np.ndarray], list[tuple[np.nda
     return {name: np.concatenate(listed) for name, listed in lists.items()}, pairs
 
 
-def write_hloc(out: Path, items, origin: str = HlocFormat.origin, merge_px: float = 0.0, layout=None) -> list[Path]:
+def write_hloc(out: Path, items, origin: str | None = None, merge_px: float = 0.0, layout=None) -> list[Path]:
     """features.h5, matches.h5 and pairs.txt in OUT for base.ExportItem's (module docstring).
     layout: hloc_layout's result where the caller has it, else made here with merge_px."""
+    origin = resolve_origin(HlocFormat, origin)
     import h5py
     from e3cm_bench.ground.files import write_atomically
     from e3cm_bench.interchange.tracks import merge_keypoints

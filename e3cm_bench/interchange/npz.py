@@ -13,7 +13,7 @@ import numpy as np
 from e3cm_bench.ground.files import file_sha256, save_npz
 from e3cm_bench.ground.matches import Matches, MatchesError
 from e3cm_bench.interchange.base import MissingPair, source_identity, check_declared, real_points, score_array
-from e3cm_bench.interchange.pixels import check_origin, from_origin, to_origin
+from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 
 
@@ -71,7 +71,7 @@ class NpzSource:
 
     def __init__(self, folder: Path, origin: str | None = None) -> None:
         self.folder = Path(folder)
-        self.origin = check_origin(origin or NpzFormat.origin)
+        self.origin = resolve_origin(NpzFormat, origin)
         if not self.folder.is_dir():
             raise ValueError(f"{self.folder}: not a folder")
 
@@ -111,7 +111,8 @@ class NpzSource:
             raise MatchesError(f"{path}: not a readable .npz ({error})") from None
 
 
-def write_npz(out: Path, items, origin: str = NpzFormat.origin) -> list[Path]:
+def write_npz(out: Path, items, origin: str | None = None) -> list[Path]:
+    origin = resolve_origin(NpzFormat, origin)
     written = []
     for item in items:
         k0, k1 = item.matches.keypoints0, item.matches.keypoints1

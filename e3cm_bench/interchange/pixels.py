@@ -24,6 +24,13 @@ def check_origin(origin: str) -> str:
     return origin
 
 
+def resolve_origin(fmt, given: str | None) -> str:
+    """The pixel origin of a file in format `fmt` (a registry Format, read for its ``origin``):
+    --pixel-origin as given, else the format's own. The one place that default is read: every
+    reader, writer and `export` comes through here."""
+    return check_origin(given or fmt.origin)
+
+
 def to_origin(points: np.ndarray, origin: str) -> np.ndarray:
     """Our keypoints (N x 2, centre convention) in `origin`'s convention, as float64: adding
     0.5 to a float32 in float64 is exact, so a file that keeps float64 round-trips bit for bit."""

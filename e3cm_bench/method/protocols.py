@@ -125,6 +125,27 @@ def rotation_error(protocol: str) -> str:
     return PROTOCOLS.get(protocol, PROTOCOLS["default"]).rotation_error
 
 
+def resolve_protocol(benchmark, given: str | None) -> str:
+    """The protocol's name of a run on `benchmark` (a Benchmark, read for its name and
+    default_protocol): the one given, else the benchmark's default (its reference code's where
+    it has one: wxbs on WxBS and EVD; else e3cm-bench's own). The one place that default is
+    read: every command, `reproduce`, `import` and the Python API (build_method,
+    Benchmark.resolve_eval) come through here, so that a config without `protocol:` gets the
+    protocol its command gets. get_protocol checks the name."""
+    return given or benchmark.default_protocol
+
+
+def resolve_max_side(benchmark, given: int | None, protocol: str | None = None) -> int | None:
+    """The longer side a run on `benchmark` matches at, as given (0, FULL_RESOLUTION: the images
+    as stored), else the side `protocol` (None: the benchmark's default one) sets for the benchmark,
+    else the benchmark's default_max_side. The one place that default is read (build_method,
+    Benchmark.max_side, `reconstruct`); MethodSpec.create records 0 as None (options.resolved_side)."""
+    if given is not None:
+        return given
+    preset = get_protocol(resolve_protocol(benchmark, protocol), benchmark.name)
+    return preset.max_side.get(benchmark.name, benchmark.default_max_side)
+
+
 def get_protocol(name: str, benchmark: str) -> Protocol:
     if name not in PROTOCOLS:
         raise ValueError(f"unknown protocol {name!r}{did_you_mean(name, PROTOCOLS)}; choose one of {', '.join(PROTOCOLS)}")

@@ -211,11 +211,10 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
     settings.update(values["settings"] or {})
     side, upright, resize = values["max_side"], True, "shrink"
     if benchmark is not None:
-        from e3cm_bench.method.protocols import get_protocol
+        from e3cm_bench.method.protocols import get_protocol, resolve_max_side, resolve_protocol
 
-        preset = get_protocol(values["protocol"] or benchmark.default_protocol, benchmark.name)
-        if side is None:
-            side = preset.max_side.get(benchmark.name, benchmark.default_max_side)
+        preset = get_protocol(resolve_protocol(benchmark, values["protocol"]), benchmark.name)
+        side = resolve_max_side(benchmark, side, preset.name)
         if deep:
             settings = {**preset.method_options.get(benchmark.name, {}), **settings}
         upright, resize = preset.upright, preset.resize_mode(benchmark.name)

@@ -17,7 +17,7 @@ from rich.markup import escape
 
 from e3cm_bench.reporting import tables as report
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark, get_benchmark
-from e3cm_bench.method.protocols import get_protocol
+from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 from e3cm_bench.ground.files import absolute_paths, load_yaml, save_yaml
 from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
@@ -61,7 +61,7 @@ def experiment_method(
     own_backbone = entry.get("backbone", experiment.get("backbone", DEFAULT_BACKBONE))
     max_side = max_side_override if max_side_override is not None else entry.get("max_side", experiment.get("max_side"))
     spec = benchmark.resolve_method(
-        matcher, protocol=experiment.get("protocol", "default"), backbone=backbone_override or own_backbone,
+        matcher, protocol=experiment.get("protocol"), backbone=backbone_override or own_backbone,
         weights=entry.get("weights"), estimator=entry.get("estimator"), sampson_px=entry.get("sampson_px"),
         ratio=entry.get("ratio"), max_side=max_side, seed=int(experiment.get("seed", 0)),
         settings=entry.get("settings"), available=available,
@@ -139,8 +139,9 @@ def reproduce(config_path: Path | str, request: RunRequest, *, backbone: str | N
     benchmark = get_benchmark(experiment["benchmark"])
     options = {**(experiment.get("dataset") or {}), **{k: v for k, v in request.dataset_options.items() if v}}
     dataset = benchmark.load_dataset(request.root, skip_bad=request.skip_bad, **options)
-    protocol = get_protocol(experiment.get("protocol", "default"), benchmark.name)
-    ev = benchmark.resolve_eval(experiment.get("protocol", "default"), seed=int(experiment.get("seed", 0)))
+    # No `protocol:`: the benchmark's default, as its command has it (WxBS, EVD: wxbs)
+    protocol = get_protocol(resolve_protocol(benchmark, experiment.get("protocol")), benchmark.name)
+    ev = benchmark.resolve_eval(protocol.name, seed=int(experiment.get("seed", 0)))
     out = Path(request.out)
     methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)

@@ -24,7 +24,7 @@ from e3cm_bench.storage import RunFolder
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.interchange.base import ExportItem, image_name
-from e3cm_bench.interchange.pixels import check_origin
+from e3cm_bench.interchange.pixels import resolve_origin
 from e3cm_bench.interchange.registry import formats, get_format
 from e3cm_bench.drawing.formats import print_wrapped
 
@@ -98,7 +98,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path, origin: str | Non
     console = console or Console()
     fmt = get_format(fmt)
     merge_px = _check_merge(fmt, merge_px)
-    origin = check_origin(origin or fmt.origin)
+    origin = resolve_origin(fmt, origin)
     run_dir, out = Path(run_dir), Path(out)
     refuse_run_folder(run_dir, out)
     benchmark, config, root, pairs, options, _ = load_run_pairs(run_dir)

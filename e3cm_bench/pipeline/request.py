@@ -38,7 +38,7 @@ class RunRequest:
     dataset_options: dict = field(default_factory=dict)
     dataset_load: dict | None = None
     skip_bad: bool = False
-    ev: EvalSettings = field(default_factory=EvalSettings)
+    ev: EvalSettings | None = None
     limit: int | None = None
     overwrite: bool = False
     eval_only: bool = False
@@ -51,7 +51,8 @@ class RunRequest:
         # None from a caller means "the default", as every field's own default does
         self.out = None if self.out is None else Path(self.out)
         self.dataset_options = dict(self.dataset_options or {})
-        self.ev = self.ev or EvalSettings()
+        if self.ev is None:  # the benchmark's default protocol's settings, as its command has them
+            self.ev = self.bench.resolve_eval()
         self.options = self.options or MatchOptions()
         if self.limit is not None and self.limit < 1:
             raise ValueError(f"--limit must be at least 1, got {self.limit}")

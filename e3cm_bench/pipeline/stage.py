@@ -91,6 +91,16 @@ def batch_ahead(job: MatchJob, matcher, batch: int, current: tuple[Pair, object]
 ON_MATCHER_ERROR = ("stop", "fail-pair")
 
 
+def resolve_pair_timeout(pair_timeout: float | None) -> float | None:
+    """Seconds a matcher may take on one pair: --pair-timeout as given, else (None) no limit, the
+    default: a limit runs each matcher in a child process of its own and turns the feature cache
+    off, so it is asked for. The one place that default is read: every command, `reproduce` and
+    the Python API come through MatchOptions, which resolves its pair_timeout here."""
+    if pair_timeout is not None and not pair_timeout > 0:
+        raise ValueError(f"--pair-timeout must be a positive number of seconds, got {pair_timeout}")
+    return pair_timeout
+
+
 @dataclass(frozen=True)
 class MatchOptions:
     """How the match stage runs.
@@ -120,8 +130,7 @@ class MatchOptions:
         if self.on_matcher_error not in ON_MATCHER_ERROR:
             raise ValueError(f"--on-matcher-error must be one of {', '.join(ON_MATCHER_ERROR)}, "
                              f"got {self.on_matcher_error!r}")
-        if self.pair_timeout is not None and not self.pair_timeout > 0:
-            raise ValueError(f"--pair-timeout must be a positive number of seconds, got {self.pair_timeout}")
+        object.__setattr__(self, "pair_timeout", resolve_pair_timeout(self.pair_timeout))  # frozen
         if self.backbone_batch is not None and int(self.backbone_batch) < 1:
             raise ValueError(f"--backbone-batch must be at least 1, got {self.backbone_batch}")
 

@@ -72,9 +72,9 @@ def main() -> None:
         from e3cm_bench.pipeline.runner import run_benchmark
 
         for run_dir, _ in runs:
-            run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=EvalSettings(seed=0), eval_only=True)
+            run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=bench.resolve_eval(seed=0), eval_only=True)
     else:
-        run_methods(bench, runs, dataset, ev=EvalSettings(seed=0), dataset_load=load)
+        run_methods(bench, runs, dataset, ev=bench.resolve_eval(seed=0), dataset_load=load)
     write_table([run_dir for run_dir, _ in runs], out / "table", paper_rows=False, compare=False)
 
 
