@@ -6,6 +6,7 @@ In a page:
                  rename={...}, decimals=2, pivot={"index": ..., "columns": ..., "values": ...}) }}
     {{ cli_reference }}
     {{ layer_table }}
+    {{ role_table }}
     {{ format_table }}
 Paths are relative to the repository root (the folder of mkdocs.yml). Only literals are
 accepted as arguments (read with ast.literal_eval): a page cannot run code.
@@ -17,7 +18,7 @@ import ast
 import re
 from pathlib import Path
 
-MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference|layer_table|format_table)\s*\}\}", re.S)
+MACRO = re.compile(r"\{\{\s*(csv_table\(.*?\)|cli_reference|layer_table|role_table|format_table)\s*\}\}", re.S)
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -49,6 +50,8 @@ def render(call: str, root: Path, page: str) -> str:
             return cli_reference()
         if call == "layer_table":
             return layer_table(root)
+        if call == "role_table":
+            return role_table(root)
         if call == "format_table":
             return format_table()
         node = ast.parse(call, mode="eval").body
@@ -132,17 +135,35 @@ def format_table() -> str:
     return "\n".join(["| format | import | export | pixel origin |", "|---|---|---|---|", *rows])
 
 
-def layer_table(root: Path) -> str:
-    """The package's layers as its module-level imports and the package __init__s they run make
-    them now (scripts/maintain/code_shape.py computes them, the same graph tests/test_architecture.py reads)."""
+def _code_shape(root: Path):
+    """scripts/maintain/code_shape.py, the one reader of the import graph (tests/test_architecture.py reads it too)."""
     import importlib.util
     import sys
 
-    script = min((root / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
-    spec = importlib.util.spec_from_file_location("code_shape", script)
-    shape = importlib.util.module_from_spec(spec)
-    sys.modules["code_shape"] = shape  # its dataclasses look the module up while it loads
-    spec.loader.exec_module(shape)
+    if "code_shape" not in sys.modules:
+        script = min((root / "scripts").rglob("code_shape.py"))  # scripts/ or a folder of it
+        spec = importlib.util.spec_from_file_location("code_shape", script)
+        shape = importlib.util.module_from_spec(spec)
+        sys.modules["code_shape"] = shape  # its dataclasses look the module up while it loads
+        spec.loader.exec_module(shape)
+    return sys.modules["code_shape"]
+
+
+def role_table(root: Path) -> str:
+    """The packages by role, lowest first, with their modules, and the imports that run up (none
+    but those the page lists), as the code has them now."""
+    shape = _code_shape(root)
+    package = root / "e3cm_bench"
+    up = shape.upward_imports(package)
+    return (f"{shape.role_table(package)}\n\n<small>Rendered at build time (`scripts/maintain/code_shape.py --roles`): "
+            f"{len(up)} import(s) from a package to one after it"
+            + "".join(f"; `{a}` -> `{b}`" for a, b in up) + ".</small>\n")
+
+
+def layer_table(root: Path) -> str:
+    """The package's layers as its module-level imports and the package __init__s they run make
+    them now (scripts/maintain/code_shape.py computes them, the same graph tests/test_architecture.py reads)."""
+    shape = _code_shape(root)
     package = root / "e3cm_bench"
     depth = shape.layers(shape.import_graph(package))
     return (f"{len(depth)} modules in {max(depth.values()) + 1} layers.\n\n{shape.layer_table(package)}\n\n"

@@ -3,6 +3,7 @@ functions, and the layers its imports make.
 
     python scripts/maintain/code_shape.py                 # modules by size, the 15 longest functions
     python scripts/maintain/code_shape.py --layers        # the layer table docs/architecture.md shows
+    python scripts/maintain/code_shape.py --roles         # the packages by role, and any import that runs up
 
 A module's layer is the length of the longest chain of imports that run when it is imported,
 inside the package: a module that imports none of the package's modules is layer 0, one that
@@ -238,11 +239,49 @@ def layer_table(package: Path = PACKAGE) -> str:
     return "\n".join(rows)
 
 
+# The packages by role, lowest first (docs/architecture.md, Packages by role): a module imports
+# from its own package and those before it. The package face (e3cm_bench/__init__.py, __main__)
+# stands with the command line, at the top.
+ROLES = ("ground", "storage", "stats", "geometry", "backbones", "matching", "matchers", "method", "datasets",
+         "interchange", "drawing", "benchmarks", "sfm", "paper", "reporting", "pipeline", "gate", "data", "apps", "cli")
+
+
+def role(module: str) -> str:
+    """A module's package by role: e3cm_bench.pipeline.runner -> pipeline; the face -> cli."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in ROLES else "cli"
+
+
+def upward_imports(package: Path = PACKAGE) -> list[tuple[str, str]]:
+    """(importer, imported) of every import, at a module's top or in a function, that runs from a
+    package to one after it in ROLES."""
+    graph = import_graph(package, module_level=False)
+    rank = {name: k for k, name in enumerate(ROLES)}
+    return sorted((a, b) for a, targets in graph.items() for b in targets if rank[role(b)] > rank[role(a)])
+
+
+def role_table(package: Path = PACKAGE) -> str:
+    """Markdown: one row per package by role, lowest first, with its modules."""
+    names = sorted(package_modules(package))
+    rows = ["| role | package | modules |", "|---:|---|---|"]
+    for k, name in enumerate(ROLES):
+        inside = [n.removeprefix(f"{package.name}.{name}").lstrip(".") or "__init__" for n in names
+                  if role(n) == name and n.startswith(f"{package.name}.{name}")]
+        rows.append(f"| {k} | `{name}/` | {', '.join(f'`{m}`' for m in inside)} |")
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--layers", action="store_true", help="Print the layer table (Markdown) instead.")
+    parser.add_argument("--roles", action="store_true", help="Print the packages by role (Markdown) instead.")
     parser.add_argument("--top", type=int, default=15, help="How many of the longest functions to list.")
     args = parser.parse_args(argv)
+    if args.roles:
+        up = upward_imports()
+        print(role_table())
+        print(f"\n{len(up)} import(s) from a package to one after it in the roles' order" + "".join(f"\n  {a} -> {b}" for a, b in up))
+        return
     if args.layers:
         depth = layers(import_graph())
         print(f"{len(depth)} modules in {max(depth.values()) + 1} layers (module-level imports and the package __init__s they run)\n")
