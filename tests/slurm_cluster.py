@@ -1,4 +1,4 @@
-"""A real one-node SLURM cluster for the tests (tests/run/test_slurm_cluster.py): one that already
+"""A real one-node SLURM cluster for the tests (tests/pipeline/test_slurm_cluster.py): one that already
 answers (`sinfo`), or one that scripts/slurm/local_cluster.sh starts (root; it installs
 slurm-wlm and munge with apt-get where absent) and stops at the end of the session.
 

@@ -1,4 +1,4 @@
-"""A matcher for the SLURM tests (tests/run/test_slurm_cluster.py): SIFT that first waits
+"""A matcher for the SLURM tests (tests/pipeline/test_slurm_cluster.py): SIFT that first waits
 E3CM_SLOW_SECONDS per pair, so that an array task is still matching when the test cancels it
 or its time limit passes. The wait is no setting (not in the identity): a run without it, the
 reference, makes the same matches and may be merged with the same shards."""

@@ -75,9 +75,15 @@ def test_the_scan_finds_a_run_file_name_built_into_a_path(tmp_path):
     assert len(in_prose) == 1 and in_prose[0].startswith("e3cm_bench/bad.py:5: config.yaml")
 
 
-# interchange's hloc format writes hloc's own files, features.h5 and matches.h5: the same name as
-# the run folder's match cache, another tool's file in another folder. Exempt by file and name only.
-FOREIGN = {("e3cm_bench/pipeline/export.py", "matches.h5"), ("e3cm_bench/interchange/hloc.py", "matches.h5")}
+# The same names for another tool's file in another folder. Exempt by file and name only:
+# - interchange's hloc format writes hloc's own files, features.h5 and matches.h5 (the run
+#   folder's match cache has the same name);
+# - wxbs_evd_tables.py writes its table of the runs as OUT/summary.csv, a results folder, not a run.
+FOREIGN = {("e3cm_bench/pipeline/export.py", "matches.h5"), ("e3cm_bench/interchange/hloc.py", "matches.h5"),
+           ("scripts/results/wxbs_evd_tables.py", "summary.csv")}
+# Where a run folder's files may be named: the package and the scripts (the scripts read and copy
+# runs too); tests build run folders by hand on purpose and are not scanned.
+SCANNED = ("e3cm_bench", "scripts")
 
 
 def _exempt(line: str) -> bool:
@@ -85,14 +91,34 @@ def _exempt(line: str) -> bool:
     return (where, rest.split(" in ")[0]) in FOREIGN
 
 
-def test_only_the_run_folder_names_its_files():
-    """Every module but the run folder's owners asks RunFolder for a run folder's paths."""
+def run_file_uses(root: Path = REPO) -> tuple[list[str], list[str]]:
+    """(as a path, in prose) over the modules of SCANNED below `root`, the owners and FOREIGN left out."""
+    owners = {owner.relative_to(REPO) for owner in OWNERS}
     as_path, in_prose = [], []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if path not in OWNERS:
-            found = run_file_names(path)
+    for path in sorted(p for folder in SCANNED for p in (root / folder).rglob("*.py")):
+        if path.relative_to(root) not in owners:
+            found = run_file_names(path, root)
             as_path += [line for line in found[0] if not _exempt(line)]
             in_prose += found[1]
+    return as_path, in_prose
+
+
+def test_the_scan_covers_the_scripts(tmp_path):
+    """A script that builds a run folder's path fails the scan; the owner's own names do not."""
+    for owner in OWNERS:
+        (tmp_path / owner.relative_to(REPO)).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / owner.relative_to(REPO)).write_text('CONFIG = "config.yaml"\n')
+    script = tmp_path / "scripts" / "results" / "bad.py"
+    script.parent.mkdir(parents=True)
+    script.write_text('import yaml\ndef read(run):\n    return yaml.safe_load((run / "config.yaml").read_text())\n')
+    as_path, _ = run_file_uses(tmp_path)
+    assert [line.split(": ")[0:2] for line in as_path] == [["scripts/results/bad.py:3", "config.yaml in 'config.yaml'"]]
+    assert (REPO / "scripts" / "results").is_dir()  # the real scan reads the scripts, not an empty folder
+
+
+def test_only_the_run_folder_names_its_files():
+    """Every module and script but the run folder's owners asks RunFolder for a run folder's paths."""
+    as_path, in_prose = run_file_uses()
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
     assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and storage/record.py:\n" + "\n".join(as_path)

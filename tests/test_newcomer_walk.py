@@ -8,7 +8,7 @@ traceback, or (compare, table, check) when a line of its stdout is wider than 80
 
 Bounded to stay within a few minutes on a 2-core machine: every command that matches gets
 `--limit 2` on small images (and the demo `--quick` with two methods), as `bounded` says, and
-the steps that need the network (downloads, the peers' weights) or scale out (tests/run/test_shards.py
+the steps that need the network (downloads, the peers' weights) or scale out (tests/pipeline/test_shards.py
 covers those) are left out, each with its reason in SKIPPED.
 
 Beside the walk, what a newcomer meets next: an editable plugin edited between two runs, a
@@ -80,10 +80,10 @@ def commands(block: str) -> list[list[str]]:
 
 # Steps left out of the walk, by a word they hold, and why.
 SKIPPED = {
-    "download": "needs the network (tests/cli/test_download*.py serve the files locally)",
+    "download": "needs the network (tests/download/test_download*.py serve the files locally)",
     "loftr": "the peers download their weights (tests/matching/test_peers.py)",
-    "--workers": "scale-out: tests/run/test_shards.py", "--shard": "scale-out: tests/run/test_shards.py",
-    "--launcher": "scale-out: tests/run/test_shards.py", "scripts/results/wxbs_evd_tables.py": "a script, not a command",
+    "--workers": "scale-out: tests/pipeline/test_shards.py", "--shard": "scale-out: tests/pipeline/test_shards.py",
+    "--launcher": "scale-out: tests/pipeline/test_shards.py", "scripts/results/wxbs_evd_tables.py": "a script, not a command",
 }
 
 

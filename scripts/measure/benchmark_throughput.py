@@ -49,12 +49,12 @@ import torch
 import torchvision
 from rich.console import Console
 
-from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.ground.files import cpu_info, cpu_isa
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.storage import RunFolder
 from e3cm_bench.apps.synth.textures import procedural_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -164,7 +164,7 @@ def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -
     warm = load_image(pairs[0].image0)
     method.build(args.device).pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)
     t = time.perf_counter()
-    stats = match_stage(method, pairs, MatchCache(work / "ours" / "matches.h5"), args.device, quiet,
+    stats = match_stage(method, pairs, RunFolder(work / "ours").cache(), args.device, quiet,
                         options=MatchOptions(feature_cache_mb=args.cache_mb, backbone_batch=args.backbone_batch))
     t_ours = time.perf_counter() - t
     reuse = stats["feature_reuse"]

@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from e3cm_bench.storage import RunFolder
+
 
 def run(args: list[str]) -> float:
     start = time.perf_counter()
@@ -41,8 +43,8 @@ def main() -> None:
                 out = Path(tmp) / f"{name.replace(' ', '_')}_{round_}"
                 times[name].append(run([*common, "--out", str(out), *extra]))
                 print(f"round {round_ + 1}: {name}: {times[name][-1]:.1f} s", flush=True)
-        same = (Path(tmp) / "1_process_0" / "summary.csv").read_bytes() == \
-            (Path(tmp) / f"{options.workers}_workers_0" / "summary.csv").read_bytes()
+        same = RunFolder(Path(tmp) / "1_process_0").summary_path.read_bytes() == \
+            RunFolder(Path(tmp) / f"{options.workers}_workers_0").summary_path.read_bytes()
     best = {name: min(values) for name, values in times.items()}
     one, many = best.values()
     print(f"best of {options.repeat}: 1 process {one:.1f} s, {options.workers} workers {many:.1f} s, "

@@ -15,9 +15,11 @@ from pathlib import Path
 import pandas as pd
 from rich.console import Console
 
-from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.ground.files import load_yaml, write_csv
+from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.benchmarks.records import evaluation_of
+from e3cm_bench.ground.files import write_csv
 from e3cm_bench.pipeline.runner import run_benchmark
+from e3cm_bench.storage import RunFolder
 
 # sample -> (benchmark, root below --data, dataset options, metrics to compare)
 SAMPLES = {
@@ -43,16 +45,16 @@ def main() -> None:
         root = args.data / root
         options = {k: ([root / x for x in v] if isinstance(v, list) else root / v) for k, v in options.items()}
         rows = []
-        for run in sorted(d for d in (args.runs / sample).iterdir() if (d / "matches.h5").is_file()):
+        for run in sorted(d for d in (args.runs / sample).iterdir() if RunFolder(d).matches_path.is_file()):
+            config = RunFolder(run).run_config()
+            settings = evaluation_of(config)
             for estimator in ESTIMATORS:
                 copy = args.work / sample / estimator / run.name
                 if not copy.exists():
                     shutil.copytree(run, copy)
-                recorded = load_yaml(run / "config.yaml")["evaluation"]
-                settings = EvalSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in recorded.items()})
                 summary = run_benchmark(benchmark, copy, None, root=root, dataset_options=options, eval_only=True,
                                         ev=replace(settings, estimator=estimator), console=console).iloc[0]
-                rows.append({"method": load_yaml(run / "config.yaml")["method"], "estimator": estimator,
+                rows.append({"method": config.method, "estimator": estimator,
                              **{c: round(float(summary[c]), 2 if name != "hpatches" else 3)
                                 for c in columns}})
         table = pd.DataFrame(rows)

@@ -20,14 +20,13 @@ import numpy as np
 import pandas as pd
 
 from e3cm_bench.gate import noise_gate
-from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.gate.check import baseline_metrics, read_baseline
 from e3cm_bench.gate.ensemble import noise_path, read_noise
 from e3cm_bench.pipeline.evaluate import evaluate_pair
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.reporting.tables import Run, load_run
+from e3cm_bench.storage import RunFolder
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
 
 SETS = {"hpatches": "demo_hpatches", "scenes": "demo_scenes"}
@@ -67,7 +66,7 @@ def held_out_false_alarms(demo: Path, baseline: Path, set_name: str) -> pd.DataF
     """Each draw in turn left out of the fit and checked as a run: whole checks flagged."""
     pairs = noise_gate.read_pair_baseline(noise_gate.pairs_path(baseline))
     noise = read_noise(noise_path(baseline))
-    runs = {r.label: r for r in (load_run(p) for p in sorted((demo / set_name).iterdir()) if (p / "config.yaml").is_file())}
+    runs = {r.label: r for r in (load_run(p) for p in sorted((demo / set_name).iterdir()) if RunFolder(p).config_path.is_file())}
     rows = []
     for draw in sorted(noise["draw"].unique()):
         models = noise_gate.run_models(pairs, noise[noise["draw"] != draw])
@@ -83,7 +82,7 @@ def held_out_false_alarms(demo: Path, baseline: Path, set_name: str) -> pd.DataF
 
 
 def other_cpu(name: str, folder: Path, baseline: Path, set_name: str) -> pd.DataFrame:
-    runs = [load_run(p) for p in sorted((folder / set_name).iterdir()) if (p / "config.yaml").is_file()]
+    runs = [load_run(p) for p in sorted((folder / set_name).iterdir()) if RunFolder(p).config_path.is_file()]
     rows = []
     for v in verdicts(runs, baseline):
         moved = sorted({m.pair for m in v.moves})
@@ -100,7 +99,7 @@ def other_aggregates(name: str, table: Path, demo: Path, baseline: Path, set_nam
     other = read_baseline(table).set_index("method")
     runs = []
     for path in sorted((demo / set_name).iterdir()):
-        if (path / "config.yaml").is_file():
+        if RunFolder(path).config_path.is_file():
             run = load_run(path)
             summary = dict(run.summary)
             for metric, column in {**run.benchmark.table_metrics, "mma@3": "mma@3"}.items():
@@ -117,7 +116,7 @@ def other_aggregates(name: str, table: Path, demo: Path, baseline: Path, set_nam
 
 def degraded(run: Run, pairs, change) -> Run:
     """run re-evaluated from its cached matches after change(matches, pair) -> matches."""
-    cache = MatchCache(run.dir / "matches.h5")
+    cache = run.folder.cache()
     ev = evaluation_of(run.run_config)
     rows = [evaluate_pair(run.benchmark, pair, change(cache.read(pair.name), pair), ev) for pair in pairs]
     return summarized(run, pd.DataFrame(rows, columns=run.benchmark.pair_columns(ev)))
@@ -128,10 +127,10 @@ def power(demo: Path, baseline: Path, set_name: str) -> pd.DataFrame:
     whether two pairs turned into failures are flagged."""
     rows = []
     for path in sorted((demo / set_name).iterdir()):
-        if not (path / "config.yaml").is_file():
+        if not RunFolder(path).config_path.is_file():
             continue
         run = load_run(path)
-        dataset = run.config["dataset"]
+        dataset = run.run_config.dataset
         options = {k: dataset[k] for k in run.benchmark.option_names if dataset.get(k) is not None}
         pairs = run.benchmark.load_dataset(dataset["root"], **options).pairs
         smallest = None

@@ -19,17 +19,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
-from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.benchmarks.records import benchmark_of, dataset_source
 from e3cm_bench.ground.images import load_image, resize_max_side
 from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, prewarp_decision
 from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.storage import RunConfig, RunFolder
 
 
-def read_run(folder: Path) -> tuple[dict, pd.DataFrame]:
-    config = yaml.safe_load((folder / "config.yaml").read_text())
-    return config, pd.read_csv(folder / "per_pair.csv").set_index("pair")
+def read_run(folder: Path) -> tuple[RunConfig, pd.DataFrame]:
+    run = RunFolder(folder)
+    return run.run_config(), pd.read_csv(run.per_pair_path).set_index("pair")
 
 
 def main() -> None:
@@ -40,17 +40,17 @@ def main() -> None:
     args = parser.parse_args()
     config, plus = read_run(args.run_plus)
     _, unwarped = read_run(args.run_unwarped)
-    identity = config["identity"]
+    identity = config.identity
     spec = MethodSpec.create(identity["matcher"], identity["backbone"], identity.get("weights"), max_side=identity.get("max_side"),
                              resize=identity.get("resize", "shrink"), options=identity.get("settings") or {})
     matcher = spec.build("cpu")
     if not isinstance(matcher, E3CMPlusMatcher):
         raise SystemExit(f"{args.run_plus}: an e3cm-plus run is needed, this one is {identity['matcher']}")
-    benchmark = get_benchmark(config["benchmark"])
-    load = config.get("dataset_load") or {}
-    # a run given its pairs as a list (the demo) records no dataset_load: its pair file then
-    options = load.get("options") or ({"pairs": config["dataset"]["pairs"]} if config["dataset"].get("pairs") else {})
-    dataset = benchmark.load_dataset(load.get("root", config["dataset"].get("root")), skip_bad=True, **options)
+    benchmark = benchmark_of(config)
+    # its dataset_load, else (a run given its pairs as a list: the demo) its dataset block; every pair
+    # the run could have matched (skip_bad), whatever the run recorded
+    root, _, options = dataset_source(config, benchmark)
+    dataset = benchmark.load_dataset(root, skip_bad=True, **options)
     error = "h_error" if "h_error" in plus.columns else "err_pose"
     rows = []
     for pair in dataset:
@@ -74,7 +74,7 @@ def main() -> None:
         print(f"{pair.name}: {info['prewarp']}", flush=True)
     table = pd.DataFrame(rows)
     fired = table[table["warped"]]
-    print(f"\n{config['benchmark']} ({args.run_plus}): the prewarp fires on {len(fired)} of {len(table)} pairs")
+    print(f"\n{config.benchmark} ({args.run_plus}): the prewarp fires on {len(fired)} of {len(table)} pairs")
     if len(fired):
         a, b = fired[f"{error} (e3cm-plus)"], fired[f"{error} (unwarped)"]
         print(f"on those pairs, {error} median {a.median():.2f} with it, {b.median():.2f} without; "

@@ -25,11 +25,12 @@ from itertools import product
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
-from e3cm_bench.benchmarks import EvalSettings, get_benchmark
+from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.apps.demo import METHODS
 from e3cm_bench.pipeline.runner import run_benchmark
+from e3cm_bench.storage import RunFolder
 
 MAPPERS = ("incremental", "global")
 MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": "2"}, "quantize": {"merge": "quantize"}}
@@ -43,27 +44,27 @@ def evaluate_copy(source: Path, target: Path, protocol: dict, seed: int = 0) -> 
     """source's cached matches evaluated in `target` under `protocol` (dataset options); a
     target already evaluated under it (its config.yaml's dataset.protocol, evaluation seed) is
     read, not evaluated again, so that an interrupted grid resumes."""
-    if (target / "summary.csv").is_file():
-        done = yaml.safe_load((target / "config.yaml").read_text())
+    made, into = RunFolder(source), RunFolder(target)
+    if into.summary_path.is_file():
+        done = into.run_config()
         wanted = get_benchmark("sfm").load_dataset(
-            done["dataset"]["root"], **{k: v for k, v in protocol.items()},
-            **{k: v for k, v in done["dataset_load"]["options"].items() if k in ("scene_info", "window")})
-        if done["dataset"].get("protocol") == wanted.protocol.record() and done["evaluation"]["seed"] == seed:
-            return pd.read_csv(target / "summary.csv").iloc[0].to_dict()
-    if not (target / "matches.h5").is_file():
+            done.dataset["root"], **{k: v for k, v in protocol.items()},
+            **{k: v for k, v in done.dataset_load["options"].items() if k in ("scene_info", "window")})
+        if done.dataset.get("protocol") == wanted.protocol.record() and done.evaluation["seed"] == seed:
+            return pd.read_csv(into.summary_path).iloc[0].to_dict()
+    if not into.matches_path.is_file():
         target.mkdir(parents=True, exist_ok=True)
-        for name in ("config.yaml", "matches.h5"):
-            shutil.copyfile(source / name, target / name)
-    config = yaml.safe_load((source / "config.yaml").read_text())
-    load = config["dataset_load"]
+        for name in ("config_path", "matches_path"):
+            shutil.copyfile(getattr(made, name), getattr(into, name))
+    config = made.run_config()
+    load = config.dataset_load
     options = {k: v for k, v in load["options"].items() if k not in ("merge_px",)}
     options.update(protocol)
     bench = get_benchmark("sfm")
     dataset = bench.load_dataset(load["root"], **options)
-    ev = EvalSettings.from_record({**config["evaluation"], "seed": seed})
-    run_benchmark(bench, target, dataset=dataset, ev=ev, eval_only=True,
+    run_benchmark(bench, target, dataset=dataset, ev=evaluation_of(config, seed=seed), eval_only=True,
                   dataset_load={**load, "options": {k: str(v) for k, v in options.items()}})
-    return pd.read_csv(target / "summary.csv").iloc[0].to_dict()
+    return pd.read_csv(into.summary_path).iloc[0].to_dict()
 
 
 def row_of(set_name: str, method: str, cell: dict, summary: dict) -> dict:
@@ -78,7 +79,7 @@ def row_of(set_name: str, method: str, cell: dict, summary: dict) -> dict:
 
 
 def done_methods(runs: Path, set_name: str, methods: list[str]) -> list[str]:
-    found = [m for m in methods if (runs / set_name / m / "summary.csv").is_file()]
+    found = [m for m in methods if RunFolder(runs / set_name / m).summary_path.is_file()]
     for m in sorted(set(methods) - set(found)):
         print(f"{runs / set_name / m}: no summary.csv (matching not finished?); left out")
     return found

@@ -81,18 +81,15 @@ def main() -> None:
 def two_view(run_dir: Path) -> tuple[dict, pd.DataFrame]:
     """The pose benchmark's summary (with intervals) and rows on an sfm run's pairs and matches,
     and IMC's stereo mAA of the same errors with its interval."""
-    import yaml
-
+    from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
     from e3cm_bench.pipeline.evaluate import evaluate_stage
     from e3cm_bench.storage import RunFolder
     from e3cm_bench.sfm.metrics import maa
     from e3cm_bench.stats.bootstrap import bootstrap_interval
 
-    config = yaml.safe_load((run_dir / "config.yaml").read_text())
-    load = config["dataset_load"]
-    pairs = list(get_benchmark("sfm").load_dataset(load["root"], **load["options"]))
-    ev = EvalSettings.from_record(config["evaluation"])
-    per_pair, summary, _ = evaluate_stage(get_benchmark("megadepth"), pairs, RunFolder(run_dir).cache(), ev)
+    run = load_run_pairs(run_dir)  # the sfm run's pairs, loaded as the run loaded them
+    per_pair, summary, _ = evaluate_stage(get_benchmark("megadepth"), run.pairs, RunFolder(run_dir).cache(),
+                                          evaluation_of(run.config))
     errors = per_pair["err_pose"].to_numpy(float)
     summary["maa"] = maa(errors)
     bounds = bootstrap_interval(list(errors), lambda rows: {"maa": maa(rows)}, keys=["maa"])
@@ -103,22 +100,24 @@ def two_view(run_dir: Path) -> tuple[dict, pd.DataFrame]:
 def side_by_side(out: Path, to: Path, methods: list[str]) -> None:
     import shutil
 
+    from e3cm_bench.storage import RunFolder
+
     rows = []
     sets = sorted((p.name for p in out.iterdir() if p.is_dir() and p.name.split("-")[0] in ("kitti", "synth")),
                   key=lambda name: (name.split("-")[0], name))
     for set_name in sets:
         for label in methods:
             run_dir = out / set_name / label
-            if not (run_dir / "summary.csv").is_file():
+            run, copy = RunFolder(run_dir), RunFolder(to / set_name / label)
+            if not run.summary_path.is_file():
                 print(f"{run_dir}: no summary.csv; left out")
                 continue
-            target = to / set_name / label
-            target.mkdir(parents=True, exist_ok=True)
-            for name in ("config.yaml", "summary.csv", "per_pair.csv"):
-                shutil.copyfile(run_dir / name, target / name)
+            copy.path.mkdir(parents=True, exist_ok=True)
+            for name in ("config_path", "summary_path", "per_pair_path"):
+                shutil.copyfile(getattr(run, name), getattr(copy, name))
             if (run_dir / "sfm" / "per_seed.csv").is_file():  # each mapper seed's numbers
-                shutil.copyfile(run_dir / "sfm" / "per_seed.csv", target / "per_seed.csv")
-            multi = pd.read_csv(run_dir / "summary.csv").iloc[0]
+                shutil.copyfile(run_dir / "sfm" / "per_seed.csv", copy.path / "per_seed.csv")
+            multi = pd.read_csv(run.summary_path).iloc[0]
             two, _ = two_view(run_dir)
             row = {"set": set_name, "method": label, "n_pairs": int(multi["n_pairs"])}
             for key in ("auc@5", "auc@10", "auc@20", "maa"):

@@ -20,7 +20,8 @@ import argparse
 from pathlib import Path
 
 import pandas as pd
-import yaml
+
+from e3cm_bench.storage import RunConfig, RunFolder
 
 METHODS = ("sift", "direct", "dfm", "e3cm", "e3cm-ransac", "e3cm-plus", "e3cm-release")
 CATEGORIES = {
@@ -46,12 +47,12 @@ ANCHORS = (
 )
 
 
-def read_run(folder: Path) -> tuple[dict, dict] | None:
-    """(summary row, config) of a finished run folder, else None."""
-    summary, config = folder / "summary.csv", folder / "config.yaml"
-    if not summary.is_file() or not config.is_file():
+def read_run(folder: Path) -> tuple[dict, RunConfig] | None:
+    """(summary row, record) of a finished run folder, else None."""
+    run = RunFolder(folder)
+    if not run.is_run():
         return None
-    return pd.read_csv(summary).iloc[0].to_dict(), yaml.safe_load(config.read_text())
+    return pd.read_csv(run.summary_path).iloc[0].to_dict(), run.run_config()
 
 
 def with_interval(row: dict, key: str, scale: float = 100.0, digits: int = 1) -> str:
@@ -83,9 +84,9 @@ def build(runs: Path) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
                         f"{name}_n_failures": int(summary["n_failures"]), f"{name}_n_matches": summary["n_matches"]})
             if name == "wxbs":
                 row.update({"wxbs_recall@1": summary["recall@1"], "wxbs_recall@10": summary["recall@10"]})
-            row.update({f"{name}_max_side": config["identity"]["max_side"],
-                        f"{name}_protocol": config["evaluation"]["protocol"],
-                        f"{name}_backbone": config["identity"].get("backbone")})
+            row.update({f"{name}_max_side": config.identity["max_side"],
+                        f"{name}_protocol": config.evaluation["protocol"],
+                        f"{name}_backbone": config.identity.get("backbone")})
         rows.append(row)
         if wxbs is not None:
             summary = wxbs[0]

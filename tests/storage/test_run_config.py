@@ -14,7 +14,9 @@ from e3cm_bench.benchmarks.records import dataset_source, evaluation_of, load_ru
 from e3cm_bench.storage import RunConfig, RunFolder
 from helpers import invoke, one_line_error
 
-PACKAGE = Path(__file__).resolve().parents[2] / "e3cm_bench"
+REPO = Path(__file__).resolve().parents[2]
+# What the one-reader scan reads: the package and the scripts (scripts/results/ reads runs too).
+SCANNED = ("e3cm_bench", "scripts")
 
 
 # --------------------------------------------------------------------------- a bad config.yaml
@@ -160,14 +162,16 @@ def test_the_scan_finds_a_raw_reader():
     assert config_reads("x = load_yaml(path, what='experiment config')\n") == []
 
 
-# Every YAML file the package reads, by the function that reads it: a run's config.yaml in
-# storage/record.py only; the others are not run records.
+# Every YAML file the package and the scripts read, by the function that reads it: a run's
+# config.yaml in storage/record.py only; the others are not run records. No script reads YAML.
 YAML_READERS = {
-    ("storage/record.py", "RunConfig.read"), ("storage/record.py", "RunConfig.read_if_present"),  # config.yaml
-    ("pipeline/experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
-    ("pipeline/experiments.py", "merge_experiment"),  # the experiment config copied into a reproduce's OUT
-    ("apps/calibration/run.py", "run_calibration"),  # a calibration folder's set file (calibrate.yaml)
-    ("ground/files.py", "safe_yaml"), ("ground/files.py", "load_yaml_text"), ("ground/files.py", "load_yaml"),  # the loader itself
+    ("e3cm_bench/storage/record.py", "RunConfig.read"),  # config.yaml
+    ("e3cm_bench/storage/record.py", "RunConfig.read_if_present"),  # config.yaml
+    ("e3cm_bench/pipeline/experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
+    ("e3cm_bench/pipeline/experiments.py", "merge_experiment"),  # the experiment config copied into a reproduce's OUT
+    ("e3cm_bench/apps/calibration/run.py", "run_calibration"),  # a calibration folder's set file (calibrate.yaml)
+    ("e3cm_bench/ground/files.py", "safe_yaml"), ("e3cm_bench/ground/files.py", "load_yaml_text"),  # the loader itself
+    ("e3cm_bench/ground/files.py", "load_yaml"),
 }
 YAML_CALLS = {"load_yaml", "safe_yaml", "safe_load", "full_load", "unsafe_load"}
 
@@ -198,15 +202,38 @@ def test_the_yaml_scan_names_the_reading_function():
     assert yaml_reads("def g(p):\n    return yaml.safe_load(p.read_text())\n") == {"g"}
 
 
-def test_no_module_but_run_config_reads_config_yaml():
-    assert (PACKAGE / "storage" / "record.py").is_file(), PACKAGE  # the scan reads the package, not an empty folder
+def raw_config_readers(root: Path = REPO) -> dict[str, list]:
+    """The modules and scripts below `root` that read config.yaml themselves (config_reads) or
+    read YAML in a function YAML_READERS does not list, each with where."""
     readers = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        source, name = path.read_text(), path.relative_to(PACKAGE).as_posix()
+    for path in sorted(p for folder in SCANNED for p in (root / folder).rglob("*.py")):
+        source, name = path.read_text(), path.relative_to(root).as_posix()
         found = config_reads(source)
         if found:
             readers[name] = found
         others = {(name, scope) for scope in yaml_reads(source)} - YAML_READERS
         if others:
             readers[name] = sorted(others)
+    return readers
+
+
+def test_the_reader_scan_covers_the_scripts(tmp_path):
+    """A script reading a run's config.yaml itself is found, by either scan: a YAML load of
+    anything (the config under another name) and a read of a path naming the file."""
+    script = tmp_path / "scripts" / "results" / "bad.py"
+    script.parent.mkdir(parents=True)
+    script.write_text("import yaml\n"
+                      "def summary(run):\n    return yaml.safe_load((run / 'config.yaml').read_text())\n"
+                      "def other(config):\n    return yaml.safe_load(config.read_text())\n")
+    (tmp_path / "e3cm_bench").mkdir()
+    assert raw_config_readers(tmp_path) == {"scripts/results/bad.py": [("scripts/results/bad.py", "other"),
+                                                                       ("scripts/results/bad.py", "summary")]}
+    script.write_text("def read(run):\n    return open(run / 'config.yaml').read()\n")
+    assert raw_config_readers(tmp_path) == {"scripts/results/bad.py": [2]}
+
+
+def test_no_module_or_script_but_run_config_reads_config_yaml():
+    # the scan reads the package and the scripts, not empty folders
+    assert (REPO / "e3cm_bench" / "storage" / "record.py").is_file() and (REPO / "scripts" / "results").is_dir(), REPO
+    readers = raw_config_readers()
     assert not readers, f"read config.yaml through RunConfig.read (storage/record.py): {readers}"

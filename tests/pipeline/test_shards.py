@@ -94,7 +94,7 @@ def test_a_shard_of_another_method_is_refused(shared_data, tmp_path):
 @pytest.mark.slow  # 21 s alone on a loaded 2-core machine (docs/development.md, Testing)
 def test_submitit_launcher_runs_locally_without_slurm(shared_data, tmp_path, monkeypatch):
     submitit = pytest.importorskip("submitit")
-    # submitit picks SLURM wherever srun is on PATH (tests/run/test_slurm_cluster.py runs that case)
+    # submitit picks SLURM wherever srun is on PATH (tests/pipeline/test_slurm_cluster.py runs that case)
     monkeypatch.setattr(submitit.SlurmExecutor, "affinity", classmethod(lambda cls: -1))
     out, reference = tmp_path / "run", tmp_path / "reference"
     args = ["hpatches", "--root", shared_data / "hpatches-sequences-release", "--matcher", "sift", "--max-side", 320]
