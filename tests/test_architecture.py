@@ -407,13 +407,74 @@ def test_each_interchange_format_is_declared_in_one_module():
     assert not elsewhere, "a format's name outside its module:\n" + "\n".join(elsewhere)
 
 
-def test_every_kind_of_run_opens_its_folder_through_the_driver():
-    """A benchmark run, an import, a calibration and a shard merge open their folder with
-    run/driver.py's open_run (the noise ensemble's draws are benchmark runs); nothing else takes
-    a run folder's lock but the driver and export (which reads a run under it, never writes one)."""
-    openers = {where.split(":")[0] for where in callers("driver.open_run")}
-    assert openers >= {"pipeline/runner.py", "pipeline/imported.py", "apps/calibration/run.py", "pipeline/shards.py"}, sorted(openers)
+# The kinds of run, each a hook of the one pipeline (pipeline/driver.py), and the module of each.
+HOOKS = {"BenchmarkRun": "pipeline/runner.py", "ImportRun": "pipeline/imported.py", "MergeRun": "pipeline/shards.py",
+         "CalibrationRun": "apps/calibration/run.py"}
+
+
+def _classes() -> dict[str, tuple[str, list[str]]]:
+    """Class name -> (module path relative to the package, its bases' names)."""
+    found = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef):
+                found[node.name] = (path.relative_to(PACKAGE).as_posix(), [getattr(b, "id", "") for b in node.bases])
+    return found
+
+
+def test_every_kind_of_run_is_a_hook_of_the_one_pipeline():
+    """A benchmark run, an import, a shard merge and a calibration are RunHook objects (PairRun
+    is the hook of a run scored pair by pair), each run through run_pipeline from its own module
+    (the noise ensemble's draws are benchmark runs); only the pipeline opens a run folder, and
+    only the pipeline and export (which reads a run under it, never writes one) take its lock."""
+    classes = _classes()
+    hooks = {name for name, (_, bases) in classes.items() if {"RunHook", "PairRun"} & set(bases)} - {"PairRun"}
+    assert {name: classes[name][0] for name in hooks} == HOOKS
+    assert {where.split(":")[0] for where in callers("run_pipeline")} == set(HOOKS.values())
+    assert {where.split(":")[0] for where in callers("open_run")} == {"pipeline/driver.py"}
     locks = [f"{path.relative_to(PACKAGE).as_posix()}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
              for line, name in _calls(path) if name.endswith(".lock") and name != "RunFolder.lock"]
     others = [where for where in locks if not where.startswith(("pipeline/driver.py:", "pipeline/export.py:"))]
-    assert locks and not others, f"a run folder locked outside the driver: {others}"
+    assert locks and not others, f"a run folder locked outside the pipeline: {others}"
+
+
+# Imports from a package to one after it in the roles' order (code_shape.ROLES), each with why:
+# none. The benchmark registry's lookups by name (importlib) are the only steps up, listed here.
+UPWARD: dict[tuple[str, str], str] = {}
+BY_NAME_UP = {
+    "e3cm_bench.sfm.benchmark": "the multi-view benchmark: the registry's, its views and mapper sfm's (ELSEWHERE)",
+    "e3cm_bench.sfm.own_images": "reconstruct's benchmark, no command, found by the name its runs record (UNLISTED)",
+}
+
+
+def test_imports_run_down_the_roles():
+    """No import, at a module's top or in a function, runs from a package to one after it in the
+    roles' order but the listed ones; at most 3 steps up in all, lookups by name included."""
+    up = code_shape().upward_imports()
+    assert set(up) == set(UPWARD), f"imports that run up the roles: {sorted(set(up) - set(UPWARD))}; " \
+                                   f"listed but gone: {sorted(set(UPWARD) - set(up))}"
+    assert len(UPWARD) + len(BY_NAME_UP) <= 3
+
+
+def test_the_registry_looks_up_by_name_only_the_listed_modules():
+    import e3cm_bench.benchmarks as registry
+
+    named = set(registry.ELSEWHERE.values()) | {module for module, _ in registry.UNLISTED.values()}
+    assert named == set(BY_NAME_UP)
+    assert {registry.get_benchmark(name).name for name in (*registry.ELSEWHERE, *registry.UNLISTED)} == {"sfm", "reconstruct"}
+
+
+def test_the_role_scan_finds_an_import_that_runs_up(tmp_path):
+    files = {"__init__.py": "", "ground/__init__.py": "", "ground/a.py": "def f():\n    from p.cli import b\n",
+             "cli/__init__.py": "", "cli/b.py": "from p.ground import a\n"}
+    for name, text in files.items():
+        (tmp_path / "p" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "p" / name).write_text(text)
+    assert code_shape().upward_imports(tmp_path / "p") == [("p.ground.a", "p.cli"), ("p.ground.a", "p.cli.b")]
+
+
+def test_every_package_has_a_role_and_the_top_level_only_the_face():
+    shape = code_shape()
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    assert packages == set(shape.ROLES), (sorted(packages - set(shape.ROLES)), sorted(set(shape.ROLES) - packages))
+    assert {p.name for p in PACKAGE.glob("*.py")} == {"__init__.py", "__main__.py"}

@@ -89,7 +89,8 @@ def test_the_strict_build_has_every_page_the_cli_and_api_references(site):
     for page in pages:
         assert (site / page / "index.html").is_file(), page
     architecture = (site / "architecture" / "index.html").read_text()  # the layer table, computed at build time
-    assert re.search(r"\d+ modules in \d+ layers", architecture) and "<code>run.folder</code>" in architecture
+    assert re.search(r"\d+ modules in \d+ layers", architecture) and "<code>storage.folder</code>" in architecture
+    assert "<code>storage/</code>" in architecture and "0 import(s) from a package to one after it" in architecture
     cli = (site / "cli" / "index.html").read_text()
     for command in ("e3cm-bench hpatches", "e3cm-bench download", "e3cm-bench datasets", "--pose-estimator"):
         assert command in cli, command

@@ -56,29 +56,27 @@ def reconstruct(
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
+    from e3cm_bench.cli.benchmarks import Scale, run_scaled
+    from e3cm_bench.sfm.own_images import RECONSTRUCT  # a benchmark that is no command (benchmarks.UNLISTED)
     from e3cm_bench.matchers import get_matcher
     from e3cm_bench.method.protocols import resolve_max_side
     from e3cm_bench.method.spec import build_method
     from e3cm_bench.pipeline.request import RunRequest
     from e3cm_bench.pipeline.shards import parse_shard
     from e3cm_bench.pipeline.stage import MatchOptions
-    from e3cm_bench.sfm.own_images import RECONSTRUCT
-    from e3cm_bench.cli.benchmarks import Scale, run_scaled
 
     scale = Scale(shard, workers, devices, launcher, shards)
     scale.check(device=device)  # the flags first: building the method may download weights
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
-                 channel_order=channel_order, seed=seed,
-                 max_side=resolve_max_side(RECONSTRUCT, max_side))
+                 channel_order=channel_order, seed=seed, max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     if merge_px is None:  # dense matchers move a feature's point from pair to pair; detections repeat exactly
         merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
-    # the benchmark as an object: it is in no registry, and a shard's worker is given it so
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
                                               single_camera=not camera_per_image), ev=RECONSTRUCT.resolve_eval(seed=seed),
-                         options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
-                                              pair_timeout=pair_timeout), shard=parse_shard(shard) if shard else None)
+                         options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error, pair_timeout=pair_timeout),
+                         shard=parse_shard(shard) if shard else None)
     run_scaled(scale, request)
     _say_model(Path(out), scale)
 
