@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from e3cm_bench.cli.benchmarks import Scale, run_scaled
 from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt, DeviceOpt,
                      FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
@@ -56,7 +57,6 @@ def reconstruct(
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
-    from e3cm_bench.cli.benchmarks import Scale, run_scaled
     from e3cm_bench.sfm.own_images import RECONSTRUCT  # a benchmark that is no command (benchmarks.UNLISTED)
     from e3cm_bench.matchers import get_matcher
     from e3cm_bench.method.protocols import resolve_max_side
