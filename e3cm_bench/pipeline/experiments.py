@@ -159,7 +159,8 @@ def reproduce(config_path: Path | str, request: RunRequest, *, backbone: str | N
             console.rule(f"{name}: {method.label}")
             run_benchmark(run.but(out=out / method.folder, method=method), console=console)
     run_dirs = [out / m.folder for m in methods]
-    if shard is not None and not all(RunFolder(d).is_run() and "shards" in RunFolder(d).read_config() for d in run_dirs):
+    if shard is not None and not all(RunFolder(d).is_run() and RunFolder(d).run_config().shards is not None
+                                     for d in run_dirs):
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
                       f"(or: e3cm-bench merge {out})", markup=False)
         return None

@@ -157,7 +157,7 @@ class BenchmarkRun(PairRun):
         else:
             console.print(f"[bold]{name}[/]: all {len(pairs)} pairs found in {where}; evaluating only")
 
-    def _check_eval_only(self, previous: dict | None) -> None:
+    def _check_eval_only(self, previous: RunConfig | None) -> None:
         if previous is None:
             raise ValueError(f"{self.folder.config_path}: not found; --eval-only needs a finished or resumed run in --out")
         if self.todo:
@@ -165,24 +165,24 @@ class BenchmarkRun(PairRun):
                 f"{self.folder.matches_path}: {len(self.todo)} of {len(self.pairs)} pairs have no matches "
                 f"(first: {self.todo[0].name}); run without --eval-only to match them")
 
-    def _record(self, previous: dict | None) -> RunConfig:
+    def _record(self, previous: RunConfig | None) -> RunConfig:
         """The run's record: what the matches are comes from the folder when only evaluating, else
         from the method; the counts of earlier (resumed) stages are kept."""
         request, method, shard = self.request, self.method, self.request.shard
         source = previous if request.eval_only else None
-        previous = previous or {}
+        previous = previous or RunConfig.from_dict({})
         return RunConfig(
             benchmark=self.benchmark.name,
-            method=source["method"] if source else method.label,
-            identity=source.get("identity") if source else method.identity(),
-            matcher=previous.get("matcher"),
-            device=source.get("device", request.device) if source else request.device,
+            method=source.method if source else method.label,
+            identity=source.identity if source else method.identity(),
+            matcher=previous.matcher,
+            device=source.record.get("device", request.device) if source else request.device,
             dataset={**request.dataset.describe(), "limit": request.limit, "n_pairs_evaluated": len(self.pairs)},
             evaluation=asdict(self.ev),
             environment=RunConfig.environment_now(),
-            timing=previous.get("timing", {}),
-            feature_reuse=previous.get("feature_reuse") or None,  # earlier stages' counts; add_stats adds this one's
-            dataset_load=request.dataset_load or previous.get("dataset_load"),
+            timing=previous.timing,
+            feature_reuse=previous.feature_reuse or None,  # earlier stages' counts; add_stats adds this one's
+            dataset_load=request.dataset_load or previous.dataset_load,
             shard=None if shard is None else {"index": shard[0], "count": shard[1], "n_pairs": len(self.pairs),
                                               "complete": False, "command": shard_command(shard)},
         )

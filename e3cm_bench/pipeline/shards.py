@@ -87,10 +87,10 @@ def shard_command(shard: tuple[int, int], argv: list[str] | None = None, cwd: st
     return f"cd {shlex.quote(cwd or os.getcwd())} && " + shlex.join(["e3cm-bench", *args])
 
 
-def rerun_commands(configs: dict[tuple[int, int], dict], shards: list[tuple[int, int]]) -> str:
+def rerun_commands(configs: dict[tuple[int, int], RunConfig], shards: list[tuple[int, int]]) -> str:
     """': CMD1; CMD2' for the shards named (from their own recorded command, or
     another shard's with its --shard K/N replaced), or '' where no shard recorded one."""
-    commands = {key: RunConfig.from_dict(c).rerun_command for key, c in configs.items()}
+    commands = {key: c.rerun_command for key, c in configs.items()}
     known = {key: command for key, command in commands.items() if command}
     if not known:
         return ""
@@ -121,13 +121,13 @@ class ShardedCache:
             raise KeyError(f"pair {name!r} is in no shard's cache")
         return self.where[name].read(name)
 
-def shard_configs(out: Path) -> dict[tuple[int, int], dict]:
-    """(K, N) -> the record (RunConfig.record) of each shard folder of OUT that holds a shard's config.yaml."""
+def shard_configs(out: Path) -> dict[tuple[int, int], RunConfig]:
+    """(K, N) -> the record of each shard folder of OUT that holds a shard's config.yaml."""
     configs = {}
     for folder in RunFolder(out).shard_folders():
         config = RunConfig.read_if_present(folder.config_path)
         if config is not None and config.shard_key is not None:
-            configs[config.shard_key] = config.record
+            configs[config.shard_key] = config
     return configs
 
 def all_shards_complete(out: Path) -> bool:
@@ -137,7 +137,7 @@ def all_shards_complete(out: Path) -> bool:
     n = next(iter(configs))[1]
     # counted, not listed: N comes from a shard's record (a crafted one may say a billion)
     return (len(configs) == n and all(m == n and 1 <= k <= n for k, m in configs)
-            and all(c["shard"].get("complete") for c in configs.values()))
+            and all(c.shard_complete for c in configs.values()))
 
 def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> pd.DataFrame:
     """Evaluate all shards of the run in OUT as one run; writes OUT's CSVs, plots and config.yaml."""
@@ -153,7 +153,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     n = counts.pop()
     check_shard_count((1, n), option=f"{RunFolder(out).shards_dir}: shards of N={n}")
     missing = [(k, n) for k in range(1, n + 1) if (k, n) not in configs]
-    unfinished = [key for key, c in sorted(configs.items()) if not c["shard"].get("complete")]
+    unfinished = [key for key, c in sorted(configs.items()) if not c.shard_complete]
     if missing or unfinished:
         names = lambda shards: ", ".join(f"{k}-of-{n}" for k, _ in shards)  # noqa: E731
         problems = ([f"{names(missing)} missing"] if missing else []) + \
@@ -162,7 +162,7 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
                          "it resumes what it matched" + rerun_commands(configs, sorted(missing + unfinished)))
     RunFolder(out).check_shards(configs)
     first = configs[(1, n)]
-    if not first.get("dataset_load"):
+    if not first.dataset_load:
         raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
                          "cannot be merged from the command line)")
     loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
@@ -182,15 +182,15 @@ class MergeRun(PairRun):
 
     def open(self, console: Console) -> None:
         first, n = self.configs[(1, self.n)], self.n
-        timings = {f"{k}-of-{n}": self.configs[(k, n)].get("timing", {}) for k in range(1, n + 1)}
+        timings = {f"{k}-of-{n}": self.configs[(k, n)].timing for k in range(1, n + 1)}
         self.config = RunConfig(
-            benchmark=first["benchmark"], method=first["method"], identity=first["identity"],
-            matcher=first.get("matcher"), device=first.get("device"),
-            dataset=dict(first["dataset"]),  # its counts are the merge's own (PairRun.evaluate)
-            evaluation=first["evaluation"], environment=first.get("environment") or {},
+            benchmark=first.benchmark, method=first.method, identity=first.identity,
+            matcher=first.matcher, device=first.device,
+            dataset=dict(first.dataset),  # its counts are the merge's own (PairRun.evaluate)
+            evaluation=first.evaluation, environment=first.environment,
             timing={"match_seconds": sum(t.get("match_seconds", 0.0) for t in timings.values()),
                     "pairs_matched": sum(t.get("pairs_matched", 0) for t in timings.values())},
-            dataset_load=first.get("dataset_load"),
+            dataset_load=first.dataset_load,
             shards={"count": n, "layout": "contiguous slices of the pair list", "timing": timings},
         )
 

@@ -141,7 +141,7 @@ def matcher_of_run(folder) -> str | None:
     if folder is None:
         return None
     try:
-        config = RunFolder(folder).read_config() or {}
+        config = RunFolder(folder).run_config(required=False)
     except ValueError:  # an unreadable record: the matcher's kind is unknown
         return None
-    return (config.get("identity") or {}).get("matcher") or config.get("method")
+    return None if config is None else (config.identity or {}).get("matcher") or config.method or None

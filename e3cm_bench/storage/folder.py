@@ -170,14 +170,10 @@ class RunFolder:
         finally:
             os.close(fd)
 
-    def read_config(self) -> dict | None:
-        """The record as read (a dict), or None for a folder without one (RunConfig.read_if_present)."""
-        config = RunConfig.read_if_present(self.config_path)
-        return None if config is None else config.record
-
-    def run_config(self) -> RunConfig:
-        """The run's record; ValueError naming the file when it is missing or unusable (RunConfig.read)."""
-        return RunConfig.read(self.config_path)
+    def run_config(self, required: bool = True) -> RunConfig | None:
+        """The run's record (RunConfig.read: a ValueError naming the file when it is missing or
+        unusable); required=False: None for a folder without one (RunConfig.read_if_present)."""
+        return RunConfig.read(self.config_path) if required else RunConfig.read_if_present(self.config_path)
 
     def write_config(self, config: RunConfig | dict) -> Path:
         return save_yaml(config.as_dict() if isinstance(config, RunConfig) else config, self.config_path)
@@ -193,19 +189,19 @@ class RunFolder:
         shutil.rmtree(self.viz_dir, ignore_errors=True)
 
     def previous(self, identity: dict | None, benchmark: str, eval_only: bool = False,
-                 changes=None, console=None) -> dict | None:
-        """The config of the matches already here, or None for a new folder; a ValueError when
+                 changes=None, console=None) -> RunConfig | None:
+        """The record of the matches already here, or None for a new folder; a ValueError when
         they were made otherwise (another benchmark, or an identity that `changes(before, now)`
         finds different: method.identity_changes) and this is not --eval-only.
 
         Settings are refused only where they would mix with matches: a folder whose run wrote
         none (it failed before its first pair: weights not found, a plugin that did not load)
         takes the new settings, its old record is removed, and `console` is told so."""
-        previous = self.read_config()
+        previous = self.run_config(required=False)
         if previous is None:
             return None
-        before = previous.get("identity")
-        if before is None and "match_options" in previous and not eval_only:
+        before = previous.identity
+        if before is None and "match_options" in previous.record and not eval_only:
             # Made by e3cm-bench before MethodSpec: its record lacks what the identity now holds
             # (the weights' hash, the seed), so its matches cannot be trusted to resume.
             raise ValueError(f"{self.config_path}: made by an older e3cm-bench (no 'identity'); --eval-only "
@@ -213,7 +209,7 @@ class RunFolder:
         if eval_only or before is None or identity is None:
             return previous
         changed = list(changes(before, identity)) if changes is not None else ([] if before == identity else ["identity"])
-        if previous.get("benchmark") != benchmark:
+        if previous.benchmark != benchmark:
             changed.insert(0, "benchmark")
         if changed and not self.holds_matches():
             if console is not None:
@@ -222,7 +218,7 @@ class RunFolder:
             self.clear()
             return None
         if changed:
-            differences = changed_values({"benchmark": previous.get("benchmark"), **before},
+            differences = changed_values({"benchmark": previous.benchmark, **before},
                                          {"benchmark": benchmark, **identity}, changed)
             raise ValueError(f"{self.config_path}: the matches in this folder were made with other settings "
                              f"({differences}); pass --overwrite to replace them or choose another --out")
@@ -244,17 +240,17 @@ class RunFolder:
                 "another --out"
             )
 
-    def check_imported(self, before: dict, benchmark: str, identity: dict, files: dict | None,
+    def check_imported(self, before: RunConfig, benchmark: str, identity: dict, files: dict | None,
                        done: set[str]) -> None:
         """Refuse to add to matches imported from other sources. files: each pair's file's hash,
         for a source of one file per pair (npz), which may gain or fix the files of pairs not
         imported yet (a resume after a bad pair); those already imported must be the same files."""
         path = self.config_path
-        if before.get("benchmark") != benchmark:
-            raise ValueError(f"{path}: this folder holds a {before.get('benchmark')} run; choose another --out")
-        old, new = (before.get("identity") or {}).get("imported") or {}, identity["imported"]
+        if before.benchmark != benchmark:
+            raise ValueError(f"{path}: this folder holds a {before.benchmark} run; choose another --out")
+        old, new = (before.identity or {}).get("imported") or {}, identity["imported"]
         if files is not None and old.get("format") == new["format"]:
-            recorded = before.get("imported_files") or {}
+            recorded = before.imported_files or {}
             changed = sorted(n for n in done if recorded.get(f"{n}.npz") != files.get(f"{n}.npz"))
             if not changed:
                 return
@@ -265,21 +261,21 @@ class RunFolder:
             why = "the matches in this folder came from elsewhere (imported)"
         raise ValueError(f"{path}: {why}; pass --overwrite to replace them or choose another --out")
 
-    def check_frames(self, before: dict | None, root: str) -> None:
+    def check_frames(self, before: RunConfig | None, root: str) -> None:
         """A calibration's: refuse matches made from another sequence's frames."""
-        if before is not None and (before.get("sequence") or {}).get("root") != root:
+        if before is not None and (before.sequence or {}).get("root") != root:
             raise ValueError(f"{self.config_path}: the matches in this folder were made from other frames "
-                             f"({(before.get('sequence') or {}).get('root')}); pass --overwrite or choose another --out")
+                             f"({(before.sequence or {}).get('root')}); pass --overwrite or choose another --out")
 
-    def check_shards(self, configs: dict) -> None:
+    def check_shards(self, configs: dict[tuple[int, int], RunConfig]) -> None:
         """A merge's: the shards' records (by (K, N)) must come from one command."""
         n = next(iter(configs))[1]
         first = configs[(1, n)]
         for (k, _), config in sorted(configs.items()):
             for key in ("benchmark", "identity", "dataset_load", "evaluation"):
-                if config.get(key) != first.get(key):
+                if getattr(config, key) != getattr(first, key):
                     raise ValueError(f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s "
-                                     f"({changed_values(first, config, [key])}); shards of one run must be made "
+                                     f"({changed_values(first.record, config.record, [key])}); shards of one run must be made "
                                      "with one command")
 
     def holds_matches(self) -> bool:

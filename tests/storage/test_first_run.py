@@ -52,7 +52,7 @@ def test_a_folder_with_matches_still_refuses_other_settings(tmp_path):
         folder.previous(identity("efficientnet_lite0"), "hpatches", console=Console(record=True))
     assert folder.config_path.exists()  # nothing was removed
     # the same settings resume
-    assert folder.previous(identity("vgg19"), "hpatches")["identity"] == identity("vgg19")
+    assert folder.previous(identity("vgg19"), "hpatches").identity == identity("vgg19")
 
 
 def test_the_offline_backbone_after_a_failed_vgg19_run(shared_data, tmp_path, monkeypatch):

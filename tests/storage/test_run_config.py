@@ -51,13 +51,16 @@ def test_a_config_of_an_unknown_benchmark_or_without_a_dataset_is_named(tmp_path
     assert str(path) in str(error.value)
 
 
-def test_the_folder_record_stays_a_dict_with_the_keys_of_older_versions(tmp_path):
+def test_the_folder_record_keeps_the_keys_of_older_versions(tmp_path):
+    """One reader, one type: RunFolder.run_config gives a RunConfig (None, where asked, for a
+    folder without a record); the keys of older versions stay in its `record`."""
     folder = RunFolder(tmp_path)
-    assert folder.read_config() is None
+    assert folder.run_config(required=False) is None
+    with pytest.raises(ValueError, match="config.yaml"):
+        folder.run_config()
     folder.config_path.write_text(yaml.safe_dump({"benchmark": "hpatches", "method": "old", "match_options": {"a": 1}}))
-    record = folder.read_config()
-    assert isinstance(record, dict) and record["match_options"] == {"a": 1}
-    config = folder.run_config()
+    config = folder.run_config(required=False)
+    assert isinstance(config, RunConfig) and config.record["match_options"] == {"a": 1}
     # a record without versions is not given this process's (the writer's default)
     assert config.versions == {} and config.identity is None and config.path == folder.config_path
 
@@ -102,7 +105,7 @@ def test_the_reload_gives_the_run_s_pairs(limited_run):
 
 
 def test_without_dataset_load_the_dataset_block_gives_the_same_pairs(limited_run, tmp_path):
-    record = RunFolder(limited_run).read_config()
+    record = RunFolder(limited_run).run_config().record
     record.pop("dataset_load")
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(record))
     assert [p.name for p in load_run_pairs(tmp_path).pairs] == _run_pair_names(limited_run)
@@ -128,7 +131,7 @@ def test_a_sampled_run_reloads_its_sample(shared_data, tmp_path):
     assert result.exit_code == 0, result.output
     expected = _run_pair_names(out)
     assert [p.name for p in load_run_pairs(out).pairs] == expected
-    record = RunFolder(out).read_config()
+    record = RunFolder(out).run_config().record
     record.pop("dataset_load")  # the dataset block records the sample too
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(record))
     assert [p.name for p in load_run_pairs(tmp_path).pairs] == expected

@@ -71,7 +71,7 @@ def test_a_run_writes_only_where_its_folder_says(boat, tmp_path):
     for path in (folder.config_path, folder.matches_path, folder.per_pair_path, folder.summary_path):
         assert path.is_file(), path
     assert not folder.failures_path.exists() and not folder.skipped_path.exists() and not folder.spill_dir.exists()
-    config = folder.read_config()
+    config = folder.run_config().record  # as written, in its order
     # the record's blocks in RunConfig's order; the optional ones only where they apply
     assert list(config)[:10] == ["benchmark", "method", "identity", "matcher", "device", "dataset", "evaluation",
                                  "versions", "environment", "timing"]
