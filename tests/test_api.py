@@ -28,6 +28,7 @@ def readme_python_example() -> str:
     return re.search(r"<!-- runnable -->\n```python\n(.*?)```", text, re.S).group(1)
 
 
+@pytest.mark.slow  # 38 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_readme_example_runs_as_written(shared_data, tmp_path):
     code = readme_python_example()
     assert "eb.match_pair" in code and "eb.run_benchmark" in code

@@ -38,6 +38,7 @@ def kitti_window(shared_data, tmp_path_factory):
     return out, root, info
 
 
+@pytest.mark.slow  # 19 s with its KITTI window in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_colmaps_mapper_registers_the_kitti_frames_in_one_model(kitti_window, tmp_path):
     """Before one keypoint list per image the mapper made no model of this export (0 of 20:
     docs/interchange.md); now one model holds most frames, with relative rotations close to

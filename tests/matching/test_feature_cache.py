@@ -169,6 +169,7 @@ def test_maps_computed_in_bf16_are_held_in_bf16_exactly_and_others_are_not():
     assert back[0].dtype == torch.float32 and torch.equal(back[0], from_bf16) and torch.equal(back[1], full)
 
 
+@pytest.mark.slow  # 24 s (fp32) and 15 s (bf16) in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_spilling_to_disk_passes_each_image_once_and_changes_no_match(shared_data, tmp_path, precision):
     """v_boat's five pairs share image 1; with memory for less than one pyramid (bf16 maps held
@@ -194,6 +195,7 @@ def test_spilling_to_disk_passes_each_image_once_and_changes_no_match(shared_dat
     assert_same_arrays(tmp_path / "spill", tmp_path / "plain")
 
 
+@pytest.mark.slow  # 23 s (short) and 15 s (default) in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 @pytest.mark.parametrize("memory", ["default", "short"])
 def test_backbone_passes_batched_ahead_pass_each_image_once_and_change_no_match(shared_data, tmp_path, memory):
     """--backbone-batch 4 on v_boat's five pairs (six images): the first pair's images go

@@ -125,6 +125,7 @@ def leuven_images(shared_data, where: Path) -> list[Path]:
     return made
 
 
+@pytest.mark.slow  # 24 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_parity_script_on_leuven_with_the_xeons_kernels(seed0_weights, shared_data, tmp_path):  # noqa: F811
     """The issue's case at the command: the DFM release's own output on leuven 1-3 (made on an AMD
     EPYC, whose OpenBLAS kernels are Haswell's: tests/data/parity/leuven13_640.json), checked

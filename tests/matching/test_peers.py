@@ -154,6 +154,7 @@ def test_weights_are_found_in_the_libraries_caches_and_enter_the_identity(tmp_pa
     assert config["identity"]["matcher"] == "loftr" and config["identity"]["backbone"] is None
 
 
+@pytest.mark.slow  # 10 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_offline_without_the_weights_is_one_line_naming_the_file_and_the_folder(tmp_path):
     env = {"TORCH_HOME": str(tmp_path / "torch"), "HF_HUB_CACHE": str(tmp_path / "hf"), "HF_HUB_OFFLINE": "1",
            "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY": "http://127.0.0.1:9"}
@@ -256,6 +257,7 @@ def test_superglue_release_weights_load_into_transformers_and_compute_the_releas
     assert float(model.bin_score.detach()) == pytest.approx(2.3)
 
 
+@pytest.mark.slow  # 13 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_a_superglue_release_pth_runs_from_weights_file_with_superpoint_from_the_cache(tmp_path, shared_data):
     """--weights superglue_outdoor.pth (the release's format): SuperGlue from the file, SuperPoint
     from transformers' cache (offline); both hashes in the identity; a file of another kind is one line."""

@@ -256,6 +256,7 @@ def run_allocator_script(env: dict | None = None) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # 7 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_keeping_freed_memory_changes_no_match():
     """glibc keeping freed memory (devices.keep_freed_memory, which every run turns on) gives the
     same matches to the bit as the system's allocator (VGG19, random weights, in a fresh process)."""
@@ -268,6 +269,7 @@ def test_keeping_freed_memory_changes_no_match():
     assert out["kept_free"] >= 200_000_000  # what available_host_memory adds to MemAvailable
 
 
+@pytest.mark.slow  # 9 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_keeping_freed_memory_can_be_turned_off():
     out = run_allocator_script({"E3CM_BENCH_ALLOCATOR": "system"})
     assert out["allocator"] == "system (E3CM_BENCH_ALLOCATOR=system)"

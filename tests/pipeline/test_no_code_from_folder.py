@@ -79,7 +79,8 @@ def assert_no_decoy_ran(done: subprocess.CompletedProcess, decoyed: Path) -> Non
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
 
 
-@pytest.mark.parametrize("workers", [0, 2])
+# workers=2: 9 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
+@pytest.mark.parametrize("workers", [0, pytest.param(2, marks=pytest.mark.slow)])
 def test_a_module_factory_in_the_current_folder_brings_nothing_else_from_it(boat, decoyed, workers):
     (decoyed / "mine.py").write_text(MINE)
     out = decoyed.parent / "out"
@@ -112,6 +113,7 @@ def test_a_module_factory_on_the_python_path_adds_no_folder(boat, decoyed):
     assert_no_decoy_ran(done, decoyed)
 
 
+@pytest.mark.slow  # 15 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_slurm_tasks_import_nothing_from_the_current_folder(boat, decoyed, monkeypatch):
     """--launcher slurm where no SLURM is found: submitit's local tasks (``python -m``)."""
     pytest.importorskip("submitit")

@@ -250,6 +250,7 @@ def mine_here(tmp_path, monkeypatch):
         registry.unregister(name)
 
 
+@pytest.mark.slow  # 12 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_module_factory_resolves_from_the_current_folder_in_workers_too(boat, mine_here):
     out = mine_here / "run"
     result = invoke("hpatches", "--root", boat, "--out", out, "--matcher", "mine_pkg.fixed_match:ENTRY",
@@ -280,6 +281,7 @@ def vm_kb_after_import(tmp_path: Path) -> int:
                               check=True, timeout=300).stdout)
 
 
+@pytest.mark.slow  # 18 s (370) and 15 s (250) in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 @pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="reads VmSize from /proc (Linux)")
 @pytest.mark.parametrize("headroom_mb", [250, 370])
 def test_a_run_under_an_address_space_limit_ends_in_one_line_or_finishes_and_resumes(boat, tmp_path, headroom_mb):

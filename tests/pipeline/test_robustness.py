@@ -433,6 +433,7 @@ def test_two_runs_with_the_same_seed_give_identical_csvs(interrupt_args, tmp_pat
     same_csvs(tmp_path / "again", reference)
 
 
+@pytest.mark.slow  # 14 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_an_undecodable_image_ahead_of_a_batch_is_met_at_its_own_pair(hpatches_copy, tmp_path, monkeypatch):
     """--backbone-batch decodes the coming pairs to batch their images: a pair whose image
     cannot be decoded is left out of the batch, and its error (or, with --skip-bad, its

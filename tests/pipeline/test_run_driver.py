@@ -76,6 +76,7 @@ def test_a_benchmark_run_and_an_import_go_through_the_driver(hpatches, spy, tmp_
     assert (tmp_path / "imported" / "summary.csv").read_bytes() == (tmp_path / "run" / "summary.csv").read_bytes()
 
 
+@pytest.mark.slow  # 13 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_shards_and_their_merge_go_through_the_driver(hpatches, spy, tmp_path):
     out = tmp_path / "sharded"
     sift_run(hpatches, out, shard=(1, 2))
@@ -86,6 +87,7 @@ def test_shards_and_their_merge_go_through_the_driver(hpatches, spy, tmp_path):
     assert merged["dataset"]["n_pairs_evaluated"] == 2 and merged["shards"]["count"] == 2
 
 
+@pytest.mark.slow  # 24 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_a_calibration_opens_each_method_folder_through_the_driver(spy, tmp_path):
     root = tmp_path / "seq"
     assert invoke("synth", "stereo", "--out", root, "--frames", 3, "--seed", 2).exit_code == 0
@@ -93,6 +95,7 @@ def test_a_calibration_opens_each_method_folder_through_the_driver(spy, tmp_path
     assert spy.opened == spy.finished == [tmp_path / "cal" / "sift"]
 
 
+@pytest.mark.slow  # 34 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_the_noise_ensemble_reruns_through_the_driver(hpatches, spy, tmp_path):
     sift_run(hpatches, tmp_path / "run")
     table = build_ensemble([load_run(tmp_path / "run")], [0, 1], tmp_path / "work")
@@ -105,6 +108,7 @@ def raised_in_run_folder(excinfo) -> bool:
     return Path(excinfo.traceback[-1].path).name == "folder.py"
 
 
+@pytest.mark.slow  # 20 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_every_refusal_to_mix_matches_is_run_folders(hpatches, tmp_path):
     out = tmp_path / "run"
     sift_run(hpatches, out)

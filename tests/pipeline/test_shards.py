@@ -81,6 +81,7 @@ def test_a_missing_shard_is_named(shared_data, tmp_path):
     assert "1-of-3, 3-of-3 missing" in line and "--shard K/3" in line
 
 
+@pytest.mark.slow  # 34 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_a_shard_of_another_method_is_refused(shared_data, tmp_path):
     out = tmp_path / "run"
     common = ["hpatches", "--root", shared_data / "hpatches-sequences-release", "--max-side", 320, "--out", out]
@@ -105,6 +106,7 @@ def test_submitit_launcher_runs_locally_without_slurm(shared_data, tmp_path, mon
     assert (out / "shards" / "slurm").is_dir()  # submitit's logs and pickles
 
 
+@pytest.mark.slow  # 29 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_workers_run_shards_in_parallel_processes(shared_data, tmp_path):
     out, reference = tmp_path / "run", tmp_path / "reference"
     args = ["hpatches", "--root", shared_data / "hpatches-sequences-release", "--matcher", "sift", "--max-side", 320]

@@ -95,6 +95,7 @@ def _run_pair_names(out: Path) -> list[str]:
     return list(pd.read_csv(RunFolder(out).per_pair_path)["pair"])
 
 
+@pytest.mark.slow  # its limited run (shared with the next two): 16 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_the_reload_gives_the_run_s_pairs(limited_run):
     loaded = load_run_pairs(limited_run)
     names = [p.name for p in loaded.pairs]
@@ -104,6 +105,7 @@ def test_the_reload_gives_the_run_s_pairs(limited_run):
     assert all(p.H is not None for p in loaded.pairs)  # with their ground truth
 
 
+@pytest.mark.slow  # the limited run above: built only where one of its users runs
 def test_without_dataset_load_the_dataset_block_gives_the_same_pairs(limited_run, tmp_path):
     record = RunFolder(limited_run).run_config().record
     record.pop("dataset_load")
@@ -111,6 +113,7 @@ def test_without_dataset_load_the_dataset_block_gives_the_same_pairs(limited_run
     assert [p.name for p in load_run_pairs(tmp_path).pairs] == _run_pair_names(limited_run)
 
 
+@pytest.mark.slow  # the limited run above: built only where one of its users runs
 def test_every_reloader_gives_the_same_pairs(limited_run):
     from e3cm_bench.reporting.drawings import _dataset_pairs
     from e3cm_bench.gate.ensemble import _dataset_of
@@ -123,6 +126,7 @@ def test_every_reloader_gives_the_same_pairs(limited_run):
     assert [p.name for p in _dataset_of(run.run_config)] == expected  # the noise ensemble
 
 
+@pytest.mark.slow  # 13 s in the fast set under a load of about 7 on the shared 2-core machine (docs/development.md, Testing)
 def test_a_sampled_run_reloads_its_sample(shared_data, tmp_path):
     root = shared_data / "hpatches-sequences-release"
     out = tmp_path / "sampled"
