@@ -93,7 +93,7 @@ def invoke(*args, **kwargs):
 
 
 def replay_stage(cache, files_in_order: list[tuple[str, str]], maps, plan: bool = True) -> None:
-    """Drive a FeatureCache as the match stage does (run/stage.py): told the order (plan; else
+    """Drive a FeatureCache as the match stage does (pipeline/stage.py): told the order (plan; else
     it evicts the least recently used), then per pair `at`, get or put each image's maps
     (maps(file)), and done_with after an image's last pair."""
     last = {f: k for k, files in enumerate(files_in_order) for f in files}

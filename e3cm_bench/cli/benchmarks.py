@@ -81,7 +81,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     values = method_values(method_given)
     check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
-    # taken where the run opens the folder, run/driver.open_run).
+    # taken where the run opens the folder, pipeline/driver.open_run).
     RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
     ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,

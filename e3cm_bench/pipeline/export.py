@@ -132,7 +132,7 @@ def _check_merge(fmt, merge_px: float) -> float:
 
 
 def _eval_settings(fmt, config):
-    """The run's evaluation settings (RunConfig.eval_settings) where the format stores each pair's
+    """The run's evaluation settings (records.evaluation_of) where the format stores each pair's
     geometry (so that the stored inliers are the ones the evaluation found); the format's library
     checked first."""
     fmt.check_available()  # before any work: one line if an extra is not installed

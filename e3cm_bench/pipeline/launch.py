@@ -1,6 +1,6 @@
 """Launching a run's shards: one local process per worker or device, or a SLURM array
-(submitit). Each shard is an ordinary run (runner.run_benchmark with shard=(K, N)); the
-last to finish merges (run/shards.py)."""
+(submitit). Each shard is an ordinary run (runner.run_benchmark of a RunRequest with shard=(K, N));
+the last to finish merges (pipeline/shards.py)."""
 
 from __future__ import annotations
 
@@ -135,7 +135,7 @@ def run_experiment_shard_job(job: dict) -> None:
 def _as_launched(argv: list[str] | None) -> None:
     """In a worker or an array task: the command line that launched the shards, with this
     shard's own options, as sys.argv; each shard records from it the command that reruns it
-    (run/shards.shard_command). sys.argv here is otherwise the worker's or submitit's own."""
+    (pipeline/shards.shard_command). sys.argv here is otherwise the worker's or submitit's own."""
     import sys
 
     if argv:

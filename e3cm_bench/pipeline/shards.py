@@ -7,7 +7,7 @@ shared between processes. `merge_run` checks that all N shards exist, are comple
 share one identity, evaluates every pair from the shards' caches, and writes the usual
 CSVs, plots and config.yaml into OUT. The last shard to finish merges automatically.
 Launching is left to the cluster's scheduler (SLURM arrays, scripts/slurm/) or to
-`run.launch.run_shards` (one local process per worker or device; submitit for SLURM).
+`pipeline.launch.run_shards` (one local process per worker or device; submitit for SLURM).
 """
 
 from __future__ import annotations

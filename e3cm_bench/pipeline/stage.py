@@ -37,7 +37,7 @@ def match_cached_pair(
     """Match one pair of a benchmark and store it (the step an interrupted run repeats).
 
     images: the pair's images already decoded (the match stage decodes ahead), else read here.
-    worker: the matcher's stoppable child process (run/pair.py match_worker), where
+    worker: the matcher's stoppable child process (pipeline/pair.py match_worker), where
     --pair-timeout runs it."""
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,

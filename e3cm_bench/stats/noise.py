@@ -2,7 +2,7 @@
 another CPU would make it?
 
 Each pair of a baseline run has an ensemble of values (its own value plus one per noise
-draw: reporting/ensemble.py reruns the run with every CPU-dependent stage perturbed). From those:
+draw: gate/ensemble.py reruns the run with every CPU-dependent stage perturbed). From those:
 
 - a **count** aggregate (the fraction of pairs under a threshold, e.g. h_acc@1) is a sum of
   independent Bernoulli variables, one per pair, with p_i = the share of the pair's members

@@ -1,5 +1,5 @@
 """Perturbations at the scale of a CPU's rounding: how the regression gate's noise ensemble
-(reporting/ensemble.py) reruns a run as another machine might have run it.
+(gate/ensemble.py) reruns a run as another machine might have run it.
 
 Two stages of a run round differently on another CPU, and each is perturbed at its own scale
 while a `Perturbation` is active (docs/results.md "Noise model" says how they were found):

@@ -45,7 +45,7 @@ class RunConfig:
     shards: dict | None = None
     imported_files: dict | None = None
     pixel_origin_check: dict | None = None  # an import's half-pixel check (interchange.pixels)
-    # a calibration's (calibration/run.py): the sequence and its settings
+    # a calibration's (apps/calibration/run.py): the sequence and its settings
     command: str | None = None
     sequence: dict | None = None
     calibration: dict | None = None

@@ -12,7 +12,7 @@ homography, written as JPEG, so decoding is paid as with the real files and matc
 real work. VGG19 with random weights (seed 0), the same on both sides; random weights cost
 what ImageNet ones do.
 
-  ours: run.stage.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
+  ours: pipeline.stage.match_stage over the whole block as `e3cm-bench yfcc` runs it: pairs in
         reuse_order, the feature cache with this machine's default memory and disk budgets,
         decoding ahead, --precision, --device, --backbone-batch (default: the run's, 8 on a
         GPU and 1 on a CPU). Backbone passes and passes per image are its own counts.

@@ -102,7 +102,7 @@ def test_hpatches_end_to_end_files(hpatches_run):
         assert (out / name).is_file(), name
     assert not (out / "pose_error_cdf.png").exists()
     viz = sorted(p.name for p in (out / "viz").iterdir())
-    # --viz draws a spread (viz.drawn_pairs), not the first 2: an illumination and a viewpoint pair
+    # --viz draws a spread (drawing.matches.drawn_pairs), not the first 2: an illumination and a viewpoint pair
     assert viz == ["i_leuven__1-4.png", "v_boat__1-2.png"]
     for name in viz:
         image = cv2.imread(str(out / "viz" / name))

@@ -195,10 +195,11 @@ def test_a_side_that_is_neither_full_nor_positive_is_one_line(value):
 def captured(monkeypatch):
     """What the benchmark command hands to the run (run_benchmark, or run_shards), not run."""
     calls = []
-    monkeypatch.setattr("e3cm_bench.pipeline.runner.run_benchmark", lambda **kw: calls.append(("run", kw)))
+    monkeypatch.setattr("e3cm_bench.pipeline.runner.run_benchmark",
+                        lambda request, console=None: calls.append(("run", vars(request))))
     monkeypatch.setattr("e3cm_bench.pipeline.launch.run_shards",
-                        lambda run, n, devices=None, launcher="local", console=None: calls.append(
-                            ("shards", {"n": n, "devices": devices, "launcher": launcher, **run})))
+                        lambda request, n, devices=None, launcher="local", console=None: calls.append(
+                            ("shards", {"n": n, "devices": devices, "launcher": launcher, **vars(request)})))
     return calls
 
 
