@@ -39,6 +39,7 @@ def main() -> int:
     parser.add_argument("--scale", type=float, default=None, help="noise, relative to each map's RMS (default 1e-5)")
     args = parser.parse_args()
 
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))  # parity.py: the tests' and this script's
     import parity
     from e3cm_bench.matchers import build_matcher
     from e3cm_bench.pipeline.runner import match_pair

@@ -34,6 +34,7 @@ KERNELS = {"Haswell": ("avx2", "fma"), "SkylakeX": ("avx512f", "avx512bw", "avx5
 STAGE0_IN_A_CHILD = """
 import json, sys
 import numpy as np, torch
+sys.path.insert(0, %r)  # tests/, where parity.py lives
 import parity
 from e3cm_bench.matching.release import DFMRelease, dfm_release_stage0
 maps = np.load(sys.argv[1])
@@ -44,7 +45,7 @@ if len(sys.argv) > 3:  # check against this reference H_init
 else:
     H, _ = dfm_release_stage0(top0, top1, level, DFMRelease())
     np.save(sys.argv[2], H)
-"""
+""" % str(Path(__file__).resolve().parents[1])
 
 
 def _image(shared_data: Path, k: int) -> np.ndarray:
