@@ -236,6 +236,57 @@ def test_the_size_targets_see_what_they_measure(tmp_path):
     assert {(f.name, f.lines) for f in shape.functions(tmp_path / "p")} == {("C.long", 62), ("short", 2)}
 
 
+# Functions over the parameter target, each with its reason; the test fails when one comes
+# under it, so the list cannot go stale.
+OVER_EIGHT_PARAMETERS = {
+    "e3cm_bench.method.spec.MethodSpec.create": "the public API's constructor of a method: matcher, backbone, weights, "
+    "estimator, sampson_px, ratio, max_side, seed, label, options and upright are keywords callers pass by name "
+    "(docs/api.md, scripts, tests); eight would take **kwargs or break a caller",
+}
+
+
+def test_no_function_over_eight_parameters():
+    """The target (issue 63): no function with more than 8 parameters (positional, keyword-only,
+    *args, **kwargs; a method's self or cls not counted): what belongs together travels as one
+    frozen dataclass (PoseScoring, LKFit, SetOptions, TimeLimit, ...). Exempt: typer commands,
+    those decorated with ``X.command()`` or handed to one (code_shape._typer_commands), because
+    typer reads each of their parameters as a command-line option; their count is the command's
+    options, and grouping them would hide the options from --help."""
+    shape = code_shape()
+    every = shape.parameters()
+    many = sorted((-f.count, f"{f.module}.{f.name}") for f in every if f.count > shape.PARAMETERS and not f.command)
+    unlisted = [(n, name) for n, name in many if name not in OVER_EIGHT_PARAMETERS]
+    assert not unlisted, f"functions over {shape.PARAMETERS} parameters:\n" + \
+        "\n".join(f"{-n:6d}  {name}" for n, name in unlisted)
+    assert set(OVER_EIGHT_PARAMETERS) == {name for _, name in many}, "a listed function is no longer over the target"
+    commands = {f"{f.module}.{f.name}" for f in every if f.command}
+    assert {"e3cm_bench.cli.match.match", "e3cm_bench.cli.data.import_matches"} <= commands  # decorated; registered
+    assert all(name.startswith("e3cm_bench.cli.") for name in commands)
+
+
+def test_the_parameter_target_sees_what_it_measures(tmp_path):
+    """The counter behind the target: every kind of parameter counts, a method's self or cls does
+    not (a static method's first does), nested functions are seen, and a typer command is one
+    decorated with X.command() or handed, wrapped, to one, in a module that imports typer."""
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "__init__.py").write_text("")
+    (tmp_path / "p" / "m.py").write_text(
+        "import typer\napp = typer.Typer()\n"
+        "def every(a, /, b, *args, c, d=1, **kw):\n    def inner(x): pass\n"
+        "class C:\n    def method(self, a): pass\n    @classmethod\n    def make(cls, a, b): pass\n"
+        "    @staticmethod\n    def plain(self, a): pass\n"
+        "@app.command()\ndef decorated(a): pass\n"
+        "def registered(a): pass\ndef wrap(f): return f\n"
+        "app.command('r')(wrap(registered))\n")
+    (tmp_path / "p" / "other.py").write_text("class Group:\n    def command(self): pass\n"
+                                             "g = Group()\n@g.command()\ndef not_typer(a): pass\n")
+    found = {f"{f.module}.{f.name}": (f.count, f.command) for f in code_shape().parameters(tmp_path / "p")}
+    assert found == {"p.m.every": (6, False), "p.m.every.inner": (1, False), "p.m.C.method": (1, False),
+                     "p.m.C.make": (2, False), "p.m.C.plain": (2, False), "p.m.decorated": (1, True),
+                     "p.m.registered": (1, True), "p.m.wrap": (1, False), "p.other.Group.command": (0, False),
+                     "p.other.not_typer": (1, False)}
+
+
 def _string_literals(path: Path) -> list[tuple[int, str]]:
     """(line, text) of every string constant of a module but its docstrings."""
     tree = ast.parse(path.read_text(), str(path))

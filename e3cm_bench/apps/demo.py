@@ -13,6 +13,7 @@ run's summary table, the Markdown tables) goes to OUT/demo.log.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -46,6 +47,20 @@ HEADLINES = {"hpatches": ("h_acc@1", "h_acc@3", "mma@3"), "scenes": ("auc@10", "
 LOG = "demo.log"
 
 
+@dataclass(frozen=True)
+class _Demo:
+    """What every set of one demo shares: the folder, the methods, the seed, the drawings per
+    run, the device, and the two consoles (the short account and the log)."""
+
+    out: Path
+    methods: list[str]
+    seed: int
+    viz: int
+    device: str
+    console: Console
+    log: Console
+
+
 def run_demo(
     out: str | Path = "e3cm-demo", seed: int = 0, quick: bool = False, methods: list[str] | None = None,
     viz: int = 2, device: str = "cpu", console: Console | None = None,
@@ -74,8 +89,8 @@ def run_demo(
         # The runs' own account (settings, progress, each run's table, the Markdown tables): kept
         # whole in the log (this run's: a rerun writes its own), at a width that keeps tables intact.
         log = Console(file=log_file, width=120, force_terminal=False, color_system=None)
-        tables = {set_name: _run_set(step, set_name, roots[set_name], out, methods, seed, viz, device, console, log)
-                  for step, set_name in enumerate(SETS, 1)}
+        demo = _Demo(out, methods, seed, viz, device, console, log)
+        tables = {set_name: _run_set(demo, step, set_name, roots[set_name]) for step, set_name in enumerate(SETS, 1)}
     lines = orderings(tables) or ["none judged: the orderings compare e3cm, e3cm-ransac, direct and dfm"]
     text = "\n".join(f"- {line}" for line in lines) + "\n"
     write_atomically(out / "orderings.md", lambda tmp: tmp.write_text(text))
@@ -85,8 +100,7 @@ def run_demo(
     return tables
 
 
-def _run_set(step: int, set_name: str, data: tuple, out: Path, methods: list[str], seed: int, viz: int,
-             device: str, console: Console, log: Console) -> pd.DataFrame:
+def _run_set(demo: _Demo, step: int, set_name: str, data: tuple) -> pd.DataFrame:
     """One set of the demo: every method's run (through the benchmark's one path to a method,
     Benchmark.resolve_method, under its default protocol), then its table; returns the table."""
     from e3cm_bench.pipeline.experiments import write_table  # here, not at the top: the command line's help reads METHODS
@@ -96,21 +110,23 @@ def _run_set(step: int, set_name: str, data: tuple, out: Path, methods: list[str
     benchmark = get_benchmark(benchmark_name)
     root, options = data
     dataset = benchmark.load_dataset(root, **options)
-    log.rule(f"demo {step}/{len(SETS)}: {set_name} - {', '.join(methods)}")
-    console.print(f"{step}/{len(SETS)} {set_name}: {_pairs_text(dataset)}, {description}", markup=False, highlight=False)
-    runs = [(out / set_name / label,
-             benchmark.resolve_method(backbone=BACKBONE, seed=seed, label=label, **METHODS[label]))
-            for label in methods]
+    demo.log.rule(f"demo {step}/{len(SETS)}: {set_name} - {', '.join(demo.methods)}")
+    demo.console.print(f"{step}/{len(SETS)} {set_name}: {_pairs_text(dataset)}, {description}", markup=False,
+                       highlight=False)
+    runs = [(demo.out / set_name / label,
+             benchmark.resolve_method(backbone=BACKBONE, seed=demo.seed, label=label, **METHODS[label]))
+            for label in demo.methods]
     started = time.monotonic()
     # All methods matched together: each image goes through the backbone once for all. The
     # spinner is drawn on a terminal only; a log or a pipe gets the lines below.
-    with console.status(f"{set_name}: matching {len(dataset)} pairs with {len(methods)} methods"):
-        run_methods(benchmark, runs, dataset, ev=benchmark.resolve_eval(seed=seed), viz=viz, device=device, console=log)
-        csv_path, _ = write_table([run_dir for run_dir, _ in runs], out / f"{set_name}_table", paper_rows=False,
-                                  compare=False, console=log)
+    with demo.console.status(f"{set_name}: matching {len(dataset)} pairs with {len(demo.methods)} methods"):
+        run_methods(benchmark, runs, dataset, ev=benchmark.resolve_eval(seed=demo.seed), viz=demo.viz,
+                    device=demo.device, console=demo.log)
+        csv_path, _ = write_table([run_dir for run_dir, _ in runs], demo.out / f"{set_name}_table", paper_rows=False,
+                                  compare=False, console=demo.log)
     table = pd.read_csv(csv_path)
     for line in headline_lines(table, HEADLINES[set_name], time.monotonic() - started):
-        console.print(line, markup=False, highlight=False)
+        demo.console.print(line, markup=False, highlight=False)
     return table
 
 

@@ -126,7 +126,7 @@ class Benchmark:
     (`evaluate_pair`, `summarize`) and how runs are reported. The benchmark's command
     (`e3cm-bench NAME`), `import`, `reproduce` and the report are made from this object.
 
-    dataset: the PairList class, built as ``dataset(root, skip_bad=..., **options)``.
+    dataset: the PairList class, built by ``build_dataset`` (as ``dataset(root, skip_bad=..., **options)``).
     dataset_options: the options it takes besides the root (config files are checked against
     them); a DatasetOption becomes an option of the benchmark's command, a plain name is for
     the Python API only.
@@ -185,13 +185,19 @@ class Benchmark:
         if limit and sample is None and self.builds_to_limit:  # the run's --limit: built no further (sfm's graph)
             options["first"] = int(limit)
         try:
-            dataset = self.dataset(root, skip_bad=skip_bad, **options)
+            dataset = self.build_dataset(root, skip_bad, options)
         except (ValueError, FileNotFoundError) as error:  # DatasetError is a ValueError
             hint = self.root_hint(root)
             if not hint:
                 raise
             raise type(error)(f"{str(error).splitlines()[0]}; {hint}") from error
         return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
+
+    def build_dataset(self, root: str | Path, skip_bad: bool, options: dict) -> PairList:
+        """The dataset of `root` with its options (checked names, None left out; `first` where
+        it builds to the run's limit): ``dataset(root, skip_bad=..., **options)``; a benchmark
+        whose dataset takes its options grouped (sfm: SetOptions) builds it its own way."""
+        return self.dataset(root, skip_bad=skip_bad, **options)
 
     def root_hint(self, root: str | Path) -> str:
         """For a --root one level too high: 'ROOT holds hpatches-sequences-release/: did you mean

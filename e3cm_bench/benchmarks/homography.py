@@ -43,11 +43,9 @@ class HomographyBenchmark(Benchmark):
             # convention; metrics' corners are (0, 0) .. (w - 1, h - 1): the same points for a
             # size one larger, exactly.
             width, height = width + 1, height + 1
-        row = metrics.evaluate_homography_pair(
-            k0, k1, pair.H, width, height,
-            seed=ev.seed, ransac_threshold=ev.homography_ransac_px, max_iters=ev.homography_max_iters,
-            confidence=ev.homography_confidence, estimator=ev.estimator,
-        )
+        scoring = metrics.HomographyScoring(ev.homography_ransac_px, ev.homography_max_iters, ev.homography_confidence,
+                                            ev.estimator)
+        row = metrics.evaluate_homography_pair(k0, k1, pair.H, width, height, seed=ev.seed, scoring=scoring)
         if ev.match_precision_px:
             error = np.nan_to_num(metrics.symmetric_homography_error(k0, k1, pair.H), nan=np.inf)
             for t, column in zip(ev.match_precision_px, _precision_columns(ev)):

@@ -38,12 +38,12 @@ class PoseBenchmark(Benchmark):
                                 *map(metrics.precision_key, ev.precision_thresholds)])
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
+        scoring = metrics.PoseScoring(self.ransac_px(pair, matches, ev), ev.pose_confidence, ev.precision_thresholds,
+                                      ev.estimator, rotation_error(ev.protocol))
         row = metrics.evaluate_pose_pair(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
-            pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, ransac_threshold=self.ransac_px(pair, matches, ev),
-            confidence=ev.pose_confidence, precision_thresholds=ev.precision_thresholds, estimator=ev.estimator,
+            pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, scoring=scoring,
             sizes=(tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None,
-            rotation_error=rotation_error(ev.protocol),
         )
         return {"pair": pair.name, **row}
 
@@ -56,12 +56,12 @@ class PoseBenchmark(Benchmark):
     def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
         """The relative pose by the evaluation's estimator, threshold (ransac_px) and seed, with
         its RANSAC's inliers."""
-        from e3cm_bench.geometry.estimators import pose_geometry
+        from e3cm_bench.geometry.estimators import PoseRansac, pose_geometry
 
         sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
+        ransac = PoseRansac(cls.ransac_px(pair, matches, ev), ev.pose_confidence, ev.estimator, ev.seed)
         return pose_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.K0,
-                             pair.K1, cls.ransac_px(pair, matches, ev), ev.pose_confidence, estimator=ev.estimator,
-                             seed=ev.seed, sizes=sizes)
+                             pair.K1, ransac, sizes=sizes)
 
     @staticmethod
     def ransac_px(pair: Pair, matches: Matches, ev: EvalSettings) -> float:

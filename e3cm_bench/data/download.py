@@ -194,7 +194,7 @@ def fetch(url: str, dest: Path, size: int | None = None, archive: bool = False, 
                                     f"(about {size} expected); nothing was written: check the URL or the mirror")
             if size is None and total is not None:
                 deadline.expect(total - start)
-            got = _receive(url, response, part, start, end, cap, deadline, console, dest.name)
+            got = _receive(url, response, part, start, end, cap, deadline, console)
     if (end is not None and got != end) or (total is not None and got != total):
         raise DownloadError(f"{url}: the connection dropped at {got} of {total if total is not None else end} bytes; "
                             f"{part} is kept, rerun the same command to resume")
@@ -294,10 +294,12 @@ class Deadline:
 
 
 def _receive(url: str, response, part: Path, start: int, end: int | None, cap: int, deadline: Deadline,
-             console: Console | None, label: str) -> int:
+             console: Console | None) -> int:
     """The body written into `part` from byte `start` on; returns the part's length. Stops at
     `cap`, at the deadline, on a stalled body and at FREE_RESERVE, each with one line; a dropped
-    connection ends the loop quietly (the caller compares the length with what was announced)."""
+    connection ends the loop quietly (the caller compares the length with what was announced).
+    The progress bar is labelled with the file's name (the part's, less .part)."""
+    label = part.name.removesuffix(".part")
     flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_APPEND if start else os.O_TRUNC)
     got = start
     window = (time.monotonic(), got)  # when the current stall window began, and the bytes then

@@ -12,6 +12,8 @@ other seeds (--repeats) see other samples, as reruns of a randomised RANSAC woul
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from e3cm_bench.geometry import two_view as geometry
@@ -136,12 +138,25 @@ def check_estimator(name: str) -> str:
     return name
 
 
+@dataclass(frozen=True)
+class PoseRansac:
+    """How a relative pose is estimated: the threshold (pixels), the confidence, the backend
+    (opencv or poselib) and its seed; one object, as EvalSettings gives them together."""
+
+    threshold_px: float
+    confidence: float
+    estimator: str = "opencv"
+    seed: int = 0
+
+
 def relative_pose(
-    kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.ndarray, threshold_px: float, confidence: float,
-    estimator: str = "opencv", seed: int = 0, sizes: tuple | None = None,
+    kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.ndarray, ransac: PoseRansac,
+    sizes: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(R, t, inlier mask) of camera 1 relative to camera 0, or None, from the backend `estimator`."""
-    return load_estimator(estimator).relative_pose(kpts0, kpts1, K0, K1, threshold_px, confidence, seed, sizes)
+    """(R, t, inlier mask) of camera 1 relative to camera 0, or None, from the backend
+    `ransac.estimator`; sizes: the images' (w, h), for PoseLib's cameras."""
+    return load_estimator(ransac.estimator).relative_pose(kpts0, kpts1, K0, K1, ransac.threshold_px, ransac.confidence,
+                                                          ransac.seed, sizes)
 
 
 def homography(
@@ -177,10 +192,9 @@ def homography_geometry(x0: np.ndarray, x1: np.ndarray, threshold_px: float, max
     return {"H": H, "inliers": np.nan_to_num(error, nan=np.inf) <= threshold_px}
 
 
-def pose_geometry(x0: np.ndarray, x1: np.ndarray, K0, K1, threshold_px: float, confidence: float,
-                  estimator: str = "opencv", seed: int = 0, sizes: tuple | None = None) -> dict | None:
+def pose_geometry(x0: np.ndarray, x1: np.ndarray, K0, K1, ransac: PoseRansac, sizes: tuple | None = None) -> dict | None:
     """{"R", "t", "inliers"}: the relative pose and its RANSAC's inliers; None where it fails."""
-    found = relative_pose(x0, x1, K0, K1, threshold_px, confidence, estimator, seed, sizes)
+    found = relative_pose(x0, x1, K0, K1, ransac, sizes)
     if found is None:
         return None
     R, t, inliers = found

@@ -8,10 +8,12 @@ run, ``--eval-only``) gives the same numbers as in a full run.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from e3cm_bench.geometry.estimators import PoseRansac
 from e3cm_bench.geometry.estimators import homography as estimate_homography
 from e3cm_bench.geometry.estimators import relative_pose as estimate_relative_pose
 from e3cm_bench.geometry.two_view import (
@@ -104,6 +106,18 @@ def precision_column(threshold: float) -> str:
     return f"prec@{threshold:g}px"
 
 
+@dataclass(frozen=True)
+class HomographyScoring:
+    """How evaluate_homography_pair estimates H: the RANSAC threshold (pixels), its iterations
+    and confidence, and the backend (opencv or poselib, estimators.py); EvalSettings' homography_*
+    fields and its estimator."""
+
+    ransac_threshold: float = 3.0
+    max_iters: int = 5000
+    confidence: float = 0.9999
+    estimator: str = "opencv"
+
+
 def evaluate_homography_pair(
     kpts0: np.ndarray,
     kpts1: np.ndarray,
@@ -111,20 +125,17 @@ def evaluate_homography_pair(
     width0: int,
     height0: int,
     seed: int,
-    ransac_threshold: float = 3.0,
-    max_iters: int = 5000,
-    confidence: float = 0.9999,
-    estimator: str = "opencv",
+    scoring: HomographyScoring = HomographyScoring(),
 ) -> dict:
-    """One HPatches row: n_matches, mma@1..mma@10, h_error (inf when RANSAC finds no H).
-    estimator: opencv or poselib (estimators.py)."""
+    """One HPatches row: n_matches, mma@1..mma@10, h_error (inf when RANSAC finds no H)."""
     kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
     for t, value in zip(MMA_THRESHOLDS, mma_per_pair(kpts0, kpts1, H_gt)):
         row[f"mma@{t}"] = float(value)
     cv2.setRNGSeed(int(seed))
-    H_est = estimate_homography(kpts0, kpts1, ransac_threshold, max_iters, confidence, estimator, seed)
+    H_est = estimate_homography(kpts0, kpts1, scoring.ransac_threshold, scoring.max_iters, scoring.confidence,
+                                scoring.estimator, seed)
     row["h_error"] = homography_corner_error(H_est, H_gt, width0, height0)
     return row
 
@@ -196,6 +207,19 @@ def epipolar_precision(
     return {t: float(np.mean(distances < t)) for t in thresholds}
 
 
+@dataclass(frozen=True)
+class PoseScoring:
+    """How evaluate_pose_pair scores a pose pair: the essential-matrix RANSAC's threshold (pixels)
+    and confidence, the epipolar precision's thresholds, the backend (opencv or poselib,
+    estimators.py) and how err_R is measured (geometry.ROTATION_ERRORS)."""
+
+    ransac_threshold: float = 0.5
+    confidence: float = 0.99999
+    precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS
+    estimator: str = "opencv"
+    rotation_error: str = "nearest-rotation"
+
+
 def evaluate_pose_pair(
     kpts0: np.ndarray,
     kpts1: np.ndarray,
@@ -203,25 +227,21 @@ def evaluate_pose_pair(
     K1: np.ndarray,
     T_0to1: np.ndarray,
     seed: int,
-    ransac_threshold: float = 0.5,
-    confidence: float = 0.99999,
-    precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS,
-    estimator: str = "opencv",
+    scoring: PoseScoring = PoseScoring(),
     sizes: tuple | None = None,
-    rotation_error: str = "nearest-rotation",
 ) -> dict:
     """One pose row: n_matches, err_R, err_t, err_pose (max of both), precision@t for each t.
-    estimator: opencv or poselib (estimators.py); sizes: the images' (w, h), for PoseLib's
-    cameras; rotation_error: how err_R is measured (geometry.ROTATION_ERRORS)."""
+    sizes: the images' (w, h), for PoseLib's cameras."""
     kpts0 = np.asarray(kpts0, dtype=np.float64).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
     cv2.setRNGSeed(int(seed))
-    estimate = estimate_relative_pose(kpts0, kpts1, K0, K1, ransac_threshold, confidence, estimator, seed, sizes)
+    ransac = PoseRansac(scoring.ransac_threshold, scoring.confidence, scoring.estimator, seed)
+    estimate = estimate_relative_pose(kpts0, kpts1, K0, K1, ransac, sizes)
     R, t = (estimate[0], estimate[1]) if estimate is not None else (None, None)
-    row["err_R"], row["err_t"] = pose_error(T_0to1, R, t, rotation_error)
+    row["err_R"], row["err_t"] = pose_error(T_0to1, R, t, scoring.rotation_error)
     row["err_pose"] = max(row["err_R"], row["err_t"])
-    for threshold, value in epipolar_precision(kpts0, kpts1, K0, K1, T_0to1, precision_thresholds).items():
+    for threshold, value in epipolar_precision(kpts0, kpts1, K0, K1, T_0to1, scoring.precision_thresholds).items():
         row[precision_key(threshold)] = value
     return row
 

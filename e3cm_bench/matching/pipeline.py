@@ -24,7 +24,7 @@ from e3cm_bench.matching.cascade import (ESTIMATORS, UnitPixels, confidence_scor
 from e3cm_bench.matching.dense import match_dense_level
 from e3cm_bench.matching.levels import cell_centres, valid_extent
 from e3cm_bench.matching.norms import normalize_channels
-from e3cm_bench.matching.refine import refine_to_children
+from e3cm_bench.matching.refine import ChildTest, refine_to_children
 
 
 # Sampson thresholds (px) for the candidates of levels 0..3, chosen on the shared data with
@@ -187,7 +187,7 @@ def match_pyramids(
         t = time.perf_counter()
         cells0, cells1, dist, _ = refine_to_children(
             feats0[level - 1], feats1[level - 1], cells0, cells1,
-            *extents(level - 1), settings.ratio[level - 1], settings.max_per_parent, settings.ratio_at,
+            *extents(level - 1), ChildTest(settings.ratio[level - 1], settings.max_per_parent, settings.ratio_at),
         )
         timings[f"refine_l{level - 1}"] = time.perf_counter() - t
         counts_before[level - 1] = len(cells0)

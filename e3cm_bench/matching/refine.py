@@ -7,6 +7,8 @@ that are mutual and pass the ratio test survive, at most `max_per_parent` per pa
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from e3cm_bench.matching.dense import passes_ratio
@@ -16,6 +18,18 @@ from e3cm_bench.matching.norms import normalize_channels
 CHILD_OFFSETS = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]])
 
 
+@dataclass(frozen=True)
+class ChildTest:
+    """Which children of a parent match survive at one level: the ratio test's threshold, the
+    most kept per parent (lowest distances first), and ratio_at: where the B->A ratio test is
+    read, "matched" at the B child the A child matched (the test as Eq. 2 states it), "own" at
+    the B child with the A child's index (both releases' indexing; matching/release.py)."""
+
+    ratio: float
+    max_per_parent: int = 2
+    ratio_at: str = "matched"
+
+
 def refine_to_children(
     feat0: torch.Tensor,
     feat1: torch.Tensor,
@@ -23,15 +37,9 @@ def refine_to_children(
     cells1: torch.Tensor,
     extent0: tuple[int, int],
     extent1: tuple[int, int],
-    ratio: float,
-    max_per_parent: int = 2,
-    ratio_at: str = "matched",
+    test: ChildTest,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Refine N parent matches to level l-1.
-
-    ratio_at: where the B->A ratio test is read: "matched" at the B child the A child matched
-    (the test as Eq. 2 states it), "own" at the B child with the A child's index (both
-    releases' indexing; matching/release.py).
+    """Refine N parent matches to level l-1, the children kept by `test`.
 
     feat0/feat1: maps of level l-1 (C x H x W; normalised here, as they are read). cells0/cells1: N x 2 parent
     cells (x, y) at level l. extent0/extent1: valid (w, h) of level l-1 in cells.
@@ -50,10 +58,10 @@ def refine_to_children(
     d0 = normalize_channels(_gather(feat0, kids0)).permute(1, 2, 0)  # N x 4 x C
     d1 = normalize_channels(_gather(feat1, kids1)).permute(1, 2, 0)
     dist = 1 - d0 @ d1.transpose(1, 2)  # N x 4 (children of A) x 4 (children of B)
-    child_dist, b_of_a = _children_checked(dist, kids0, kids1, extent0, extent1, ratio, ratio_at)
+    child_dist, b_of_a = _children_checked(dist, kids0, kids1, extent0, extent1, test.ratio, test.ratio_at)
 
     # Keep the best `max_per_parent` children per parent.
-    k = min(max_per_parent, 4)
+    k = min(test.max_per_parent, 4)
     top_dist, top_a = child_dist.topk(k, dim=1, largest=False)
     parent = torch.arange(n, device=device)[:, None].expand(n, k)
     top_b = b_of_a.gather(1, top_a)

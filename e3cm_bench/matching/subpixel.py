@@ -40,6 +40,8 @@ randomness.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -98,12 +100,34 @@ def local_contrast(image: np.ndarray, sigma: float = CONTRAST_SIGMA) -> np.ndarr
     return np.clip(np.rint(128 + 40 * z), 0, 255).astype(np.uint8)
 
 
-def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, window: int = 9,
-              max_move: float = 1.5, fb_px: float = 0.3, drop: bool = False,
-              normalise: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(kpts1 refined, keep): kpts1 moved by LK where consistent; keep[i] False only for a
-    match the strict variant drops. normalise: LK on the images' local contrast
-    (`local_contrast`) instead of their grey levels. kpts0 never moves."""
+@dataclass(frozen=True)
+class LKFit:
+    """refine_lk's fit: the patch side (pixels), the largest move, the forward-backward
+    tolerance (pixels), and normalise: LK on the images' local contrast (`local_contrast`)
+    instead of their grey levels."""
+
+    window: int = 9
+    max_move: float = 1.5
+    fb_px: float = 0.3
+    normalise: bool = False
+
+
+@dataclass(frozen=True)
+class NCCFit:
+    """refine_ncc's fit: the patch side (pixels, odd), the search radius (whole pixels), the
+    largest move and the lowest NCC kept (the defaults' reasons: refine_ncc's docstring)."""
+
+    window: int = 9
+    radius: int = 2
+    max_move: float = 1.5
+    min_ncc: float = 0.7
+
+
+def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, fit: LKFit = LKFit(),
+              drop: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(kpts1 refined, keep): kpts1 moved by LK (`fit`) where consistent; keep[i] False only for
+    a match the strict variant drops. kpts0 never moves."""
+    window, max_move, fb_px, normalise = fit.window, fit.max_move, fit.fb_px, fit.normalise
     kpts0 = np.asarray(kpts0, np.float32).reshape(-1, 2)
     kpts1 = np.asarray(kpts1, np.float32).reshape(-1, 2)
     keep = np.ones(len(kpts0), bool)
@@ -133,10 +157,10 @@ def refine_lk_auto(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kp
     ADAPTIVE_MIN_PASS of the matches pass its checks ("grey"), else strict LK on the local
     contrast where that many pass there ("contrast"), else lenient LK on the grey levels
     ("lenient": nothing dropped)."""
-    grey, passed = refine_lk(image0, image1, kpts0, kpts1, window=window, drop=True)
+    grey, passed = refine_lk(image0, image1, kpts0, kpts1, LKFit(window=window), drop=True)
     if len(passed) == 0 or passed.mean() >= ADAPTIVE_MIN_PASS:
         return grey, passed, "grey"
-    contrast, passed_contrast = refine_lk(image0, image1, kpts0, kpts1, window=window, drop=True, normalise=True)
+    contrast, passed_contrast = refine_lk(image0, image1, kpts0, kpts1, LKFit(window=window, normalise=True), drop=True)
     if passed_contrast.mean() >= ADAPTIVE_MIN_PASS:
         return contrast, passed_contrast, "contrast"
     return grey, np.ones(len(passed), bool), "lenient"
@@ -197,8 +221,7 @@ def _quadratic_fit() -> np.ndarray:
 _QUADRATIC_FIT = _quadratic_fit()
 
 
-def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, window: int = 9,
-               radius: int = 2, max_move: float = 1.5, min_ncc: float = 0.7,
+def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray, fit: NCCFit = NCCFit(),
                drop: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(kpts1 refined, keep): kpts1 moved to the sub-pixel peak of the zero-mean NCC of A's
     `window` x `window` patch at kpts0 with B around kpts1 (whole-pixel offsets within
@@ -217,8 +240,9 @@ def refine_ncc(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1:
     interior, so radius 2 allows +-1 pixel plus the sub-pixel part, about max_move's 1.5 px;
     a larger radius would only add offsets that max_move rejects. window 9: LK's, so that
     `refine_window` means the same patch side for both (11-15 measured slightly more
-    accurate on the test image, at a coarser footprint).
+    accurate on the test image, at a coarser footprint). `fit` holds the four (NCCFit).
     """
+    window, radius, max_move, min_ncc = fit.window, fit.radius, fit.max_move, fit.min_ncc
     if not (isinstance(window, (int, np.integer)) and window >= 3 and window % 2):
         raise ValueError(f"refine_ncc: window must be an odd number of pixels >= 3, got {window!r}")
     if not (isinstance(radius, (int, np.integer)) and radius >= 1):
@@ -282,5 +306,6 @@ def refine_matches(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kp
         return kpts1, np.ones(len(kpts1), bool)
     if mode == "lk-auto":
         return refine_lk_auto(image0, image1, kpts0, kpts1, window=window)[:2]
-    refine = refine_ncc if mode.startswith("ncc") else refine_lk
-    return refine(image0, image1, kpts0, kpts1, window=window, drop=mode.endswith("-strict"))
+    if mode.startswith("ncc"):
+        return refine_ncc(image0, image1, kpts0, kpts1, NCCFit(window=window), drop=mode.endswith("-strict"))
+    return refine_lk(image0, image1, kpts0, kpts1, LKFit(window=window), drop=mode.endswith("-strict"))

@@ -4,6 +4,7 @@ it returns checked, the keypoints brought back to the stored images' pixels."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -21,10 +22,24 @@ from e3cm_bench.method.spec import MethodSpec
 PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 
 
+@dataclass(frozen=True)
+class TimeLimit:
+    """--pair-timeout for one pair: the seconds the matcher may take (None: no limit) and the
+    worker, a StoppableWorker made by `match_worker(matcher)`, whose child process runs the
+    matcher and is killed when they pass; without a worker the matcher runs in this process
+    under an alarm (matchers/guards.py pair_time_limit)."""
+
+    seconds: float | None = None
+    worker: StoppableWorker | None = None
+
+
+NO_TIME_LIMIT = TimeLimit()
+
+
 def match_pair(
     matcher: Matcher, image0: str | Path | np.ndarray, image1: str | Path | np.ndarray,
     max_side: int | None = None, seed: int = 0, rotations: tuple[int, int] = (0, 0),
-    resize: str = "shrink", time_limit: float | None = None, worker: StoppableWorker | None = None,
+    resize: str = "shrink", limit: TimeLimit = NO_TIME_LIMIT,
 ) -> Matches:
     """Match two images (paths or H x W x 3 RGB uint8 arrays); keypoints in original pixels.
 
@@ -36,19 +51,19 @@ def match_pair(
     keypoints mapped back. OpenCV's RNG is seeded with `seed` first, so
     matchers with a RANSAC inside give the same matches every time. ``info`` holds the
     matcher's diagnostics plus size0/size1 (original w, h), match_size0/1 and match_seconds.
-    worker: a StoppableWorker made by `match_worker(matcher)`: the matcher runs in its child
-    process, which is killed when `time_limit` passes (--pair-timeout); else in this process.
+    limit: --pair-timeout (TimeLimit): with its worker the matcher runs in the worker's child
+    process, killed when the seconds pass; else in this process.
     """
     image0 = load_image(image0) if not isinstance(image0, np.ndarray) else image0
     image1 = load_image(image1) if not isinstance(image1, np.ndarray) else image1
     small0, scale0 = matcher_input(image0, rotations[0], max_side, resize)
     small1, scale1 = matcher_input(image1, rotations[1], max_side, resize)
     t = time.perf_counter()
-    if worker is not None:
-        m = stoppable_match(worker, matcher, small0, small1, seed, time_limit)
+    if limit.worker is not None:
+        m = stoppable_match(limit.worker, matcher, small0, small1, seed, limit.seconds)
     else:
         cv2.setRNGSeed(int(seed))
-        m = checked_match(matcher, small0, small1, time_limit)
+        m = checked_match(matcher, small0, small1, limit.seconds)
     info = {
         **m.info,
         "size0": (image0.shape[1], image0.shape[0]),

@@ -49,8 +49,11 @@ def _page(title: str, body: str, script: str = "") -> str:
             + "</body></html>\n")
 
 
-def index_page(benchmark: str, runs: list[Run], table: pd.DataFrame, plots: list[str], run_links: list[dict],
+def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links: list[dict],
                 pairs: pd.DataFrame, chosen: set[str], notes: list[str], comparison=None) -> str:
+    """The report's index.html: the runs' table, plots, runs and pairs; the benchmark is the
+    runs' (site.py refuses runs of several)."""
+    benchmark = runs[0].benchmark.name
     # The table as the Markdown shows it: each number with its interval, differences flagged.
     text_columns = ("method", "source", "vs_paper", "protocol")
     shown, body, _ = display_cells(table)

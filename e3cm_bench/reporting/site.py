@@ -108,7 +108,7 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
     drawings = draw_pairs(runs, chosen, out, notes)
     for name in chosen:
         write_pair_page(out, name, runs, pairs, drawings)
-    page = index_page(benchmark.name, runs, table, plots, run_links, pairs, set(chosen), notes, comparison)
+    page = index_page(runs, table, plots, run_links, pairs, set(chosen), notes, comparison)
     write_atomically(out / "index.html", lambda tmp: tmp.write_text(page))
     n_drawings = sum(len(v) for v in drawings.values())
     line = f"report: {index} ({len(runs)} runs, {len(pairs)} pairs, {len(chosen)} pair pages, {n_drawings} drawings)"

@@ -23,7 +23,7 @@ from e3cm_bench.geometry import metrics
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import metrics as sfm_metrics
-from e3cm_bench.sfm.dataset import MultiViewSet
+from e3cm_bench.sfm.dataset import MultiViewSet, SetOptions
 from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 
@@ -43,6 +43,12 @@ class SfMBenchmark(Benchmark):
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
     builds_to_limit: bool = True
+
+    def build_dataset(self, root: str | Path, skip_bad: bool, options: dict) -> MultiViewSet:
+        """The set with its dataset options grouped (SetOptions); `first`: the run's --limit."""
+        given = dict(options)
+        first = given.pop("first", None)
+        return MultiViewSet(root, SetOptions(**given), skip_bad=skip_bad, first=first)
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
                      estimator: str | None = None, repeats: int = 1) -> EvalSettings:

@@ -8,6 +8,7 @@ scene_info file's or the model folder's name (the pair list's own names otherwis
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
@@ -16,8 +17,32 @@ from e3cm_bench.sfm.protocol import _whole, parse_protocol
 from e3cm_bench.sfm.reconstruct import mapper_settings
 
 
+@dataclass(frozen=True)
+class SetOptions:
+    """The sfm benchmark's dataset options as given (text from the command line or a config,
+    checked by MultiViewSet): where the views come from (scene_info, colmap_model or pairs),
+    the pair graph (window, graph, max_pairs, allow_disconnected, absolute_paths) and the
+    reconstruction's protocol (mapper, mapper_seeds, merge, merge_px, verification,
+    score_model: sfm/protocol.py parse_protocol)."""
+
+    scene_info: str | Path | None = None
+    colmap_model: str | Path | None = None
+    pairs: str | Path | None = None
+    window: str | int | None = None
+    graph: str | Path | None = None
+    merge_px: str | float | None = None
+    mapper: str | None = None
+    mapper_seeds: str | int | None = None
+    merge: str | None = None
+    verification: str | None = None
+    score_model: str | None = None
+    allow_disconnected: bool = False
+    absolute_paths: bool = False
+    max_pairs: str | int | None = None
+
+
 class MultiViewSet(PairList):
-    """The pairs of a multi-view set: ``scene_info`` (MegaDepth, absolute poses), ``colmap_model``
+    """The pairs of a multi-view set, by its options (SetOptions): ``scene_info`` (MegaDepth, absolute poses), ``colmap_model``
     (a sparse model's folder, absolute poses) or ``pairs`` (a SuperGlue list: those pairs, their
     relative poses). Exactly one is given. With absolute poses the graph is every pair, or
     ``window`` (each image with the next K), or ``graph`` (a file of image-name pairs).
@@ -30,30 +55,27 @@ class MultiViewSet(PairList):
 
     name = "sfm"
 
-    def __init__(self, root: str | Path, scene_info: str | Path | None = None, colmap_model: str | Path | None = None,
-                 pairs: str | Path | None = None, window: str | int | None = None, graph: str | Path | None = None,
-                 merge_px: str | float | None = None, mapper: str | None = None, mapper_seeds: str | int | None = None,
-                 merge: str | None = None, verification: str | None = None, score_model: str | None = None,
-                 allow_disconnected: bool = False, absolute_paths: bool = False,
-                 max_pairs: str | int | None = None, skip_bad: bool = False, first: int | None = None) -> None:
+    def __init__(self, root: str | Path, options: SetOptions = SetOptions(), skip_bad: bool = False,
+                 first: int | None = None) -> None:
         from e3cm_bench.interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
 
+        o = options  # as given: each is checked here
         self.root = require_directory(root, "image set")
         pycolmap_module()  # the reconstruction's: missing, it is said now rather than after every pair is matched
-        given = [flag for flag, value in (("--scene-info", scene_info), ("--colmap-model", colmap_model),
-                                           ("--pairs", pairs)) if value is not None]
+        given = [flag for flag, value in (("--scene-info", o.scene_info), ("--colmap-model", o.colmap_model),
+                                           ("--pairs", o.pairs)) if value is not None]
         if len(given) != 1:
             raise DatasetError(f"{self.root}: give exactly one of --scene-info, --colmap-model and --pairs "
                                f"(given: {', '.join(given) or 'none'})")
-        self.window = _window(window)
-        self.protocol = parse_protocol(mapper, mapper_seeds, merge, merge_px, verification, score_model)
+        self.window = _window(o.window)
+        self.protocol = parse_protocol(o.mapper, o.mapper_seeds, o.merge, o.merge_px, o.verification, o.score_model)
         self.merge_px = self.protocol.merge_px
-        self.graph = Path(graph) if graph is not None else None
-        self.allow_disconnected, self.absolute_paths = bool(allow_disconnected), bool(absolute_paths)
+        self.graph = Path(o.graph) if o.graph is not None else None
+        self.allow_disconnected, self.absolute_paths = bool(o.allow_disconnected), bool(o.absolute_paths)
         if self.window is not None and self.graph is not None:
             raise DatasetError(f"{self.graph}: --window and --graph are two pair graphs; give one")
-        listed, bad = self._read(scene_info, colmap_model, pairs)
-        self.max_pairs = _count(max_pairs, "--max-pairs") or DEFAULT_MAX_PAIRS
+        listed, bad = self._read(o.scene_info, o.colmap_model, o.pairs)
+        self.max_pairs = _count(o.max_pairs, "--max-pairs") or DEFAULT_MAX_PAIRS
         self.n_graph_pairs = self._check_size(listed, first)
         built, unusable = self._pairs(listed, first)
         super().__init__(built, self.source, skip_bad, bad + unusable)

@@ -318,20 +318,19 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
 
 
 def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None,
-                merge_px: float = 0.0, protocol=None, options: dict | None = None,
-                seed: int | None = None) -> tuple[Reconstruction, list]:
+                protocol=None, options: dict | None = None, seed: int | None = None) -> tuple[Reconstruction, list]:
     """Write the database of `pairs` (each with meta view0/view1) and their `matches` (each
     correspondence once) under workdir, run the mapper once, and read its models back. Returns
     the reconstruction and each pair's two-view geometry (None where the estimate failed, or
     where COLMAP verified the pairs). protocol: a resolved protocol.Protocol (None: the
-    incremental mapper, keypoints merged within merge_px, the estimator's verification);
+    incremental mapper, keypoints not merged, the estimator's verification; keypoints merged
+    within a radius: Protocol(mapper="incremental", merge="radius", merge_px=R).resolved(True));
     options: mapper options set over the benchmark's ({dotted group: {option: value}}, e.g.
     {"": {"ba_refine_focal_length": True}}); seed: the mapper's (default ev.seed)."""
     from e3cm_bench.sfm.protocol import Protocol
 
     if protocol is None:
-        protocol = Protocol(mapper="incremental", merge="radius" if merge_px else "exact",
-                            merge_px=merge_px).resolved(True)
+        protocol = Protocol(mapper="incremental", merge="exact", merge_px=0.0).resolved(True)
     found, _ = write_database(pairs, matches, ev, workdir, protocol)
     images = []
     for pair in pairs:

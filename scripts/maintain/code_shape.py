@@ -1,7 +1,8 @@
 """The shape of the package, read from its source with ast: modules by size, the longest
 functions, and the layers its imports make.
 
-    python scripts/maintain/code_shape.py                 # modules by size, the 15 longest functions
+    python scripts/maintain/code_shape.py                 # modules by size, the 15 longest functions,
+                                                          # the functions over 8 parameters
     python scripts/maintain/code_shape.py --layers        # the layer table docs/architecture.md shows
     python scripts/maintain/code_shape.py --roles         # the packages by role, and any import that runs up
 
@@ -32,6 +33,7 @@ REPO = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml"
 PACKAGE = REPO / "e3cm_bench"
 MODULE_LINES = 400
 FUNCTION_LINES = 60
+PARAMETERS = 8  # a typer command's are exempt: each is a command-line option
 
 
 def module_name(path: Path, package: Path = PACKAGE) -> str:
@@ -225,6 +227,74 @@ def functions(package: Path = PACKAGE) -> list[Function]:
     return found
 
 
+@dataclass(frozen=True)
+class Parameters:
+    module: str
+    name: str  # Class.method or outer.inner
+    line: int
+    count: int  # positional + keyword-only + *args + **kwargs; a method's self or cls not counted
+    command: bool  # a typer command: typer reads each of its parameters as a command-line option
+
+
+def _typer_commands(tree: ast.Module) -> set[str]:
+    """The names of the module's functions typer registers as commands: decorated with
+    ``X.command(...)`` (``@app.command()``), or handed, wrapped or not, to a ``X.command(...)``
+    call (``app.command("import")(friendly_errors(_with_dataset_options(import_matches)))``).
+    Only in a module that imports typer: elsewhere a ``.command`` means something else."""
+    if not any((isinstance(n, ast.Import) and any(a.name == "typer" for a in n.names)) or
+               (isinstance(n, ast.ImportFrom) and n.module == "typer") for n in ast.walk(tree)):
+        return set()
+
+    def registers(call: ast.AST) -> bool:
+        return isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute) and call.func.attr == "command"
+
+    def handed(expr: ast.AST) -> set[str]:
+        """The names an expression hands over: itself, or an argument of a wrapping call (not
+        the wrappers: friendly_errors(f) hands over f)."""
+        if isinstance(expr, ast.Name):
+            return {expr.id}
+        return {n for arg in expr.args for n in handed(arg)} if isinstance(expr, ast.Call) else set()
+
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and any(map(registers, node.decorator_list)):
+            found.add(node.name)
+        elif isinstance(node, ast.Call) and registers(node.func):
+            found |= {name for arg in node.args for name in handed(arg)}
+    return found
+
+
+def _count(node: ast.FunctionDef | ast.AsyncFunctionDef, in_class: bool) -> int:
+    a = node.args
+    positional = [p.arg for p in a.posonlyargs + a.args]
+    static = any(isinstance(d, ast.Name) and d.id == "staticmethod" for d in node.decorator_list)
+    bound = in_class and not static and positional[:1] in (["self"], ["cls"])
+    return len(positional) - bound + len(a.kwonlyargs) + (a.vararg is not None) + (a.kwarg is not None)
+
+
+def parameters(package: Path = PACKAGE) -> list[Parameters]:
+    """Every function and method, nested ones included, with its number of parameters and
+    whether typer makes a command of it (_typer_commands)."""
+    found = []
+    for name, path in package_modules(package).items():
+        tree = ast.parse(path.read_text(), str(path))
+        commands = _typer_commands(tree)
+
+        def visit(node: ast.AST, prefix: str, in_class: bool) -> None:
+            for child in ast.iter_child_nodes(node):
+                if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    found.append(Parameters(name, prefix + child.name, child.lineno, _count(child, in_class),
+                                            child.name in commands))
+                    visit(child, prefix + child.name + ".", False)
+                elif isinstance(child, ast.ClassDef):
+                    visit(child, prefix + child.name + ".", True)
+                else:
+                    visit(child, prefix, False)
+
+        visit(tree, "", False)
+    return found
+
+
 def module_lines(package: Path = PACKAGE) -> dict[str, int]:
     return {name: len(path.read_text().splitlines()) for name, path in package_modules(package).items()}
 
@@ -297,6 +367,11 @@ def main(argv: list[str] | None = None) -> None:
     print(f"\n{len(every)} functions; {len(long)} over {FUNCTION_LINES} lines; the {args.top} longest:")
     for f in every[: args.top]:
         print(f"{f.lines:6d}  {f.module}.{f.name}  (line {f.line})")
+    many = sorted((f for f in parameters() if f.count > PARAMETERS), key=lambda f: (-f.count, f.module, f.line))
+    print(f"\n{sum(not f.command for f in many)} functions over {PARAMETERS} parameters "
+          f"(and {sum(f.command for f in many)} typer commands, marked c):")
+    for f in many:
+        print(f"{f.count:6d}  {f.module}.{f.name}  (line {f.line}){'  c' if f.command else ''}")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ import yaml
 
 from e3cm_bench.geometry import metrics
 from e3cm_bench.benchmarks import EvalSettings
-from e3cm_bench.geometry.estimators import homography, relative_pose
+from e3cm_bench.geometry.estimators import PoseRansac, homography, relative_pose
 from helpers import invoke, one_line_error, rotation
 
 pytest.importorskip("poselib", reason="PoseLib (the poselib extra) is not installed")
@@ -33,7 +33,8 @@ def exact_pair(seed: int = 0):
 @pytest.mark.parametrize("estimator", ["opencv", "poselib"])
 def test_both_estimators_recover_the_exact_pose(estimator):
     x0, x1, K, R, t = exact_pair()
-    R_est, t_est, inliers = relative_pose(x0, x1, K, K, 0.5, 0.99999, estimator, seed=0, sizes=((640, 480), (640, 480)))
+    R_est, t_est, inliers = relative_pose(x0, x1, K, K, PoseRansac(0.5, 0.99999, estimator, seed=0),
+                                         sizes=((640, 480), (640, 480)))
     err_R, err_t = metrics.pose_error(np.vstack([np.column_stack([R, t]), [0, 0, 0, 1]]), R_est, t_est)
     assert err_R < 1e-3 and err_t < 1e-3, (estimator, err_R, err_t)
     assert inliers.sum() == len(x0)

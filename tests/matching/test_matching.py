@@ -16,7 +16,7 @@ from e3cm_bench.matching.cascade import (UnitPixels, confidence_scores, epipolar
 from e3cm_bench.matching.dense import match_dense_level, mutual_nn_ratio
 from e3cm_bench.matching.levels import cell_centres, inside, valid_extent
 from e3cm_bench.matching.pipeline import DEFAULT_SAMPSON_PX, E3CMSettings, match_pyramids
-from e3cm_bench.matching.refine import refine_to_children
+from e3cm_bench.matching.refine import ChildTest, refine_to_children
 
 
 def unit_rows(x) -> torch.Tensor:
@@ -310,7 +310,7 @@ def test_refine_to_children_follows_known_shift():
     parents1 = torch.cat([parents1, torch.tensor([[0, 0]])])
     n_good = len(parents0) - 1
 
-    c0, c1, dist, parent = refine_to_children(fa, fb, parents0, parents1, (16, 16), (16, 16), 0.9)
+    c0, c1, dist, parent = refine_to_children(fa, fb, parents0, parents1, (16, 16), (16, 16), ChildTest(0.9))
     assert len(c0) == 2 * n_good
     assert torch.equal(c1 - c0, torch.tensor([2, 4]).expand_as(c0))
     assert torch.equal(c0 // 2, parents0[parent]) and torch.equal(c1 // 2, parents1[parent])
@@ -319,13 +319,13 @@ def test_refine_to_children_follows_known_shift():
     assert len(set(map(tuple, torch.cat([c0, c1], 1).tolist()))) == len(c0)
 
     # All four children survive when allowed.
-    c0, c1, _, parent = refine_to_children(fa, fb, parents0, parents1, (16, 16), (16, 16), 0.9, max_per_parent=4)
+    c0, c1, _, parent = refine_to_children(fa, fb, parents0, parents1, (16, 16), (16, 16), ChildTest(0.9, max_per_parent=4))
     assert len(c0) == 4 * n_good and torch.equal(c1 - c0, torch.tensor([2, 4]).expand_as(c0))
     assert torch.bincount(parent, minlength=len(parents0)).tolist() == [4] * n_good + [0]
 
     # Children outside the valid extent of level l-1 are never returned: A's level 0 valid
     # width 13 drops x = 13 (children of parents X = 6, which keep only x = 12).
-    c0, c1, _, parent = refine_to_children(fa, fb, parents0, parents1, (13, 16), (16, 16), 0.9, max_per_parent=4)
+    c0, c1, _, parent = refine_to_children(fa, fb, parents0, parents1, (13, 16), (16, 16), ChildTest(0.9, max_per_parent=4))
     assert int(c0[:, 0].max()) == 12
     assert torch.equal(c1 - c0, torch.tensor([2, 4]).expand_as(c0))
     per_parent = torch.bincount(parent, minlength=len(parents0))
@@ -335,11 +335,11 @@ def test_refine_to_children_follows_known_shift():
     # A duplicated parent match yields its children once.
     dup0 = torch.cat([parents0[:3], parents0[:1]])
     dup1 = torch.cat([parents1[:3], parents1[:1]])
-    c0, c1, _, parent = refine_to_children(fa, fb, dup0, dup1, (16, 16), (16, 16), 0.9)
+    c0, c1, _, parent = refine_to_children(fa, fb, dup0, dup1, (16, 16), (16, 16), ChildTest(0.9))
     assert len(c0) == 6 and parent.tolist().count(3) == 0
 
     # No parents: empty, typed outputs.
-    c0, c1, dist, parent = refine_to_children(fa, fb, parents0[:0], parents1[:0], (16, 16), (16, 16), 0.9)
+    c0, c1, dist, parent = refine_to_children(fa, fb, parents0[:0], parents1[:0], (16, 16), (16, 16), ChildTest(0.9))
     assert c0.shape == (0, 2) and c1.shape == (0, 2) and len(dist) == 0 and len(parent) == 0
 
 

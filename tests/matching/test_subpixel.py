@@ -11,7 +11,7 @@ from e3cm_bench.geometry.two_view import warp_points
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.matching.pipeline import E3CMSettings
 from e3cm_bench.matching.subpixel import (ADAPTIVE_MIN_PASS, REFINE_MODES, local_contrast, refine_lk, refine_lk_auto,
-                                          refine_matches, refine_ncc)
+                                          LKFit, NCCFit, refine_matches, refine_ncc)
 
 
 @pytest.fixture(scope="module")
@@ -192,7 +192,7 @@ def test_ncc_moves_are_bounded_nothing_is_added_and_it_is_deterministic(boat):
             assert np.array_equal(keep, moved)  # and keeps exactly those it moved
         else:
             assert keep.all() and 0 < moved.sum() < len(k0)
-    tight, _ = refine_ncc(boat, boat, k0, start, max_move=0.5)
+    tight, _ = refine_ncc(boat, boat, k0, start, NCCFit(max_move=0.5))
     assert np.linalg.norm(tight - start, axis=1).max() <= 0.5 + 1e-5
     empty, keep = refine_ncc(boat, boat, np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty.shape == (0, 2) and keep.shape == (0,)
@@ -205,9 +205,9 @@ def test_ncc_moves_are_bounded_nothing_is_added_and_it_is_deterministic(boat):
     out, keep = refine_ncc(boat, boat, k0, odd, drop=True)
     assert np.isnan(out[0]).all() and not keep[0] and np.array_equal(out[1], odd[1]) and not keep[1]
     with pytest.raises(ValueError, match="window"):
-        refine_ncc(boat, boat, k0, start, window=8)
+        refine_ncc(boat, boat, k0, start, NCCFit(window=8))
     with pytest.raises(ValueError, match="radius"):
-        refine_ncc(boat, boat, k0, start, radius=0)
+        refine_ncc(boat, boat, k0, start, NCCFit(radius=0))
 
 
 def test_ncc_refine_settings_are_validated():
@@ -254,7 +254,7 @@ def test_e3cm_plus_takes_the_refine_setting_and_it_only_moves_or_drops_its_match
 @pytest.mark.parametrize("change", ["none", *BRIGHTNESS])
 @pytest.mark.parametrize("shift", [(0.37, -0.61), (0.1, 0.45)])
 def test_lk_on_local_contrast_recovers_a_shift_across_a_brightness_change(boat, shift, change):
-    """LK on the images' local contrast (refine_lk(normalise=True), lk-auto's second try): a
+    """LK on the images' local contrast (refine_lk with LKFit(normalise=True), lk-auto's second try): a
     sub-pixel shift is recovered with or without a brightness change of B (median error
     below 0.1 px; measured 0.039-0.040 without a change and under the affine one, 0.058-0.059
     gamma 0.5, 0.072 gamma 2), and every match passes (LK on grey levels: above 0.25 px and
@@ -263,7 +263,7 @@ def test_lk_on_local_contrast_recovers_a_shift_across_a_brightness_change(boat, 
     truth = k0 + np.float32(shift)
     start = np.round(truth)
     changed = shifted_by(boat, shift) if change == "none" else BRIGHTNESS[change](shifted_by(boat, shift))
-    refined, keep = refine_lk(boat, changed, k0, start, drop=True, normalise=True)
+    refined, keep = refine_lk(boat, changed, k0, start, LKFit(normalise=True), drop=True)
     error = np.median(np.linalg.norm(refined - truth, axis=1))
     print(f"{change} {shift}: LK on local contrast {error:.3f} px, passes {keep.mean():.3f}")
     assert error < 0.1 and keep.all()

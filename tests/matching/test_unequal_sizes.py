@@ -14,7 +14,7 @@ import pytest
 
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.matchers import get_matcher, matcher_names
-from e3cm_bench.matching.subpixel import REFINE_MODES, refine_lk, refine_matches
+from e3cm_bench.matching.subpixel import REFINE_MODES, LKFit, refine_lk, refine_matches
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.runner import match_pair
 from e3cm_bench.apps.synth.textures import procedural_scene, sample_photo
@@ -197,8 +197,8 @@ def test_lk_on_two_sizes_equals_lk_on_one_size_away_from_the_edge():
     p1 = np.rint(p0 + np.float32([1.3, 0.6]))
     for normalise, margin in ((False, 16), (True, 48)):
         clear = (p1[:, 0] < 240 - margin) & (p1[:, 1] < 180 - margin)
-        same, keep_same = refine_lk(image0, image1, p0, p1, drop=True, normalise=normalise)
-        two, keep_two = refine_lk(image0, bigger, p0, p1, drop=True, normalise=normalise)
+        same, keep_same = refine_lk(image0, image1, p0, p1, LKFit(normalise=normalise), drop=True)
+        two, keep_two = refine_lk(image0, bigger, p0, p1, LKFit(normalise=normalise), drop=True)
         assert keep_same[clear].mean() >= 0.5
         assert np.array_equal(same[clear], two[clear]) and np.array_equal(keep_same[clear], keep_two[clear])
 
