@@ -15,7 +15,12 @@ from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.ground.images import RESIZE_MODES
 from e3cm_bench.matchers import check_settings, get_matcher, resolve
-from e3cm_bench.method.options import check_method_values, resolved_side, with_defaults
+from e3cm_bench.method.options import METHOD_OPTIONS, check_method_values, resolved_side, with_defaults
+
+# MethodSpec.create's keywords: the method options it takes by their names in the option table
+# (their defaults are the table's), and how a protocol frames the images (not a user's option).
+CREATE_OPTIONS = ("weights", "estimator", "sampson_px", "ratio", "max_side", "seed", "label")
+FRAMING = {"upright": True, "resize": "shrink"}
 
 
 @dataclass(frozen=True)
@@ -48,24 +53,14 @@ class MethodSpec:
     label: str = field(default="", compare=False)
 
     @classmethod
-    def create(
-        cls,
-        matcher: str = "e3cm",
-        backbone: str = DEFAULT_BACKBONE,
-        weights: str | Path | None = None,
-        estimator: str | None = None,
-        sampson_px: tuple[float, ...] | None = None,
-        ratio: tuple[float, ...] | None = None,
-        max_side: int | None = None,
-        seed: int = 0,
-        label: str | None = None,
-        options: dict | None = None,
-        upright: bool = True,
-        resize: str = "shrink",
-        available: bool = True,
-    ) -> MethodSpec:
-        """Options as a user gives them -> a spec. Each is checked against its declaration
-        (options.METHOD_OPTIONS: one line naming the first of the wrong kind). The shorthands
+    def create(cls, matcher: str = "e3cm", backbone: str = DEFAULT_BACKBONE, *, available: bool = True,
+               **given) -> MethodSpec:
+        """Options as a user gives them -> a spec: the matcher, its backbone (the two a caller may
+        give in order) and `given`: the other method options by their names in the option table
+        (CREATE_OPTIONS of options.METHOD_OPTIONS, each defaulting to its one
+        declaration there; `options`: the settings by name) and the protocol's framing (FRAMING:
+        upright, resize); another keyword is a TypeError, as for any signature. Each is checked
+        against its declaration (one line naming the first of the wrong kind). The shorthands
         ratio, estimator and sampson_px become settings of the matcher where it takes them
         (its registry entry says) and are ignored where not, never guessed. options: further
         settings by name (`--set KEY=VALUE`: e.g. dfm's variant, e3cm's ratio_at, num_levels,
@@ -76,6 +71,13 @@ class MethodSpec:
         options only (a config's validation): a peer's extra and weights are not looked for,
         and the spec, without their hashes, is not one to run. Commands and configs reach
         this through options.build_method (Benchmark.resolve_method)."""
+        unknown = sorted(set(given) - set(CREATE_OPTIONS) - {"options"} - set(FRAMING))
+        if unknown:
+            raise TypeError(f"MethodSpec.create() got an unexpected keyword argument {unknown[0]!r}")
+        v = {**{name: METHOD_OPTIONS[name].default for name in CREATE_OPTIONS}, **FRAMING, **given}
+        weights, estimator, sampson_px = v["weights"], v["estimator"], v["sampson_px"]
+        ratio, max_side, seed, label, options = v["ratio"], v["max_side"], v["seed"], v["label"], v.get("options")
+        upright, resize = v["upright"], v["resize"]
         check_method_values({"matcher": matcher, "backbone": backbone, "weights": weights, "estimator": estimator,
                              "sampson_px": sampson_px, "ratio": ratio, "max_side": max_side, "seed": seed,
                              "label": label or None, "settings": options})
@@ -218,11 +220,9 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
         if deep:
             settings = {**preset.method_options.get(benchmark.name, {}), **settings}
         upright, resize = preset.upright, preset.resize_mode(benchmark.name)
-    return MethodSpec.create(
-        values["matcher"], values["backbone"], values["weights"], values["estimator"], values["sampson_px"],
-        values["ratio"], side, values["seed"], values["label"], options=settings,
-        upright=upright, resize=resize, available=available,
-    )
+    chosen = {name: values[name] for name in CREATE_OPTIONS if name != "max_side"}
+    return MethodSpec.create(values["matcher"], values["backbone"], **chosen, max_side=side,
+                             options=settings, upright=upright, resize=resize, available=available)
 
 
 def deep_settings(values: Mapping, device: str, warn) -> dict:
