@@ -56,7 +56,7 @@ def main() -> None:
         for precision in args.precision or ["bf16", "fp32"]:
             torch.manual_seed(0)
             options = {} if precision == "fp32" else {"precision": precision}
-            backbone = MethodSpec.create("e3cm", name, None, options=options).build("cpu", pretrained=False).backbone
+            backbone = MethodSpec.create("e3cm", name, options=options).build("cpu", pretrained=False).backbone
             if backbone.memory_format != "channels_last":
                 print(f"{name} {precision}: NCHW convolutions, its maps are already C-contiguous (no copy)")
                 continue

@@ -67,7 +67,7 @@ def main() -> None:
     ways = {args.against: earlier, "current": pipeline}
     torch.manual_seed(0)
     options = {} if args.precision == "fp32" else {"precision": args.precision}
-    matcher = MethodSpec.create("e3cm", "vgg19", None, options=options).build("cpu", pretrained=False)
+    matcher = MethodSpec.create("e3cm", "vgg19", options=options).build("cpu", pretrained=False)
     print(f"CPU {cpu_info()[0]} ({cpu_isa()}); torch {torch.__version__}, {torch.get_num_threads()} threads; "
           f"e3cm, VGG19 (random weights, seed 0), {args.precision}; median of {args.repeat}; allocator {allocator}")
     for size in args.size or ["640x480", "1200x900"]:

@@ -159,7 +159,7 @@ def run(args, block: list[tuple[str, str]], size: tuple[int, int], work: Path) -
         time_release(sample[::2])
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
-    method = MethodSpec.create("e3cm", "vgg19", str(weights), options=options)
+    method = MethodSpec.create("e3cm", "vgg19", weights=str(weights), options=options)
     quiet = Console(quiet=True)
     warm = load_image(pairs[0].image0)
     method.build(args.device).pyramids(warm, warm)  # warm-up (its own matcher: nothing cached carries over)

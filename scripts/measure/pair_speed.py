@@ -135,7 +135,7 @@ def main() -> None:
     sizes = args.size or ["640x480", "1200x900"]
 
     options = {} if args.precision == "fp32" else {"precision": args.precision}
-    spec = MethodSpec.create(args.matcher, args.backbone, args.weights, options=options)
+    spec = MethodSpec.create(args.matcher, args.backbone, weights=args.weights, options=options)
     torch.manual_seed(0)  # random weights are the same draw on every run (matches, and so the cascade's work, depend on them)
     matcher = spec.build(args.device, pretrained=not args.random_weights)
     release = None

@@ -41,7 +41,7 @@ def main() -> None:
     config, plus = read_run(args.run_plus)
     _, unwarped = read_run(args.run_unwarped)
     identity = config.identity
-    spec = MethodSpec.create(identity["matcher"], identity["backbone"], identity.get("weights"), max_side=identity.get("max_side"),
+    spec = MethodSpec.create(identity["matcher"], identity["backbone"], weights=identity.get("weights"), max_side=identity.get("max_side"),
                              resize=identity.get("resize", "shrink"), options=identity.get("settings") or {})
     matcher = spec.build("cpu")
     if not isinstance(matcher, E3CMPlusMatcher):
