@@ -390,8 +390,8 @@ def test_the_object_check_fails_on_a_name_that_is_gone():
                        "`NoSuchThing`, `config.yaml`") == ["NoSuchThing", "RunFolder.lock", "e3cm_bench.register",
                                                            "files.FolderLock"]
     assert "lock" in members["RunFolder"] and "NoSuchThing" not in names
-    assert _dotted_exists("files.FolderLock") and _dotted_exists("e3cm_bench.register")
-    assert not _dotted_exists("files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
+    assert _dotted_exists("ground.files.FolderLock") and _dotted_exists("e3cm_bench.register")
+    assert not _dotted_exists("ground.files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
 
 
 def _calls(path: Path) -> list[tuple[int, str]]:

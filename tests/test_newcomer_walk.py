@@ -320,7 +320,7 @@ def test_a_busy_folder_is_refused_before_the_method_loads(shared_data, tmp_path)
     entry = entry_point()
     if entry is None:
         pytest.skip("the e3cm-bench command is not installed (pip install -e .)")
-    from e3cm_bench.run.folder import RunFolder
+    from e3cm_bench.storage.folder import RunFolder
 
     (tmp_path / "tripwire" / "torch").mkdir(parents=True)
     (tmp_path / "tripwire" / "torch" / "__init__.py").write_text(TORCH_TRIPWIRE)

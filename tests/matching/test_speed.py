@@ -225,7 +225,7 @@ def test_bf16_rows_widened_then_divided_equal_dividing_them_directly():
 
 ALLOCATOR_SCRIPT = r"""
 import cv2, hashlib, json, torch
-from e3cm_bench import devices
+from e3cm_bench.ground import devices
 from e3cm_bench.matching import norms
 from e3cm_bench.matching.cascade import UnitPixels
 from e3cm_bench.method.spec import MethodSpec
