@@ -106,6 +106,7 @@ class PairRun(RunHook):
     skipped: list = field(default_factory=list)
     cache: object = None
     count_evaluated: bool = False  # a merge's count is its own; a run's is recorded when it opens
+    evaluated: int = field(default=0, init=False)  # the pairs its evaluation scored (the summary's title)
 
     def evaluate(self, console: Console) -> dict:
         pairs, summary = evaluate_and_report(self, console)

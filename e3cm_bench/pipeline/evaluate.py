@@ -20,7 +20,7 @@ from e3cm_bench.ground.files import CSV_FLOAT_FORMAT, write_csv
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.benchmarks.intervals import metric_keys, summary_intervals
 from e3cm_bench.ground.matches import Matches, distinct
-from e3cm_bench.storage import FAILED_ATTR, RunFolder
+from e3cm_bench.storage import FAILED_ATTR
 from e3cm_bench.drawing.matches import draw_matches, drawn, drawn_pairs, save_image
 
 
