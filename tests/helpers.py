@@ -108,3 +108,25 @@ def replay_stage(cache, files_in_order: list[tuple[str, str]], maps, plan: bool 
         for f in dict.fromkeys(files):
             if last[f] == k:
                 cache.done_with(f)
+
+
+def accuracy_summary(path: Path):
+    """A run's summary.csv without its cost columns (seconds_per_pair and its interval, peak
+    memory: measurements that move between two runs of the same matches), as a DataFrame."""
+    import pandas as pd
+
+    from e3cm_bench.pipeline.evaluate import COST_KEYS
+
+    summary = pd.read_csv(path)
+    cost = [c for c in summary.columns if c in COST_KEYS or c.removesuffix("_lo").removesuffix("_hi") in COST_KEYS]
+    return summary.drop(columns=cost)
+
+
+def same_csvs(a: Path, b: Path) -> None:
+    """Two run folders hold the same per-pair rows byte for byte and the same summary numbers
+    (their cost columns aside: each run measured its own time and memory)."""
+    import pandas as pd
+
+    assert (a / "per_pair.csv").read_bytes() == (b / "per_pair.csv").read_bytes(), "per_pair.csv"
+    pd.testing.assert_frame_equal(accuracy_summary(a / "summary.csv"), accuracy_summary(b / "summary.csv"),
+                                  check_exact=True, obj="summary.csv")

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 from rich.console import Console
 
+from e3cm_bench import stats
 from e3cm_bench.benchmarks import Benchmark, EvalSettings
 from e3cm_bench.benchmarks.base import DUPLICATES, with_duplicates
 from e3cm_bench.storage.cache import MatchCache, check_free_space
@@ -34,9 +35,10 @@ def evaluate_stage(
     The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
     """
-    rows, failures, read = [], [], []
+    rows, failures, read, costs = [], [], [], []
     for pair in pairs:
         matches = cache.read(pair.name)
+        costs.append(pair_cost(matches))
         if benchmark.evaluates_set:  # scored together below, from every pair's matches
             read.append(matches)
         else:
@@ -53,8 +55,49 @@ def evaluate_stage(
         summary.update(summary_intervals(benchmark, rows, ev, summary=summary,
                                          indexed=benchmark.interval_summary(rows, ev)))
     summary.update(set_numbers)  # after the intervals: facts of the one set, not resampled
+    summary.update(cost_summary(costs))
     # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
     return pd.DataFrame(rows, columns=with_duplicates(benchmark.row_columns(ev, rows))), summary, failures
+
+
+def cost_table(pairs: list[Pair], cache: MatchCache) -> pd.DataFrame:
+    """cost.csv: each pair's cost (pair_cost), apart from per_pair.csv, whose numbers are a pure
+    function of the matches and the ground truth (reruns, shards and imports reproduce it byte
+    for byte); time and memory are measurements, and move with the machine."""
+    rows = [{"pair": pair.name, **pair_cost(cache.read(pair.name))} for pair in pairs]
+    table = pd.DataFrame(rows, columns=("pair", *COST_COLUMNS))
+    return table.dropna(axis=1, how="all") if len(table) else table
+
+
+# A pair's cost as cost.csv holds it: the matcher's wall time and the matching process's peak
+# resident memory during the pair (ground/cost.py); NaN for matches imported or failed.
+COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb")
+# The run's cost in summary.csv: the mean seconds per pair (with its bootstrap interval over the
+# pairs, as every number), the highest per-pair peak, and on CUDA the allocator's highest peak.
+COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb")
+
+
+def pair_cost(matches: Matches) -> dict:
+    info = matches.info
+    return {"match_seconds": float(info.get("match_seconds", np.nan)),
+            "peak_memory_mb": float(info.get("match_peak_mb", np.nan)),
+            "gpu_peak_memory_mb": float(info.get("match_gpu_peak_mb", np.nan))}
+
+
+def cost_summary(costs: list[dict]) -> dict:
+    """The run's cost from its pairs' (pair_cost): empty where no pair was timed (imported matches)."""
+    seconds = np.array([c["match_seconds"] for c in costs], float)
+    timed = seconds[np.isfinite(seconds)]
+    if not len(timed):
+        return {}
+    out = {"seconds_per_pair": float(timed.mean())}
+    bounds = stats.bootstrap_interval(list(timed), lambda picked: {"s": float(np.mean(picked))}, keys=["s"])
+    out["seconds_per_pair_lo"], out["seconds_per_pair_hi"] = (float(v) for v in bounds["s"])
+    for key, column in (("peak_memory_mb", "peak_memory_mb"), ("gpu_peak_memory_mb", "gpu_peak_memory_mb")):
+        values = np.array([c[column] for c in costs], float)
+        if np.isfinite(values).any():
+            out[key] = float(np.nanmax(values))
+    return out
 
 
 def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
@@ -98,6 +141,11 @@ def write_reports(run, per_pair: pd.DataFrame, summary: dict, pairs: list[Pair])
     benchmark, folder = run.benchmark, run.folder
     write_csv(per_pair, folder.per_pair_path)
     write_csv(pd.DataFrame([summary]), folder.summary_path)
+    costs = cost_table(pairs, run.cache)
+    if "match_seconds" in costs.columns:  # matches made here; imported ones have no cost
+        write_csv(costs, folder.cost_path)
+    else:
+        folder.cost_path.unlink(missing_ok=True)
     benchmark.plot_run(run.config.method, summary, per_pair, folder.path)
     for pair in drawn_pairs(pairs, run.viz):
         matches = drawn(run.cache.read(pair.name))

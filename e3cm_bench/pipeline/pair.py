@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from e3cm_bench.datasets.base import Pair
+from e3cm_bench.ground.cost import measured
 from e3cm_bench.ground.devices import is_out_of_memory
 from e3cm_bench.ground.images import load_image, resize_max_side, to_original_pixels
 from e3cm_bench.matchers.base import Matcher
@@ -20,6 +21,9 @@ from e3cm_bench.method.spec import MethodSpec
 
 # What match_pair adds to a result's info and the cache keeps next to each pair's matches.
 PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
+# The cost of the pair beside its time (ground/cost.py): the matching process's peak resident
+# memory during the pair, whether that peak was the pair's own, and on CUDA the allocator's peak.
+COST_ATTRS = ("match_peak_mb", "match_peak_own", "match_gpu_peak_mb")
 
 
 @dataclass(frozen=True)
@@ -98,7 +102,7 @@ def checked_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, time
     (matchers/guards.py)."""
     name = getattr(matcher, "name", type(matcher).__name__)
     try:
-        with no_exit("match()"), pair_time_limit(time_limit, f"matcher {name}"):
+        with no_exit("match()"), pair_time_limit(time_limit, f"matcher {name}"), measured() as cost:
             m = matcher.match(image0, image1)
     except (MemoryError, KeyboardInterrupt):
         raise
@@ -114,6 +118,7 @@ def checked_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, time
                        bounded=getattr(matcher, "keypoints_in_image", True))
     except MatchesError as error:
         raise MatcherError(f"matcher {name} returned bad matches: {error}") from None
+    m.info.update(cost.attrs())
     return m
 
 

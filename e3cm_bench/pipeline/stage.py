@@ -25,7 +25,7 @@ from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from e3cm_bench.pipeline.address_space import check_address_space
 from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
-from e3cm_bench.pipeline.pair import (PAIR_ATTRS, MatcherError, TimeLimit, match_pair, match_worker, matcher_input,
+from e3cm_bench.pipeline.pair import (COST_ATTRS, PAIR_ATTRS, MatcherError, TimeLimit, match_pair, match_worker, matcher_input,
                                      pair_rotations)
 from e3cm_bench.pipeline.progress import progress_bar
 
@@ -43,7 +43,7 @@ def match_cached_pair(
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
                          pair_rotations(pair, method), method.resize, TimeLimit(time_limit, worker))
-    cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS})
+    cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS + COST_ATTRS if k in matches.info})
 
 
 def decoded_ahead(pairs: list[Pair], executor: ThreadPoolExecutor, ahead: int = 1):

@@ -11,6 +11,7 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
     OUT/config.yaml      the RunConfig record (record.py: its one writer and reader)
     OUT/matches.h5       the match cache (cache.MatchCache; blocks matches.NNN.h5 beside it)
     OUT/per_pair.csv     one row per pair;  OUT/summary.csv: the run's numbers with intervals
+    OUT/cost.csv         each pair's matching time and peak memory (measurements: they move with the machine)
     OUT/skipped.csv      pairs skipped for bad input;  OUT/failures.csv: pairs a matcher failed on
     OUT/viz/             match drawings (--viz)
     OUT/shards/K-of-N/   the shards of a sharded run, each a run folder of its own
@@ -44,6 +45,7 @@ class RunFolder:
     MATCHES = "matches.h5"
     PER_PAIR = "per_pair.csv"
     SUMMARY = "summary.csv"
+    COST = "cost.csv"
     SKIPPED = "skipped.csv"
     FAILURES = "failures.csv"
     VIZ = "viz"
@@ -78,6 +80,10 @@ class RunFolder:
     @property
     def per_pair_path(self) -> Path:
         return self.path / self.PER_PAIR
+
+    @property
+    def cost_path(self) -> Path:
+        return self.path / self.COST
 
     @property
     def summary_path(self) -> Path:

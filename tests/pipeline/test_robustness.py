@@ -25,7 +25,7 @@ from e3cm_bench.benchmarks import EvalSettings
 from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.runner import run_benchmark
-from helpers import flat, invoke, one_line_error
+from helpers import flat, invoke, one_line_error, same_csvs
 
 LITE = ["--backbone", "efficientnet_lite0"]
 
@@ -113,11 +113,6 @@ def scannet_copy(shared_data, tmp_path) -> Path:
     root = tmp_path / "scannet"
     shutil.copytree(shared_data / "scannet_sample", root)
     return root
-
-
-def same_csvs(a: Path, b: Path) -> None:
-    for name in ("per_pair.csv", "summary.csv"):
-        assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 # ----------------------------------------------------------------------------- 1. the lock

