@@ -31,7 +31,7 @@ class WheelFile:
 
     @property
     def name(self) -> str:
-        dist, version = WHEELS[self.package]
+        dist, version = WHEELS.get(self.package, (self.package, "?"))
         return f"{dist}=={version}:{self.path}"
 
     def located(self) -> Path | None:
