@@ -91,7 +91,7 @@ def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:
 
 
 # glibc's mallopt parameters (malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
 ALLOCATOR_VARIABLE = "E3CM_BENCH_ALLOCATOR"
 _allocator: str | None = None  # what keep_freed_memory found or made; None until it is called
 _kept = False  # whether glibc now keeps freed memory
@@ -138,11 +138,15 @@ def keep_freed_memory() -> str:
     else:
         libc = _glibc()
         try:
+            # One arena: each thread that allocates (torch's intra-op threads, the decoding thread)
+            # would otherwise get an arena of its own, and each would keep its own freed memory:
+            # e3cm-plus on 1.6x-enlarged HPatches pairs peaked at 3.7 GB with them, 3.3 GB with one,
+            # at the same speed (scripts/measure/e3cm_memory.py, docs/speed.md "Memory").
             _kept = (libc is not None and libc.mallopt(_M_MMAP_MAX, 0) == 1
-                     and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1)
+                     and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(_M_ARENA_MAX, 1) == 1)
         except AttributeError:
             _kept = False
-        _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim)" if _kept else "system (mallopt failed)"
+        _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim, one arena)" if _kept else "system (mallopt failed)"
     return _allocator
 
 

@@ -81,6 +81,13 @@ class DeepMatcher(Matcher):
             self._rows.pop(which, None)  # rows of an earlier image in that place
         if self.feature_cache is None:
             return self._pass(image, which)
+        if which is None and self.feature_cache.pair_files is not None:
+            # an image made inside the pair (B warped by a homography, e3cm-plus's prewarp and
+            # realign) while the match stage runs: no file of the plan is it, so nothing would ever
+            # release it, and its maps sat in memory until the budget (half the memory) was full:
+            # e3cm-plus peaked near 8 GB on full-size HPatches pairs. Its content is new each time,
+            # so the cache would never serve it again: it is passed and not kept.
+            return self._pass(image, which)
         key = self.image_key(image)
         if which is not None:
             self._keys[which] = key

@@ -29,9 +29,9 @@ import pandas as pd
 from e3cm_bench.storage import RunFolder
 
 
-def scaled_copy(source: Path, target: Path, scale: float) -> Path:
+def scaled_copy(source: Path, target: Path, scale: float, sequences: list[str] | None = None) -> Path:
     S = np.diag([scale, scale, 1.0])
-    for sequence in sorted(p for p in source.iterdir() if p.is_dir()):
+    for sequence in sorted(p for p in source.iterdir() if p.is_dir() and (not sequences or p.name in sequences)):
         (target / sequence.name).mkdir(parents=True, exist_ok=True)
         for i in range(1, 7):
             image = cv2.imread(str(sequence / f"{i}.ppm"), cv2.IMREAD_COLOR)
@@ -48,17 +48,20 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.6)
     parser.add_argument("--data", type=Path, default=Path("../shared/data"))
     parser.add_argument("--variant", action="append", default=None)
+    parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all)")
     args = parser.parse_args()
     variants = args.variant or ["default="]
     with tempfile.TemporaryDirectory() as folder:
-        root = scaled_copy(args.data / "hpatches-sequences-release", Path(folder) / "hpatches", args.scale)
+        root = scaled_copy(args.data / "hpatches-sequences-release", Path(folder) / "hpatches", args.scale,
+                           args.sequences.split(",") if args.sequences else None)
         results = []
         for variant in variants:
             name, _, extra = variant.partition("=")
             env = dict(os.environ)
-            if extra.startswith("@"):
-                key, _, value = extra[1:].partition("=")
-                env[key], extra = value, ""
+            while extra.startswith("@"):  # @KEY=VALUE settings, separated by spaces, then CLI arguments
+                setting, _, extra = extra[1:].partition(" ")
+                key, _, value = setting.partition("=")
+                env[key] = value
             out = Path(folder) / name
             command = ["e3cm-bench", "hpatches", "--root", str(root), "--out", str(out), "--matcher", "e3cm-plus",
                        "--backbone", "efficientnet_lite0", *shlex.split(extra)]

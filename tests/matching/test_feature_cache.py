@@ -329,3 +329,23 @@ def test_level0_rows_of_a_pass_are_kept_with_its_maps_and_change_no_match(shared
         assert rows.dtype == torch.bfloat16
         if second == 2:  # image 0 came from the cache: its rows too, not a copy of its map
             assert cached.image_product(0, "pixel_rows:0", lambda: pytest.fail("rows copied again")) is rows
+
+
+def test_an_image_made_inside_a_pair_is_passed_not_kept(shared_data):
+    """e3cm-plus warps B by its stage-0 homography (and again to realign): that image is no file
+    of the stage's plan, so nothing would ever release its maps, and they piled up until the
+    budget (half the memory) was full: the near-8 GB peaks of issue 68. While a pair of the plan
+    is matched, such an image is passed through the network and not held; the pair's own
+    images are held as before, and the matches are those of a matcher without a cache."""
+    folder = shared_data / "hpatches-sequences-release" / "v_graffiti"
+    images = [matcher_input(load_image(folder / f"{k}.ppm"), 0, 480, "shrink")[0] for k in (1, 4)]
+    method = MethodSpec.create("e3cm-plus", "efficientnet_lite0", max_side=480, options={"prewarp": True})
+    cached, plain = method.build("cpu"), method.build("cpu")  # Lite0's weights ship with the package
+    cached.reuse_features(1024)
+    cache = cached.feature_cache
+    cache.plan([("1.ppm", "4.ppm")])
+    cache.at(0, ("1.ppm", "4.ppm"))
+    got, want = cached.match(*images), plain.match(*images)
+    assert got.keypoints0.tobytes() == want.keypoints0.tobytes() and got.keypoints1.tobytes() == want.keypoints1.tobytes()
+    assert got.info["prewarp"] == "warped"  # the pair went through a warped B
+    assert set(cache.entries) == {cached.image_key(image) for image in images}

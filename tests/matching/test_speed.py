@@ -66,7 +66,7 @@ def test_feature_reuse_gives_byte_identical_matches(shared_data, tmp_path):
     config = yaml.safe_load((tmp_path / "reuse" / "config.yaml").read_text())
     assert config["feature_reuse"]["backbone_passes"] == 4 and config["feature_reuse"]["reused"] == 2
     if GLIBC:  # a run keeps freed memory for its next pass, and says so
-        assert config["environment"]["allocator"] == "glibc, freed memory kept (M_MMAP_MAX=0, no trim)"
+        assert config["environment"]["allocator"] == "glibc, freed memory kept (M_MMAP_MAX=0, no trim, one arena)"
 
     run_benchmark(hp, tmp_path / "plain", method, root=root, dataset_options={"sequences": ["v_boat"]}, limit=3,
                   options=MatchOptions(feature_cache_mb=0))
