@@ -299,3 +299,46 @@ def calibration_vs_frames_figure(summary: pd.DataFrame) -> Figure:
 
 def plot_calibration_vs_frames(summary: pd.DataFrame, path: str | Path) -> Path:
     return _save_figure(calibration_vs_frames_figure(summary), path)
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the points (seconds, accuracy) no other point beats on both (at most as slow and
+    at least as accurate, better on one), by increasing time: the curve a reader chooses along."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -np.inf
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def cost_accuracy_figure(runs: Mapping[str, Mapping], metric: str) -> Figure:
+    """Accuracy (`metric`) against the mean seconds per pair, one point per run with both
+    intervals (bootstrap over the pairs), the Pareto front drawn through the runs no other
+    beats on both; log-scaled time."""
+    labels = [label for label, s in runs.items()
+              if np.isfinite(float(s.get("seconds_per_pair", np.nan))) and np.isfinite(float(s.get(metric, np.nan)))]
+    colors = _run_colors(list(runs))
+    fig = Figure(figsize=(7.5, 4.8))
+    ax = fig.subplots()
+    points = [(float(runs[k]["seconds_per_pair"]), float(runs[k][metric])) for k in labels]
+    for label, (x, y) in zip(labels, points):
+        xerr = error_bars([x], [interval(runs[label], "seconds_per_pair")])
+        yerr = error_bars([y], [interval(runs[label], metric)])
+        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=colors[label], capsize=3, label=label)
+    front = pareto_front(points)
+    if len(front) > 1:
+        ax.plot([points[i][0] for i in front], [points[i][1] for i in front], "--", color="0.5", lw=1,
+                label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per pair (matching only; log scale)")
+    ax.set_ylabel(metric)
+    ax.set_title(f"{metric} against time per pair; bars: {interval_note({k: runs[k] for k in labels})}")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    return fig
+
+
+def plot_cost_accuracy(runs: Mapping[str, Mapping], metric: str, path: str | Path) -> Path:
+    return _save_figure(cost_accuracy_figure(runs, metric), path)

@@ -29,6 +29,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
+from e3cm_bench.drawing.plots import plot_cost_accuracy
 from e3cm_bench.ground.files import create_new, writable_folder, write_atomically
 from e3cm_bench.reporting.drawings import choose_pairs, draw_pairs, pair_rows
 from e3cm_bench.reporting.pages import index_page, script_json, write_pair_page  # noqa: F401 - script_json: its old home
@@ -102,6 +103,11 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
     comparison = _comparison(runs, notes)
     plots = [p.relative_to(out).as_posix() for p in
              benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, out / "img" / "comparison")]
+    timed = {r.label: r.summary for r in runs if "seconds_per_pair" in r.summary}
+    if timed:  # accuracy against cost: the benchmark's middle threshold (h_acc@3, AUC@10) or its one metric
+        metrics = list(benchmark.table_metrics.values())
+        metric = metrics[1] if len(metrics) > 1 else metrics[0]
+        plots.append(plot_cost_accuracy(timed, metric, out / "img" / "cost_accuracy.png").relative_to(out).as_posix())
     run_links = [_copy_run(run, out / "runs" / f"{k:02d}") for k, run in enumerate(runs, start=1)]
     pairs = pair_rows(runs)
     chosen = choose_pairs(pairs, runs)

@@ -39,6 +39,9 @@ PAPER_SETS = {
     "table3.csv": ((4000,), "the YFCC100M test list (4000 pairs)"),
 }
 
+# A run's cost in the tables, after the benchmark's own columns (summary.csv's names).
+COST_COLUMNS = ("seconds_per_pair", "peak_memory_mb")
+
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
 
@@ -144,7 +147,9 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
         if run.benchmark.name != benchmark.name:
             raise ValueError(f"{run.dir}: run is on {run.benchmark.name!r}, the table is for {benchmark.name!r}")
     table_metrics = benchmark.table_metrics
-    extras = list(benchmark.table_extras)
+    # The runs' cost beside their accuracy (seconds per pair, with its interval; the highest
+    # per-pair memory peak), where a run measured it (an imported run, or one made before, did not).
+    extras = list(benchmark.table_extras) + [c for c in COST_COLUMNS if any(c in run.summary for run in runs)]
 
     paper_rows = []
     if reference_csv is not None:
@@ -154,17 +159,18 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
     paper_by_key = {method_key(row["method"]): row for row in paper_rows}
 
     # Every measured number but the counts carries its interval: the summary column it comes from.
-    sources = {**table_metrics, **{extra: extra for extra in extras if not extra.startswith(intervals.COUNTS)}}
-    measured_rows = [_measured_row(run, benchmark, paper_by_key, sources) for run in runs]
+    sources = {**table_metrics, **{extra: extra for extra in extras
+                                   if not extra.startswith(intervals.COUNTS) and extra not in intervals.PEAKS}}
+    measured_rows = [_measured_row(run, benchmark, paper_by_key, sources, extras) for run in runs]
     columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics),
                OUTSIDE, OTHER_PAIRS, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
 
 
-def _measured_row(run: Run, benchmark: Benchmark, paper_by_key: dict, sources: dict) -> dict:
+def _measured_row(run: Run, benchmark: Benchmark, paper_by_key: dict, sources: dict, extras: list[str]) -> dict:
     """A run's row of `paper_table`: its numbers, the paper row it compares with and the
     differences from it, its intervals and the metrics whose paper number lies outside them."""
-    table_metrics, extras = benchmark.table_metrics, list(benchmark.table_extras)
+    table_metrics = benchmark.table_metrics
     protocol, standard = protocol_of(run)
     label = run.label if standard else f"{run.label} (non-standard)"
     row = {"method": label, "source": "measured"}

@@ -52,10 +52,14 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     assert result.exit_code == 0
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
-        "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5",
-        "outside_ci", "other_pairs", *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3") for b in ("lo", "hi")),
+        "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "seconds_per_pair", "peak_memory_mb",
+        "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs",
+        *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "seconds_per_pair") for b in ("lo", "hi")),
         "confidence",
     ]
+    # the runs' cost beside their accuracy: measured rows only, the paper's rows have none
+    assert table.loc[table["source"] == "measured", "seconds_per_pair"].gt(0).all()
+    assert table.loc[table["source"] == "paper", "peak_memory_mb"].isna().all()
     assert (table["source"] == "paper").sum() == PAPER_ROWS
     measured = table[table["source"] == "measured"].set_index("method")
     assert list(measured.index) == ["sift", "direct-efficientnet_lite0"]
