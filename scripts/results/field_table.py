@@ -92,14 +92,15 @@ def collect(runs: Path, benches: dict, methods: list[str]) -> pd.DataFrame:
             if not summary.is_file():
                 continue
             s = pd.read_csv(summary).iloc[0]
+            # <col>_lo / <col>_hi beside each number: the docs' tables show them as intervals
             row = {"benchmark": bench, "method": method, "metric": metric, "value": s.get(metric),
-                   "lo": s.get(f"{metric}_lo"), "hi": s.get(f"{metric}_hi"), "n_pairs": s.get("n_pairs")}
+                   "value_lo": s.get(f"{metric}_lo"), "value_hi": s.get(f"{metric}_hi"), "n_pairs": s.get("n_pairs")}
             second = SECOND.get(bench)
             if second is not None and second in s:
-                row.update(second=second, second_value=s[second], second_lo=s.get(f"{second}_lo"),
-                           second_hi=s.get(f"{second}_hi"))
-            row.update(seconds_per_pair=s.get("seconds_per_pair"), seconds_lo=s.get("seconds_per_pair_lo"),
-                       seconds_hi=s.get("seconds_per_pair_hi"), peak_memory_mb=s.get("peak_memory_mb"))
+                row.update(second=second, second_value=s[second], second_value_lo=s.get(f"{second}_lo"),
+                           second_value_hi=s.get(f"{second}_hi"))
+            row.update(seconds_per_pair=s.get("seconds_per_pair"), seconds_per_pair_lo=s.get("seconds_per_pair_lo"),
+                       seconds_per_pair_hi=s.get("seconds_per_pair_hi"), peak_memory_mb=s.get("peak_memory_mb"))
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -120,11 +121,12 @@ def verdicts(runs: Path, benches: dict, methods: list[str], out: Path) -> pd.Dat
                 if code != 0 or not table.is_file():
                     continue
                 c = pd.read_csv(table)
-                hit = c[c["metric"] == metric]
-                if len(hit):
-                    r = hit.iloc[0]
-                    rows.append({"benchmark": bench, "a": ours, "b": peer, "metric": metric,
-                                 **{k: r[k] for k in c.columns if k != "metric"}})
+                # the headline metric where compare tests it (pose, WxBS, EVD), else the first it
+                # tests (HPatches: MMA@3 per pair; h_acc is a share of pairs, tested through h_error)
+                hit = c[c["metric"] == metric] if (c["metric"] == metric).any() else c.iloc[:1]
+                r = hit.iloc[0]
+                rows.append({"benchmark": bench, "e3cm_row": ours, "peer": peer,
+                             **{k: r[k] for k in c.columns}})
     return pd.DataFrame(rows)
 
 
