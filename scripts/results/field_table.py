@@ -36,6 +36,7 @@ METHODS = {
     "direct": ["--matcher", "direct", *LITE0],
     "dfm": ["--matcher", "dfm", *LITE0],
     "e3cm-plus [xfeat]": ["--matcher", "e3cm-plus", "--backbone", "xfeat"],
+    "e3cm-plus [disk]": ["--matcher", "e3cm-plus", "--backbone", "disk"],
     "aliked+lightglue": ["--matcher", "aliked+lightglue"],
     "disk+lightglue": ["--matcher", "disk+lightglue"],
     "xfeat": ["--matcher", "xfeat"],
@@ -43,7 +44,7 @@ METHODS = {
     "xfeat+lighterglue": ["--matcher", "xfeat+lighterglue"],
 }
 PEERS = ("aliked+lightglue", "disk+lightglue", "xfeat", "xfeat-star", "xfeat+lighterglue")
-E3CM_ROWS = ("e3cm-plus", "e3cm-plus [xfeat]")
+E3CM_ROWS = ("e3cm-plus", "e3cm-plus [xfeat]", "e3cm-plus [disk]")
 
 
 def benchmarks(data: Path) -> dict:
