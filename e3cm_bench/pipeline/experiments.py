@@ -224,6 +224,9 @@ def write_table(
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
+    # the table's files (its plots are named <stem>_<plot>.png: no run file has such a name)
+    stem = Path(out_path)
+    RunFolder.refuse_own_files([stem.with_suffix(suffix) for suffix in (".csv", ".md", ".tex")], "table")
     if reference is None and benchmark.paper_table and paper_rows:
         candidate = report.paper_reference(benchmark)
         reference = candidate if candidate.is_file() else None

@@ -57,10 +57,32 @@ class RunFolder:
     CALIBRATION_SET = "calibrate.yaml"
     CALIBRATION_PLOTS = ("calibration_boxplot.png", "calibration_vs_frames.png")
     # What a new run replaces (--overwrite), besides the match cache.
-    RESULTS = (CONFIG, PER_PAIR, SUMMARY, SKIPPED, FAILURES)
+    RESULTS = (CONFIG, PER_PAIR, SUMMARY, COST, SKIPPED, FAILURES)
+    # The run's own plot (each benchmark draws one of these).
+    RUN_PLOTS = ("mma.png", "pose_error_cdf.png")
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+
+    @classmethod
+    def own_file(cls, path: str | Path) -> bool:
+        """Whether `path` names a file a run folder holds of its own (its record, tables, match
+        cache and blocks, plot, a calibration's files), in a folder that is a run (holds config.yaml)."""
+        path = Path(path)
+        name = path.name
+        own = (name in (cls.CONFIG, cls.MATCHES, cls.PER_PAIR, cls.SUMMARY, cls.COST, cls.SKIPPED, cls.FAILURES,
+                        cls.WINDOWS, cls.CALIBRATION_SET, *cls.CALIBRATION_PLOTS, *cls.RUN_PLOTS)
+               or re.fullmatch(r"matches\.\d+\.h5", name) is not None)
+        return own and (path.parent / cls.CONFIG).is_file()
+
+    @classmethod
+    def refuse_own_files(cls, paths, command: str) -> None:
+        """One line naming the first of `paths` that is a run folder's own file: `command` would
+        write over it (table --out RUN/summary would have replaced the run's summary.csv)."""
+        for path in paths:
+            if cls.own_file(path):
+                raise ValueError(f"{path}: a file of the run folder {Path(path).parent}; {command} never writes over "
+                                 "a run's own files: choose another --out")
 
     def __repr__(self) -> str:
         return f"RunFolder({str(self.path)!r})"
