@@ -78,11 +78,20 @@ class Protocol:
         return asdict(self)
 
 
+# Upper bounds, checked before anything loads. Each mapper seed is a whole reconstruction (and its
+# verification): 10^9 of them were accepted and the kernel killed the run at 21.7 GB after matching;
+# 100 is hours on a large set already. A merge radius is a keypoint's localisation error; beyond
+# 50 px it merges distinct points of one image into one (10^9 merged every keypoint and still
+# reported every image registered).
+MAX_MAPPER_SEEDS = 100
+MAX_MERGE_PX = 50.0
+
+
 def parse_protocol(mapper=None, mapper_seeds=None, merge=None, merge_px=None, verification=None,
                    score_model=None) -> Protocol:
     """The dataset options' text as a Protocol; bad values in one line (DatasetError)."""
     default = Protocol()
-    seeds = default.mapper_seeds if mapper_seeds is None else _whole(mapper_seeds, "--mapper-seeds")
+    seeds = default.mapper_seeds if mapper_seeds is None else _whole(mapper_seeds, "--mapper-seeds", MAX_MAPPER_SEEDS)
     return Protocol(_choice(mapper, MAPPERS, "--mapper", default.mapper), seeds,
                     _choice(merge, MERGES, "--merge", default.merge), _radius(merge_px),
                     _choice(verification, VERIFICATIONS, "--verification", default.verification),
@@ -98,13 +107,13 @@ def _choice(value, choices: tuple[str, ...], flag: str, default: str) -> str:
     return text
 
 
-def _whole(value, flag: str) -> int:
+def _whole(value, flag: str, most: int) -> int:
     try:
         k = int(str(value))
     except ValueError:
         raise DatasetError(f"{flag} must be a whole number, got {value!r}") from None
-    if k < 1:
-        raise DatasetError(f"{flag} must be at least 1, got {k}")
+    if not 1 <= k <= most:
+        raise DatasetError(f"{flag} must be 1..{most}, got {k}")
     return k
 
 
@@ -115,8 +124,8 @@ def _radius(value) -> float | None:
         radius = float(str(value))
     except ValueError:
         raise DatasetError(f"--merge-px must be a radius in pixels, got {value!r}") from None
-    if not radius >= 0:
-        raise DatasetError(f"--merge-px must be 0 or more pixels, got {value}")
+    if not 0 <= radius <= MAX_MERGE_PX:
+        raise DatasetError(f"--merge-px must be 0..{MAX_MERGE_PX:g} pixels, got {value}")
     return radius
 
 
