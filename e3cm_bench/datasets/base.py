@@ -218,15 +218,29 @@ def name_pairs(path: Path, known, unknown: str) -> Iterator[tuple[int, str, str]
     """(line number, name0, name1) of each line of a list of image-name pairs (``name0 name1``
     per line; MegaDepth's pairs.txt, the sfm benchmark's pair graph). A line that does not hold
     two names, or names one not in `known`, is an error naming the file and line; `unknown`
-    says what such a name is not (``which views.txt does not list``)."""
+    says what such a name is not (``which views.txt does not list``). A name holding a space
+    is quoted as a POSIX shell quotes it ('a b.png'), as pair_line writes it."""
+    import shlex
+
     for number, line in text_lines(path):
-        names = line.split()
+        try:
+            names = shlex.split(line)
+        except ValueError as error:  # an unclosed quote
+            raise DatasetError(f"{path}: line {number}: {error}") from None
         if len(names) != 2:
             raise DatasetError(f"{path}: line {number} holds {len(names)} names, not two")
         for name in names:
             if name not in known:
                 raise DatasetError(f"{path}: line {number} names {name}, {unknown}")
         yield number, names[0], names[1]
+
+
+def pair_line(name0: str, name1: str) -> str:
+    """One line of a list of image-name pairs, each name quoted where it must be (spaces and other
+    characters a shell would split at), so that name_pairs reads the same two names back."""
+    import shlex
+
+    return f"{shlex.quote(name0)} {shlex.quote(name1)}\n"
 
 
 def require_directory(root: Path, what: str) -> Path:

@@ -66,6 +66,34 @@ def pycolmap_module():
     return pycolmap
 
 
+def verify_pairs(pycolmap, database: Path, pairs, options) -> None:
+    """COLMAP's geometric verification of `pairs` ((name0, name1) of images in `database`): each
+    pair's matches through pycolmap.estimate_two_view_geometry, the estimator verify_matches runs,
+    and the two-view geometry written back. verify_matches reads its pairs from a text file whose
+    lines it splits at spaces, so an image named 'a b.png' became 'a' and every pair failed
+    silently; here names are never written as text."""
+    with pycolmap.Database.open(str(database)) as db:
+        images = {image.name: image for image in db.read_all_images()}
+        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+        keypoints: dict[int, np.ndarray] = {}
+
+        def points(image) -> np.ndarray:
+            if image.image_id not in keypoints:
+                keypoints[image.image_id] = np.asarray(db.read_keypoints(image.image_id), np.float64)[:, :2]
+            return keypoints[image.image_id]
+
+        for name0, name1 in pairs:
+            image0, image1 = images[name0], images[name1]
+            if not db.exists_matches(image0.image_id, image1.image_id):
+                continue
+            matches = np.asarray(db.read_matches(image0.image_id, image1.image_id), np.uint32)
+            geometry = pycolmap.estimate_two_view_geometry(cameras[image0.camera_id], points(image0),
+                                                           cameras[image1.camera_id], points(image1), matches, options)
+            if db.exists_two_view_geometry(image0.image_id, image1.image_id):
+                db.delete_two_view_geometry(image0.image_id, image1.image_id)
+            db.write_two_view_geometry(image0.image_id, image1.image_id, geometry)
+
+
 def _shift(origin: str) -> float:
     return float(to_origin(np.zeros((1, 2)), origin)[0, 0])
 

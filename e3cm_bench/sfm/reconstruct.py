@@ -274,14 +274,12 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
 def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
     """pycolmap.verify_matches over the database's pairs (log in mapper.log); each pair's
     number of verified matches."""
-    from e3cm_bench.interchange.colmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import pycolmap_module, verify_pairs
 
     pycolmap = pycolmap_module()
-    listing = workdir / "pairs.txt"
-    listing.write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
     pycolmap.set_random_seed(int(seed))
-    with captured_log(workdir / LOG):
-        pycolmap.verify_matches(str(workdir / DATABASE), str(listing), options=verify_options(seed))
+    with captured_log(workdir / LOG):  # through pycolmap's API: no text list of names (they may hold spaces)
+        verify_pairs(pycolmap, workdir / DATABASE, [(item.name0, item.name1) for item in items], verify_options(seed))
     counts = []
     with pycolmap.Database.open(str(workdir / DATABASE)) as db:
         ids = {image.name: image.image_id for image in db.read_all_images()}

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from e3cm_bench.datasets.base import pair_line
 from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
@@ -95,7 +96,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     """The database of `pairs` (meta view0/view1: the images' names under `root`) and their
     `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
     returns the reconstruction and each pair's number of verified matches."""
-    from e3cm_bench.interchange.colmap import pycolmap_module, write_colmap
+    from e3cm_bench.interchange.colmap import pycolmap_module, verify_pairs, write_colmap
     from e3cm_bench.interchange.base import ExportItem
 
     pycolmap = pycolmap_module()
@@ -109,14 +110,15 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         images += [name for name in names if name not in images]
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m))
     write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, single_camera))
-    (workdir / PAIRS).write_text("".join(f"{item.name0} {item.name1}\n" for item in items))
+    # the pair graph for the user (reconstruct --pairs reads it back); COLMAP is handed no text list
+    (workdir / PAIRS).write_text("".join(pair_line(item.name0, item.name1) for item in items))
     pycolmap.set_random_seed(int(seed))
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 1  # its progress log is thousands of lines; warnings and errors still show
     try:
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = int(seed)
-        pycolmap.verify_matches(str(workdir / DATABASE), str(workdir / PAIRS), verification)
+        verify_pairs(pycolmap, workdir / DATABASE, [(item.name0, item.name1) for item in items], verification)
         verified = _verified(pycolmap, workdir / DATABASE, items)
         mapper_out = workdir / f"{SPARSE}.mapper"  # where the mapper writes its snapshots
         shutil.rmtree(mapper_out, ignore_errors=True)
