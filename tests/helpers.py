@@ -130,3 +130,17 @@ def same_csvs(a: Path, b: Path) -> None:
     assert (a / "per_pair.csv").read_bytes() == (b / "per_pair.csv").read_bytes(), "per_pair.csv"
     pd.testing.assert_frame_equal(accuracy_summary(a / "summary.csv"), accuracy_summary(b / "summary.csv"),
                                   check_exact=True, obj="summary.csv")
+
+
+def same_tables(a: Path, b: Path) -> None:
+    """Two `table` CSVs with the same rows and numbers, their runs' cost columns aside."""
+    import pandas as pd
+
+    from e3cm_bench.pipeline.evaluate import COST_KEYS
+
+    def accuracy(path: Path):
+        table = pd.read_csv(path)
+        return table.drop(columns=[c for c in table.columns
+                                   if c.removesuffix("_lo").removesuffix("_hi") in COST_KEYS])
+
+    pd.testing.assert_frame_equal(accuracy(a), accuracy(b), check_exact=True, obj=str(a))
