@@ -49,6 +49,11 @@ def _page(title: str, body: str, script: str = "") -> str:
             + "</body></html>\n")
 
 
+# Short headers where the summary's name is long (the full name in the header's tooltip): the
+# table must fit a 1400 px window (tests/reporting/test_report_site.py).
+HEADERS = {"seconds_per_pair": "s/pair", "peak_memory_mb": "peak MiB"}
+
+
 def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links: list[dict],
                 pairs: pd.DataFrame, chosen: set[str], notes: list[str], comparison=None) -> str:
     """The report's index.html: the runs' table, plots, runs and pairs; the benchmark is the
@@ -57,7 +62,8 @@ def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links
     # The table as the Markdown shows it: each number with its interval, differences flagged.
     text_columns = ("method", "source", "vs_paper", "protocol")
     shown, body, _ = display_cells(table)
-    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\">{html_text(c)}</th>" for c in shown)
+    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\" title=\"{html_text(c)}\">"
+                   f"{html_text(HEADERS.get(c, c))}</th>" for c in shown)
     rows = []
     for source, cells_text in zip(table["source"], body):
         cells = "".join(f"<td class=\"t\">{html_text('' if text == '-' else text)}</td>" if c in text_columns
