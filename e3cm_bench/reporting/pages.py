@@ -54,6 +54,11 @@ def _page(title: str, body: str, script: str = "") -> str:
 HEADERS = {"seconds_per_pair": "s/pair", "peak_memory_mb": "peak MiB"}
 
 
+def _header(column: str, text: bool) -> str:
+    return (f"<th class=\"{'t' if text else ''}\" title=\"{html_text(column)}\">"
+            f"{html_text(HEADERS.get(column, column))}</th>")
+
+
 def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links: list[dict],
                 pairs: pd.DataFrame, chosen: set[str], notes: list[str], comparison=None) -> str:
     """The report's index.html: the runs' table, plots, runs and pairs; the benchmark is the
@@ -62,8 +67,7 @@ def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links
     # The table as the Markdown shows it: each number with its interval, differences flagged.
     text_columns = ("method", "source", "vs_paper", "protocol")
     shown, body, _ = display_cells(table)
-    head = "".join(f"<th class=\"{'t' if c in text_columns else ''}\" title=\"{html_text(c)}\">"
-                   f"{html_text(HEADERS.get(c, c))}</th>" for c in shown)
+    head = "".join(_header(c, c in text_columns) for c in shown)
     rows = []
     for source, cells_text in zip(table["source"], body):
         cells = "".join(f"<td class=\"t\">{html_text('' if text == '-' else text)}</td>" if c in text_columns
