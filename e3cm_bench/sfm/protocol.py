@@ -107,12 +107,15 @@ def _choice(value, choices: tuple[str, ...], flag: str, default: str) -> str:
     return text
 
 
-def _whole(value, flag: str, most: int) -> int:
+def _whole(value, flag: str, most: int | None = None) -> int:
+    """A whole number >= 1 (and <= most, where given); one line naming the flag otherwise."""
     try:
         k = int(str(value))
     except ValueError:
         raise DatasetError(f"{flag} must be a whole number, got {value!r}") from None
-    if not 1 <= k <= most:
+    if k < 1:
+        raise DatasetError(f"{flag} must be at least 1, got {k}")
+    if most is not None and k > most:
         raise DatasetError(f"{flag} must be 1..{most}, got {k}")
     return k
 
