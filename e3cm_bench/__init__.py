@@ -19,6 +19,16 @@ from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
+# Old module paths (the earlier plugin guide's `e3cm_bench.matches`, ...) kept importable for one
+# release, with a DeprecationWarning naming the new import (ground/moved.py); last, so nothing that
+# exists is ever found there.
+import sys as _sys  # noqa: E402
+
+from e3cm_bench.ground.moved import FINDER as _FINDER  # noqa: E402
+
+if _FINDER not in _sys.meta_path:
+    _sys.meta_path.append(_FINDER)
+
 # The public names, imported on first use (PEP 562) rather than here: `import e3cm_bench`
 # then loads nothing heavy, so the command line's entry point (e3cm_bench.__main__.main) is
 # running, and can turn a Ctrl-C during the slow imports into one line, from the first moment.
