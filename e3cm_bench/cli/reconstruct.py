@@ -17,6 +17,25 @@ ReconMaxSideOpt = method_option("max_side", help="Match at a longer side of at m
                                                  "full resolution); keypoints are mapped back to the images' pixels.")
 
 
+# reconstruct's own options (the others are every command's, cli/common.py)
+WindowOpt = Annotated[Optional[int], typer.Option("--window", help="Pairs: each image with the next K in name order "
+                                                                   "(default: every pair).")]
+PairsOpt = Annotated[Optional[Path], typer.Option("--pairs", help="Pairs: a file of 'name0 name1' lines, names "
+                                                                  "relative to IMAGES.")]
+MergePxOpt = Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher without a backbone "
+                                                     "(its keypoints are detections), 2 for one on a backbone",
+                                                     help="Keypoints of an image within this radius (pixels) become "
+                                                          "one, so that tracks form from dense matches.")]
+MaxPairsOpt = Annotated[Optional[int], typer.Option("--max-pairs", help="The most pairs a run builds (default 20000): "
+                                                    "more is refused before any is made.")]
+AllowDisconnectedOpt = Annotated[bool, typer.Option("--allow-disconnected", help="Accept a pair graph in several "
+                                                    "components (each gives models of its own).")]
+CameraModelOpt = Annotated[str, typer.Option("--camera-model", help="SIMPLE_RADIAL (COLMAP's default) or PINHOLE; "
+                                                                    "intrinsics unknown, refined by the mapper.")]
+CameraPerImageOpt = Annotated[bool, typer.Option("--camera-per-image", help="One camera per image (default: images "
+                                                                            "of one size share one).")]
+
+
 @app.command()
 @friendly_errors
 def reconstruct(
@@ -24,18 +43,13 @@ def reconstruct(
                                                 "their paths under it.")],
     out: OutOpt,
     matcher: MatcherOpt = "e3cm",
-    window: Annotated[Optional[int], typer.Option("--window", help="Pairs: each image with the next K in name order "
-                                                                   "(default: every pair).")] = None,
-    pairs: Annotated[Optional[Path], typer.Option("--pairs", help="Pairs: a file of 'name0 name1' lines, names "
-                                                                  "relative to IMAGES.")] = None,
-    merge_px: Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher without a backbone "
-                                                      "(its keypoints are detections), 2 for one on a backbone",
-                                                      help="Keypoints of an image within this radius (pixels) become "
-                                                           "one, so that tracks form from dense matches.")] = None,
-    camera_model: Annotated[str, typer.Option("--camera-model", help="SIMPLE_RADIAL (COLMAP's default) or PINHOLE; "
-                                                                      "intrinsics unknown, refined by the mapper.")] = "SIMPLE_RADIAL",
-    camera_per_image: Annotated[bool, typer.Option("--camera-per-image", help="One camera per image (default: images "
-                                                                              "of one size share one).")] = False,
+    window: WindowOpt = None,
+    pairs: PairsOpt = None,
+    merge_px: MergePxOpt = None,
+    max_pairs: MaxPairsOpt = None,
+    allow_disconnected: AllowDisconnectedOpt = False,
+    camera_model: CameraModelOpt = "SIMPLE_RADIAL",
+    camera_per_image: CameraPerImageOpt = False,
     backbone: BackboneOpt = None,
     weights: WeightsOpt = None,
     max_side: ReconMaxSideOpt = None,
@@ -74,7 +88,8 @@ def reconstruct(
         merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
-                                              single_camera=not camera_per_image), ev=RECONSTRUCT.resolve_eval(seed=seed),
+                                              single_camera=not camera_per_image, max_pairs=max_pairs,
+                                              allow_disconnected=allow_disconnected), ev=RECONSTRUCT.resolve_eval(seed=seed),
                          options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error, pair_timeout=pair_timeout),
                          shard=parse_shard(shard) if shard else None)
     run_scaled(scale, request)
@@ -95,7 +110,15 @@ def _say_model(out: Path, scale) -> None:
                       markup=False, soft_wrap=True)
         return
     row = pd.read_csv(RunFolder(out).summary_path).iloc[0]
+    if int(row["n_models"]) == 0 or not (out / SPARSE / "0").is_dir():  # name no folder that is not there
+        console.print(f"no model: 0 of {int(row['n_images'])} images registered; the verified pairs are in "
+                      f"{out / 'database.db'}, the matches per pair in {RunFolder(out).per_pair_path}",
+                      markup=False, soft_wrap=True)
+        return
+    points = row.get("largest_model_points")
     console.print(f"{int(row['registered_images'])} of {int(row['n_images'])} images registered in "
                   f"{int(row['n_models'])} model(s); the largest, {out / SPARSE / '0'}, holds "
-                  f"{int(row['largest_model_images'])} (COLMAP binary and text: colmap gui --import_path, "
-                  "pycolmap.Reconstruction)", markup=False, soft_wrap=True)
+                  f"{int(row['largest_model_images'])} images"
+                  + (f" and {int(points)} points" if points is not None and pd.notna(points) else "")
+                  + " (COLMAP binary and text: colmap gui --import_path, pycolmap.Reconstruction)",
+                  markup=False, soft_wrap=True)

@@ -197,6 +197,10 @@ def check_method_values(values: Mapping) -> None:
         option = METHOD_OPTIONS.get(name)
         if option is not None and value is not None and not KINDS[option.kind].test(value):
             raise ValueError(f"{option.flags[0]} must be {KINDS[option.kind].wanted}, got {value!r}")
+    label = values.get("label")
+    if isinstance(label, str) and not label.isprintable():
+        # a label is a table's row, a plot's legend and a file's name: one line of printable text
+        raise ValueError(f"--label must be one line of printable text, got {label!r}")
     # The names, before anything is loaded (torch takes seconds): a backbone is one of the list
     # whatever the matcher (a matcher without one ignores it), a matcher one that exists.
     backbone = values.get("backbone")

@@ -24,6 +24,7 @@ from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.method.options import KINDS, config_keys
 from e3cm_bench.paper import resolve_config
+from e3cm_bench.storage.fingerprint import protocol_items, protocol_notes
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.runner import run_benchmark, run_methods
@@ -209,7 +210,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
 
 def write_table(
     run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
-    console: Console | None = None, paper_rows: bool = True, latex: bool = False,
+    console: Console | None = None, paper_rows: bool = True, latex: bool = False, shape: report.TableShape | None = None,
 ) -> tuple[Path, Path]:
     """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
 
@@ -220,7 +221,13 @@ def write_table(
     lies outside that interval says so.
     paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
     latex=True also writes ``<out_path>.tex``, a booktabs table for a paper (reporting/latex.py).
+    out_path is the table's file stem; an existing folder (or one written with a trailing /) takes
+    ``table`` inside it. shape: the metrics kept and the LaTeX caption (tables.TableShape). Columns
+    no row fills are left out.
     """
+    shape = shape or report.TableShape()
+    if Path(out_path).is_dir() or str(out_path).endswith(("/", "\\")):
+        out_path = Path(out_path) / "table"
     console = console or Console()
     runs = [report.load_run(d) for d in run_dirs]
     benchmark = runs[0].benchmark
@@ -235,13 +242,16 @@ def write_table(
     table = report.paper_table(runs, benchmark, reference)
     if not compare:
         table = report.without_comparison(table)
+    table = report.without_empty_columns(report.choose_metrics(table, benchmark, shape.metrics))
     csv_path, md_path = report.write_paper_table(table, out_path)
     written = [csv_path, md_path]
     if latex:
         from e3cm_bench.reporting.latex import write_latex_table
 
-        written.append(write_latex_table(table, out_path))
+        written.append(write_latex_table(table, out_path, shape.caption))
     benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, Path(out_path))
     report.print_paper_table(table, console)  # the Markdown's cells, within the terminal's width
+    for note in protocol_notes([(f"{r.label} in {r.dir}", protocol_items(r.run_config)) for r in runs]):
+        console.print(f"note: {note}", markup=False, soft_wrap=True)  # one line, however long
     console.print(f"table: {', '.join(str(p) for p in written)}", markup=False)
     return csv_path, md_path

@@ -112,6 +112,10 @@ def checked_match(matcher: Matcher, image0: np.ndarray, image1: np.ndarray, time
         raise MatcherError(f"matcher {name} raised {type(error).__name__}: {error}") from error
     if not isinstance(m, Matches):
         raise MatcherError(f"matcher {name} returned {type(m).__name__}, expected e3cm_bench.Matches")
+    most = max(image0.shape[0] * image0.shape[1], image1.shape[0] * image1.shape[1])
+    if len(m) > most:  # 10^7 matches of two 1 MP images would be 160 MB a pair in the cache
+        raise MatcherError(f"matcher {name} returned {len(m):,} matches, more than the {most:,} pixels of the larger "
+                           "image (at most one match per pixel)")
     try:
         m = Matches(m.keypoints0, m.keypoints1, m.scores, m.info)  # shapes and lengths, again: fields may be reassigned
         check_in_image(m, (image0.shape[1], image0.shape[0]), (image1.shape[1], image1.shape[0]),

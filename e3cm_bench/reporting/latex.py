@@ -77,14 +77,15 @@ def _cell(record: dict, column: str, bold: bool) -> str:
     return f"{number} {escape(bounds)}".strip()
 
 
-def table_to_latex(table: pd.DataFrame) -> str:
-    """The table (tables.paper_table's layout) as a booktabs ``tabular``: the paper's rows, a
-    rule, the measured rows; the method left, the numbers right."""
+def table_to_latex(table: pd.DataFrame, caption: str | None = None) -> str:
+    """The table (tables.paper_table's layout) as a booktabs ``tabular`` in a ``table`` float with
+    `caption` (escaped): the paper's rows, a rule, the measured rows; the method left, the
+    numbers right."""
     shown, _, _ = display_cells(table)
     columns = [c for c in shown if c not in _LEFT_OUT and not c.startswith("d_")]
     bold = {c: best_rows(table, c) for c in compared_columns(table, columns[1:])}
     records = table.to_dict("records")
-    lines = [r"\begin{tabular}{l" + "r" * (len(columns) - 1) + "}", r"\toprule",
+    lines = [r"\begin{table}", r"\centering", r"\begin{tabular}{l" + "r" * (len(columns) - 1) + "}", r"\toprule",
              " & ".join(escape(c) for c in columns) + r" \\", r"\midrule"]
     previous = None
     for k, record in enumerate(records):
@@ -95,15 +96,16 @@ def table_to_latex(table: pd.DataFrame) -> str:
         cells = ["{}" + method if method.startswith("[") else method]  # else `\\ [` reads as a row's spacing
         cells += [_cell(record, c, k in bold.get(c, set())) for c in columns[1:]]
         lines.append(" & ".join(cells) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}"]
     confidence = next((r.get("confidence") for r in records if r.get("confidence") == r.get("confidence")
                        and r.get("confidence") is not None), None)
-    note = (f"% [lo, hi]: {float(confidence):.0%} bootstrap interval over the pairs; bold: the best of each column"
-            if confidence is not None else "% bold: the best of each column")
-    return "\n".join([r"% needs \usepackage{booktabs}", note, *lines]) + "\n"
+    said = (f"[lo, hi]: {float(confidence):.0%} bootstrap interval over the pairs; bold: the best of each column"
+            if confidence is not None else "bold: the best of each column")
+    lines += [r"\bottomrule", r"\end{tabular}", r"\caption{" + escape(caption if caption else said) + "}",
+              r"\end{table}"]
+    return "\n".join([r"% needs \usepackage{booktabs}", f"% {said}", *lines]) + "\n"
 
 
-def write_latex_table(table: pd.DataFrame, out_path: str | Path) -> Path:
+def write_latex_table(table: pd.DataFrame, out_path: str | Path, caption: str | None = None) -> Path:
     """Write ``<out_path>.tex`` (any given suffix is replaced)."""
-    text = table_to_latex(table)
+    text = table_to_latex(table, caption)
     return write_atomically(Path(out_path).with_suffix(".tex"), lambda tmp: tmp.write_text(text))

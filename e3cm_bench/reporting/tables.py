@@ -8,6 +8,7 @@ Loading a run folder is in runs.py (re-exported here), plots in plots.py, file w
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -225,6 +226,38 @@ def paper_set_notes(table: pd.DataFrame) -> list[str]:
                          f"its d_ columns compare two different pair sets, so they show neither a regression nor "
                          f"an improvement (its interval, over its own pairs, says nothing about them).")
     return notes
+
+
+@dataclass(frozen=True)
+class TableShape:
+    """What `table` shows: `metrics`, the metric and extra columns kept (empty: all), and the
+    LaTeX table's `caption` (None: one made from the benchmark and the intervals)."""
+
+    metrics: tuple[str, ...] = ()
+    caption: str | None = None
+
+
+def choose_metrics(table: pd.DataFrame, benchmark: Benchmark, metrics: Sequence[str]) -> pd.DataFrame:
+    """The table with only these metric (or extra) columns, each with its interval and difference;
+    one line naming the choices where one is not a column of this benchmark's table."""
+    if not metrics:
+        return table
+    offered = [c for c in [*benchmark.table_metrics, *benchmark.table_extras, *COST_COLUMNS] if c in table.columns]
+    unknown = [m for m in metrics if m not in offered]
+    if unknown:
+        raise ValueError(f"--metrics {','.join(unknown)}: not a column of a {benchmark.name} table; choose among "
+                         f"{', '.join(offered)}")
+    dropped = [c for c in offered if c not in metrics]
+    related = {key for c in dropped for key in (c, intervals.lo_key(c), intervals.hi_key(c), f"d_{c}")}
+    return table.drop(columns=[c for c in table.columns if c in related])
+
+
+def without_empty_columns(table: pd.DataFrame) -> pd.DataFrame:
+    """The table without the columns no row fills (vs_paper and d_* where no run has a paper row):
+    a KITTI table had 25 columns, 9 of them empty."""
+    kept = ["method", "source"]
+    empty = [c for c in table.columns if c not in kept and table[c].map(lambda v: v is None or v == "" or v != v).all()]
+    return table.drop(columns=empty)
 
 
 def without_comparison(table: pd.DataFrame, vs_paper: bool = False) -> pd.DataFrame:

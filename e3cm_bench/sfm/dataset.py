@@ -57,7 +57,7 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, options: SetOptions = SetOptions(), skip_bad: bool = False,
                  first: int | None = None) -> None:
-        from e3cm_bench.interchange.colmap import pycolmap_module  # on first use: the command line's help reads this module
+        from e3cm_bench.ground.pycolmap import pycolmap_module  # on first use: the command line's help reads this module
 
         o = options  # as given: each is checked here
         self.root = require_directory(root, "image set")
@@ -135,14 +135,7 @@ class MultiViewSet(PairList):
         """The pair graph's connected components (image names, largest first), checked before any
         matching: a graph of several is refused, unless allow_disconnected, where each pair's
         meta["bag"] says its component (pairs never join two: a component is closed)."""
-        found = V.components((p.meta["view0"], p.meta["view1"]) for p in self.pairs)
-        if len(found) > 1 and not self.allow_disconnected:
-            labels = V.pair_labels(self.views)
-            shown = ", ".join("{" + ", ".join(labels[n] for n in names[:3]) + (f", ... {len(names)} images" if len(names) > 3
-                                                                              else "") + "}" for names in found[:4])
-            more = f" and {len(found) - 4} more" if len(found) > 4 else ""
-            raise DatasetError(f"{self.graph or self.source}: the pair graph has {len(found)} components that share no "
-                               f"image: {shown}{more}; pass --allow-disconnected to reconstruct each as its own bag")
+        found = graph_components(self.pairs, self.views, self.allow_disconnected, self.graph or self.source)
         bag = {name: k for k, names in enumerate(found) for name in names}
         for pair in self.pairs:
             pair.meta["bag"] = bag[pair.meta["view0"]]
@@ -159,12 +152,9 @@ class MultiViewSet(PairList):
         run would build more than max_pairs of them."""
         n = len(self.views)
         count = len(listed) if isinstance(listed, list) else V.graph_size(n, self.window)
-        building = min(count, first) if first else count
-        if building > self.max_pairs:
-            graph = "every pair" if self.window is None and self.graph is None and self.kind != "pairs" else "its graph"
-            raise DatasetError(f"{self.graph or self.source}: {n} images give {count:,} pairs ({graph}), over the "
-                               f"{self.max_pairs:,} a run builds; --max-pairs {count} lifts the bound, or choose "
-                               "fewer pairs (--window K, --graph FILE, --limit N)")
+        every = self.window is None and self.graph is None and self.kind != "pairs"
+        check_graph_size(self.graph or self.source, n, count, min(count, first) if first else count, self.max_pairs,
+                         every, "--window K, --graph FILE, --limit N")
         return count
 
     def settings(self) -> dict:
@@ -183,6 +173,30 @@ class MultiViewSet(PairList):
 # The pairs a set's graph may hold unless --max-pairs says more: an exhaustive graph grows with
 # the square of the images (20,000 pairs: 200 images; 3000 images give 4.5 million).
 DEFAULT_MAX_PAIRS = 20_000
+MAX_WINDOW = 10_000  # each image with the next K: beyond a set's size it is every pair anyway
+
+
+def check_graph_size(source, n: int, count: int, building: int, max_pairs: int, every: bool, fewer: str) -> None:
+    """A DatasetError, before a pair is built, where a run would build more than max_pairs (sfm and
+    reconstruct: 3000 images give 4.5 million pairs, gigabytes before the first match)."""
+    if building > max_pairs:
+        raise DatasetError(f"{source}: {n} images give {count:,} pairs ({'every pair' if every else 'its graph'}), "
+                           f"over the {max_pairs:,} a run builds; --max-pairs {count} lifts the bound, or choose "
+                           f"fewer pairs ({fewer})")
+
+
+def graph_components(pairs, views, allow_disconnected: bool, source) -> list[list[str]]:
+    """The pair graph's connected components (image names, largest first); a DatasetError where
+    there are several and allow_disconnected is not given (sfm and reconstruct alike)."""
+    found = V.components((p.meta["view0"], p.meta["view1"]) for p in pairs)
+    if len(found) > 1 and not allow_disconnected:
+        labels = V.pair_labels(views)
+        shown = ", ".join("{" + ", ".join(labels[n] for n in names[:3]) + (f", ... {len(names)} images" if len(names) > 3
+                                                                          else "") + "}" for names in found[:4])
+        more = f" and {len(found) - 4} more" if len(found) > 4 else ""
+        raise DatasetError(f"{source}: the pair graph has {len(found)} components that share no "
+                           f"image: {shown}{more}; pass --allow-disconnected to reconstruct each as its own bag")
+    return found
 
 
 def _count(value, option: str) -> int | None:
@@ -196,6 +210,6 @@ def _window(value) -> int | None:
         k = int(str(value))
     except ValueError:
         raise DatasetError(f"--window must be a whole number of images, got {value!r}") from None
-    if k < 1:
-        raise DatasetError(f"--window must be at least 1, got {k}")
+    if not 1 <= k <= MAX_WINDOW:
+        raise DatasetError(f"--window must be from 1 to {MAX_WINDOW}, got {k}")
     return k

@@ -25,7 +25,7 @@ from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
-from e3cm_bench.sfm.dataset import _window
+from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
 from e3cm_bench.sfm.protocol import _radius
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
@@ -43,14 +43,30 @@ def image_names(root: Path) -> list[str]:
     return sorted(names)
 
 
+@dataclass(frozen=True)
+class FolderOptions:
+    """How a folder of images becomes pairs and a reconstruction (reconstruct's flags)."""
+
+    window: str | int | None = None
+    pairs: str | Path | None = None
+    merge_px: str | float | None = None
+    camera_model: str = "SIMPLE_RADIAL"
+    single_camera: bool = True
+    max_pairs: str | int | None = None
+    allow_disconnected: bool = False
+
+
 class ImageFolder(PairList):
     """The pairs of a folder of images: exhaustive, ``window`` K, or the ``pairs`` file's."""
 
     name = "images"
 
-    def __init__(self, root: str | Path, window: str | int | None = None, pairs: str | Path | None = None,
-                 merge_px: str | float | None = None, camera_model: str = "SIMPLE_RADIAL",
-                 single_camera: bool = True, skip_bad: bool = False) -> None:
+    def __init__(self, root: str | Path, skip_bad: bool = False, **options) -> None:
+        """options: FolderOptions' fields (window, pairs, merge_px, camera_model, single_camera,
+        max_pairs, allow_disconnected), as the command's flags give them."""
+        o = FolderOptions(**options)
+        window, pairs, merge_px, camera_model = o.window, o.pairs, o.merge_px, o.camera_model
+        single_camera, max_pairs, allow_disconnected = o.single_camera, o.max_pairs, o.allow_disconnected
         self.root = require_directory(root, "image")
         self.window, self.merge_px = _window(window), _radius(merge_px) or 0.0  # None: no merge
         self.pairs_file = Path(pairs) if pairs is not None else None
@@ -63,15 +79,28 @@ class ImageFolder(PairList):
         if len(self.views) < V.MIN_VIEWS:
             raise DatasetError(f"{self.root}: holds {len(self.views)} image(s) ({', '.join(IMAGE_SUFFIXES)}); "
                                f"a reconstruction needs at least {V.MIN_VIEWS}")
+        self.max_pairs = _count(max_pairs, "--max-pairs") or DEFAULT_MAX_PAIRS
+        self.allow_disconnected = bool(allow_disconnected)
         if self.pairs_file is not None:
             listed = V.read_graph(self.pairs_file, self.views)
         elif self.window is not None:
             listed = V.window(self.views, self.window)
         else:
             listed = V.exhaustive(self.views)
+        # counted before one pair is built (a generator above): 3000 images are 4.5 million pairs
+        count = len(listed) if isinstance(listed, list) else V.graph_size(len(self.views), self.window)
+        check_graph_size(self.pairs_file or self.root, len(self.views), count, count, self.max_pairs,
+                         self.pairs_file is None and self.window is None, "--window K, --pairs FILE")
         built = [Pair(name=f"{item.view0}--{item.view1}", image0=self.root / item.view0, image1=self.root / item.view1,
                       meta={"view0": item.view0, "view1": item.view1, **self.reconstruction()}) for item in listed]
         super().__init__(built, self.pairs_file or self.root, skip_bad)
+        self.components = graph_components(self.pairs, self.views, self.allow_disconnected, self.pairs_file or self.root)
+
+    def preamble(self) -> str:
+        sizes = [len(names) for names in self.components]
+        if len(sizes) == 1:
+            return f"pair graph: one component of {sizes[0]} images"
+        return f"pair graph: {len(sizes)} components of {', '.join(map(str, sizes))} images (--allow-disconnected)"
 
     def reconstruction(self) -> dict:
         """How the set is reconstructed: it travels with each pair (its meta), as the sfm set's
@@ -84,6 +113,7 @@ class ImageFolder(PairList):
                  else f"window {self.window}" if self.window is not None else "exhaustive")
         return {"dataset": self.name, "root": str(self.root), "pair_graph": graph, "window": self.window,
                 "pairs": str(self.pairs_file) if self.pairs_file is not None else None, "n_images": len(self.views),
+                "max_pairs": self.max_pairs, "allow_disconnected": self.allow_disconnected,
                 "reconstruction": mapper_settings(self.camera_model, self.single_camera, self.merge_px)}
 
 
@@ -92,8 +122,8 @@ class ReconstructBenchmark(Benchmark):
     """A folder of images reconstructed from a matcher's matches: no ground truth, so no score;
     the rows and the summary say what the reconstruction holds."""
 
-    table_extras: tuple[str, ...] = ("n_pairs", "registered_images", "largest_model_images", "n_images", "n_models",
-                                     "points", "mean_track_length", "mean_reprojection_error")
+    table_extras: tuple[str, ...] = ("n_pairs", "registered_images", "largest_model_images", "largest_model_points",
+                                     "n_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")
     evaluates_set = True
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
@@ -118,9 +148,12 @@ class ReconstructBenchmark(Benchmark):
             rows.append({"pair": pair.name, "n_matches": len(k), "n_verified": n_verified,
                          "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
                          "model": placed0[0] if same else -1, DUPLICATES: repeats})
-        # the model a user opens first (sparse/0): several models may share images
-        largest = len(found.models[0].poses) if found.models else 0
-        return rows, {**found.numbers(), "largest_model_images": largest}
+        # the model a user opens first (sparse/0): several models may share images, and their
+        # points then count the same scene twice (136 + 97 = 233 in one run), so the model's own
+        # points are said beside the sum over models
+        largest = found.models[0] if found.models else None
+        return rows, {**found.numbers(), "largest_model_images": len(largest.poses) if largest else 0,
+                      "largest_model_points": largest.points if largest else 0}
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         rows = list(rows)
@@ -142,7 +175,7 @@ class ReconstructBenchmark(Benchmark):
 
 RECONSTRUCT = ReconstructBenchmark(
     name="reconstruct", dataset=ImageFolder,
-    dataset_options=("window", "pairs", "merge_px", "camera_model", "single_camera"),
+    dataset_options=("window", "pairs", "merge_px", "camera_model", "single_camera", "max_pairs", "allow_disconnected"),
     summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
     default_max_side=1200,
 )

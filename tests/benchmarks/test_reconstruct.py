@@ -45,6 +45,9 @@ def test_the_room_is_reconstructed_without_ground_truth(room_run):
     summary = pd.read_csv(out / "summary.csv").iloc[0]
     assert summary["n_pairs"] == 10 and summary["registered_images"] == 5 and summary["largest_model_images"] == 5
     assert summary["points"] > 100 and 1 < summary["mean_track_length"] and summary["mean_reprojection_error"] < 2
+    # one model: its own points are the sum's; the message names them beside the folder
+    assert summary["largest_model_points"] == summary["points"]
+    assert f"holds 5 images and {int(summary['points'])} points" in " ".join(result.output.split())
     per_pair = pd.read_csv(out / "per_pair.csv")
     assert list(per_pair.columns[:3]) == ["pair", "n_matches", "n_duplicates"] and (per_pair["n_verified"] > 0).all()
     config = yaml.safe_load((out / "config.yaml").read_text())
@@ -82,7 +85,12 @@ def test_pair_graphs_and_bad_input(room, tmp_path):
     assert [p.name for p in ImageFolder(room, window=1)] == [f"view{i:02d}.png--view{i + 1:02d}.png" for i in range(4)]
     listed = tmp_path / "pairs.txt"
     listed.write_text("# two pairs\nview00.png view02.png\nview03.png view04.png\n")
-    assert len(ImageFolder(room, pairs=listed)) == 2
+    # two components that share no image: refused as sfm refuses them (issue 70), unless allowed
+    with pytest.raises(DatasetError, match="2 components that share no image.*--allow-disconnected"):
+        ImageFolder(room, pairs=listed)
+    assert len(ImageFolder(room, pairs=listed, allow_disconnected=True)) == 2
+    line = one_line_error(invoke("reconstruct", room, "--out", tmp_path / "r0", "--matcher", "sift", "--pairs", listed))
+    assert "components that share no image" in line and not (tmp_path / "r0" / "matches.h5").exists()
     listed.write_text("view00.png nowhere.png\n")
     with pytest.raises(DatasetError, match="line 1 names nowhere.png"):
         ImageFolder(room, pairs=listed)
@@ -201,3 +209,47 @@ def test_shards_of_two_image_folders_are_refused(six_frames, tmp_path):
     line = one_line_error(shard(six_frames, "1/2", "--workers", 2))
     assert "--shard and --workers do not go together" in line
     assert "--shard 3/2: K must be between 1 and N" in one_line_error(shard(six_frames, "3/2"))
+
+
+def test_pairs_are_bounded_before_any_is_built(tmp_path):
+    """3000 tiny images gave 4,498,500 pairs (4.3 GB after 46 s); now a one-line refusal at once."""
+    import time
+
+    import cv2
+
+    folder = tmp_path / "many"
+    folder.mkdir()
+    tiny = np.zeros((4, 4), np.uint8)
+    for i in range(3000):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), tiny)
+    started = time.monotonic()
+    line = one_line_error(invoke("reconstruct", folder, "--out", tmp_path / "r", "--matcher", "sift"))
+    assert time.monotonic() - started < 60
+    assert "3000 images give 4,498,500 pairs (every pair), over the 20,000 a run builds" in line
+    assert not (tmp_path / "r" / "matches.h5").exists()
+    assert len(ImageFolder(folder, window=2)) == 2 * 3000 - 3  # a window fits under the bound
+    with pytest.raises(DatasetError, match="over the 100 a run builds"):
+        ImageFolder(folder, window=2, max_pairs=100)
+
+
+@pytest.mark.parametrize("window", ["0", "1000000000"])
+def test_window_is_bounded(room, tmp_path, window):
+    line = one_line_error(invoke("reconstruct", room, "--out", tmp_path / "r", "--matcher", "sift", "--window", window))
+    assert "--window" in line
+
+
+def test_no_model_names_only_files_that_exist(tmp_path):
+    """Two unrelated noise images: no model; the message named OUT/sparse/0, which did not exist."""
+    import cv2
+
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(folder / name), rng.integers(0, 255, (120, 160), dtype=np.uint8))
+    out = tmp_path / "r"
+    result = invoke("reconstruct", folder, "--out", out, "--matcher", "sift")
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "no model: 0 of 2 images registered" in said and "sparse/0" not in said
+    assert (out / "database.db").is_file()

@@ -10,6 +10,7 @@ import re
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 from e3cm_bench.reporting.escape import html_text, markdown_code, markdown_text
 from helpers import invoke
@@ -86,3 +87,13 @@ def test_the_escaping_functions():
     assert markdown_text("direct-efficientnet_lite0 (x)") == "direct-efficientnet_lite0 (x)"  # readable as it was
     assert markdown_code("a`b") == "``a`b``" and markdown_code("`x") == "`` `x ``"
     assert html_text('<a href="x">') == "&lt;a href=&quot;x&quot;&gt;"
+
+
+@pytest.mark.parametrize("label", ["two\nlines", "tab\there"])
+def test_a_label_is_one_line_of_printable_text(tmp_path, label):
+    """A label is a table's row, a legend and a file name: a newline in it was accepted (issue 70)."""
+    from helpers import one_line_error
+
+    line = one_line_error(invoke("hpatches", "--root", tmp_path, "--out", tmp_path / "r", "--matcher", "sift",
+                                 "--label", label))
+    assert "--label must be one line of printable text" in line
