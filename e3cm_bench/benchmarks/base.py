@@ -48,7 +48,8 @@ class EvalSettings:
     # The robust estimator of the evaluation's H and relative pose: opencv or poselib (estimators.py).
     estimator: str = "opencv"
     # wxbs and evd (benchmarks/wxbs.py, evd.py): OpenCV's robust method for the evaluation's F and
-    # EVD's H, ransac or magsac (USAC MAGSAC++, wxbs-benchmark's estimator: --protocol wxbs), and
+    # EVD's H, ransac or magsac (USAC MAGSAC++, wxbs-benchmark's estimator: --protocol wxbs); the
+    # pose benchmarks' E too (ransac, magsac, or accurate: USAC_ACCURATE; the sweep's cells); and
     # the F estimator's threshold (pixels), confidence and iterations. HPatches' H stays RANSAC.
     opencv_method: str = "ransac"
     fundamental_ransac_px: float = 1.0
@@ -60,13 +61,13 @@ class EvalSettings:
     repeats: int = 1
 
     def __post_init__(self) -> None:
-        from e3cm_bench.geometry.estimators import check_estimator
+        from e3cm_bench.geometry.estimators import POSE_METHODS, check_estimator
 
         check_estimator(self.estimator)
         if self.homography_pixel_origin not in ("center", "corner"):
             raise ValueError(f"homography_pixel_origin must be center or corner, got {self.homography_pixel_origin!r}")
-        if self.opencv_method not in ("ransac", "magsac"):
-            raise ValueError(f"opencv_method must be ransac or magsac, got {self.opencv_method!r}")
+        if self.opencv_method not in POSE_METHODS:  # accurate: the relative pose's only (USAC_ACCURATE)
+            raise ValueError(f"opencv_method must be one of {', '.join(POSE_METHODS)}, got {self.opencv_method!r}")
         if int(self.repeats) < 1:
             raise ValueError(f"--repeats must be at least 1, got {self.repeats}")
 

@@ -39,7 +39,7 @@ class PoseBenchmark(Benchmark):
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
         scoring = metrics.PoseScoring(self.ransac_px(pair, matches, ev), ev.pose_confidence, ev.precision_thresholds,
-                                      ev.estimator, rotation_error(ev.protocol))
+                                      ev.estimator, rotation_error(ev.protocol), ev.opencv_method)
         row = metrics.evaluate_pose_pair(
             matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64),
             pair.K0, pair.K1, pair.T_0to1, seed=ev.seed, scoring=scoring,
@@ -59,7 +59,7 @@ class PoseBenchmark(Benchmark):
         from e3cm_bench.geometry.estimators import PoseRansac, pose_geometry
 
         sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
-        ransac = PoseRansac(cls.ransac_px(pair, matches, ev), ev.pose_confidence, ev.estimator, ev.seed)
+        ransac = PoseRansac(cls.ransac_px(pair, matches, ev), ev.pose_confidence, ev.estimator, ev.seed, ev.opencv_method)
         return pose_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.K0,
                              pair.K1, ransac, sizes=sizes)
 

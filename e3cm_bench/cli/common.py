@@ -287,5 +287,5 @@ PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help=
 # Help texts are Rich markup: a literal "[word]" needs its backslash, else Rich takes it for a
 # style and drops it (tests/test_startup.py reads every help as Rich renders it).
 PlotFormatOpt = Annotated[str, typer.Option("--format", help="File format of the plots written: png, pdf or svg (vector, for a paper).")]
-PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default) or poselib (pip install 'e3cm-bench\\[poselib]'); --eval-only may change it.")]
+PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), poselib (pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; 'e3cm-bench\\[colmap]'); --eval-only may change it.")]
 

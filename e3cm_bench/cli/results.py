@@ -19,19 +19,24 @@ from e3cm_bench.cli.common import app, console, DeviceOpt, friendly_errors, Shar
 @friendly_errors
 def table(
     run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")],
-    out: Annotated[Path, typer.Option("--out", help="Table path; .csv and .md are written, plus a plot beside them.")],
+    out: Annotated[Path, typer.Option("--out", help="The table's file stem: STEM.csv, STEM.md (STEM.tex with --latex) and STEM_<plot>.png; an existing folder (or a path ending in /) gets table.* inside it.")],
     reference: Annotated[Optional[Path], typer.Option("--reference", help="Paper numbers (default: the shipped e3cm_bench/paper/tableN.csv).")] = None,
     compare: CompareOpt = True,
     latex: Annotated[bool, typer.Option("--latex", help="Also write OUT.tex: a booktabs table for a paper (each number with its interval, the best per column in bold).")] = False,
     paper: Annotated[bool, typer.Option("--paper/--no-paper", help="The paper's rows above the runs' (--no-paper: the runs' rows only).")] = True,
     plot_format: PlotFormatOpt = "png",
+    metrics: Annotated[Optional[str], typer.Option("--metrics", help="Comma-separated columns to keep, e.g. auc@10,maa (default: all the benchmark's).")] = None,
+    caption: Annotated[Optional[str], typer.Option("--caption", help="The LaTeX table's caption (default: what its brackets and bold mean).")] = None,
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
     from e3cm_bench.pipeline.experiments import write_table
     from e3cm_bench.drawing.formats import plots_as
+    from e3cm_bench.reporting.tables import TableShape
 
+    chosen = tuple(m.strip() for m in (metrics or "").split(",") if m.strip())
     with plots_as(plot_format):
-        write_table(list(run_dirs), out, reference, compare, console, paper_rows=paper, latex=latex)
+        write_table(list(run_dirs), out, reference, compare, console, paper_rows=paper, latex=latex,
+                    shape=TableShape(chosen, caption))
 
 
 @app.command()
@@ -70,6 +75,38 @@ def compare_command(
     if out is not None:
         csv_path, md_path = write_comparison(comparison, out)
         console.print(f"compare: {csv_path}, {md_path}", markup=False)
+
+
+@app.command("sweep")
+@friendly_errors
+def sweep_command(
+    run_dirs: Annotated[list[Path], typer.Argument(help="Two or more run folders of one two-view pose benchmark (their cached matches are scored again; nothing is matched).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for sweep.csv, tau.csv, flips.csv, sweep.md, ranks.png, sweep.yaml and cells/ (a sweep resumes from cells/).")],
+    estimators: Annotated[str, typer.Option("--estimators", help="Comma-separated: opencv-ransac, opencv-magsac (USAC_MAGSAC), opencv-accurate (USAC_ACCURATE), poselib, pycolmap.")] = "opencv-ransac,opencv-magsac,opencv-accurate,poselib,pycolmap",
+    thresholds: Annotated[str, typer.Option("--thresholds", help="Comma-separated thresholds with units: 0.5px (stored pixels), 1mpx (pixels as matched), 5e-4f (fraction of the mean focal length).")] = "0.5px,1px,2px",
+    seeds: Annotated[int, typer.Option("--seeds", help="RANSAC seeds per cell (evaluation seed + 0..N-1); the intervals resample them with the pairs.")] = 3,
+    metric: Annotated[str, typer.Option("--metric", help="The ranking's metric: auc@5, auc@10 or auc@20.")] = "auc@10",
+    tune: Annotated[bool, typer.Option("--tune", help="Add a cell per estimator with each run at its best px threshold, chosen on half of the pairs (sha256 of the name even); every number is then reported on the other half.")] = False,
+) -> None:
+    """Two-view protocol sweep: the runs ranked again under each estimator x threshold, with
+    Kendall's tau against the runs' own protocol and each rank flip's paired interval."""
+    from e3cm_bench.pipeline import sweep as sweeping
+    from e3cm_bench.storage import RunFolder
+
+    seeds = sweeping.check_seeds(seeds)
+    if metric not in sweeping.AUCS:
+        raise ValueError(f"--metric {metric!r}: choose one of {', '.join(sweeping.AUCS)}")
+    sweeping.parse_estimators(estimators), sweeping.parse_thresholds(thresholds)  # refused before loading
+    for run_dir in run_dirs:
+        if out.resolve() == Path(run_dir).resolve() or RunFolder(out).config_path.is_file():
+            raise ValueError(f"--out {out}: is a run folder; the sweep writes beside runs, never into one")
+    runs = sweeping.load_runs(run_dirs)
+    cells = sweeping.grid(estimators, thresholds, sweeping.cell_of(runs[0].ev))
+    out.mkdir(parents=True, exist_ok=True)
+    result = sweeping.sweep(runs, cells, seeds, out, metric, tune, progress=lambda line: console.print(line, markup=False))
+    written = sweeping.write_sweep(result, runs, cells, seeds, tune, out)
+    console.print(sweeping.markdown(result), markup=False, soft_wrap=True)
+    console.print(f"sweep: {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
 
 
 @app.command()
@@ -188,7 +225,7 @@ def check(
     rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
     the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
     settings differ from its baseline row's, one line names each difference (information)."""
-    from e3cm_bench.gate import check as regression
+    from e3cm_bench.gate import check as regression, notes as check_notes
 
     runs = regression.find_runs(run_dirs)
     if update:
@@ -206,7 +243,7 @@ def check(
     findings, problems = regression.compare(others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs])
     problems += consistency
     checked += len(findings)
-    notes = regression.environment_notes(runs, baseline)
+    notes = check_notes.environment_notes(runs, baseline) + check_notes.protocol_check_notes(runs, baseline)
     if findings or problems or others is runs:
         text += regression.markdown_summary(findings, problems, baseline, notes, tolerance_file=tolerances)
     if summary is not None:

@@ -96,7 +96,7 @@ def describe_matchers(shown) -> list[str]:
         if entry.model:
             lines.append("    model: --device, --weights FILE (else the library's weights, downloaded into its cache once)")
         if entry.requires:
-            lines.append(f"    needs: {', '.join(entry.requires)} (pip install 'e3cm-bench[peers]')")
+            lines.append(f"    needs: {', '.join(entry.requires)} ({entry.install_hint()})")
         if entry.shorthands:
             lines.append("    shorthands: " + ", ".join(f"--{n.replace('_', '-')}" for n in entry.shorthands))
         if entry.paper_row:

@@ -342,3 +342,27 @@ def cost_accuracy_figure(runs: Mapping[str, Mapping], metric: str) -> Figure:
 
 def plot_cost_accuracy(runs: Mapping[str, Mapping], metric: str, path: str | Path) -> Path:
     return _save_figure(cost_accuracy_figure(runs, metric), path)
+
+
+def rank_figure(table: pd.DataFrame, metric: str) -> Figure:
+    """The protocol sweep's ranks (pipeline/sweep.py): one line per run across the cells (the
+    default cell first), rank 1 at the top; each point labelled with the run's metric."""
+    cells = list(dict.fromkeys(table["cell"]))
+    runs = list(dict.fromkeys(table["run"]))
+    colors = _run_colors(runs)
+    fig = Figure(figsize=(max(6.0, 1.1 * len(cells) + 2.5), 1.0 + 0.55 * len(runs)))
+    ax = fig.add_subplot()
+    for run in runs:
+        rows = table[table["run"] == run].set_index("cell").reindex(cells)
+        ax.plot(range(len(cells)), rows["rank"], "-o", color=colors[run], label=run)
+        for x, (rank, value) in enumerate(zip(rows["rank"], rows[metric])):
+            if np.isfinite(rank):
+                ax.annotate(f"{value:.0f}", (x, rank), textcoords="offset points", xytext=(0, 5), ha="center", fontsize=7)
+    ax.set_xticks(range(len(cells)), cells, rotation=35, ha="right", fontsize=8)
+    ax.set_yticks(range(1, len(runs) + 1))
+    ax.set_ylim(len(runs) + 0.6, 0.4)
+    ax.set_ylabel(f"rank by {metric}")
+    ax.set_title(f"Ranks per protocol cell (labels: {metric}; first cell: the runs' own)", fontsize=9)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.grid(axis="y", alpha=0.3)
+    return fig

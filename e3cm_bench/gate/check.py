@@ -9,7 +9,7 @@ The numbers move with what made them: the CPU's instruction set (oneDNN picks ot
 convolution kernels on AVX2 than on AVX-512), the torch build, the thread count. So the
 baseline's ``environment`` column records, per row, the versions and CPU settings of the run
 it was written from (`environment_string`), and a check names what differs from them
-(`environment_notes`): information, never a failure.
+(gate/notes.py): information, never a failure.
 
 With a noise ensemble beside the baseline (``<baseline>.noise.csv``, written by
 ``check --update --ensemble K``), the gate is the noise model instead (`noise_gate`): each
@@ -40,14 +40,8 @@ from e3cm_bench.ground.files import read_keyed_csv, write_atomically, write_csv
 from e3cm_bench.reporting.escape import markdown_code, markdown_text
 from e3cm_bench.drawing.formats import format_number
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
-from e3cm_bench.storage.environment import (
-    ENVIRONMENT_PACKAGES,
-    ISA_KEYS,
-    environment_differences,
-    environment_string,
-    parse_environment,
-    run_environment_items,
-)
+from e3cm_bench.storage.fingerprint import protocol_items
+from e3cm_bench.storage.environment import ENVIRONMENT_PACKAGES, ISA_KEYS, environment_string
 from e3cm_bench.reporting.runs import Run, eval_settings_of, load_run
 from e3cm_bench.gate.tolerances import (
     ANY,
@@ -64,7 +58,8 @@ from e3cm_bench.storage import RunFolder
 KEYS = ("benchmark", "method")
 ENVIRONMENT_COLUMN = "environment"  # not a metric: where the row's numbers were made
 IDENTITY_COLUMN = "identity"  # not a metric: what made the matches (config.yaml identity, as JSON)
-NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN, IDENTITY_COLUMN)
+PROTOCOL_COLUMN = "protocol_items"  # not a metric: what the numbers were scored under (storage/fingerprint.py)
+NOT_METRICS = (*KEYS, ENVIRONMENT_COLUMN, IDENTITY_COLUMN, PROTOCOL_COLUMN)
 
 
 def baseline_metrics(run: Run) -> dict[str, float]:
@@ -100,37 +95,10 @@ def write_baseline(runs: list[Run], path: Path) -> Path:
         seen[key] = run.dir
     rows = [{"benchmark": run.benchmark.name, "method": run.label, **baseline_metrics(run),
              ENVIRONMENT_COLUMN: environment_string(run.run_config),
-             IDENTITY_COLUMN: json.dumps(run.run_config.identity or {}, sort_keys=True)} for run in runs]
+             IDENTITY_COLUMN: json.dumps(run.run_config.identity or {}, sort_keys=True),
+             PROTOCOL_COLUMN: json.dumps(protocol_items(run.run_config))} for run in runs]
     noise_gate.write_pair_baseline(runs, noise_gate.pairs_path(path))
     return write_csv(pd.DataFrame(rows), path)
-
-
-def environment_notes(runs: list[Run], baseline_path: Path) -> list[str]:
-    """One line per distinct difference between the runs' environments and their baseline rows'.
-
-    A difference shared by every run compared is one line; one that only some runs have names them.
-    Runs without a baseline row, and rows without an environment, are not compared.
-    """
-    baseline = read_baseline(baseline_path)
-    if ENVIRONMENT_COLUMN not in baseline.columns:
-        return []
-    rows = {(str(r["benchmark"]), str(r["method"])): parse_environment(r[ENVIRONMENT_COLUMN])
-            for _, r in baseline.iterrows()}
-    groups: dict[tuple[str, ...], list[str]] = {}
-    compared = 0
-    for run in runs:
-        key = (run.benchmark.name, run.label)
-        if key not in rows or not rows[key]:
-            continue
-        compared += 1
-        changes = environment_differences(rows[key], run_environment_items(run.run_config))
-        if changes:
-            groups.setdefault(tuple(changes), []).append(f"{run.label} on {run.benchmark.name}")
-    notes = []
-    for changes, names in groups.items():
-        line = f"environment differs from the baseline's: {', '.join(changes)}"
-        notes.append(line if len(names) == compared else f"{line} ({', '.join(names)})")
-    return notes
 
 
 @dataclass
@@ -303,7 +271,7 @@ def compare(runs: list[Run], baseline_path: Path, tolerances: Tolerances | Mappi
 def markdown_summary(findings: list[Finding], problems: list[str], baseline_path: Path,
                      notes: Sequence[str] = (), tolerance_file: Path | None = None) -> str:
     """A Markdown report (GitHub Actions: append it to $GITHUB_STEP_SUMMARY); ``notes``: the
-    environment differences (environment_notes), listed above the table."""
+    environment and protocol differences (gate/notes.py), listed above the table."""
     marks = {"ok": "ok", "regression": "**regression**", "improvement": "improved"}
     lines = [f"### e3cm-bench check against {markdown_code(baseline_path)}", ""]
     bad = [f for f in findings if f.status == "regression"]

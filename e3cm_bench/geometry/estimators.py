@@ -1,6 +1,6 @@
 """The robust estimators of the evaluation, as backends behind one loader: ``load_estimator(name)``
-gives the backend (OpenCV, the default, as SuperGlue's and LoFTR's evaluations; or PoseLib,
-glue-factory's MegaDepth-1500 default), each with the same three estimates (homography, relative
+gives the backend (OpenCV, the default, as SuperGlue's and LoFTR's evaluations; PoseLib,
+glue-factory's MegaDepth-1500 default; or pycolmap's LO-RANSAC, COLMAP's own), each with the same three estimates (homography, relative
 pose, fundamental matrix). Which one is an evaluation setting (EvalSettings.estimator): --eval-only
 may change it. A new backend is one class here and one entry in ``BACKENDS``.
 
@@ -18,7 +18,9 @@ import numpy as np
 
 from e3cm_bench.geometry import two_view as geometry
 
-OPENCV_METHODS = ("ransac", "magsac")
+OPENCV_METHODS = ("ransac", "magsac")  # F and H (geometry.two_view._F_METHODS, _H_METHODS)
+# The relative pose's: RANSAC, USAC_MAGSAC (MAGSAC++) or USAC_ACCURATE (GC-RANSAC with LO)
+POSE_METHODS = ("ransac", "magsac", "accurate")
 
 
 def seeded_order(n: int, seed: int) -> np.ndarray | None:
@@ -31,14 +33,14 @@ class OpenCVEstimator:
 
     name = "opencv"
 
-    def relative_pose(self, kpts0, kpts1, K0, K1, threshold_px: float, confidence: float, seed: int = 0,
-                      sizes: tuple | None = None):
-        """Essential-matrix RANSAC on normalised points, the threshold divided by the mean focal
-        (geometry.py); sizes are PoseLib's only."""
-        order = seeded_order(len(kpts0), seed)
+    def relative_pose(self, kpts0, kpts1, K0, K1, ransac: PoseRansac, sizes: tuple | None = None):
+        """Essential-matrix RANSAC (or ransac.method, POSE_METHODS) on normalised points, the
+        threshold divided by the mean focal (geometry.py); sizes are PoseLib's only."""
+        order = seeded_order(len(kpts0), ransac.seed)
+        given = (ransac.threshold_px, ransac.confidence, ransac.method)
         if order is None:
-            return geometry.estimate_relative_pose(kpts0, kpts1, K0, K1, threshold_px, confidence)
-        found = geometry.estimate_relative_pose(kpts0[order], kpts1[order], K0, K1, threshold_px, confidence)
+            return geometry.estimate_relative_pose(kpts0, kpts1, K0, K1, *given)
+        found = geometry.estimate_relative_pose(kpts0[order], kpts1[order], K0, K1, *given)
         if found is None:
             return None
         return found[0], found[1], geometry.unshuffle(found[2], order)
@@ -71,16 +73,16 @@ class PoseLibEstimator:
             raise ValueError("--pose-estimator poselib needs PoseLib: pip install 'e3cm-bench[poselib]'") from None
         self.poselib = poselib
 
-    def relative_pose(self, kpts0, kpts1, K0, K1, threshold_px: float, confidence: float, seed: int = 0,
-                      sizes: tuple | None = None):
-        """threshold_px is PoseLib's max_epipolar_error (pixels)."""
+    def relative_pose(self, kpts0, kpts1, K0, K1, ransac: PoseRansac, sizes: tuple | None = None):
+        """ransac.threshold_px is PoseLib's max_epipolar_error (pixels)."""
         if len(kpts0) < 5:
             return None
         size0, size1 = sizes if sizes is not None else (None, None)
         pose, info = self.poselib.estimate_relative_pose(
             np.ascontiguousarray(kpts0, np.float64), np.ascontiguousarray(kpts1, np.float64),
             _camera(K0, size0), _camera(K1, size1),
-            {"max_epipolar_error": float(threshold_px), "success_prob": float(confidence), "seed": int(seed)}, {})
+            {"max_epipolar_error": float(ransac.threshold_px), "success_prob": float(ransac.confidence),
+             "seed": int(ransac.seed)}, {})
         if not info.get("num_inliers"):
             return None
         return np.asarray(pose.R), np.asarray(pose.t).ravel(), np.asarray(info["inliers"], bool)
@@ -112,13 +114,69 @@ class PoseLibEstimator:
         return F
 
 
+class PycolmapEstimator:
+    """pycolmap's LO-RANSAC (COLMAP's estimators), seeded with the seed: the relative pose by
+    estimate_relative_pose (tangent Sampson error, threshold in pixels), H and F by their
+    estimate_*_matrix; it has one robust method of its own."""
+
+    name = "pycolmap"
+
+    def __init__(self) -> None:
+        from e3cm_bench.ground.pycolmap import pycolmap_module
+
+        self.pycolmap = pycolmap_module()
+
+    def _options(self, threshold_px: float, confidence: float, seed: int, max_iters: int | None = None):
+        options = self.pycolmap.RANSACOptions()
+        options.max_error, options.confidence, options.random_seed = float(threshold_px), float(confidence), int(seed)
+        if max_iters is not None:
+            options.max_num_trials = int(max_iters)
+        return options
+
+    def _camera(self, K: np.ndarray, size: tuple[int, int] | None):
+        found = _camera(K, size)
+        return self.pycolmap.Camera(model="PINHOLE", width=found["width"], height=found["height"],
+                                    params=found["params"])
+
+    def relative_pose(self, kpts0, kpts1, K0, K1, ransac: PoseRansac, sizes: tuple | None = None):
+        if len(kpts0) < 5:
+            return None
+        size0, size1 = sizes if sizes is not None else (None, None)
+        found = self.pycolmap.estimate_relative_pose(
+            self._camera(K0, size0), np.ascontiguousarray(kpts0, np.float64), self._camera(K1, size1),
+            np.ascontiguousarray(kpts1, np.float64), self._options(ransac.threshold_px, ransac.confidence, ransac.seed))
+        if found is None:
+            return None
+        pose = found["cam2_from_cam1"]
+        return (np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64).ravel(),
+                np.asarray(found["inlier_mask"], bool))
+
+    def homography(self, x0, x1, threshold_px: float, max_iters: int, confidence: float, seed: int = 0,
+                   method: str = "ransac"):
+        if len(x0) < 4:
+            return None
+        found = self.pycolmap.estimate_homography_matrix(np.ascontiguousarray(x0, np.float64),
+                                                         np.ascontiguousarray(x1, np.float64),
+                                                         self._options(threshold_px, confidence, seed, max_iters))
+        return None if found is None else np.asarray(found["H"], np.float64)
+
+    def fundamental(self, x0, x1, threshold_px: float, max_iters: int, confidence: float, seed: int = 0,
+                    method: str = "ransac"):
+        if len(x0) < 7:
+            return None
+        found = self.pycolmap.estimate_fundamental_matrix(np.ascontiguousarray(x0, np.float64),
+                                                          np.ascontiguousarray(x1, np.float64),
+                                                          self._options(threshold_px, confidence, seed, max_iters))
+        return None if found is None else np.asarray(found["F"], np.float64)
+
+
 def _camera(K: np.ndarray, size: tuple[int, int] | None) -> dict:
     K = np.asarray(K, dtype=np.float64)
     w, h = size if size is not None else (int(round(2 * K[0, 2])), int(round(2 * K[1, 2])))
     return {"model": "PINHOLE", "width": int(w), "height": int(h), "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
 
 
-BACKENDS = {backend.name: backend for backend in (OpenCVEstimator, PoseLibEstimator)}
+BACKENDS = {backend.name: backend for backend in (OpenCVEstimator, PoseLibEstimator, PycolmapEstimator)}
 ESTIMATORS = tuple(BACKENDS)
 _loaded: dict[str, object] = {}
 
@@ -147,6 +205,7 @@ class PoseRansac:
     confidence: float
     estimator: str = "opencv"
     seed: int = 0
+    method: str = "ransac"  # OpenCV's (POSE_METHODS); the other backends have one of their own
 
 
 def relative_pose(
@@ -155,8 +214,7 @@ def relative_pose(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(R, t, inlier mask) of camera 1 relative to camera 0, or None, from the backend
     `ransac.estimator`; sizes: the images' (w, h), for PoseLib's cameras."""
-    return load_estimator(ransac.estimator).relative_pose(kpts0, kpts1, K0, K1, ransac.threshold_px, ransac.confidence,
-                                                          ransac.seed, sizes)
+    return load_estimator(ransac.estimator).relative_pose(kpts0, kpts1, K0, K1, ransac, sizes)
 
 
 def homography(

@@ -218,6 +218,7 @@ class PoseScoring:
     precision_thresholds: Sequence[float] = PRECISION_THRESHOLDS
     estimator: str = "opencv"
     rotation_error: str = "nearest-rotation"
+    method: str = "ransac"  # OpenCV's robust method of E (estimators.POSE_METHODS)
 
 
 def evaluate_pose_pair(
@@ -236,7 +237,7 @@ def evaluate_pose_pair(
     kpts1 = np.asarray(kpts1, dtype=np.float64).reshape(-1, 2)
     row = {"n_matches": len(kpts0)}
     cv2.setRNGSeed(int(seed))
-    ransac = PoseRansac(scoring.ransac_threshold, scoring.confidence, scoring.estimator, seed)
+    ransac = PoseRansac(scoring.ransac_threshold, scoring.confidence, scoring.estimator, seed, scoring.method)
     estimate = estimate_relative_pose(kpts0, kpts1, K0, K1, ransac, sizes)
     R, t = (estimate[0], estimate[1]) if estimate is not None else (None, None)
     row["err_R"], row["err_t"] = pose_error(T_0to1, R, t, scoring.rotation_error)

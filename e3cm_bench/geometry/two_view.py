@@ -124,8 +124,10 @@ def estimate_relative_pose(
     K1: np.ndarray,
     threshold_px: float = 0.5,
     confidence: float = 0.99999,
+    method: str = "ransac",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Essential-matrix RANSAC on normalised points, then the best cheirality check.
+    """Essential-matrix RANSAC on normalised points, then the best cheirality check. method:
+    OpenCV's robust method (_E_METHODS: ransac, magsac = USAC_MAGSAC, accurate = USAC_ACCURATE).
 
     Returns (R, t, inlier_mask) or None (fewer than 5 matches or no E). The pixel
     threshold is turned into normalised units by the mean focal length of both cameras.
@@ -139,7 +141,7 @@ def estimate_relative_pose(
     x1 = normalize_keypoints(kpts1, K1)
     norm_threshold = threshold_px / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
     E, mask = cv2.findEssentialMat(
-        x0, x1, np.eye(3), threshold=norm_threshold, prob=confidence, method=cv2.RANSAC
+        x0, x1, np.eye(3), threshold=norm_threshold, prob=confidence, method=_E_METHODS[method]
     )
     if E is None:
         return None
@@ -242,6 +244,9 @@ def estimate_homography(
         return None
     return H
 
+
+# OpenCV's method flag for each way of estimating E (the sweep's estimators, issue 69).
+_E_METHODS = {"ransac": cv2.RANSAC, "magsac": cv2.USAC_MAGSAC, "accurate": cv2.USAC_ACCURATE}
 
 # OpenCV's method flag for each way of estimating H.
 _H_METHODS = {"ransac": cv2.RANSAC, "magsac": cv2.USAC_MAGSAC}

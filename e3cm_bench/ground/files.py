@@ -24,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headless", "h5py", "pandas")
+PACKAGES = ("e3cm-bench", "torch", "torchvision", "numpy", "opencv-python-headless", "h5py", "pandas", "poselib", "pycolmap")
 # Variables that choose the CPU kernels (oneDNN, ATen), and the CPU flags the defaults pick them by.
 ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
 CPU_FLAGS = ("avx512_bf16", "amx_bf16", "avx512f", "avx2")

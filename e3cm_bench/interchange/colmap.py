@@ -31,6 +31,7 @@ import numpy as np
 from e3cm_bench.ground.files import file_sha256, write_atomically
 from e3cm_bench.ground.matches import Matches, MatchesError
 from e3cm_bench.interchange.base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
+from e3cm_bench.ground.pycolmap import pycolmap_module
 from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 
@@ -56,14 +57,6 @@ class ColmapFormat(Format):
 
     def check_available(self) -> None:
         pycolmap_module()
-
-
-def pycolmap_module():
-    try:
-        import pycolmap
-    except ImportError:
-        raise ValueError("the COLMAP format needs pycolmap: pip install 'e3cm-bench[colmap]'") from None
-    return pycolmap
 
 
 def verify_pairs(pycolmap, database: Path, pairs, options) -> None:

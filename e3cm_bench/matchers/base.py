@@ -75,6 +75,10 @@ def always(settings: Any) -> bool:
     return True
 
 
+# The optional extra (pyproject.toml) that installs a module a matcher requires; any other: peers.
+EXTRA_OF = {"pycolmap": "colmap"}
+
+
 @dataclass(frozen=True)
 class MatcherEntry:
     """One matcher in the registry (matchers/registry.py), built-in or a plugin's.
@@ -138,8 +142,14 @@ class MatcherEntry:
 
         missing = [name for name in self.requires if importlib.util.find_spec(name) is None]
         if missing:
-            raise ValueError(f"{self.name} needs {', '.join(missing)}, which the peers extra installs: "
-                             "pip install 'e3cm-bench[peers]'")
+            extras = sorted({EXTRA_OF.get(name, "peers") for name in self.requires})
+            raise ValueError(f"{self.name} needs {', '.join(missing)}, which the {' and '.join(extras)} extra installs: "
+                             f"{self.install_hint()}")
+
+    def install_hint(self) -> str:
+        """The extra that installs what it requires (EXTRA_OF: pycolmap's is colmap)."""
+        extras = sorted({EXTRA_OF.get(name, "peers") for name in self.requires})
+        return f"pip install 'e3cm-bench[{','.join(extras)}]'"
 
     def setting_fields(self) -> list[dataclasses.Field]:
         return list(dataclasses.fields(self.settings)) if self.settings is not None else []

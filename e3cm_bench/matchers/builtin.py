@@ -11,6 +11,7 @@ from e3cm_bench.matchers.dfm import DFMMatcher, DFMMatcherSettings
 from e3cm_bench.matchers.e3cm import DirectSettings, E3CMMatcher
 from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, E3CMPlusSettings
 from e3cm_bench.matchers.e3cm_release import E3CMReleaseMatcher, E3CMReleaseSettings
+from e3cm_bench.matchers.colmap_sift import ColmapSiftSettings
 from e3cm_bench.matchers.sift import SiftMatcher, SiftSettings
 
 
@@ -20,6 +21,12 @@ def _e3cm(settings: E3CMSettings, net, channel_order: str) -> E3CMMatcher:
 
 def _direct(settings: DirectSettings, net, channel_order: str) -> E3CMMatcher:
     return E3CMMatcher(net, settings, name="direct", channel_order=channel_order)
+
+
+def _colmap_sift(settings):
+    from e3cm_bench.matchers.colmap_sift import ColmapSiftMatcher
+
+    return ColmapSiftMatcher(settings)
 
 
 def _release_as_published(settings: dict) -> bool:
@@ -58,4 +65,7 @@ BUILTIN = (
         "sift", "SIFT + nearest neighbour with Lowe's ratio test (OpenCV)",
         lambda s: SiftMatcher(s.max_keypoints, s.ratio, s.cross_check), SiftSettings, paper_row="SIFT+NN",
         keypoints_are_detections=True),
+    MatcherEntry(
+        "colmap-sift", "COLMAP's own SIFT and matcher (pycolmap; the multi-view tables' reference row)",
+        _colmap_sift, ColmapSiftSettings, requires=("pycolmap",), keypoints_are_detections=True),
 )

@@ -138,8 +138,11 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
 def write_reports(run, per_pair: pd.DataFrame, summary: dict, pairs: list[Pair]) -> None:
     """per_pair.csv, summary.csv, the run's plot, and drawings of `run.viz` of `pairs` spread over
     them (drawing.matches.drawn_pairs); run: the pipeline's PairRun (benchmark, folder, cache, ev)."""
+    from e3cm_bench.storage.fingerprint import FINGERPRINT, of_config
+
     benchmark, folder = run.benchmark, run.folder
     write_csv(per_pair, folder.per_pair_path)
+    summary = {**summary, FINGERPRINT: of_config(run.config)}  # what the numbers were scored under
     write_csv(pd.DataFrame([summary]), folder.summary_path)
     costs = cost_table(pairs, run.cache)
     if "match_seconds" in costs.columns:  # matches made here; imported ones have no cost

@@ -30,6 +30,7 @@ from e3cm_bench.ground.files import write_atomically, write_csv
 from e3cm_bench.reporting.escape import markdown_text
 from e3cm_bench.drawing.formats import format_interval, format_number, text_width
 from e3cm_bench.reporting.tables import Run
+from e3cm_bench.storage.fingerprint import protocol_items, protocol_notes
 
 HOMOGRAPHY_MMA_DEFAULT = (3,)  # the MMA threshold the tables show
 POSE_ERROR_THRESHOLDS = metrics.POSE_AUC_THRESHOLDS  # degrees: err_pose < t, the AUC's thresholds
@@ -61,6 +62,7 @@ class Comparison:
     n_samples: int
     seed: int
     seeded: bool = False  # values of several reconstructions per pair (sfm's mapper seeds)
+    notes: tuple[str, ...] = ()  # where the runs were scored under different protocols (storage/fingerprint.py)
 
     def table(self) -> pd.DataFrame:
         """compare.csv: one row per metric; a, b: the statistic of A's and B's values over the n
@@ -217,6 +219,17 @@ def _pairs(run: Run) -> pd.DataFrame:
     return per_pair.set_index("pair")
 
 
+def _bags(a: pd.DataFrame, b: pd.DataFrame) -> np.ndarray | None:
+    """The pairs' bags (sfm: the pairs of one reconstruction resample together), where both runs
+    record the same ones; None otherwise."""
+    if "bag" not in a.columns or "bag" not in b.columns:
+        return None
+    bags_a, bags_b = (pd.to_numeric(t["bag"], errors="coerce").to_numpy(np.float64) for t in (a, b))
+    if not (np.isfinite(bags_a).all() and np.array_equal(bags_a, bags_b)):
+        return None
+    return bags_a
+
+
 def compare_runs(
     run_a: Run, run_b: Run, mma: Sequence[int] = HOMOGRAPHY_MMA_DEFAULT, alpha: float = 1.0 - stats.CONFIDENCE,
     n_samples: int = stats.BOOTSTRAP_SAMPLES, seed: int = stats.BOOTSTRAP_SEED,
@@ -232,6 +245,7 @@ def compare_runs(
         raise ValueError(f"compare: {run_a.dir} and {run_b.dir} have no pair in common")
     a, b = a.loc[common], b.loc[common]
     chosen = paired_metrics(run_a.benchmark, mma)
+    groups = _bags(a, b)
     results, seeded = [], False
     for metric in chosen:
         try:
@@ -240,13 +254,16 @@ def compare_runs(
             raise ValueError(f"compare: {metric.name} needs per_pair.csv column {missing} in both runs") from None
         seeded = seeded or np.ndim(values_a) == 2 or np.ndim(values_b) == 2
         results.append(stats.compare_paired(values_a, values_b, metric.name, higher_is_better=metric.higher_is_better,
-                                            statistic=metric.statistic, alpha=alpha, n_samples=n_samples, seed=seed))
+                                            statistic=metric.statistic, alpha=alpha,
+                                            resampling=stats.Resampling(n_samples, seed, groups)))
     label_a, label_b = run_a.label, run_b.label
     if label_a == label_b:  # two folders of one method: name them by folder instead
         named = (run_a.dir.name, run_b.dir.name)
         label_a, label_b = named if named[0] != named[1] else (str(run_a.dir), str(run_b.dir))
     return Comparison(label_a, label_b, run_a.benchmark.name, len(run_a.per_pair), len(run_b.per_pair),
-                      len(common), results, chosen, 1.0 - alpha, n_samples, seed, seeded)
+                      len(common), results, chosen, 1.0 - alpha, n_samples, seed, seeded,
+                      tuple(protocol_notes([(label_a, protocol_items(run_a.run_config)),
+                                            (label_b, protocol_items(run_b.run_config))])))
 
 
 def print_comparison(comparison: Comparison, console: Console | None = None) -> None:
@@ -274,6 +291,8 @@ def print_comparison(comparison: Comparison, console: Console | None = None) -> 
         table.add_row(*(escape(cell) for cell in row))
     console.print(table, width=width)
     console.print(comparison.explanation(), markup=False, highlight=False, width=width)
+    for note in comparison.notes:  # a verdict across protocols is no verdict on the matchers alone
+        console.print(f"note: {note}", markup=False, highlight=False, soft_wrap=True)  # one line, however long
 
 
 def to_markdown(comparison: Comparison) -> str:
@@ -287,7 +306,8 @@ def to_markdown(comparison: Comparison) -> str:
     rule = "| " + " | ".join("-" * (w - 1) + ":" if k in right else "-" * w for k, w in enumerate(widths)) + " |"
     # the heading holds the two labels: their characters stay text (no HTML, no link)
     return (f"{markdown_text(comparison.heading())}\n\n" + "\n".join([line(header), rule, *(line(r) for r in body)])
-            + f"\n\n{comparison.explanation()}\n")
+            + f"\n\n{comparison.explanation()}\n"
+            + "".join(f"\n- {markdown_text('note: ' + note)}\n" for note in comparison.notes))
 
 
 def write_comparison(comparison: Comparison, out: Path) -> tuple[Path, Path]:

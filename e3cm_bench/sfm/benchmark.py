@@ -57,7 +57,7 @@ class SfMBenchmark(Benchmark):
         return super().resolve_eval(protocol, seed, ransac_px, estimator, repeats)
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
-        return with_duplicates(["pair", "n_matches", "n_inliers", "registered0", "registered1", "model",
+        return with_duplicates(["pair", "bag", "n_matches", "n_inliers", "registered0", "registered1", "model",
                                 "err_R", "err_t", "err_pose"])
 
     def row_columns(self, ev: EvalSettings, rows: Sequence[Mapping]) -> list[str]:
@@ -111,10 +111,10 @@ class SfMBenchmark(Benchmark):
         return summarize
 
     def interval_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict] | None:
-        """Two levels: the bootstrap's pairs, and with each resample of pairs a resample of the
-        mapper's seeds (sfm_metrics.two_level_summary)."""
+        """Two levels: the bootstrap's pairs (bags, then their pairs, where there are several
+        bags), and with each resample of pairs a resample of the seeds (sfm_metrics.two_level_summary)."""
         errors, n_matches = sfm_metrics.seed_errors(rows)
-        return sfm_metrics.two_level_summary(errors, n_matches)
+        return sfm_metrics.two_level_summary(errors, n_matches, bags=sfm_metrics.bags_of(rows))
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
         distances = metrics.epipolar_distances(matches.keypoints0, matches.keypoints1, pair.K0, pair.K1, pair.T_0to1)

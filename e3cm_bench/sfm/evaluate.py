@@ -1,14 +1,22 @@
-"""A set's pairs scored under a protocol: one database per bag (a connected component of the
-pair graph, pair.meta["bag"]; one bag without the key), the mapper run once per seed on it, and
-each pair scored in its bag's reconstruction of each seed.
+"""A set's pairs scored under a protocol: per bag (a connected component of the pair graph,
+pair.meta["bag"]; one bag without the key) and per seed, one database verified with that seed
+and the mapper run on it with the same seed; each pair scored in its bag's reconstruction of
+each seed.
+
+Each seed verifies the pairs again (the estimator's RANSAC or COLMAP's, seeded evaluation.seed
++ K) before its mapper runs: a verification drawn once and shared by every seed would leave its
+draw out of the interval, which resamples seeds (issue 69: one shared draw at --seed 0 and
+another at --seed 1 ranked direct and sift in opposite orders, each outside the other's interval).
 
 Products under WHERE (the run folder's sfm/): database.db, mapper.log, models/ (the first
-seed), models-sK/ (seed evaluation.seed + K); with several bags the same under bag-B/; and
-per_seed.csv, the summary of each seed (the pairs' AUC and mAA, the models' own numbers).
+seed), seed-K/ (the same for seed evaluation.seed + K); with several bags the same under
+bag-B/; and per_seed.csv, the summary of each seed (the pairs' AUC and mAA, the models' own
+numbers).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,6 +48,16 @@ def _images(pairs: Sequence) -> list[str]:
     return images
 
 
+def image_root(pairs: Sequence) -> Path | None:
+    """The folder the views' names are relative to (pair.image0 = ROOT/view0), which the mapper
+    reads the images from (their colours); None where the names are not such paths."""
+    for pair in pairs:
+        path, name = Path(pair.image0).as_posix(), str(pair.meta["view0"])
+        if path.endswith("/" + name):
+            return Path(path[:-len(name) - 1])
+    return None
+
+
 def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protocol) -> tuple[list[dict], dict]:
     """Per-pair rows (the first seed's columns, then each seed's) and the set's numbers (the
     mean over seeds of each seed's, the tracks' numbers, the spread of the metrics over seeds,
@@ -58,19 +76,22 @@ def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protoco
     for bag, index in grouped.items():
         folder = where if len(grouped) == 1 else where / f"bag-{bag}"
         chosen = [pairs[i] for i in index]
-        verified, numbers = write_database(chosen, [matches[i] for i in index], ev, folder, protocol)
-        tracks.append((len(index), numbers))
         images = _images(chosen)
         for s in range(k):
-            found = run_mapper(folder, images, ev.seed + s, protocol.mapper, MODELS if s == 0 else f"{MODELS}-s{s}")
+            seeded = dataclasses.replace(ev, seed=ev.seed + s)
+            workdir = folder if s == 0 else folder / f"seed-{s}"
+            verified, numbers = write_database(chosen, [matches[i] for i in index], seeded, workdir, protocol)
+            if s == 0:  # the tracks are the merge's: the same for every seed
+                tracks.append((len(index), numbers))
+            found = run_mapper(workdir, images, seeded.seed, protocol.mapper, MODELS, root=image_root(chosen))
             per_seed[s].append(found)
             for i, pair, check in zip(index, chosen, verified):
                 placed = found.placed(pair.meta["view0"], pair.meta["view1"], protocol.score_model == "largest")
                 errors = sfm_metrics.pair_errors(pair.T_0to1, *placed)
                 rows[i].update({f"{name}_s{s}": errors[name] for name in sfm_metrics.SEED_COLUMNS})
                 if s == 0:
-                    rows[i].update({"pair": pair.name, "n_matches": len(matches[i]), "n_inliers": check["n_inliers"],
-                                    "registered0": int(placed[0] is not None),
+                    rows[i].update({"pair": pair.name, "bag": int(bag or 0), "n_matches": len(matches[i]),
+                                    "n_inliers": check["n_inliers"], "registered0": int(placed[0] is not None),
                                     "registered1": int(placed[1] is not None), **errors})
     seeds = _per_seed(rows, per_seed, ev.seed)
     write_per_seed(seeds, where / "per_seed.csv")

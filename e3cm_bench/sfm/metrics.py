@@ -119,17 +119,33 @@ def summarize_seeds(errors: np.ndarray, n_matches: np.ndarray, seeds: Sequence[i
     return summary
 
 
-def two_level_summary(errors: np.ndarray, n_matches: np.ndarray, seed: int = 0):
+def bags_of(rows: Sequence) -> np.ndarray | None:
+    """Each row's bag (None: rows without the column, written before bags were recorded)."""
+    rows = list(rows)
+    if not rows or "bag" not in rows[0]:
+        return None
+    bags = np.asarray([float(r["bag"]) for r in rows], np.float64)
+    return bags.astype(np.int64) if np.isfinite(bags).all() else None
+
+
+def two_level_summary(errors: np.ndarray, n_matches: np.ndarray, seed: int = 0, bags: np.ndarray | None = None):
     """summarize(idx) for the bootstrap over pairs (idx) that, with each resample of pairs,
     resamples the mapper's seeds too (with replacement, from its own generator, so that the
     sequence of resamples is a pure function of `seed`): the interval then holds both the pairs'
-    and the mapper's randomness. With one seed it is the pairs' bootstrap."""
+    and the seeds' randomness (each seed is a verification draw and a mapper run). With several
+    bags the pairs are drawn in two stages instead, the bags and then each drawn bag's pairs
+    (stats.bootstrap.nested_resample, from the same generator; `idx` is then unused): a bag's
+    pairs share one reconstruction. With one seed and one bag it is the pairs' bootstrap."""
+    from e3cm_bench.stats.bootstrap import groups_of, nested_resample
+
     errors = np.asarray(errors, np.float64)
     k = errors.shape[1]
     rng = np.random.default_rng(seed)
+    groups = groups_of(bags)
 
     def summarize(idx) -> dict:
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        idx = (nested_resample(groups, rng) if groups is not None
+               else np.asarray(idx, dtype=np.int64).reshape(-1))
         return summarize_seeds(errors[idx], n_matches[idx], rng.integers(0, k, k) if k > 1 else None)
 
     return summarize

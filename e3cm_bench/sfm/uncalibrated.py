@@ -41,7 +41,7 @@ MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0}}
 
 def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
     """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
-    from e3cm_bench.interchange.colmap import pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_module
 
     try:
         version = pycolmap_module().__version__
@@ -57,7 +57,8 @@ def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
 
 
 def mapper_options(seed: int):
-    from e3cm_bench.interchange.colmap import mapper_options as checked_options, pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import mapper_options as checked_options
 
     options = checked_options(pycolmap_module(), calibrated=False)
     for key, value in MAPPER_OPTIONS.items():
@@ -76,7 +77,7 @@ def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_came
     the focal length from EXIF where the file has it, else 1.2 x the longer side; the principal
     point at the centre); with single_camera, images whose cameras come out the same (size,
     model, parameters, whether the focal is a prior) share one object, so one camera."""
-    from e3cm_bench.interchange.colmap import pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     options = pycolmap.ImageReaderOptions()
@@ -96,7 +97,8 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     """The database of `pairs` (meta view0/view1: the images' names under `root`) and their
     `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
     returns the reconstruction and each pair's number of verified matches."""
-    from e3cm_bench.interchange.colmap import pycolmap_module, verify_pairs, write_colmap
+    from e3cm_bench.ground.pycolmap import pycolmap_module
+    from e3cm_bench.interchange.colmap import verify_pairs, write_colmap
     from e3cm_bench.interchange.base import ExportItem
 
     pycolmap = pycolmap_module()

@@ -109,7 +109,7 @@ def views_from_colmap(model: Path, root: Path, anywhere: bool = False) -> list[V
     """The views of a COLMAP sparse model (cameras + images, text or binary), in name order;
     every image must be under ROOT and every camera a pinhole one without distortion (the
     matches are made on the stored images, which K must describe)."""
-    from e3cm_bench.interchange.colmap import pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     model = Path(model)

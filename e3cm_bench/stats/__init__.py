@@ -24,7 +24,7 @@ from e3cm_bench.stats.bootstrap import (
 # paired.py needs scipy (2-3 s to import on a small machine): its names load on first use
 # (PEP 562), so that reading a constant of this package (the command line's help reads
 # noise.CHECK_ALPHA) does not import scipy.
-_PAIRED = ("PairedResult", "compare_paired", "verdict_line")
+_PAIRED = ("PairedResult", "Resampling", "compare_paired", "verdict_line")
 
 
 def __getattr__(name: str):
@@ -36,7 +36,7 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "BOOTSTRAP_SAMPLES", "BOOTSTRAP_SEED", "CONFIDENCE", "PairedResult", "bootstrap_interval",
+    "BOOTSTRAP_SAMPLES", "BOOTSTRAP_SEED", "CONFIDENCE", "PairedResult", "Resampling", "bootstrap_interval",
     "bootstrap_mean_interval", "compare_paired", "count_bounds", "count_tail", "poisson_binomial_cdf",
     "poisson_binomial_pmf", "resample_aggregate", "resample_indices", "verdict_line",
 ]

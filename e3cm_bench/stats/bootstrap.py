@@ -49,6 +49,27 @@ def resample_indices(n: int, n_samples: int, seed: int) -> np.ndarray:
     return np.concatenate(list(_index_blocks(int(n), int(n_samples), seed)), axis=0)
 
 
+def groups_of(labels) -> list[np.ndarray] | None:
+    """The row indices of each distinct label (a bag of a multi-view set), in first-seen order;
+    None for no labels or a single one (then rows resample as independent units)."""
+    if labels is None:
+        return None
+    labels = np.asarray(labels).reshape(-1)
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    found = [np.flatnonzero(inverse == k) for k in order]
+    return found if len(found) > 1 else None
+
+
+def nested_resample(groups: list[np.ndarray], rng: np.random.Generator) -> np.ndarray:
+    """One two-stage bootstrap resample of rows grouped in `groups`: the groups drawn with
+    replacement, then each drawn group's rows with replacement (rows of one group, the pairs of
+    one reconstruction, are not independent: resampling only rows would call their shared luck
+    signal)."""
+    drawn = rng.integers(0, len(groups), len(groups))
+    return np.concatenate([groups[g][rng.integers(0, len(groups[g]), len(groups[g]))] for g in drawn])
+
+
 def _order_statistic_percentile(sorted_x: np.ndarray, q: float) -> float:
     """numpy's 'linear' percentile of sorted values that may hold +-inf.
 

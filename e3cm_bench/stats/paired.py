@@ -16,6 +16,8 @@ metric, so that the numbers shown beside each other cannot contradict each other
   array each): the statistic is over all of a method's values, and each bootstrap resample
   draws the pairs (A and B together) and, for each method on its own, its seeds (with
   replacement): seeds are not paired, the seed k of A has nothing to do with the seed k of B;
+- pairs in groups (sfm's bags: the pairs of one reconstruction): each resample draws the groups,
+  then each drawn group's pairs (stats.bootstrap.nested_resample), A and B together;
 - p is the same bootstrap's two-sided p: the smallest 1 - confidence at which that interval
   excludes 0, so p < alpha exactly when the verdict names a winner.
 
@@ -31,12 +33,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from e3cm_bench.stats.bootstrap import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, percentile_interval, resample_indices
+from e3cm_bench.stats.bootstrap import (BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, groups_of, nested_resample,
+                                        percentile_interval, resample_indices)
 
 STATISTICS = ("mean", "median")
 NO_DIFFERENCE = "no difference detectable"
 # The resampled pair indices are built in blocks of this many resamples (memory: block x n ints).
 _BLOCK = 256
+
+
+@dataclass(frozen=True)
+class Resampling:
+    """How compare_paired's bootstrap draws: `n_samples` resamples from `seed`; `groups`, each
+    pair's group label (sfm's bag: a group's pairs resample together), or None."""
+
+    n_samples: int = BOOTSTRAP_SAMPLES
+    seed: int = BOOTSTRAP_SEED
+    groups: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -137,16 +150,19 @@ def bootstrap_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_sample
     return out
 
 
-def _two_level_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_samples: int, seed: int) -> np.ndarray:
-    """bootstrap_differences for pairs x seeds arrays: the pairs resampled together, each
-    method's seeds resampled on their own (a generator of seed + 1: the pairs' draws stay those
-    of one level)."""
-    idx = resample_indices(a.shape[0], n_samples, seed)
+def _two_level_differences(a: np.ndarray, b: np.ndarray, statistic: str, n_samples: int, seed: int,
+                           groups: list[np.ndarray] | None = None) -> np.ndarray:
+    """bootstrap_differences for pairs x seeds arrays: the pairs resampled together (in two
+    stages where they come in groups), each method's seeds resampled on their own (a generator
+    of seed + 1: the pairs' draws stay those of one level)."""
+    idx = resample_indices(a.shape[0], n_samples, seed) if groups is None else None
     rng = np.random.default_rng(seed + 1)
+    pick = np.random.default_rng(seed + 2)
     out = np.empty(int(n_samples))
     for s in range(int(n_samples)):
+        rows = idx[s] if groups is None else nested_resample(groups, pick)
         seeds_a, seeds_b = rng.integers(0, a.shape[1], a.shape[1]), rng.integers(0, b.shape[1], b.shape[1])
-        out[s] = _difference(_statistic(a[idx[s]][:, seeds_a], statistic), _statistic(b[idx[s]][:, seeds_b], statistic))
+        out[s] = _difference(_statistic(a[rows][:, seeds_a], statistic), _statistic(b[rows][:, seeds_b], statistic))
     return out
 
 
@@ -157,13 +173,15 @@ def compare_paired(
     higher_is_better: bool = True,
     statistic: str = "mean",
     alpha: float = 0.05,
-    n_samples: int = BOOTSTRAP_SAMPLES,
-    seed: int = BOOTSTRAP_SEED,
+    resampling: Resampling | None = None,
 ) -> PairedResult:
     """Compare per-pair values a (method A) and b (method B) of the same pairs, in the same order
     (the rule of this module's docstring). Pairs where either value is NaN are dropped; +inf is a
     failure, the worst value of a lower-is-better metric, and only a median may hold one
-    (ValueError for a mean over infinite values)."""
+    (ValueError for a mean over infinite values). resampling: the bootstrap's samples, seed and
+    the pairs' groups (default Resampling())."""
+    resampling = resampling or Resampling()
+    n_samples, seed, groups = resampling.n_samples, resampling.seed, resampling.groups
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie strictly between 0 and 1, got {alpha!r}")
     if statistic not in STATISTICS:
@@ -175,6 +193,9 @@ def compare_paired(
         raise ValueError(f"a and b must hold the same pairs: {a.shape[0]} and {b.shape[0]} values")
     keep = ~(np.isnan(a).any(axis=1) | np.isnan(b).any(axis=1)) if seeded else ~(np.isnan(a) | np.isnan(b))
     a, b = a[keep], b[keep]
+    grouped = groups_of(None if groups is None else np.asarray(groups).reshape(-1)[keep])
+    if grouped is not None and not seeded:  # one column each: the same rule as one seed
+        a, b, seeded = a.reshape(-1, 1), b.reshape(-1, 1), True
     n = int(a.shape[0])
     if statistic == "mean" and not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise ValueError(f"{metric}: infinite values have no mean; compare them by their median")
@@ -182,7 +203,7 @@ def compare_paired(
         return PairedResult(metric, statistic, 0, math.nan, math.nan, math.nan, math.nan, math.nan, 1.0, NO_DIFFERENCE)
     stat_a, stat_b = float(_statistic(a, statistic)), float(_statistic(b, statistic))
     diff = float(_difference(stat_a, stat_b))
-    samples = (_two_level_differences(a, b, statistic, n_samples, seed) if seeded
+    samples = (_two_level_differences(a, b, statistic, n_samples, seed, grouped) if seeded
                else bootstrap_differences(a, b, statistic, n_samples, seed))
     lo, hi = percentile_interval(samples, 1.0 - alpha)
     if lo > 0 or hi < 0:

@@ -12,7 +12,8 @@ default protocol's AUC@10 under --seed 0 and --seed 1).
 RUNS is only read: each method's config.yaml and matches.h5 are copied to SCRATCH/SET/CELL/METHOD
 and evaluated there (--eval-only). seeds evaluates the default protocol into SCRATCH/default/SET/METHOD
 (then `sfm_results.py side --out SCRATCH/default` remakes results/sfm/ from them) and with
---seed 1 into SCRATCH/default-seed1/. grid writes TO/protocol_grid.csv (one row per set, method and
+--seed 1 into SCRATCH/default-seed1/, then compare's err_pose verdict between every two --check
+methods at each seed (TO/seed_verdicts.csv). grid writes TO/protocol_grid.csv (one row per set, method and
 protocol: the mean over seeds, its interval over pairs and seeds, the seeds' spread, the models'
 and the tracks' numbers); seeds writes TO/seed_stability.csv.
 """
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
-from itertools import product
+from itertools import combinations, product
 from pathlib import Path
 
 import pandas as pd
@@ -30,6 +31,8 @@ from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.apps.demo import METHODS
 from e3cm_bench.pipeline.runner import run_benchmark
+from e3cm_bench.reporting.compare import compare_runs
+from e3cm_bench.reporting.runs import load_run
 from e3cm_bench.storage import RunFolder
 
 MAPPERS = ("incremental", "global")
@@ -48,14 +51,15 @@ def evaluate_copy(source: Path, target: Path, protocol: dict, seed: int = 0) -> 
     if into.summary_path.is_file():
         done = into.run_config()
         wanted = get_benchmark("sfm").load_dataset(
-            done.dataset["root"], **{k: v for k, v in protocol.items()},
-            **{k: v for k, v in done.dataset_load["options"].items() if k in ("scene_info", "window")})
+            done.dataset["root"], **{**{k: v for k, v in done.dataset_load["options"].items()
+                                        if k in ("scene_info", "window")}, **protocol})
         if done.dataset.get("protocol") == wanted.protocol.record() and done.evaluation["seed"] == seed:
             return pd.read_csv(into.summary_path).iloc[0].to_dict()
     if not into.matches_path.is_file():
         target.mkdir(parents=True, exist_ok=True)
-        for name in ("config_path", "matches_path"):
-            shutil.copyfile(getattr(made, name), getattr(into, name))
+        shutil.copyfile(made.config_path, into.config_path)
+        for block in made.matches_path.parent.glob(made.matches_path.stem + "*.h5"):  # every block of the cache
+            shutil.copyfile(block, into.matches_path.parent / block.name)
     config = made.run_config()
     load = config.dataset_load
     options = {k: v for k, v in load["options"].items() if k not in ("merge_px",)}
@@ -85,12 +89,13 @@ def done_methods(runs: Path, set_name: str, methods: list[str]) -> list[str]:
     return found
 
 
-def grid(runs: Path, scratch: Path, to: Path, sets: list[str], methods: list[str], seeds: int) -> None:
+def grid(runs: Path, scratch: Path, to: Path, sets: list[str], methods: list[str], seeds: int,
+         merges: tuple[str, ...] = tuple(MERGES)) -> None:
     rows = []
     out = to / "protocol_grid.csv"
     for set_name in sets:
         for method in done_methods(runs, set_name, methods):
-            for mapper, merge, verification in product(MAPPERS, MERGES, VERIFICATIONS):
+            for mapper, merge, verification in product(MAPPERS, merges, VERIFICATIONS):
                 cell = {"mapper": mapper, "merge": merge, "verification": verification}
                 protocol = {"mapper": mapper, "verification": verification, "mapper_seeds": str(seeds), **MERGES[merge]}
                 target = scratch / set_name / f"{mapper}-{merge}-{verification}" / method
@@ -119,11 +124,29 @@ def seed_check(runs: Path, scratch: Path, to: Path, sets: list[str], methods: li
                     row[f"{key}_seed{seed}"] = summary[key]
             if "auc@10_seed1" in row:
                 row["auc@10_moved"] = abs(row["auc@10_seed1"] - row["auc@10_seed0"])
+                # issue 69's bar: each seed's figure inside the other's interval
+                row["each_inside_other"] = bool(row["auc@10_lo_seed0"] <= row["auc@10_seed1"] <= row["auc@10_hi_seed0"]
+                                                and row["auc@10_lo_seed1"] <= row["auc@10_seed0"] <= row["auc@10_hi_seed1"])
             rows.append(row)
             print(row, flush=True)
     to.mkdir(parents=True, exist_ok=True)
     pd.DataFrame(rows).to_csv(to / "seed_stability.csv", index=False, float_format="%.6g")
     print(f"-> {to / 'seed_stability.csv'}")
+    verdicts = []
+    for set_name in sets:
+        checked = [m for m in done_methods(runs, set_name, methods) if m in check]
+        for a, b in combinations(checked, 2):
+            row = {"set": set_name, "a": a, "b": b}
+            for seed, folder in ((0, "default"), (1, "default-seed1")):
+                found = compare_runs(load_run(scratch / folder / set_name / a), load_run(scratch / folder / set_name / b))
+                pose = next(r for r in found.results if r.metric == "err_pose")
+                row.update({f"verdict_seed{seed}": pose.verdict, f"d_seed{seed}": pose.diff,
+                            f"d_lo_seed{seed}": pose.lo, f"d_hi_seed{seed}": pose.hi})
+            row["same_verdict"] = row["verdict_seed0"] == row["verdict_seed1"]
+            verdicts.append(row)
+            print(row, flush=True)
+    pd.DataFrame(verdicts).to_csv(to / "seed_verdicts.csv", index=False, float_format="%.6g")
+    print(f"-> {to / 'seed_verdicts.csv'} (compare's err_pose verdict, B - A, at each evaluation seed)")
 
 
 def wide(to: Path, parts: list[Path]) -> None:
@@ -151,13 +174,14 @@ def main() -> None:
     parser.add_argument("--sets", nargs="*", default=["kitti", "synth"])
     parser.add_argument("--methods", nargs="*", default=list(METHODS))
     parser.add_argument("--seeds", type=int, default=3, help="mapper seeds per protocol (default 3)")
+    parser.add_argument("--merges", nargs="*", default=list(MERGES), help="grid: the merge cells (default all three)")
     parser.add_argument("--check", nargs="*", default=["sift", "e3cm-plus"],
                         help="seeds: the methods evaluated with --seed 1 too (default sift e3cm-plus)")
     args = parser.parse_args()
     if args.step == "table":
         wide(args.to, args.parts)
     elif args.step == "grid":
-        grid(args.runs, args.scratch, args.to, args.sets, args.methods, args.seeds)
+        grid(args.runs, args.scratch, args.to, args.sets, args.methods, args.seeds, tuple(args.merges))
     else:
         seed_check(args.runs, args.scratch, args.to, args.sets, args.methods, args.check)
 

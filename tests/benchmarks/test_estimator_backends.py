@@ -6,10 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.geometry import estimators
+from e3cm_bench.geometry import estimators, metrics
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 from e3cm_bench.datasets.base import Pair
@@ -28,10 +29,10 @@ def plane_matches(n: int = 200, outliers: int = 40, seed: int = 3):
 
 
 def test_the_loader_gives_each_backend_once_and_refuses_an_unknown_one():
-    assert estimators.ESTIMATORS == ("opencv", "poselib")
+    assert estimators.ESTIMATORS == ("opencv", "poselib", "pycolmap")
     backend = estimators.load_estimator("opencv")
     assert isinstance(backend, estimators.OpenCVEstimator) and estimators.load_estimator("opencv") is backend
-    with pytest.raises(ValueError, match="unknown estimator 'magic'; choose one of opencv, poselib"):
+    with pytest.raises(ValueError, match="unknown estimator 'magic'; choose one of opencv, poselib, pycolmap"):
         estimators.load_estimator("magic")
 
 
@@ -102,3 +103,48 @@ def test_the_pose_geometry_is_the_pose_benchmarks_estimate():
     found = PoseBenchmark.two_view_geometry(pair, matches, EvalSettings())
     assert np.allclose(found["R"], R, atol=1e-4) and found["inliers"].all()
     assert np.allclose(found["t"] / np.linalg.norm(found["t"]), t / np.linalg.norm(t), atol=1e-3)
+
+
+def _two_views(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([-2, -2, 4], [2, 2, 8], (300, 3))
+    K = np.array([[700.0, 0, 320], [0, 700.0, 240], [0, 0, 1]])
+    R = cv2.Rodrigues(np.array([0.02, 0.1, -0.03]))[0]
+    t = np.array([1.0, 0.1, 0.05])
+
+    def project(X, R, t):
+        x = (K @ (X @ R.T + t).T).T
+        return x[:, :2] / x[:, 2:]
+
+    x0, x1 = project(points, np.eye(3), np.zeros(3)), project(points, R, t)
+    x1[:60] += rng.uniform(-50, 50, (60, 2))  # outliers
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return x0, x1, K, T
+
+
+@pytest.mark.parametrize("estimator, method", [("opencv", "ransac"), ("opencv", "magsac"), ("opencv", "accurate"),
+                                               ("poselib", "ransac"), ("pycolmap", "ransac")])
+def test_every_pose_estimator_of_the_sweep_recovers_a_pose(estimator, method):
+    """The sweep's estimators (issue 69): OpenCV's three robust methods, PoseLib and pycolmap."""
+    pytest.importorskip("poselib" if estimator == "poselib" else "cv2")
+    if estimator == "pycolmap":
+        pytest.importorskip("pycolmap")
+    from e3cm_bench.geometry.metrics import pose_error
+
+    x0, x1, K, T = _two_views()
+    found = estimators.relative_pose(x0, x1, K, K, estimators.PoseRansac(1.0, 0.99999, estimator, 0, method),
+                                     sizes=((640, 480), (640, 480)))
+    err_R, err_t = pose_error(T, found[0], found[1])
+    assert err_R < 0.2 and err_t < 0.5 and found[2][60:].mean() > 0.95 and found[2][:60].mean() < 0.1
+
+
+def test_pycolmap_estimates_h_and_f():
+    pytest.importorskip("pycolmap")
+    H, x0, x1 = plane_matches()
+    backend = estimators.load_estimator("pycolmap")
+    assert metrics.homography_corner_error(backend.homography(x0, x1, 3.0, 2000, 0.999, 0), H, 640, 480) < 1e-2
+    x0, x1, _, _ = _two_views()
+    F = backend.fundamental(x0, x1, 1.0, 2000, 0.999, 0)
+    residual = np.abs(np.sum(np.column_stack([x1, np.ones(len(x1))]) @ F * np.column_stack([x0, np.ones(len(x0))]), axis=1))
+    assert np.median(residual[60:]) < np.median(residual[:60])

@@ -65,7 +65,7 @@ def test_the_estimator_is_an_evaluation_setting_recorded_and_changed_by_eval_onl
     assert yaml.safe_load((out / "config.yaml").read_text())["evaluation"]["estimator"] == "opencv"
     assert (out / "per_pair.csv").read_text() != poselib_rows  # other estimates, same matches
     line = one_line_error(invoke(*args, "--eval-only", "--pose-estimator", "magic"))
-    assert "unknown estimator 'magic'; choose one of opencv, poselib" in line
+    assert "unknown estimator 'magic'; choose one of opencv, poselib, pycolmap" in line
 
 
 def test_the_gluefactory_protocol_sets_poselib_at_its_threshold():

@@ -67,7 +67,7 @@ def test_mapper_registers_kitti_frames_from_the_benchmark_database(sift_run):
     for column in ("auc@10_lo", "auc@10_hi", "maa_lo", "maa_hi"):
         assert np.isfinite(summary[column])
     assert summary["auc@10_lo"] <= summary["auc@10"] <= summary["auc@10_hi"]
-    assert list(per_pair.columns) == ["pair", "n_matches", "n_duplicates", "n_inliers", "registered0", "registered1",
+    assert list(per_pair.columns) == ["pair", "bag", "n_matches", "n_duplicates", "n_inliers", "registered0", "registered1",
                                       "model", "err_R", "err_t", "err_pose",
                                       *(f"{c}_s{s}" for s in range(3) for c in ("model", "err_R", "err_t", "err_pose"))]
     # the first seed's columns are the plain ones; the headline is the mean over the 3 seeds

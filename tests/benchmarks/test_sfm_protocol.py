@@ -143,9 +143,16 @@ def test_mapper_and_seeds_recorded_and_used(incremental_run):
     assert summary["auc@10_lo"] <= summary["auc@10"] <= summary["auc@10_hi"]
     per_pair = pd.read_csv(incremental_run / "per_pair.csv")
     assert {"err_pose_s0", "err_pose_s1", "model_s1"} <= set(per_pair.columns)
-    assert (incremental_run / "sfm" / "models").is_dir() and (incremental_run / "sfm" / "models-s1").is_dir()
+    assert (incremental_run / "sfm" / "models").is_dir() and (incremental_run / "sfm" / "seed-1" / "models").is_dir()
+    assert per_pair["bag"].eq(0).all()  # one bag: the graph is connected
+    # each seed verified the pairs with its own draw (evaluate.py): seed 1's database differs
+    def inliers(database):
+        with pycolmap.Database.open(str(database)) as db:
+            return sorted(len(g.inlier_matches) for g in db.read_two_view_geometries()[1])
+    assert inliers(incremental_run / "sfm" / "database.db") != inliers(incremental_run / "sfm" / "seed-1" / "database.db")
     log = (incremental_run / "sfm" / "mapper.log").read_text()
     assert "Registering image" in log or "registered" in log.lower(), log[:500]
+    assert "Could not read image" not in log  # the mapper is given the images' folder (evaluate.image_root)
 
 
 def test_eval_only_with_another_protocol_on_the_same_matches(room, incremental_run, tmp_path):

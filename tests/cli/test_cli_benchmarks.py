@@ -48,11 +48,14 @@ def read_csv(path: Path) -> pd.DataFrame:
 
 def point_columns(summary: pd.DataFrame) -> list[str]:
     """summary.csv's metric columns, without the intervals beside them (tests/reporting/test_intervals.py)
-    and without the run's cost (seconds_per_pair, peak_memory_mb: checked to be there, last)."""
+    and without the run's cost (seconds_per_pair, peak_memory_mb: checked to be there, last but the
+    protocol's fingerprint, storage/fingerprint.py)."""
     from e3cm_bench.benchmarks.intervals import is_interval_key
     from e3cm_bench.pipeline.evaluate import COST_KEYS
 
     points = [c for c in summary.columns if not is_interval_key(c)]
+    assert points[-1] == "fingerprint", points
+    points = points[:-1]
     cost = [c for c in points if c in COST_KEYS]
     assert cost[:2] == ["seconds_per_pair", "peak_memory_mb"] and points[-len(cost):] == cost, points
     assert (summary["seconds_per_pair"] > 0).all() and (summary["peak_memory_mb"] > 0).all()

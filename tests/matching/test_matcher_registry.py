@@ -24,7 +24,7 @@ from helpers import flat, invoke, one_line_error
 REPO = Path(__file__).resolve().parents[2]
 PACKAGE = REPO / "e3cm_bench"
 PLUGIN_SRC = REPO / "examples" / "plugin" / "src"
-BUILTINS = ("e3cm", "e3cm-ransac", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift")
+BUILTINS = ("e3cm", "e3cm-ransac", "e3cm-release", "e3cm-plus", "direct", "dfm", "sift", "colmap-sift")
 PEERS = ("loftr", "superpoint+superglue", "superpoint+lightglue", "disk+lightglue", "aliked+lightglue")
 
 

@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from e3cm_bench.gate import check
+from e3cm_bench.storage.environment import parse_environment
 from e3cm_bench.ground.files import run_environment
 from helpers import flat, invoke, one_line_error
 
@@ -103,9 +104,9 @@ def test_update_writes_the_environment_and_check_reads_it_back(runs, tmp_path):
     root, baseline = runs
     table = pd.read_csv(baseline)
     assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment",
-                                   "identity"]
+                                   "identity", "protocol_items"]
     assert list(table["environment"]) == [ENVIRONMENT_STRING] * 2
-    assert check.parse_environment(ENVIRONMENT_STRING) == {
+    assert parse_environment(ENVIRONMENT_STRING) == {
         "python": "3.12.3", "torch": "2.14.1+cu130", "torchvision": "0.29.1", "numpy": "2.4.6",
         "opencv-python-headless": "5.0.0.93", "cpu": "AVX512", "threads": "2"}
     # The same environment: nothing to say, and the column is no metric (8 metrics, not 10).
@@ -151,7 +152,7 @@ def test_environments_missing_on_either_side(runs, tmp_path):
     table = pd.read_csv(baseline)
     table["environment"] = ["", "torch 2.14; cpu=AVX512; nonsense"]
     table.to_csv(baseline, index=False)
-    assert check.parse_environment(float("nan")) == {} and check.parse_environment("x; cpu=AVX2;=1") == {"cpu": "AVX2"}
+    assert parse_environment(float("nan")) == {} and parse_environment("x; cpu=AVX2;=1") == {"cpu": "AVX2"}
     result = invoke("check", root, "--baseline", baseline)
     assert result.exit_code == 0 and NOTE not in result.output
 

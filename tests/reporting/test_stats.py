@@ -13,6 +13,7 @@ from e3cm_bench.stats import (
     BOOTSTRAP_SEED,
     CONFIDENCE,
     PairedResult,
+    Resampling,
     bootstrap_interval,
     bootstrap_mean_interval,
     compare_paired,
@@ -417,7 +418,7 @@ def test_bootstrap_p_is_the_interval_inverted():
 def test_compare_paired_deterministic_and_checked():
     rng = np.random.default_rng(25)
     a, b = rng.normal(size=50), rng.normal(size=50)
-    assert compare_paired(a, b, "m", seed=3) == compare_paired(a, b, "m", seed=3)
+    assert compare_paired(a, b, "m", resampling=Resampling(seed=3)) == compare_paired(a, b, "m", resampling=Resampling(seed=3))
     with pytest.raises(ValueError):
         compare_paired(a, b[:-1], "m")
     with pytest.raises(ValueError):
