@@ -299,7 +299,7 @@ def sweep(runs: Sequence[SweepRun], cells: Sequence[Cell], seeds: int, out: Path
         for a, b in combinations(list(found), 2):
             before = values[default][b] - values[default][a]
             now = values[cell][b] - values[cell][a]
-            if np.sign(before) == np.sign(now) or cell == default:
+            if before * now >= 0 or cell == default:  # a tie on either side is no flip
                 continue
             flipped += 1
             lo, hi = difference_interval(found[a][report_mask], found[b][report_mask], threshold, n_samples,
