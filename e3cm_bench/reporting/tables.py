@@ -253,10 +253,11 @@ def choose_metrics(table: pd.DataFrame, benchmark: Benchmark, metrics: Sequence[
 
 
 def without_empty_columns(table: pd.DataFrame) -> pd.DataFrame:
-    """The table without the columns no row fills (vs_paper and d_* where no run has a paper row):
-    a KITTI table had 25 columns, 9 of them empty."""
-    kept = ["method", "source"]
-    empty = [c for c in table.columns if c not in kept and table[c].map(lambda v: v is None or v == "" or v != v).all()]
+    """The table without the comparison columns no row fills (vs_paper and d_* where no run has a
+    paper row: a KITTI table had 25 columns, 9 of them so). The other columns stay, empty or not:
+    readers index them (outside_ci empty says no paper number is outside an interval)."""
+    comparison = [c for c in table.columns if c == "vs_paper" or c.startswith("d_")]
+    empty = [c for c in comparison if table[c].map(lambda v: v is None or v == "" or v != v).all()]
     return table.drop(columns=empty)
 
 
