@@ -128,7 +128,7 @@ def checked(demo_out, tmp_path) -> tuple[Path, Path]:
     assert result.exit_code == 0 and "2 runs written" in flat(result.output)
     table = pd.read_csv(baseline)
     assert list(table.columns) == ["benchmark", "method", "h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "environment",
-                                   "identity"]
+                                   "identity", "protocol_items"]
     assert len(pd.read_csv(tmp_path / "baseline.pairs.csv")) == 2 * pd.read_csv(runs / "sift" / "per_pair.csv").shape[0]
     assert table["environment"].str.contains(f"; torch={torch.__version__}; ", regex=False).all()
     assert table["environment"].str.contains(f"; cpu={torch.backends.cpu.get_cpu_capability()}; ", regex=False).all()
