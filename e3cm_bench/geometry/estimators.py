@@ -151,23 +151,24 @@ class PycolmapEstimator:
         return (np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64).ravel(),
                 np.asarray(found["inlier_mask"], bool))
 
+    def _matrix(self, estimate: str, key: str, least: int, x0, x1, options):
+        """pycolmap's `estimate` of a 3x3 matrix (`key` of its answer) on pixel correspondences with
+        RANSACOptions `options`, or None (fewer than `least` of them, or no estimate)."""
+        if len(x0) < least:
+            return None
+        found = getattr(self.pycolmap, estimate)(np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64),
+                                                 options)
+        return None if found is None else np.asarray(found[key], np.float64)
+
     def homography(self, x0, x1, threshold_px: float, max_iters: int, confidence: float, seed: int = 0,
                    method: str = "ransac"):
-        if len(x0) < 4:
-            return None
-        found = self.pycolmap.estimate_homography_matrix(np.ascontiguousarray(x0, np.float64),
-                                                         np.ascontiguousarray(x1, np.float64),
-                                                         self._options(threshold_px, confidence, seed, max_iters))
-        return None if found is None else np.asarray(found["H"], np.float64)
+        return self._matrix("estimate_homography_matrix", "H", 4, x0, x1,
+                            self._options(threshold_px, confidence, seed, max_iters))
 
     def fundamental(self, x0, x1, threshold_px: float, max_iters: int, confidence: float, seed: int = 0,
                     method: str = "ransac"):
-        if len(x0) < 7:
-            return None
-        found = self.pycolmap.estimate_fundamental_matrix(np.ascontiguousarray(x0, np.float64),
-                                                          np.ascontiguousarray(x1, np.float64),
-                                                          self._options(threshold_px, confidence, seed, max_iters))
-        return None if found is None else np.asarray(found["F"], np.float64)
+        return self._matrix("estimate_fundamental_matrix", "F", 7, x0, x1,
+                            self._options(threshold_px, confidence, seed, max_iters))
 
 
 def _camera(K: np.ndarray, size: tuple[int, int] | None) -> dict:

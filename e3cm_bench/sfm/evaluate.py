@@ -76,14 +76,14 @@ def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protoco
     for bag, index in grouped.items():
         folder = where if len(grouped) == 1 else where / f"bag-{bag}"
         chosen = [pairs[i] for i in index]
-        images = _images(chosen)
+        images, root = _images(chosen), image_root(chosen)  # the bag's: the same for every seed
         for s in range(k):
             seeded = dataclasses.replace(ev, seed=ev.seed + s)
             workdir = folder if s == 0 else folder / f"seed-{s}"
             verified, numbers = write_database(chosen, [matches[i] for i in index], seeded, workdir, protocol)
             if s == 0:  # the tracks are the merge's: the same for every seed
                 tracks.append((len(index), numbers))
-            found = run_mapper(workdir, images, seeded.seed, protocol.mapper, MODELS, root=image_root(chosen))
+            found = run_mapper(workdir, images, seeded.seed, protocol.mapper, MODELS, root=root)
             per_seed[s].append(found)
             for i, pair, check in zip(index, chosen, verified):
                 placed = found.placed(pair.meta["view0"], pair.meta["view1"], protocol.score_model == "largest")
