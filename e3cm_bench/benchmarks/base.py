@@ -274,10 +274,11 @@ class Benchmark:
     evaluates_set = False
 
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
-                     workdir: Path | None) -> tuple[list[dict], dict]:  # pragma: no cover
+                     workdir: Path | None, matcher: str | None = None) -> tuple[list[dict], dict]:  # pragma: no cover
         """Every pair's row from all the pairs' matches at once, and the set's own numbers
         (summary columns that no pair bootstrap can resample: they get no interval). workdir:
-        a folder of the run the benchmark may write its products in (None: a temporary one)."""
+        a folder of the run the benchmark may write its products in (None: a temporary one);
+        matcher: the run's registered matcher (its configuration's), None where unknown."""
         raise NotImplementedError
 
     def indexed_summary(self, rows: Sequence[Mapping], ev: EvalSettings) -> Callable[[Sequence[int]], dict]:

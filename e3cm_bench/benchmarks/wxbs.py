@@ -129,10 +129,18 @@ def _mean(values: Sequence[float] | np.ndarray) -> float:
 # ----------------------------------------------------------------------------- dataset
 
 
+@dataclass
+class CorrespondencePair(Pair):
+    """A pair whose ground truth is hand-labelled correspondences (N x 4: x0 y0 x1 y1, pixels of
+    the stored images), where a homography or pose pair has H or K and T."""
+
+    corrs: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+
 class WxBS(PairList):
     """The WxBS pairs of one split (test: the release's test pairs; val: its 2 validation
-    pairs; all), each with its ground-truth correspondences in ``meta['corrs']`` and its
-    category in ``meta['category']``."""
+    pairs; all), each a CorrespondencePair, its category in ``meta`` (a sampling level, as a
+    sequence or a scene is)."""
 
     name = "wxbs"
 
@@ -164,11 +172,12 @@ class WxBS(PairList):
         return [f for f in folders if (f.name in VALIDATION_PAIRS) == validation]
 
     @staticmethod
-    def _pair(folder: Path, name: str) -> Pair:
+    def _pair(folder: Path, name: str) -> CorrespondencePair:
         image0, image1 = (_image_path(folder, stem) for stem in ("01", "02"))
         corrs = read_correspondences(folder / "corrs.txt")
         check_inside(corrs, (_stored_size(image0), _stored_size(image1)), folder / "corrs.txt")
-        return Pair(name=name, image0=image0, image1=image1, meta={"category": folder.parent.name, "corrs": corrs})
+        return CorrespondencePair(name=name, image0=image0, image1=image1, meta={"category": folder.parent.name},
+                                  corrs=corrs)
 
     def settings(self) -> dict:
         return {"dataset": self.name, "root": str(self.root), "version": VERSION, "split": self.split}
@@ -284,10 +293,10 @@ class WxBSBenchmark(Benchmark):
         )
 
     def evaluate_pair(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict:
-        corrs = pair.meta["corrs"]
+        corrs = pair.corrs
         F = self.estimate(matches, ev)
         curve = recall_curve(F, corrs)
-        return {"pair": pair.name, "category": pair.meta["category"], "n_matches": len(matches.keypoints0),
+        return {"pair": pair.name, "category": pair.meta.get("category", ""), "n_matches": len(matches.keypoints0),
                 "n_gt": len(corrs), "f_found": int(F is not None), MAA: maa(curve),
                 **{recall_key(t): float(v) for t, v in zip(THRESHOLDS, curve)}}
 
@@ -328,7 +337,7 @@ class WxBSBenchmark(Benchmark):
         # (normalised 8-point on all of them) stands in for it in drawings only, never in a metric.
         from e3cm_bench.geometry.two_view import estimate_fundamental
 
-        corrs = pair.meta["corrs"]
+        corrs = pair.corrs
         F = estimate_fundamental(corrs[:, :2], corrs[:, 2:4], "8point")
         if F is None:
             return np.zeros(len(matches.keypoints0), dtype=bool)

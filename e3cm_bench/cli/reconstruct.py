@@ -22,8 +22,8 @@ WindowOpt = Annotated[Optional[int], typer.Option("--window", help="Pairs: each 
                                                                    "(default: every pair).")]
 PairsOpt = Annotated[Optional[Path], typer.Option("--pairs", help="Pairs: a file of 'name0 name1' lines, names "
                                                                   "relative to IMAGES.")]
-MergePxOpt = Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher without a backbone "
-                                                     "(its keypoints are detections), 2 for one on a backbone",
+MergePxOpt = Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher whose keypoints are "
+                                                     "detections, 2 for the others (sfm's --merge auto)",
                                                      help="Keypoints of an image within this radius (pixels) become "
                                                           "one, so that tracks form from dense matches.")]
 MaxPairsOpt = Annotated[Optional[int], typer.Option("--max-pairs", help="The most pairs a run builds (default 20000): "
@@ -72,7 +72,6 @@ def reconstruct(
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
     from e3cm_bench.sfm.own_images import RECONSTRUCT  # a benchmark that is no command (benchmarks.UNLISTED)
-    from e3cm_bench.matchers import get_matcher
     from e3cm_bench.method.protocols import resolve_max_side
     from e3cm_bench.method.spec import build_method
     from e3cm_bench.pipeline.request import RunRequest
@@ -84,11 +83,9 @@ def reconstruct(
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
                  channel_order=channel_order, seed=seed, max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
-    if merge_px is None:  # dense matchers move a feature's point from pair to pair; detections repeat exactly
-        merge_px = 2.0 if get_matcher(method.matcher).needs_backbone else 0.0
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
-                                              single_camera=not camera_per_image, max_pairs=max_pairs,
+                                              camera_per_image=camera_per_image, max_pairs=max_pairs,
                                               allow_disconnected=allow_disconnected), ev=RECONSTRUCT.resolve_eval(seed=seed),
                          options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error, pair_timeout=pair_timeout),
                          shard=parse_shard(shard) if shard else None)

@@ -137,7 +137,7 @@ def stratum(pair: Pair) -> tuple[str, ...]:
     """The group a pair is drawn from, coarse to fine: its category (WxBS), scene (MegaDepth,
     YFCC) and sequence (HPatches, with the sequence's kind, the `i`/`v` of `i_leuven`, above
     it so that a sample holds both kinds). A pair with none of these is in the one group ()."""
-    levels = [str(pair.meta[key]) for key in ("category", "scene") if pair.meta.get(key)]
+    levels = [str(pair.meta.get(key)) for key in ("category", "scene") if pair.meta.get(key)]
     sequence = str(pair.meta.get("sequence") or "")
     if sequence:
         if "_" in sequence:

@@ -26,11 +26,13 @@ from e3cm_bench.drawing.matches import draw_matches, drawn, drawn_pairs, save_im
 
 
 def evaluate_stage(
-    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings, workdir: Path | None = None
+    benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings, workdir: Path | None = None,
+    matcher: str | None = None,
 ) -> tuple[pd.DataFrame, dict, list[tuple[str, str]]]:
     """Every pair's row from its cached matches and ground truth, the summary of the rows, and
     (pair, message) of the pairs stored as the matcher's failures (--on-matcher-error fail-pair),
-    each pair read from the cache once.
+    each pair read from the cache once. matcher: the run's (its configuration's), for a benchmark
+    that scores the set together and whose defaults follow the matcher's kind (sfm's merge).
 
     The summary holds each metric's bootstrap interval over the pairs beside it (``<metric>_lo``,
     ``<metric>_hi``, and the bootstrap's samples, seed and confidence: intervals.py).
@@ -47,7 +49,7 @@ def evaluate_stage(
             failures.append((pair.name, str(matches.info[FAILED_ATTR])))
     set_numbers = {}
     if benchmark.evaluates_set:
-        rows, set_numbers = benchmark.evaluate_set(pairs, read, ev, workdir)
+        rows, set_numbers = benchmark.evaluate_set(pairs, read, ev, workdir, matcher)
     if ev.repeats > 1:
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
@@ -213,7 +215,7 @@ def evaluate_and_report(run, console: Console) -> tuple[list[Pair], dict]:
     pairs = [p for p in run.pairs if p.name not in failed]
     if not pairs:
         raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out)
+    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out, matcher=run.config.matcher_name)
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
     if failures:  # scored as failures (no matches); the count says how many were the matcher's

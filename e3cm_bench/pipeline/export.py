@@ -167,9 +167,9 @@ def _image_names(pair, root: Path) -> tuple[str, str]:
     """The pair's image names: the set's own where it names its views (sfm: the names of its
     reconstruction's database, absolute paths with --absolute-paths), else each image's path
     under the root."""
-    meta = getattr(pair, "meta", None) or {}
-    if meta.get("view0") and meta.get("view1"):
-        return str(meta["view0"]), str(meta["view1"])
+    view0, view1 = getattr(pair, "view0", None), getattr(pair, "view1", None)  # a views.ViewPair's
+    if view0 and view1:
+        return str(view0), str(view1)
     return image_name(pair.image0, root), image_name(pair.image1, root)
 
 

@@ -74,19 +74,15 @@ class SfMBenchmark(Benchmark):
         return PoseBenchmark.two_view_geometry(pair, matches, ev)
 
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
-                     workdir: Path | None) -> tuple[list[dict], dict]:
-        from e3cm_bench.sfm.protocol import Protocol, keypoints_are_detections, matcher_of_run
+                     workdir: Path | None, matcher: str | None = None) -> tuple[list[dict], dict]:
         from e3cm_bench.sfm.evaluate import reconstruct_set
+        from e3cm_bench.sfm.protocol import keypoints_are_detections, set_protocol
 
         if ev.repeats > 1:
             raise ValueError("--repeats does not apply to sfm: its mapper is seeded (--mapper-seeds reruns it)")
         kept = [distinct(m) for m in matches]
-        given = next((p.meta["protocol"] for p in pairs if "protocol" in p.meta), None)
-        if given is None:  # pairs built outside MultiViewSet: their merge radius as meta, else exact
-            radius = max((float(p.meta.get("merge_px") or 0.0) for p in pairs), default=0.0)
-            given = Protocol(mapper="incremental", mapper_seeds=1, merge_px=radius)
         folder = Path(workdir) if workdir is not None else None
-        protocol = given.resolved(keypoints_are_detections(matcher_of_run(folder)))
+        protocol = set_protocol(pairs).resolved(keypoints_are_detections(matcher))
         with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
             where = (folder if folder is not None else Path(tmp)) / WORKDIR
             rows, numbers = reconstruct_set(pairs, [k for k, _ in kept], ev, where, protocol)

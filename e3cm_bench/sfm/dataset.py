@@ -1,8 +1,8 @@
 """The sfm benchmark's dataset: a multi-view set (sfm/views.py) as the pairs its graph matches.
 
 Each pair is an ordinary pose pair (K0, K1, T_0to1), so the match stage, its cache, shards and
-feature reuse treat it as any other; ``meta`` carries the two views' names, which the
-reconstruction keys its images by. Pairs are named ``SET/<stem0>--<stem1>``, SET being the
+feature reuse treat it as any other; as a views.ViewPair it also carries the two views' names,
+which the reconstruction keys its images by, its bag and the set's protocol. Pairs are named ``SET/<stem0>--<stem1>``, SET being the
 scene_info file's or the model folder's name (the pair list's own names otherwise).
 """
 
@@ -51,7 +51,7 @@ class MultiViewSet(PairList):
     pycolmap, an image listed twice, two pairs of the same two images (either way round), an
     image outside the root (unless ``absolute_paths``), and a pair graph in several connected
     components (unless ``allow_disconnected``: then each component is a bag of its own,
-    ``pair.meta["bag"]``, 0 the largest)."""
+    ``pair.bag``, 0 the largest)."""
 
     name = "sfm"
 
@@ -102,7 +102,7 @@ class MultiViewSet(PairList):
             return V.read_graph(self.graph, self.views), []
         return (V.window(self.views, self.window) if self.window is not None else V.exhaustive(self.views)), []
 
-    def _pairs(self, listed, first: int | None = None) -> tuple[list[Pair], list[tuple[str, str]]]:
+    def _pairs(self, listed, first: int | None = None) -> tuple[list[V.ViewPair], list[tuple[str, str]]]:
         """A Pair per listed pair, named SET/<label0>--<label1> (views.pair_labels); (name, problem)
         of those whose relative pose is unusable. Two pairs of the same two images are refused:
         the database holds one match list per image pair."""
@@ -126,19 +126,19 @@ class MultiViewSet(PairList):
             except DatasetError as error:
                 bad.append((name, str(error)))
                 continue
-            built.append(Pair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
-                              meta={"scene": set_name, "view0": item.view0, "view1": item.view1,
-                                    "merge_px": self.merge_px, "protocol": self.protocol}))
+            built.append(V.ViewPair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
+                                    meta={"scene": set_name}, view0=item.view0, view1=item.view1,
+                                    setup=self.protocol))
         return built, bad
 
     def _bags(self) -> list[list[str]]:
         """The pair graph's connected components (image names, largest first), checked before any
         matching: a graph of several is refused, unless allow_disconnected, where each pair's
-        meta["bag"] says its component (pairs never join two: a component is closed)."""
+        bag says its component (pairs never join two: a component is closed)."""
         found = graph_components(self.pairs, self.views, self.allow_disconnected, self.graph or self.source)
         bag = {name: k for k, names in enumerate(found) for name in names}
         for pair in self.pairs:
-            pair.meta["bag"] = bag[pair.meta["view0"]]
+            pair.bag = bag[pair.view0]
         return found
 
     def preamble(self) -> str:
@@ -188,7 +188,7 @@ def check_graph_size(source, n: int, count: int, building: int, max_pairs: int, 
 def graph_components(pairs, views, allow_disconnected: bool, source) -> list[list[str]]:
     """The pair graph's connected components (image names, largest first); a DatasetError where
     there are several and allow_disconnected is not given (sfm and reconstruct alike)."""
-    found = V.components((p.meta["view0"], p.meta["view1"]) for p in pairs)
+    found = V.components((p.view0, p.view1) for p in pairs)
     if len(found) > 1 and not allow_disconnected:
         labels = V.pair_labels(views)
         shown = ", ".join("{" + ", ".join(labels[n] for n in names[:3]) + (f", ... {len(names)} images" if len(names) > 3

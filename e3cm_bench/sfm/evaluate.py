@@ -1,5 +1,5 @@
 """A set's pairs scored under a protocol: per bag (a connected component of the pair graph,
-pair.meta["bag"]; one bag without the key) and per seed, one database verified with that seed
+views.ViewPair.bag) and per seed, one database verified with that seed
 and the mapper run on it with the same seed; each pair scored in its bag's reconstruction of
 each seed.
 
@@ -32,17 +32,17 @@ TRACKS = ("repeat_share", "track_length_database", "merge_displacement_px")
 
 
 def bags(pairs: Sequence) -> dict:
-    """bag -> indices of its pairs, in the pairs' order (one bag, None, without the meta key)."""
+    """bag -> indices of its pairs (views.ViewPair.bag), in the pairs' order."""
     found: dict = {}
     for i, pair in enumerate(pairs):
-        found.setdefault(pair.meta.get("bag"), []).append(i)
+        found.setdefault(pair.bag, []).append(i)
     return found
 
 
 def _images(pairs: Sequence) -> list[str]:
     images = []
     for pair in pairs:
-        for name in (pair.meta["view0"], pair.meta["view1"]):
+        for name in (pair.view0, pair.view1):
             if name not in images:
                 images.append(name)
     return images
@@ -52,7 +52,7 @@ def image_root(pairs: Sequence) -> Path | None:
     """The folder the views' names are relative to (pair.image0 = ROOT/view0), which the mapper
     reads the images from (their colours); None where the names are not such paths."""
     for pair in pairs:
-        path, name = Path(pair.image0).as_posix(), str(pair.meta["view0"])
+        path, name = Path(pair.image0).as_posix(), str(pair.view0)
         if path.endswith("/" + name):
             return Path(path[:-len(name) - 1])
     return None
@@ -86,11 +86,11 @@ def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protoco
             found = run_mapper(workdir, images, seeded.seed, protocol.mapper, MODELS, root=root)
             per_seed[s].append(found)
             for i, pair, check in zip(index, chosen, verified):
-                placed = found.placed(pair.meta["view0"], pair.meta["view1"], protocol.score_model == "largest")
+                placed = found.placed(pair.view0, pair.view1, protocol.score_model == "largest")
                 errors = sfm_metrics.pair_errors(pair.T_0to1, *placed)
                 rows[i].update({f"{name}_s{s}": errors[name] for name in sfm_metrics.SEED_COLUMNS})
                 if s == 0:
-                    rows[i].update({"pair": pair.name, "bag": int(bag or 0), "n_matches": len(matches[i]),
+                    rows[i].update({"pair": pair.name, "bag": int(bag), "n_matches": len(matches[i]),
                                     "n_inliers": check["n_inliers"], "registered0": int(placed[0] is not None),
                                     "registered1": int(placed[1] is not None), **errors})
     seeds = _per_seed(rows, per_seed, ev.seed)

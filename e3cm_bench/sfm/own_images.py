@@ -26,7 +26,7 @@ from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_direc
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
-from e3cm_bench.sfm.protocol import _radius
+from e3cm_bench.sfm.protocol import Protocol, _radius, keypoints_are_detections
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
@@ -51,9 +51,22 @@ class FolderOptions:
     pairs: str | Path | None = None
     merge_px: str | float | None = None
     camera_model: str = "SIMPLE_RADIAL"
-    single_camera: bool = True
+    camera_per_image: bool = False
     max_pairs: str | int | None = None
     allow_disconnected: bool = False
+
+
+@dataclass(frozen=True)
+class FolderSetup:
+    """How a folder's pairs are reconstructed, the same object on every pair (views.ViewPair.setup):
+    the folder the images' names are relative to, the protocol (COLMAP's verification, the
+    incremental mapper once; the merge as given, ``auto`` until the run's matcher settles it by
+    the rule sfm applies: protocol.Protocol.resolved) and the cameras."""
+
+    root: Path
+    protocol: Protocol
+    camera_model: str = "SIMPLE_RADIAL"
+    camera_per_image: bool = False
 
 
 class ImageFolder(PairList):
@@ -62,19 +75,21 @@ class ImageFolder(PairList):
     name = "images"
 
     def __init__(self, root: str | Path, skip_bad: bool = False, **options) -> None:
-        """options: FolderOptions' fields (window, pairs, merge_px, camera_model, single_camera,
+        """options: FolderOptions' fields (window, pairs, merge_px, camera_model, camera_per_image,
         max_pairs, allow_disconnected), as the command's flags give them."""
+        if "single_camera" in options:  # records written before the option took its flag's name
+            options["camera_per_image"] = not options.pop("single_camera")
         o = FolderOptions(**options)
         window, pairs, merge_px, camera_model = o.window, o.pairs, o.merge_px, o.camera_model
-        single_camera, max_pairs, allow_disconnected = o.single_camera, o.max_pairs, o.allow_disconnected
+        camera_per_image, max_pairs, allow_disconnected = o.camera_per_image, o.max_pairs, o.allow_disconnected
         self.root = require_directory(root, "image")
-        self.window, self.merge_px = _window(window), _radius(merge_px) or 0.0  # None: no merge
+        self.window, self.merge_px = _window(window), _radius(merge_px)  # None: the matcher's kind decides
         self.pairs_file = Path(pairs) if pairs is not None else None
         if self.window is not None and self.pairs_file is not None:
             raise DatasetError(f"{self.pairs_file}: --window and --pairs are two pair graphs; give one")
         if camera_model not in CAMERA_MODELS:
             raise DatasetError(f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
-        self.camera_model, self.single_camera = camera_model, bool(single_camera)
+        self.camera_model, self.camera_per_image = camera_model, bool(camera_per_image)
         self.views = [V.View(name, self.root / name, None) for name in image_names(self.root)]
         if len(self.views) < V.MIN_VIEWS:
             raise DatasetError(f"{self.root}: holds {len(self.views)} image(s) ({', '.join(IMAGE_SUFFIXES)}); "
@@ -91,8 +106,10 @@ class ImageFolder(PairList):
         count = len(listed) if isinstance(listed, list) else V.graph_size(len(self.views), self.window)
         check_graph_size(self.pairs_file or self.root, len(self.views), count, count, self.max_pairs,
                          self.pairs_file is None and self.window is None, "--window K, --pairs FILE")
-        built = [Pair(name=f"{item.view0}--{item.view1}", image0=self.root / item.view0, image1=self.root / item.view1,
-                      meta={"view0": item.view0, "view1": item.view1, **self.reconstruction()}) for item in listed]
+        setup = self.reconstruction()
+        built = [V.ViewPair(name=f"{item.view0}--{item.view1}", image0=self.root / item.view0,
+                            image1=self.root / item.view1, view0=item.view0, view1=item.view1, setup=setup)
+                 for item in listed]
         super().__init__(built, self.pairs_file or self.root, skip_bad)
         self.components = graph_components(self.pairs, self.views, self.allow_disconnected, self.pairs_file or self.root)
 
@@ -102,11 +119,12 @@ class ImageFolder(PairList):
             return f"pair graph: one component of {sizes[0]} images"
         return f"pair graph: {len(sizes)} components of {', '.join(map(str, sizes))} images (--allow-disconnected)"
 
-    def reconstruction(self) -> dict:
-        """How the set is reconstructed: it travels with each pair (its meta), as the sfm set's
-        merge radius does, to the evaluation that maps them."""
-        return {"root": str(self.root), "merge_px": self.merge_px, "camera_model": self.camera_model,
-                "single_camera": self.single_camera}
+    def reconstruction(self) -> FolderSetup:
+        """How the set is reconstructed: it travels with each pair (ViewPair.setup), as the sfm
+        set's protocol does, to the evaluation that maps them."""
+        protocol = Protocol(mapper="incremental", mapper_seeds=1, merge="auto", merge_px=self.merge_px,
+                            verification="colmap")
+        return FolderSetup(self.root, protocol, self.camera_model, self.camera_per_image)
 
     def settings(self) -> dict:
         graph = (f"file {self.pairs_file}" if self.pairs_file is not None
@@ -114,7 +132,7 @@ class ImageFolder(PairList):
         return {"dataset": self.name, "root": str(self.root), "pair_graph": graph, "window": self.window,
                 "pairs": str(self.pairs_file) if self.pairs_file is not None else None, "n_images": len(self.views),
                 "max_pairs": self.max_pairs, "allow_disconnected": self.allow_disconnected,
-                "reconstruction": mapper_settings(self.camera_model, self.single_camera, self.merge_px)}
+                "reconstruction": mapper_settings(self.camera_model, self.camera_per_image, self.merge_px)}
 
 
 @dataclass(frozen=True)
@@ -133,17 +151,20 @@ class ReconstructBenchmark(Benchmark):
         raise ValueError("reconstruct maps the pairs of a folder together (evaluate_set), not one at a time")
 
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
-                     workdir: Path | None) -> tuple[list[dict], dict]:
+                     workdir: Path | None, matcher: str | None = None) -> tuple[list[dict], dict]:
         if workdir is None:
             raise ValueError("reconstruct writes its model into the run folder: give one")
         kept = [distinct(m) for m in matches]
-        how = pairs[0].meta
-        found, verified = reconstruct_images(pairs, [k for k, _ in kept], workdir, Path(how["root"]), seed=ev.seed,
-                                             merge_px=how["merge_px"], camera_model=how["camera_model"],
-                                             single_camera=how["single_camera"])
+        how = pairs[0].setup
+        if not isinstance(how, FolderSetup):
+            raise ValueError("reconstruct maps an ImageFolder's pairs (views.ViewPair with a FolderSetup)")
+        protocol = how.protocol.resolved(keypoints_are_detections(matcher))
+        found, verified = reconstruct_images(pairs, [k for k, _ in kept], workdir, how.root, seed=ev.seed,
+                                             merge_px=protocol.merge_px, camera_model=how.camera_model,
+                                             camera_per_image=how.camera_per_image)
         rows = []
         for pair, (k, repeats), n_verified in zip(pairs, kept, verified):
-            (placed0, placed1) = found.placed(pair.meta["view0"], pair.meta["view1"])
+            (placed0, placed1) = found.placed(pair.view0, pair.view1)
             same = placed0 is not None and placed1 is not None and placed0[0] == placed1[0]
             rows.append({"pair": pair.name, "n_matches": len(k), "n_verified": n_verified,
                          "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
@@ -152,7 +173,8 @@ class ReconstructBenchmark(Benchmark):
         # points then count the same scene twice (136 + 97 = 233 in one run), so the model's own
         # points are said beside the sum over models
         largest = found.models[0] if found.models else None
-        return rows, {**found.numbers(), "largest_model_images": len(largest.poses) if largest else 0,
+        return rows, {**found.numbers(), "merge_px": protocol.merge_px,
+                      "largest_model_images": len(largest.poses) if largest else 0,
                       "largest_model_points": largest.points if largest else 0}
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
@@ -175,7 +197,7 @@ class ReconstructBenchmark(Benchmark):
 
 RECONSTRUCT = ReconstructBenchmark(
     name="reconstruct", dataset=ImageFolder,
-    dataset_options=("window", "pairs", "merge_px", "camera_model", "single_camera", "max_pairs", "allow_disconnected"),
+    dataset_options=("window", "pairs", "merge_px", "camera_model", "camera_per_image", "max_pairs", "allow_disconnected"),
     summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
     default_max_side=1200,
 )

@@ -146,14 +146,12 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
     return bool(entry.keypoints_are_detections)
 
 
-def matcher_of_run(folder) -> str | None:
-    """The matcher named by a run folder's record (identity.matcher), or None."""
-    from e3cm_bench.storage import RunFolder
-
-    if folder is None:
-        return None
-    try:
-        config = RunFolder(folder).run_config(required=False)
-    except ValueError:  # an unreadable record: the matcher's kind is unknown
-        return None
-    return None if config is None else (config.identity or {}).get("matcher") or config.method or None
+def set_protocol(pairs) -> Protocol:
+    """The protocol a set's pairs carry (views.ViewPair.setup, as the set's options gave it; the
+    same for every pair). Pairs without one (built by hand, for the Python API) are mapped as the
+    toolkit's first sfm benchmark did: the incremental mapper once, keypoints merged exactly."""
+    for pair in pairs:
+        setup = getattr(pair, "setup", None)
+        if isinstance(setup, Protocol):
+            return setup
+    return Protocol(mapper="incremental", mapper_seeds=1, merge="exact")

@@ -256,7 +256,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     items, geometries = [], []
     by_estimator = protocol.verification == "estimator"
     for pair, m in zip(pairs, matches):
-        names = pair.meta["view0"], pair.meta["view1"]
+        names = pair.view0, pair.view1
         found = geometry(pair, m, ev) if by_estimator and len(m) >= 5 else None
         geometries.append(found)
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m,
@@ -321,31 +321,6 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
     # largest first (as IMC picks its model); the mapper's own index breaks ties
     found.sort(key=lambda m: (-len(m.poses), m.index))
     return Reconstruction(list(images), found, workdir / DATABASE)
-
-
-def reconstruct(pairs: Sequence, matches: Sequence, ev, workdir: Path, root: Path | None = None,
-                protocol=None, options: dict | None = None, seed: int | None = None) -> tuple[Reconstruction, list]:
-    """Write the database of `pairs` (each with meta view0/view1) and their `matches` (each
-    correspondence once) under workdir, run the mapper once, and read its models back. Returns
-    the reconstruction and each pair's two-view geometry (None where the estimate failed, or
-    where COLMAP verified the pairs). protocol: a resolved protocol.Protocol (None: the
-    incremental mapper, keypoints not merged, the estimator's verification; keypoints merged
-    within a radius: Protocol(mapper="incremental", merge="radius", merge_px=R).resolved(True));
-    options: mapper options set over the benchmark's ({dotted group: {option: value}}, e.g.
-    {"": {"ba_refine_focal_length": True}}); seed: the mapper's (default ev.seed)."""
-    from e3cm_bench.sfm.protocol import Protocol
-
-    if protocol is None:
-        protocol = Protocol(mapper="incremental", merge="exact", merge_px=0.0).resolved(True)
-    found, _ = write_database(pairs, matches, ev, workdir, protocol)
-    images = []
-    for pair in pairs:
-        for name in (pair.meta["view0"], pair.meta["view1"]):
-            if name not in images:
-                images.append(name)
-    seed = ev.seed if seed is None else seed
-    return (run_mapper(workdir, images, seed, protocol.mapper, root=root, options=options),
-            [f["geometry"] for f in found])
 
 
 def model_of(index: int, model) -> Model:

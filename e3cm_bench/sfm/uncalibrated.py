@@ -39,7 +39,7 @@ MAPPER_OPTIONS = {"min_model_size": 3}
 MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0}}
 
 
-def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
+def settings(camera_model: str, camera_per_image: bool, merge_px: float | None) -> dict:
     """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
 
@@ -50,7 +50,7 @@ def settings(camera_model: str, single_camera: bool, merge_px: float) -> dict:
     return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": version,
             "options": dict(MAPPER_OPTIONS), **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
             "seed": "evaluation.seed", "camera_model": camera_model,
-            "cameras": "shared by the images of one size and EXIF focal" if single_camera else "one per image",
+            "cameras": "one per image" if camera_per_image else "shared by the images of one size and EXIF focal",
             "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
             "intrinsics": "refined by the mapper",
             "merge_px": merge_px}
@@ -72,10 +72,10 @@ def mapper_options(seed: int):
     return options
 
 
-def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_camera: bool) -> dict:
+def cameras_for(root: Path, names: Sequence[str], camera_model: str, camera_per_image: bool) -> dict:
     """Each image's camera as COLMAP's image reader makes it (pycolmap.infer_camera_from_image:
     the focal length from EXIF where the file has it, else 1.2 x the longer side; the principal
-    point at the centre); with single_camera, images whose cameras come out the same (size,
+    point at the centre); unless camera_per_image, images whose cameras come out the same (size,
     model, parameters, whether the focal is a prior) share one object, so one camera."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
 
@@ -87,14 +87,14 @@ def cameras_for(root: Path, names: Sequence[str], camera_model: str, single_came
         camera = pycolmap.infer_camera_from_image(str(Path(root) / name), options)
         key = (camera.model_name, camera.width, camera.height, tuple(np.round(camera.params, 9)),
                camera.has_prior_focal_length)
-        cameras[name] = shared.setdefault(key, camera) if single_camera else camera
+        cameras[name] = camera if camera_per_image else shared.setdefault(key, camera)
     return cameras
 
 
 def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: Path, seed: int = 0,
                        merge_px: float = 0.0, camera_model: str = "SIMPLE_RADIAL",
-                       single_camera: bool = True) -> tuple[Reconstruction, list[int]]:
-    """The database of `pairs` (meta view0/view1: the images' names under `root`) and their
+                       camera_per_image: bool = False) -> tuple[Reconstruction, list[int]]:
+    """The database of `pairs` (views.ViewPair: view0/view1 name the images under `root`) and their
     `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
     returns the reconstruction and each pair's number of verified matches."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
@@ -108,10 +108,10 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     shutil.rmtree(workdir / SPARSE, ignore_errors=True)  # a rerun replaces the last one's products
     items, images = [], []
     for pair, m in zip(pairs, matches):
-        names = pair.meta["view0"], pair.meta["view1"]
+        names = pair.view0, pair.view1
         images += [name for name in names if name not in images]
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m))
-    write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, single_camera))
+    write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, camera_per_image))
     # the pair graph for the user (reconstruct --pairs reads it back); COLMAP is handed no text list
     (workdir / PAIRS).write_text("".join(pair_line(item.name0, item.name1) for item in items))
     pycolmap.set_random_seed(int(seed))

@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, name_pairs
+from e3cm_bench.datasets.base import DatasetError, Pair, name_pairs
 from e3cm_bench.datasets.truth import check_image_size, check_intrinsics, check_pose, check_quaternion, check_world_pose
 from e3cm_bench.datasets.megadepth import PINHOLE_PARAMS, _matrix, load_scene_info
 from e3cm_bench.datasets.yfcc import YFCC100M
@@ -51,6 +51,19 @@ class ListedPair:
     view0: str
     view1: str
     T_0to1: np.ndarray | None = None
+
+
+@dataclass
+class ViewPair(Pair):
+    """A pair of a multi-view set, as the evaluation that maps the set needs it: the names of its
+    two images in the set (the reconstruction's image names), the bag (the pair graph's connected
+    component, 0 the largest) it belongs to, and how the set is reconstructed (`setup`: the sfm
+    set's protocol.Protocol, or own_images.FolderSetup), the same object for every pair of a set."""
+
+    view0: str = ""
+    view1: str = ""
+    bag: int = 0
+    setup: object = field(default=None, repr=False)
 
 
 def _check_count(views: list[View], source: Path) -> None:

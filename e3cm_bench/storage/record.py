@@ -106,6 +106,11 @@ class RunConfig:
         return (self.evaluation or {}).get("protocol", "default")
 
     @property
+    def matcher_name(self) -> str | None:
+        """The registered matcher that made the run (identity.matcher; an import's method name), or None."""
+        return (self.identity or {}).get("matcher") or self.method or None
+
+    @property
     def limit(self) -> int | None:
         """The run's --limit (the first N pairs of its dataset), or None."""
         limit = self.dataset.get("limit")

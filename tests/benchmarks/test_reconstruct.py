@@ -132,7 +132,7 @@ def test_kitti_frames_without_ground_truth(shared_data, tmp_path):
 
 
 def test_cameras_are_colmaps_guess_shared_by_size_and_exif(room, tmp_path):
-    """One camera per size and EXIF focal (COLMAP's single_camera), each as COLMAP's reader makes it."""
+    """One camera per size and EXIF focal (COLMAP's single_camera: reconstruct's default), each as COLMAP's reader makes it."""
     from PIL import Image
 
     from e3cm_bench.sfm.uncalibrated import cameras_for
@@ -147,12 +147,12 @@ def test_cameras_are_colmaps_guess_shared_by_size_and_exif(room, tmp_path):
         exif[0x8769] = {0xA405: 50}  # FocalLengthIn35mmFilm, in the Exif sub-IFD
         image.convert("RGB").save(folder / "exif.jpg", exif=exif)
     names = image_names(folder)
-    cameras = cameras_for(folder, names, "SIMPLE_RADIAL", single_camera=True)
+    cameras = cameras_for(folder, names, "SIMPLE_RADIAL", camera_per_image=False)
     assert len({id(c) for c in cameras.values()}) == 3  # the three 640 x 480 PNGs share one
     assert cameras["a0.png"] is cameras["a2.png"] and cameras["small.png"].width == 320
     assert cameras["a0.png"].params[0] == pytest.approx(1.2 * 640) and not cameras["a0.png"].has_prior_focal_length
     assert cameras["exif.jpg"].has_prior_focal_length and cameras["exif.jpg"].params[0] != pytest.approx(1.2 * 640)
-    apart = cameras_for(folder, names, "PINHOLE", single_camera=False)
+    apart = cameras_for(folder, names, "PINHOLE", camera_per_image=True)
     assert len({id(c) for c in apart.values()}) == 5 and apart["a0.png"].model_name == "PINHOLE"
 
 

@@ -17,7 +17,8 @@ import pandas as pd
 import pytest
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.datasets.base import DatasetError, Pair
+from e3cm_bench.datasets.base import DatasetError
+from e3cm_bench.sfm.views import ViewPair
 from e3cm_bench.datasets.megadepth import load_scene_info
 from e3cm_bench.ground.matches import Matches
 from helpers import invoke, one_line_error
@@ -129,7 +130,7 @@ def test_colmap_model_gives_the_scene_info_pairs(shared_data, tmp_path):
     from_scene = bench.load_dataset(root, scene_info=shared_data / SCENE_INFO, graph=_graph(tmp_path, views))
     assert len(from_model) == 6 == len(from_scene)
     for a, b in zip(from_model, from_scene):
-        assert a.meta["view0"] == b.meta["view0"] and a.meta["view1"] == b.meta["view1"]
+        assert a.view0 == b.view0 and a.view1 == b.view1
         # COLMAP stores a rotation as a quaternion: KITTI's 7-digit, not quite orthonormal matrices move by 1e-5
         np.testing.assert_allclose(a.T_0to1, b.T_0to1, atol=1e-4)
         np.testing.assert_allclose(a.K0, b.K0, atol=1e-9)
@@ -150,7 +151,7 @@ def test_window_and_exhaustive_graphs(shared_data):
     assert len(window) == 19 + 18 + 17
     assert window[0].name == "kitti00_seq/000100--000101"
     merged = bench.load_dataset(root, scene_info=scene_info, window="1", merge_px="1.5")
-    assert merged.describe()["merge_px"] == 1.5 and merged[0].meta["merge_px"] == 1.5
+    assert merged.describe()["merge_px"] == 1.5 and merged[0].setup.merge_px == 1.5
     for bad, match in ((dict(window="0"), "--window must be from 1 to 10000"), (dict(merge_px="-1"), "--merge-px"),
                        (dict(window="2", graph=scene_info), "two pair graphs")):
         with pytest.raises(DatasetError, match=match):
@@ -238,8 +239,8 @@ def test_mapper_without_a_model_is_a_recorded_result(shared_data, tmp_path):
     for i in range(4):
         for j in range(i + 1, 4):
             T = scene["poses"][j] @ np.linalg.inv(scene["poses"][i])
-            pairs.append(Pair(f"s/{i}--{j}", root / names[i], root / names[j], K0=scene["intrinsics"][i],
-                              K1=scene["intrinsics"][j], T_0to1=T, meta={"view0": names[i], "view1": names[j]}))
+            pairs.append(ViewPair(f"s/{i}--{j}", root / names[i], root / names[j], K0=scene["intrinsics"][i],
+                                  K1=scene["intrinsics"][j], T_0to1=T, view0=names[i], view1=names[j]))
             points = rng.uniform([0, 0], [1240, 375], (2, 0 if (i, j) == (0, 1) else 200, 2))  # one pair: no match
             matches.append(Matches(points[0], points[1], None, {"size0": (1241, 376), "size1": (1241, 376)}))
     rows, numbers = get_benchmark("sfm").evaluate_set(pairs, matches, EvalSettings(), tmp_path)

@@ -95,8 +95,8 @@ def test_allow_disconnected_makes_each_component_a_bag(shared_data, pose_list_gr
                                               graph=pose_list_graph, allow_disconnected=True)
     index = {str(p): i for i, p in enumerate(load_scene_info(shared_data / SCENE_INFO)["image_paths"])}
     for pair in pairs:  # largest first; the two of 7 in the order first met: frames 0 mod 3, then 1 mod 3
-        i, j = index[pair.meta["view0"]], index[pair.meta["view1"]]
-        assert pair.meta["bag"] == i % 3 == j % 3
+        i, j = index[pair.view0], index[pair.view1]
+        assert pair.bag == i % 3 == j % 3
 
 
 def test_a_connected_graph_is_one_bag(shared_data, tmp_path):

@@ -179,16 +179,16 @@ def test_eval_only_with_another_protocol_on_the_same_matches(room, incremental_r
 
 
 def test_bags_are_reconstructed_apart(room, tmp_path):
-    """Two bags (pair.meta['bag'], set where the graph splits): one folder and one database each,
+    """Two bags (pair.bag, set where the graph splits): one folder and one database each,
     every pair scored in its own bag's reconstruction."""
     from e3cm_bench.ground.images import load_image
     from e3cm_bench.matchers.sift import SiftMatcher
 
     root, scene_info = room
     dataset = get_benchmark("sfm").load_dataset(root, scene_info=scene_info, window="1", mapper_seeds="1")
-    chosen = [p for p in dataset if not p.meta["view0"].endswith("02.png")]  # 0-1-2 | 3-4-5: no pair 2-3
+    chosen = [p for p in dataset if not p.view0.endswith("02.png")]  # 0-1-2 | 3-4-5: no pair 2-3
     for pair in chosen:
-        pair.meta["bag"] = 0 if pair.meta["view0"] < "images/view02.png" else 1
+        pair.bag = 0 if pair.view0 < "images/view02.png" else 1
     matcher = SiftMatcher(4000, 0.8, False)
     matches = [matcher.match(load_image(p.image0), load_image(p.image1)) for p in chosen]
     rows, numbers = get_benchmark("sfm").evaluate_set(chosen, matches, EvalSettings(), tmp_path)

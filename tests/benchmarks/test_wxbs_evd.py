@@ -30,7 +30,7 @@ def test_wxbs_splits_on_the_shared_data(wxbs_root):
     assert {p.name for p in test} | {p.name for p in val} == {p.name for p in both}
     assert {p.meta["category"] for p in both} == {"WGABS", "WGALBS", "WGBS", "WGLBS", "WGSBS", "WLABS"}
     thermal = next(p for p in both if p.name == "WGSBS/kettle")
-    assert thermal.meta["corrs"].shape[1] == 4 and len(thermal.meta["corrs"]) >= 8
+    assert thermal.corrs.shape[1] == 4 and len(thermal.corrs) >= 8
     # the root may be the version folder itself
     assert len(bench.load_dataset(wxbs_root / "v1.1")) == 31
     with pytest.raises(DatasetError, match="split must be one of"):
@@ -194,7 +194,7 @@ def test_benchmark_scores_a_pair_through_its_estimator(wxbs_root):
     are recalled at 1 px; with too few matches F fails and the pair scores 0, counted."""
     bench = get_benchmark("wxbs")
     pair = next(p for p in bench.load_dataset(wxbs_root) if p.name == "WGABS/kremlin")
-    corrs = pair.meta["corrs"]
+    corrs = pair.corrs
     ev = bench.resolve_eval("wxbs")
     row = bench.evaluate_pair(pair, Matches(corrs[:, :2], corrs[:, 2:], None), ev)
     assert row["f_found"] == 1 and row["recall@1"] > 0.5 and row["recall@19"] >= row["recall@1"]
@@ -228,14 +228,14 @@ def test_wxbs_parity_with_the_reference(reference, wxbs_root, tmp_path, monkeypa
     on every shared pair of the split: the per-pair curves agree to float32 precision."""
     pairs = get_benchmark("wxbs").load_dataset(wxbs_root, split=subset)
     rng = np.random.default_rng(1)
-    Fs = [_estimated_F(p.meta["corrs"], rng) for p in pairs]
+    Fs = [_estimated_F(p.corrs, rng) for p in pairs]
     # The reference reads ./.WxBS/v1.1 from the working folder: a link, never a copy.
     (tmp_path / ".WxBS").symlink_to(wxbs_root, target_is_directory=True)
     monkeypatch.chdir(tmp_path)
     theirs, thresholds = reference.evaluate_Fs(Fs, subset)
     assert list(thresholds) == list(wxbs_module.THRESHOLDS)
     assert [k for k in theirs if k != "average"] == [p.name for p in pairs]  # same pairs, same order
-    ours = [wxbs_module.recall_curve(F, p.meta["corrs"]) for F, p in zip(Fs, pairs)]
+    ours = [wxbs_module.recall_curve(F, p.corrs) for F, p in zip(Fs, pairs)]
     worst = max(float(np.max(np.abs(np.asarray(theirs[p.name], np.float64) - c))) for p, c in zip(pairs, ours))
     assert worst <= 1e-6, worst  # float32 fractions against float64 ones
     average = np.mean(ours, axis=0)
@@ -364,7 +364,7 @@ def test_drawings_call_matches_right_by_the_ground_truth(wxbs_root, evd_root):
     ev = EvalSettings()
     bench = get_benchmark("wxbs")
     pair = next(p for p in bench.load_dataset(wxbs_root) if p.name == "WGABS/kremlin")
-    corrs = pair.meta["corrs"]
+    corrs = pair.corrs
     right = bench.correct_mask(pair, Matches(corrs[:, :2], corrs[:, 2:], None), ev)
     wrong = bench.correct_mask(pair, Matches(corrs[:, :2], corrs[:, 2:] + [0.0, 40.0], None), ev)
     assert right.mean() > 0.8 and wrong.mean() < 0.2
