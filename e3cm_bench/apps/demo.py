@@ -80,7 +80,10 @@ def run_demo(
     if unknown:
         raise ValueError(f"unknown demo method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}")
     data = write_demo_data(out / "data", seed=0, quick=quick)
-    roots = {"hpatches": (data["hpatches"], {}), "scenes": (data["scenes"], {"pairs": data["scenes"] / "pairs_with_gt.txt"})}
+    roots = {
+        "hpatches": (data["hpatches"], {}),
+        "scenes": (data["scenes"], {"pairs": data["scenes"] / "pairs_with_gt.txt"}),
+    }
     for line in (f"demo{' --quick' if quick else ''}: {', '.join(methods)}",
                  f"deep methods on {BACKBONE}; data in {out / 'data'}; the runs' output: {out / LOG}"):
         console.print(line, markup=False, highlight=False)
@@ -103,7 +106,9 @@ def run_demo(
 def _run_set(demo: _Demo, step: int, set_name: str, data: tuple) -> pd.DataFrame:
     """One set of the demo: every method's run (through the benchmark's one path to a method,
     Benchmark.resolve_method, under its default protocol), then its table; returns the table."""
-    from e3cm_bench.pipeline.experiments import write_table  # here, not at the top: the command line's help reads METHODS
+    from e3cm_bench.pipeline.experiments import (
+        write_table,
+    )  # here, not at the top: the command line's help reads METHODS
     from e3cm_bench.pipeline.runner import run_methods  # without loading scipy (cli/common.py, Startup)
 
     benchmark_name, description = SETS[set_name]
@@ -182,14 +187,35 @@ def orderings(tables: dict[str, pd.DataFrame]) -> list[str]:
         return f"{text}: {verdict} ({a:.{digits}f} vs {b:.{digits}f}{unit})"
 
     found = [
-        claim("cascade precision above direct (scenes, e3cm vs direct, P)", value("scenes", "e3cm", "P"),
-              value("scenes", "direct", "P"), " %"),
-        claim("cascade precision above direct (scenes, e3cm-ransac vs direct, P)", value("scenes", "e3cm-ransac", "P"),
-              value("scenes", "direct", "P"), " %"),
-        claim("cascade MMA@3 above direct (hpatches, e3cm vs direct)", value("hpatches", "e3cm", "mma@3"),
-              value("hpatches", "direct", "mma@3"), ""),
-        claim("E3CM above DFM on the non-planar scene (AUC@10)", value("scenes", "e3cm", "auc@10"),
-              value("scenes", "dfm", "auc@10"), " %"),
-        claim("E3CM above DFM on the non-planar scene (P)", value("scenes", "e3cm", "P"), value("scenes", "dfm", "P"), " %"),
+        claim(
+            "cascade precision above direct (scenes, e3cm vs direct, P)",
+            value("scenes", "e3cm", "P"),
+            value("scenes", "direct", "P"),
+            " %",
+        ),
+        claim(
+            "cascade precision above direct (scenes, e3cm-ransac vs direct, P)",
+            value("scenes", "e3cm-ransac", "P"),
+            value("scenes", "direct", "P"),
+            " %",
+        ),
+        claim(
+            "cascade MMA@3 above direct (hpatches, e3cm vs direct)",
+            value("hpatches", "e3cm", "mma@3"),
+            value("hpatches", "direct", "mma@3"),
+            "",
+        ),
+        claim(
+            "E3CM above DFM on the non-planar scene (AUC@10)",
+            value("scenes", "e3cm", "auc@10"),
+            value("scenes", "dfm", "auc@10"),
+            " %",
+        ),
+        claim(
+            "E3CM above DFM on the non-planar scene (P)",
+            value("scenes", "e3cm", "P"),
+            value("scenes", "dfm", "P"),
+            " %",
+        ),
     ]
     return [line for line in found if line]

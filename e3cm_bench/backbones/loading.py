@@ -330,7 +330,9 @@ def load_backbone(
     pretrained=False: random weights (tests, timing).
     """
     if name not in SPECS:
-        raise BackboneError(f"unknown backbone {name!r}{did_you_mean(name, BACKBONES)}; choose one of: {', '.join(BACKBONES)}")
+        raise BackboneError(
+            f"unknown backbone {name!r}{did_you_mean(name, BACKBONES)}; choose one of: {', '.join(BACKBONES)}"
+        )
     if not 1 <= num_levels <= MAX_LEVELS:
         raise BackboneError(f"num_levels must be 1..{MAX_LEVELS}, got {num_levels}")
     spec = SPECS[name]

@@ -236,54 +236,88 @@ SPECS: dict[str, BackboneSpec] = {
     s.name: s
     for s in [
         BackboneSpec(
-            "vgg19", _tv("vgg19"), _vgg19_stages, upsample=1,
+            "vgg19",
+            _tv("vgg19"),
+            _vgg19_stages,
+            upsample=1,
             weights_enum="VGG19_Weights.IMAGENET1K_V1",
             taps="conv1_2, conv2_2, conv3_2, conv4_2, conv5_3 (pre-ReLU)",
             stage1_tap=8,  # features[22:33][8] = features[30] = conv5_2
             fp32_channels_last=True,
         ),
         BackboneSpec(
-            "densenet161", _tv("densenet161"), _densenet_stages, upsample=2,
+            "densenet161",
+            _tv("densenet161"),
+            _densenet_stages,
+            upsample=2,
             weights_enum="DenseNet161_Weights.IMAGENET1K_V1",
             taps="relu0, denseblock1, denseblock2, denseblock3, denseblock4 (image upsampled 2x)",
         ),
         BackboneSpec(
-            "resnet152", _tv("resnet152"), _resnet_stages, upsample=2,
+            "resnet152",
+            _tv("resnet152"),
+            _resnet_stages,
+            upsample=2,
             weights_enum="ResNet152_Weights.IMAGENET1K_V1",
             taps="relu, layer1, layer2, layer3, layer4 (image upsampled 2x)",
         ),
         BackboneSpec(
-            "mobilenet_v3_large", _tv("mobilenet_v3_large"), _mobilenet_stages, upsample=2,
+            "mobilenet_v3_large",
+            _tv("mobilenet_v3_large"),
+            _mobilenet_stages,
+            upsample=2,
             weights_enum="MobileNet_V3_Large_Weights.IMAGENET1K_V1",
             taps="features[1], [3], [6], [12], [16] (image upsampled 2x)",
         ),
         BackboneSpec(
             # torchvision's pretrained GoogLeNet re-normalises its input to (x - 0.5) / 0.5
             # (transform_input); normalising that way directly is the same thing.
-            "googlenet", _tv("googlenet", aux_logits=False, init_weights=False), _googlenet_stages,
-            upsample=2, mean=(0.5, 0.5, 0.5), std=(0.5, 0.5, 0.5),
+            "googlenet",
+            _tv("googlenet", aux_logits=False, init_weights=False),
+            _googlenet_stages,
+            upsample=2,
+            mean=(0.5, 0.5, 0.5),
+            std=(0.5, 0.5, 0.5),
             weights_enum="GoogLeNet_Weights.IMAGENET1K_V1",
             taps="conv1, conv3, inception3b, inception4e, inception5b (image upsampled 2x)",
         ),
         BackboneSpec(
             # TF-Lite EfficientNets take (x*255 - 127) / 128.
-            "efficientnet_lite0", _build_efficientnet_lite0, _efficientnet_stages, upsample=2,
-            mean=(127.0 / 255,) * 3, std=(128.0 / 255,) * 3,
-            taps="blocks 0, 2, 4, 10, 11 (image upsampled 2x)", fp32_channels_last=True,
+            "efficientnet_lite0",
+            _build_efficientnet_lite0,
+            _efficientnet_stages,
+            upsample=2,
+            mean=(127.0 / 255,) * 3,
+            std=(128.0 / 255,) * 3,
+            taps="blocks 0, 2, 4, 10, 11 (image upsampled 2x)",
+            fp32_channels_last=True,
         ),
         BackboneSpec(
             # Matching-trained (MegaDepth), not ImageNet: strides 1, 2, 4, 8, 16 with 4, 8, 24, 64,
             # 64 channels; level 3 is XFeat's own descriptor map (docs/methods.md, "Backbones").
-            "xfeat", _kornia_model("XFeatModel"), _XFeatTaps.stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            "xfeat",
+            _kornia_model("XFeatModel"),
+            _XFeatTaps.stages,
+            upsample=1,
+            mean=(0.0, 0.0, 0.0),
+            std=(1.0, 1.0, 1.0),
             taps="block1[0], block1[2], block2, block_fusion (the descriptor map), block4 (grey, instance-normalised)",
-            weights_file=_cached_or_wheel("xfeat.pt"), requires="kornia",
+            weights_file=_cached_or_wheel("xfeat.pt"),
+            requires="kornia",
         ),
         BackboneSpec(
             # Matching-trained (MegaDepth, depth-supervised): the U-Net's 128-D descriptor map at
             # stride 1, its up path at 2, 4, 8 and its bottleneck at 16 (64 channels each).
-            "disk", _kornia_model("DISK"), _DISKTaps.stages, upsample=1, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+            "disk",
+            _kornia_model("DISK"),
+            _DISKTaps.stages,
+            upsample=1,
+            mean=(0.0, 0.0, 0.0),
+            std=(1.0, 1.0, 1.0),
             taps="descriptor map (128-D, stride 1), up path at strides 2, 4, 8, bottleneck (stride 16)",
-            weights_file=_cached_or_wheel("depth-save.pth"), requires="kornia", state_key="extractor",
+            weights_file=_cached_or_wheel("depth-save.pth"),
+            requires="kornia",
+            state_key="extractor",
         ),
     ]
 }

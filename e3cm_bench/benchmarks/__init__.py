@@ -62,7 +62,9 @@ def get_benchmark(name: str | Benchmark) -> Benchmark:
         module, attribute = UNLISTED[name]
         return getattr(importlib.import_module(module), attribute)
     if name not in BENCHMARKS:
-        raise ValueError(f"unknown benchmark {name!r}{did_you_mean(name, BENCHMARKS)}; choose one of {', '.join(BENCHMARKS)}")
+        raise ValueError(
+            f"unknown benchmark {name!r}{did_you_mean(name, BENCHMARKS)}; choose one of {', '.join(BENCHMARKS)}"
+        )
     return BENCHMARKS[name]
 
 

@@ -316,6 +316,8 @@ class Benchmark:
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:  # pragma: no cover
         raise NotImplementedError
 
-    def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:  # pragma: no cover
+    def plot_comparison(
+        self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path
+    ) -> list[Path]:  # pragma: no cover
         """Plots comparing runs (label -> (summary, per_pair)) next to a table at `stem`."""
         raise NotImplementedError

@@ -201,18 +201,30 @@ class EVDBenchmark(Benchmark):
         self._plot({label: summary}, out / "evd_accuracy.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        return [self._plot({label: s for label, (s, _) in runs.items()}, stem.with_name(stem.stem + "_evd_accuracy.png"))]
+        return [
+            self._plot({label: s for label, (s, _) in runs.items()}, stem.with_name(stem.stem + "_evd_accuracy.png"))
+        ]
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         names = {label: f"{label} (mAA {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[accuracy_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
-        bands = {names[label]: [plots.interval(s, accuracy_key(t)) for t in THRESHOLDS] for label, s in summaries.items()}
-        fig = threshold_curves_figure(curves, THRESHOLDS, "mean visible-part reprojection error threshold [px]",
-                                      "fraction of pairs", f"EVD: H from the matches; bands: {plots.interval_note(summaries)}",
-                                      log_x=True, bands=bands)
+        bands = {
+            names[label]: [plots.interval(s, accuracy_key(t)) for t in THRESHOLDS] for label, s in summaries.items()
+        }
+        fig = threshold_curves_figure(
+            curves,
+            THRESHOLDS,
+            "mean visible-part reprojection error threshold [px]",
+            "fraction of pairs",
+            f"EVD: H from the matches; bands: {plots.interval_note(summaries)}",
+            log_x=True,
+            bands=bands,
+        )
         return plots._save_figure(fig, path)
 
 

@@ -98,7 +98,9 @@ class HomographyBenchmark(Benchmark):
         return summarize
 
     def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
-        err = np.linalg.norm(warp_points(pair.H, _in_origin(matches.keypoints0, ev)) - _in_origin(matches.keypoints1, ev), axis=1)
+        err = np.linalg.norm(
+            warp_points(pair.H, _in_origin(matches.keypoints0, ev)) - _in_origin(matches.keypoints1, ev), axis=1
+        )
         return err <= ev.correct_px
 
     def required_summary_columns(self) -> list[str]:
@@ -106,12 +108,16 @@ class HomographyBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *(f"mma@{t}" for t in metrics.MMA_THRESHOLDS), *self.table_metrics.values()]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         plots.plot_mma_curves({label: summary}, out / "mma.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         summaries = {label: summary for label, (summary, _) in runs.items()}
         # The headline (h_acc, the table's columns) first, then the MMA curves of the paper's Fig. 5.

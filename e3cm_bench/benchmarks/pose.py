@@ -59,7 +59,9 @@ class PoseBenchmark(Benchmark):
         from e3cm_bench.geometry.estimators import PoseRansac, pose_geometry
 
         sizes = (tuple(matches.info["size0"]), tuple(matches.info["size1"])) if "size0" in matches.info else None
-        ransac = PoseRansac(cls.ransac_px(pair, matches, ev), ev.pose_confidence, ev.estimator, ev.seed, ev.opencv_method)
+        ransac = PoseRansac(
+            cls.ransac_px(pair, matches, ev), ev.pose_confidence, ev.estimator, ev.seed, ev.opencv_method
+        )
         return pose_geometry(matches.keypoints0.astype(np.float64), matches.keypoints1.astype(np.float64), pair.K0,
                              pair.K1, ransac, sizes=sizes)
 
@@ -103,7 +105,9 @@ class PoseBenchmark(Benchmark):
             summary = {"n_pairs": int(idx.size), "n_matches": mean(n_matches[idx]),
                        "n_failures": int(np.count_nonzero(~finite[idx]))}
             chosen = errors[idx[finite[idx]]] if ev.drop_failures else errors[idx]
-            for threshold, auc in zip(metrics.POSE_AUC_THRESHOLDS, metrics.pose_auc(chosen, metrics.POSE_AUC_THRESHOLDS)):
+            for threshold, auc in zip(
+                metrics.POSE_AUC_THRESHOLDS, metrics.pose_auc(chosen, metrics.POSE_AUC_THRESHOLDS)
+            ):
                 summary[f"auc@{threshold}"] = auc
             for key in keys:
                 summary[key] = 100.0 * mean(precision[key][idx])
@@ -116,7 +120,9 @@ class PoseBenchmark(Benchmark):
         return distances < ev.precision_thresholds[0]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 

@@ -220,7 +220,12 @@ def check_inside(corrs: np.ndarray, sizes, path: Path) -> None:
         return
     for side, (w, h) in enumerate(sizes):
         x, y = corrs[:, 2 * side], corrs[:, 2 * side + 1]
-        off = (x < -EDGE_TOLERANCE_PX) | (y < -EDGE_TOLERANCE_PX) | (x > w + EDGE_TOLERANCE_PX) | (y > h + EDGE_TOLERANCE_PX)
+        off = (
+            (x < -EDGE_TOLERANCE_PX)
+            | (y < -EDGE_TOLERANCE_PX)
+            | (x > w + EDGE_TOLERANCE_PX)
+            | (y > h + EDGE_TOLERANCE_PX)
+        )
         if off.any():
             first = int(np.flatnonzero(off)[0])
             raise DatasetError(f"{path}: {int(off.sum())} of {len(corrs)} correspondences lie outside image "
@@ -247,7 +252,9 @@ def threshold_curves_figure(curves: Mapping[str, Sequence[float]], thresholds: S
                             bands: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Figure:
     """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy), with
     its bootstrap interval at each threshold as a band (bands: label -> (lo, hi) per threshold)."""
-    from matplotlib.figure import Figure  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+    from matplotlib.figure import (
+        Figure,
+    )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.subplots()
@@ -310,7 +317,9 @@ class WxBSBenchmark(Benchmark):
         rows = list(rows)
         n_matches = np.asarray([r["n_matches"] for r in rows], dtype=np.float64)
         found = np.asarray([_found(r) for r in rows], dtype=bool)
-        recall = np.asarray([[r[recall_key(t)] for t in THRESHOLDS] for r in rows], dtype=np.float64).reshape(-1, len(THRESHOLDS))
+        recall = np.asarray([[r[recall_key(t)] for t in THRESHOLDS] for r in rows], dtype=np.float64).reshape(
+            -1, len(THRESHOLDS)
+        )
         category = np.asarray([str(r["category"]) for r in rows])
         maa_columns = [THRESHOLDS.index(t) for t in MAA_THRESHOLDS]
 
@@ -350,11 +359,15 @@ class WxBSBenchmark(Benchmark):
         self._plot({label: summary}, out / "wxbs_recall.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        return [self._plot({label: s for label, (s, _) in runs.items()}, stem.with_name(stem.stem + "_wxbs_recall.png"))]
+        return [
+            self._plot({label: s for label, (s, _) in runs.items()}, stem.with_name(stem.stem + "_wxbs_recall.png"))
+        ]
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         names = {label: f"{label} (mAA@10px {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[recall_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}
@@ -366,10 +379,15 @@ class WxBSBenchmark(Benchmark):
 
 
 WXBS = WxBSBenchmark(
-    name="wxbs", dataset=WxBS,
-    dataset_options=(DatasetOption("split", "text", "test (default: the release's test pairs), val (its 2 "
-                                   "validation pairs) or all."),),
-    summary="WxBS v1.1: F from the matches; recall of the hand-labelled correspondences at 0..19 px, mAA@10px, per category.",
+    name="wxbs",
+    dataset=WxBS,
+    dataset_options=(
+        DatasetOption(
+            "split", "text", "test (default: the release's test pairs), val (its 2 validation pairs) or all."
+        ),
+    ),
+    summary="WxBS v1.1: F from the matches; recall of the hand-labelled correspondences at 0..19 px, mAA@10px, per "
+            "category.",
     default_max_side=DEFAULT_MAX_SIDE,
     default_protocol="wxbs",  # the reference's estimator; --protocol default is e3cm-bench's own
 )

@@ -13,7 +13,36 @@ import typer
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
 from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
-from e3cm_bench.cli.common import OnceEach, app, console, method_option, method_values, warn, DeviceOpt, BackboneBatchOpt, FeatureCacheOpt, friendly_errors, ShardOpt, WorkersOpt, DevicesOpt, LauncherOpt, ShardsOpt, RootOpt, OutOpt, LimitOpt, OverwriteOpt, EvalOnlyOpt, VizOpt, SkipBadOpt, RansacOpt, RepeatsOpt, OnMatcherErrorOpt, PairTimeoutOpt, PoseEstimatorOpt, PlotFormatOpt
+from e3cm_bench.cli.common import (
+    OnceEach,
+    app,
+    console,
+    method_option,
+    method_values,
+    warn,
+    DeviceOpt,
+    BackboneBatchOpt,
+    FeatureCacheOpt,
+    friendly_errors,
+    ShardOpt,
+    WorkersOpt,
+    DevicesOpt,
+    LauncherOpt,
+    ShardsOpt,
+    RootOpt,
+    OutOpt,
+    LimitOpt,
+    OverwriteOpt,
+    EvalOnlyOpt,
+    VizOpt,
+    SkipBadOpt,
+    RansacOpt,
+    RepeatsOpt,
+    OnMatcherErrorOpt,
+    PairTimeoutOpt,
+    PoseEstimatorOpt,
+    PlotFormatOpt,
+)
 
 
 @dataclass(frozen=True)
@@ -34,9 +63,16 @@ class Scale:
         check_launcher(self.launcher)
         if self.shard:
             parse_shard(self.shard)  # a K/N that is none, before anything loads
-        several = [option for option, given in (("--shard", self.shard), ("--workers", self.workers),
-                                                ("--devices", self.devices), ("--launcher slurm", self.launcher == "slurm"))
-                   if given]
+        several = [
+            option
+            for option, given in (
+                ("--shard", self.shard),
+                ("--workers", self.workers),
+                ("--devices", self.devices),
+                ("--launcher slurm", self.launcher == "slurm"),
+            )
+            if given
+        ]
         if len(several) > 1:
             raise ValueError(f"{' and '.join(several)} do not go together: each says how the shards run")
         if eval_only and several and several != ["--shard"]:
@@ -123,7 +159,14 @@ def check_run_flags(o: SimpleNamespace) -> None:
 
 
 # Options of the benchmark commands.
-SampleOpt = Annotated[Optional[int], typer.Option("--sample", help="A stratified sample of N pairs: spread over the categories, scenes or sequences (--limit takes the first N).")]
+SampleOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--sample",
+        help="A stratified sample of N pairs: spread over the categories, scenes or sequences (--limit takes the "
+             "first N).",
+    ),
+]
 SampleSeedOpt = Annotated[int, typer.Option("--sample-seed", help="Seed of --sample's draw (recorded in config.yaml).")]
 
 
@@ -136,17 +179,34 @@ def _method(*names: str) -> tuple:
 # dataset options (Benchmark.dataset_options) come between the two groups.
 _NO_DEFAULT = inspect.Parameter.empty
 COMMON_BEFORE = (
-    ("out", OutOpt, _NO_DEFAULT), ("root", RootOpt, None), *_method("matcher", "backbone", "weights", "max_side"),
-    ("limit", LimitOpt, None), ("sample", SampleOpt, None), ("sample_seed", SampleSeedOpt, 0), ("device", DeviceOpt, "cpu"),
-    *_method("seed"), ("overwrite", OverwriteOpt, False), ("eval_only", EvalOnlyOpt, False), ("viz", VizOpt, 0),
+    ("out", OutOpt, _NO_DEFAULT),
+    ("root", RootOpt, None),
+    *_method("matcher", "backbone", "weights", "max_side"),
+    ("limit", LimitOpt, None),
+    ("sample", SampleOpt, None),
+    ("sample_seed", SampleSeedOpt, 0),
+    ("device", DeviceOpt, "cpu"),
+    *_method("seed"),
+    ("overwrite", OverwriteOpt, False),
+    ("eval_only", EvalOnlyOpt, False),
+    ("viz", VizOpt, 0),
     *_method("estimator", "sampson_px", "ratio", "label", "settings", "protocol", "precision", "channel_order"),
-    ("feature_cache_mb", FeatureCacheOpt, None), ("backbone_batch", BackboneBatchOpt, None),
+    ("feature_cache_mb", FeatureCacheOpt, None),
+    ("backbone_batch", BackboneBatchOpt, None),
 )
 COMMON_AFTER = (
-    ("skip_bad", SkipBadOpt, False), ("ransac_px", RansacOpt, None), ("pose_estimator", PoseEstimatorOpt, None),
-    ("repeats", RepeatsOpt, 1), ("on_matcher_error", OnMatcherErrorOpt, "stop"),
-    ("pair_timeout", PairTimeoutOpt, None), ("shard", ShardOpt, None), ("workers", WorkersOpt, 0), ("devices", DevicesOpt, None),
-    ("launcher", LauncherOpt, "local"), ("shards", ShardsOpt, 0), ("plot_format", PlotFormatOpt, "png"),
+    ("skip_bad", SkipBadOpt, False),
+    ("ransac_px", RansacOpt, None),
+    ("pose_estimator", PoseEstimatorOpt, None),
+    ("repeats", RepeatsOpt, 1),
+    ("on_matcher_error", OnMatcherErrorOpt, "stop"),
+    ("pair_timeout", PairTimeoutOpt, None),
+    ("shard", ShardOpt, None),
+    ("workers", WorkersOpt, 0),
+    ("devices", DevicesOpt, None),
+    ("launcher", LauncherOpt, "local"),
+    ("shards", ShardsOpt, 0),
+    ("plot_format", PlotFormatOpt, "png"),
 )
 
 

@@ -33,7 +33,8 @@ from e3cm_bench.method.options import METHOD_OPTIONS
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
-    help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / WxBS / EVD benchmarks.",
+    help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / "
+         "WxBS / EVD benchmarks.",
 )
 console = Console()
 err_console = Console(stderr=True)
@@ -50,7 +51,8 @@ def main(
     version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_print_version,
                                           help="Print the version and exit.")] = False,
 ) -> None:
-    """Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / WxBS / EVD benchmarks."""
+    """Training-free feature matching (E3CM, DFM, SIFT+NN) on HPatches, MegaDepth-1500, YFCC100M, WxBS, EVD."""
+
 
 def method_option(name: str, help: str | None = None, flags: tuple[str, ...] | None = None):
     """The typer option of a method option, made from its one declaration (options.METHOD_OPTIONS):
@@ -76,8 +78,24 @@ ProtocolOpt = method_option("protocol")
 MaxSideOpt = method_option("max_side")
 SeedOpt = method_option("seed")
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
-BackboneBatchOpt = Annotated[Optional[int], typer.Option("--backbone-batch", show_default="8 on a GPU, 1 on a CPU", help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the feature cache lacks go through the network with it (for GPUs; needs the cache).")]
-FeatureCacheOpt = Annotated[Optional[float], typer.Option("--feature-cache-mb", show_default="half the available memory, at most 16 GiB", help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.")]
+BackboneBatchOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--backbone-batch",
+        show_default="8 on a GPU, 1 on a CPU",
+        help="Images per backbone pass: when a pair needs a pass, the coming pairs' images of the same size that the "
+             "feature cache lacks go through the network with it (for GPUs; needs the cache).",
+    ),
+]
+FeatureCacheOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--feature-cache-mb",
+        show_default="half the available memory, at most 16 GiB",
+        help="Memory (MiB) for the feature maps of images that have pairs left (what does not fit goes to the run "
+             "folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.",
+    ),
+]
 
 
 def method_values(given: dict) -> dict:
@@ -176,7 +194,10 @@ def _bad_input_errors() -> tuple[type[BaseException], ...]:
     only in modules already imported (an exception of a module never imported cannot have been
     raised), so that the wrapper needs neither torch nor OpenCV to exist."""
     found: list[type[BaseException]] = [ValueError, FileNotFoundError, KeyError]
-    for module, name in (("e3cm_bench.datasets.base", "DatasetError"), ("e3cm_bench.backbones.loading", "BackboneError")):
+    for module, name in (
+        ("e3cm_bench.datasets.base", "DatasetError"),
+        ("e3cm_bench.backbones.loading", "BackboneError"),
+    ):
         cls = getattr(sys.modules.get(module), name, None)
         if cls is not None:
             found.append(cls)
@@ -237,7 +258,9 @@ def friendly_errors(command):
             tell(line)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
-            err_console.print("[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume")
+            err_console.print(
+                "[yellow]interrupted[/]: matches written so far are kept; rerun the same command to resume"
+            )
             raise typer.Exit(130) from None
 
     return wrapper
@@ -267,25 +290,101 @@ class OnceEach(TyperCommand):
         return super().parse_args(ctx, args)
 
 
-ShardOpt = Annotated[Optional[str], typer.Option("--shard", help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).")]
-WorkersOpt = Annotated[int, typer.Option("--workers", help="Run N shards at once in N local processes, CPU threads divided among them, then merge.")]
-DevicesOpt = Annotated[Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")]
-LauncherOpt = Annotated[str, typer.Option("--launcher", help="slurm: submit --shards N as a SLURM array (submitit; runs locally where SLURM is absent).")]
+ShardOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--shard",
+        help="K/N: run only the K-th of N slices of the pairs, into OUT/shards/K-of-N/ (the last shard merges).",
+    ),
+]
+WorkersOpt = Annotated[
+    int,
+    typer.Option(
+        "--workers", help="Run N shards at once in N local processes, CPU threads divided among them, then merge."
+    ),
+]
+DevicesOpt = Annotated[
+    Optional[str], typer.Option("--devices", help="cuda:0,cuda:1,...: one shard and process per device, then merge.")
+]
+LauncherOpt = Annotated[
+    str,
+    typer.Option(
+        "--launcher", help="slurm: submit --shards N as a SLURM array (submitit; runs locally where SLURM is absent)."
+    ),
+]
 ShardsOpt = Annotated[int, typer.Option("--shards", help="Number of shards for --launcher slurm.")]
-RootOpt = Annotated[Optional[Path], typer.Option("--root", help="Dataset root folder (default: the downloaded data under $E3CM_BENCH_DATA, else ./data; e3cm-bench datasets).")]
+RootOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--root",
+        help="Dataset root folder (default: the downloaded data under $E3CM_BENCH_DATA, else ./data; e3cm-bench "
+             "datasets).",
+    ),
+]
 OutOpt = Annotated[Path, typer.Option("--out", help="Run folder (config.yaml, matches.h5, CSVs, plots).")]
 LimitOpt = Annotated[Optional[int], typer.Option("--limit", help="Only the first N pairs.")]
 OverwriteOpt = Annotated[bool, typer.Option("--overwrite", help="Discard matches already in --out.")]
-EvalOnlyOpt = Annotated[bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")]
-VizOpt = Annotated[int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")]
-SkipBadOpt = Annotated[bool, typer.Option("--skip-bad", "--skip-missing", help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in skipped.csv and count them; --skip-missing is the old name.")]
-CompareOpt = Annotated[bool, typer.Option("--compare/--no-compare", help="Difference columns (measured - paper); off for data other than the paper's benchmark.")]
-RansacOpt = Annotated[Optional[float], typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).")]
-RepeatsOpt = Annotated[int, typer.Option("--repeats", help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, with each metric's spread (_sd).")]
-OnMatcherErrorOpt = Annotated[str, typer.Option("--on-matcher-error", help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.")]
-PairTimeoutOpt = Annotated[Optional[float], typer.Option("--pair-timeout", help="Seconds a matcher may take on one pair; past them the matcher is stopped with every process it started and the pair fails as --on-matcher-error says (POSIX; default: no limit).")]
+EvalOnlyOpt = Annotated[
+    bool, typer.Option("--eval-only", help="Recompute the metrics from matches.h5 without matching.")
+]
+VizOpt = Annotated[
+    int, typer.Option("--viz", help="Draw the first N pairs (green: correct by ground truth, red: not).")
+]
+SkipBadOpt = Annotated[
+    bool,
+    typer.Option(
+        "--skip-bad",
+        "--skip-missing",
+        help="Skip the pairs with bad input (images missing or cut short, unusable ground truth), list them in "
+             "skipped.csv and count them; --skip-missing is the old name.",
+    ),
+]
+CompareOpt = Annotated[
+    bool,
+    typer.Option(
+        "--compare/--no-compare",
+        help="Difference columns (measured - paper); off for data other than the paper's benchmark.",
+    ),
+]
+RansacOpt = Annotated[
+    Optional[float],
+    typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5)."),
+]
+RepeatsOpt = Annotated[
+    int,
+    typer.Option(
+        "--repeats",
+        help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, "
+             "with each metric's spread (_sd).",
+    ),
+]
+OnMatcherErrorOpt = Annotated[
+    str,
+    typer.Option(
+        "--on-matcher-error",
+        help="stop (default): a matcher that raises on a pair ends the run (the pairs before it are kept); fail-pair: "
+             "that pair counts as a failure (no matches), its message goes to failures.csv, and the run goes on.",
+    ),
+]
+PairTimeoutOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--pair-timeout",
+        help="Seconds a matcher may take on one pair; past them the matcher is stopped with every process it started "
+             "and the pair fails as --on-matcher-error says (POSIX; default: no limit).",
+    ),
+]
 # Help texts are Rich markup: a literal "[word]" needs its backslash, else Rich takes it for a
 # style and drops it (tests/test_startup.py reads every help as Rich renders it).
-PlotFormatOpt = Annotated[str, typer.Option("--format", help="File format of the plots written: png, pdf or svg (vector, for a paper).")]
-PoseEstimatorOpt = Annotated[Optional[str], typer.Option("--pose-estimator", help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), poselib (pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; 'e3cm-bench\\[colmap]'); --eval-only may change it.")]
-
+PlotFormatOpt = Annotated[
+    str, typer.Option("--format", help="File format of the plots written: png, pdf or svg (vector, for a paper).")
+]
+PoseEstimatorOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--pose-estimator",
+        help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), poselib "
+             "(pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; 'e3cm-bench\\[colmap]'); "
+             "--eval-only may change it.",
+    ),
+]

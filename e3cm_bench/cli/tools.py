@@ -8,27 +8,64 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.backbones.names import DEFAULT_BACKBONE
-from e3cm_bench.cli.common import app, console, say, method_values, method_option, BackboneOpt, WeightsOpt, DeviceOpt, friendly_errors, OutOpt, SeedOpt, OverwriteOpt, PlotFormatOpt
+from e3cm_bench.cli.common import (
+    app,
+    console,
+    say,
+    method_values,
+    method_option,
+    BackboneOpt,
+    WeightsOpt,
+    DeviceOpt,
+    friendly_errors,
+    OutOpt,
+    SeedOpt,
+    OverwriteOpt,
+    PlotFormatOpt,
+)
 
 
 # calibrate's own words for two method options (declared in options.METHOD_OPTIONS)
 CalibrateMaxSideOpt = method_option("max_side", help="Longer image side for matching (default: full resolution).")
-CalibrateSetOpt = method_option("settings", help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.")
+CalibrateSetOpt = method_option(
+    "settings",
+    help="KEY=VALUE: a further setting of the deep matchers (repeatable), e.g. refine=ncc; the label shows it.",
+)
 
 
 @app.command()
 @friendly_errors
 def calibrate(
-    root: Annotated[Path, typer.Option("--root", help="Stereo sequence: KITTI odometry (image_0/, image_1/, calib.txt) or raw (image_00/data, image_01/data, calib_cam_to_cam.txt) layout.")],
+    root: Annotated[
+        Path,
+        typer.Option(
+            "--root",
+            help="Stereo sequence: KITTI odometry (image_0/, image_1/, calib.txt) or raw (image_00/data, "
+                 "image_01/data, calib_cam_to_cam.txt) layout.",
+        ),
+    ],
     out: OutOpt,
-    matcher: Annotated[list[str], typer.Option("--matcher", help="Matcher(s) to compare (repeatable), as for the benchmarks (e3cm-bench matchers).")] = ["e3cm"],  # noqa: B006
+    matcher: Annotated[
+        list[str],
+        typer.Option(
+            "--matcher", help="Matcher(s) to compare (repeatable), as for the benchmarks (e3cm-bench matchers)."
+        ),
+    ] = ["e3cm"],  # noqa: B006
     backbone: BackboneOpt = DEFAULT_BACKBONE,
     weights: WeightsOpt = None,
-    frames: Annotated[list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")] = [1, 3, 5, 10],  # noqa: B006
+    frames: Annotated[
+        list[int], typer.Option("--frames", help="Window sizes in frames (repeatable; default 1 3 5 10).")
+    ] = [1, 3, 5, 10],  # noqa: B006
     max_side: CalibrateMaxSideOpt = None,
     seed: SeedOpt = 0,
     device: DeviceOpt = "cpu",
-    unrectified: Annotated[bool, typer.Option("--unrectified", help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).")] = False,
+    unrectified: Annotated[
+        bool,
+        typer.Option(
+            "--unrectified",
+            help="KITTI raw: the unrectified images (K_0x, R_01, T_01) instead of the rectified ones (P_rect_0x).",
+        ),
+    ] = False,
     overwrite: OverwriteOpt = False,
     settings: CalibrateSetOpt = None,
     plot_format: PlotFormatOpt = "png",
@@ -59,9 +96,11 @@ def calibrate(
 @app.command()
 @friendly_errors
 def matchers(
-    names: Annotated[Optional[list[str]], typer.Argument(help="Only these matchers (names or package.module:factory).")] = None,
+    names: Annotated[
+        Optional[list[str]], typer.Argument(help="Only these matchers (names or package.module:factory).")
+    ] = None,
 ) -> None:
-    """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings and defaults."""
+    """Every matcher: its origin (built-in, plugin package and version, module), what it is, its settings, defaults."""
     from e3cm_bench.matchers import broken_plugins, entries, get_matcher
 
     shown = [get_matcher(name, allow_import=True) for name in names] if names else entries()
@@ -94,7 +133,9 @@ def describe_matchers(shown) -> list[str]:
             net = ", ".join(f"{f.name}={_setting_text(f.default)}" for f in dataclasses.fields(BackboneSettings))
             lines.append(f"    backbone: --backbone, --weights; {net}")
         if entry.model:
-            lines.append("    model: --device, --weights FILE (else the library's weights, downloaded into its cache once)")
+            lines.append(
+                "    model: --device, --weights FILE (else the library's weights, downloaded into its cache once)"
+            )
         if entry.requires:
             lines.append(f"    needs: {', '.join(entry.requires)} ({entry.install_hint()})")
         if entry.shorthands:

@@ -67,16 +67,28 @@ def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
             raise _Refused("damaged or cut short (neither a zip nor a tar archive)")
     except _Refused as error:
         shutil.rmtree(temporary, ignore_errors=True)
-        raise DownloadError(f"{archive}: {error}; no hash was recorded and nothing was extracted; "
-                            f"{set_aside(archive, owned)}: rerun to download it again, or pass --from another mirror") from None
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, tarfile.TarError, EOFError, zlib.error, lzma.LZMAError,
-            NotImplementedError, OSError) as error:
+        raise DownloadError(
+            f"{archive}: {error}; no hash was recorded and nothing was extracted; "
+            f"{set_aside(archive, owned)}: rerun to download it again, or pass --from another mirror"
+        ) from None
+    except (
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        tarfile.TarError,
+        EOFError,
+        zlib.error,
+        lzma.LZMAError,
+        NotImplementedError,
+        OSError,
+    ) as error:
         shutil.rmtree(temporary, ignore_errors=True)
         if isinstance(error, OSError) and error.errno is not None:
             raise  # the disk or the folder, not the archive (a full disk is said by download)
         why = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise DownloadError(f"{archive}: damaged or cut short ({why}); no hash was recorded and nothing was extracted; "
-                            f"{set_aside(archive, owned)}: rerun the same command to download it again") from None
+        raise DownloadError(
+            f"{archive}: damaged or cut short ({why}); no hash was recorded and nothing was extracted; "
+            f"{set_aside(archive, owned)}: rerun the same command to download it again"
+        ) from None
     except BaseException:
         shutil.rmtree(temporary, ignore_errors=True)
         raise

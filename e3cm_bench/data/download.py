@@ -56,13 +56,13 @@ from e3cm_bench.data.folder import (
     FREE_RESERVE,
     LOCK_FILE,
     DownloadError,
-    check,
+    check,  # noqa: F401 - re-exported: the commands and tests call download.check
     check_free_space,
     disk_full,
-    find_root,
+    find_root,  # noqa: F401 - re-exported: the commands and tests call download.find_root
     read_lock,
     record_hash,
-    status,
+    status,  # noqa: F401 - re-exported: the commands and tests call download.status
     verify,
 )
 from e3cm_bench.datasets.sources import Part, Source
@@ -219,7 +219,9 @@ def _open(url: str, offset: int, deadline: Deadline):
     except (URLError, OSError, http.client.HTTPException) as error:
         deadline.check()  # a socket the watchdog shut: the deadline's line, not "cannot connect"
         reason = getattr(error, "reason", error)
-        raise DownloadError(f"{url}: cannot connect ({reason}); check the network or pass --from MIRROR_OR_FILE") from None
+        raise DownloadError(
+            f"{url}: cannot connect ({reason}); check the network or pass --from MIRROR_OR_FILE"
+        ) from None
     finally:
         deadline.phase(None)
 
@@ -336,8 +338,9 @@ def _receive(url: str, response, part: Path, start: int, end: int | None, cap: i
                                         "check the URL or the mirror")
                 free = shutil.disk_usage(part.parent).free
                 if free - len(chunk) < FREE_RESERVE:
-                    raise disk_full(part.parent, f"the {got} bytes that arrived in {part.name} are kept and resumed from",
-                                    free)
+                    raise disk_full(
+                        part.parent, f"the {got} bytes that arrived in {part.name} are kept and resumed from", free
+                    )
                 _write_all(fd, chunk)
                 got += len(chunk)
                 progress.advance(task, len(chunk))

@@ -52,10 +52,20 @@ def read_lock(to: Path) -> dict[str, str]:
         return {}
     try:
         record = json.loads(path.read_text())
-        problem = "" if isinstance(record, dict) else f"holds {_JSON_KINDS.get(type(record), 'null')}, not files and their hashes"
+        problem = (
+            ""
+            if isinstance(record, dict)
+            else f"holds {_JSON_KINDS.get(type(record), 'null')}, not files and their hashes"
+        )
     except (OSError, UnicodeDecodeError, ValueError) as error:
-        record, problem = None, ("empty" if isinstance(error, ValueError) and not path.read_bytes().strip()
-                                 else f"not JSON ({str(error).splitlines()[0] if str(error) else type(error).__name__})")
+        record, problem = (
+            None,
+            (
+                "empty"
+                if isinstance(error, ValueError) and not path.read_bytes().strip()
+                else f"not JSON ({str(error).splitlines()[0] if str(error) else type(error).__name__})"
+            ),
+        )
     if not problem:
         bad = next((k for k, v in record.items() if not isinstance(v, str) or not SHA256.fullmatch(v)), None)
         problem = f"the entry {bad!r} is not a sha256" if bad is not None else ""
@@ -160,6 +170,10 @@ def status(source: Source, to: Path) -> str:
         line = check(source, to)
     except DownloadError as error:
         text = str(error)
-        return f"{source.name}: {'missing' if 'not found' in text else 'incomplete'} at {root} ({text.split(': ', 1)[-1]})"
+        return (
+            f"{source.name}: {'missing' if 'not found' in text else 'incomplete'} at {root} ({text.split(': ', 1)[-1]})"
+        )
     hashes = [part.file for part in source.parts if part.file in recorded]
-    return line + (f"; sha256 recorded for {', '.join(hashes)}" if hashes else "; no download recorded (placed by hand)")
+    return line + (
+        f"; sha256 recorded for {', '.join(hashes)}" if hashes else "; no download recorded (placed by hand)"
+    )

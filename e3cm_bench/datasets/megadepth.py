@@ -319,7 +319,9 @@ def _measure(value, depth: int, seen: dict, open_: set) -> tuple[int, int]:
         raise ValueError("a value that holds itself")
     open_.add(id(value))
     entries, size = 1, 0
-    for item in (value.values() if isinstance(value, dict) else value.ravel() if isinstance(value, np.ndarray) else value):
+    for item in (
+        value.values() if isinstance(value, dict) else value.ravel() if isinstance(value, np.ndarray) else value
+    ):
         n, b = _measure(item, depth + 1, seen, open_)
         entries, size = entries + n, size + b
         if entries > MAX_ENTRIES or size > MAX_EXPANDED_BYTES:

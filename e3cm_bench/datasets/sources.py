@@ -42,66 +42,115 @@ class Source:
 LOFTR_SCENE_INFO = "https://raw.githubusercontent.com/zju3dv/LoFTR/master/assets/megadepth_test_1500_scene_info"
 LOFTR_SCENES = ("0015_0.1_0.3", "0015_0.3_0.5", "0022_0.1_0.3", "0022_0.3_0.5", "0022_0.5_0.7")
 
-SOURCES: dict[str, Source] = {s.name: s for s in [
-    Source(
-        "hpatches", "hpatches", "hpatches-sequences-release",
-        (Part("hpatches-sequences-release.zip",
-              "https://huggingface.co/datasets/vbalnt/hpatches/resolve/main/hpatches-sequences-release.zip",
-              size=1_300_000_000),),
-        expected={"sequences": 116, "images": 696},
-    ),
-    Source(
-        "megadepth-1500", "megadepth", "megadepth_test_1500",
-        # each list 231-273 kB (the copies under ../shared/data)
-        tuple(Part(f"scene_info/{scene}.npz", f"{LOFTR_SCENE_INFO}/{scene}.npz", size=300_000, extract=False)
-              for scene in LOFTR_SCENES),
-        manual=("the images are in LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, "
+SOURCES: dict[str, Source] = {
+    s.name: s
+    for s in [
+        Source(
+            "hpatches",
+            "hpatches",
+            "hpatches-sequences-release",
+            (
+                Part(
+                    "hpatches-sequences-release.zip",
+                    "https://huggingface.co/datasets/vbalnt/hpatches/resolve/main/hpatches-sequences-release.zip",
+                    size=1_300_000_000,
+                ),
+            ),
+            expected={"sequences": 116, "images": 696},
+        ),
+        Source(
+            "megadepth-1500",
+            "megadepth",
+            "megadepth_test_1500",
+            # each list 231-273 kB (the copies under ../shared/data)
+            tuple(
+                Part(f"scene_info/{scene}.npz", f"{LOFTR_SCENE_INFO}/{scene}.npz", size=300_000, extract=False)
+                for scene in LOFTR_SCENES
+            ),
+            manual=(
+                "the images are in LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, "
                 "file megadepth_test_1500.tar): download it by hand and unpack it so that "
-                "{folder}/Undistorted_SfM/0015/images/ and .../0022/images/ hold the images"),
-        expected={"pairs": 1500},
-    ),
-    Source(
-        "megadepth-1500-gluefactory", "megadepth", "megadepth1500",
-        # no size published or measured here: UNKNOWN_SIZE_CAP bounds it
-        (Part("megadepth1500.zip", "https://cvg-data.inf.ethz.ch/megadepth/megadepth1500.zip"),),
-        expected={"pairs": 1500}, same_data_as="megadepth-1500",
-    ),
-    Source(
-        "yfcc", "yfcc", "yfcc100m",
-        (Part("yfcc_test_pairs_with_gt.txt",
-              "https://raw.githubusercontent.com/magicleap/SuperGluePretrainedNetwork/master/assets/yfcc_test_pairs_with_gt.txt",
-              size=1_900_000, extract=False),),  # 1,829,347 bytes
-        manual=("the test images come from OANet's raw data, whose host is down; OANet's issue #32 points to Google Drive "
+                "{folder}/Undistorted_SfM/0015/images/ and .../0022/images/ hold the images"
+            ),
+            expected={"pairs": 1500},
+        ),
+        Source(
+            "megadepth-1500-gluefactory",
+            "megadepth",
+            "megadepth1500",
+            # no size published or measured here: UNKNOWN_SIZE_CAP bounds it
+            (Part("megadepth1500.zip", "https://cvg-data.inf.ethz.ch/megadepth/megadepth1500.zip"),),
+            expected={"pairs": 1500},
+            same_data_as="megadepth-1500",
+        ),
+        Source(
+            "yfcc",
+            "yfcc",
+            "yfcc100m",
+            (
+                Part(
+                    "yfcc_test_pairs_with_gt.txt",
+                    "https://raw.githubusercontent.com/magicleap/SuperGluePretrainedNetwork/master/assets/yfcc_test_pairs_with_gt.txt",
+                    size=1_900_000,
+                    extract=False,
+                ),
+            ),  # 1,829,347 bytes
+            manual=(
+                "the test images come from OANet's raw data, whose host is down; OANet's issue #32 points to Google "
+                "Drive "
                 "folder 1qbnrDSXJhnXC0MiZNNqW7vezAHlkBNgo: download the four scenes' test images by hand into "
-                "{folder}/<scene>/test/images/ (buckingham_palace, notre_dame_front_facade, reichstag, sacre_coeur)"),
-        expected={"pairs": 4000},
-    ),
-    Source(
-        "scannet-1500", "yfcc", "scannet_test_1500",
-        (),
-        manual=("LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, file "
-                "scannet_test_1500.tar) holds the images and the pair list: download it by hand and unpack it into {folder}/"),
-        expected={"pairs": 1500},
-    ),
-    # WxBS and EVD: the zips and md5s that wxbs-benchmark's dataset.py names (no sha256 is
-    # published). WxBS_v1.1.zip holds the category folders and a README at its top, which the
-    # reference unpacks into v1.1/; EVD.zip holds one EVD/ folder (1/, 2/, h/). Neither size is
-    # published: those given are the unpacked copies' under ../shared/data (WxBS 40.9 MB for 33
-    # of its 34 pairs, EVD 28.6 MB), rounded up; PNG and JPEG hardly compress, so the zips are
-    # about as large, and the download's margin (x1.25 + 8 MB) covers the rest.
-    Source(
-        "wxbs", "wxbs", "WxBS/v1.1",
-        (Part("WxBS_v1.1.zip", "http://cmp.felk.cvut.cz/wbs/datasets/WxBS_v1.1.zip", size=44_000_000,
-              md5="66da037e7d20487e86db147307615870"),),
-        expected={"pairs": 32},  # the test split, the benchmark's default; 2 validation pairs besides
-    ),
-    Source(
-        "evd", "evd", "EVD",
-        (Part("EVD.zip", "http://cmp.felk.cvut.cz/wbs/datasets/EVD.zip", size=30_000_000,
-              md5="7ce52151abdafa71a609424d09e43075"),),
-        expected={"pairs": 15},
-    ),
-]}
+                "{folder}/<scene>/test/images/ (buckingham_palace, notre_dame_front_facade, reichstag, sacre_coeur)"
+            ),
+            expected={"pairs": 4000},
+        ),
+        Source(
+            "scannet-1500",
+            "yfcc",
+            "scannet_test_1500",
+            (),
+            manual=(
+                "LoFTR's test data on Google Drive (folder 1DOcOPZb3-5cWxLqn256AhwUVjBPifhuf, file "
+                "scannet_test_1500.tar) holds the images and the pair list: download it by hand and unpack it into "
+                "{folder}/"
+            ),
+            expected={"pairs": 1500},
+        ),
+        # WxBS and EVD: the zips and md5s that wxbs-benchmark's dataset.py names (no sha256 is
+        # published). WxBS_v1.1.zip holds the category folders and a README at its top, which the
+        # reference unpacks into v1.1/; EVD.zip holds one EVD/ folder (1/, 2/, h/). Neither size is
+        # published: those given are the unpacked copies' under ../shared/data (WxBS 40.9 MB for 33
+        # of its 34 pairs, EVD 28.6 MB), rounded up; PNG and JPEG hardly compress, so the zips are
+        # about as large, and the download's margin (x1.25 + 8 MB) covers the rest.
+        Source(
+            "wxbs",
+            "wxbs",
+            "WxBS/v1.1",
+            (
+                Part(
+                    "WxBS_v1.1.zip",
+                    "http://cmp.felk.cvut.cz/wbs/datasets/WxBS_v1.1.zip",
+                    size=44_000_000,
+                    md5="66da037e7d20487e86db147307615870",
+                ),
+            ),
+            expected={"pairs": 32},  # the test split, the benchmark's default; 2 validation pairs besides
+        ),
+        Source(
+            "evd",
+            "evd",
+            "EVD",
+            (
+                Part(
+                    "EVD.zip",
+                    "http://cmp.felk.cvut.cz/wbs/datasets/EVD.zip",
+                    size=30_000_000,
+                    md5="7ce52151abdafa71a609424d09e43075",
+                ),
+            ),
+            expected={"pairs": 15},
+        ),
+    ]
+}
 
 
 def get_source(name: str) -> Source:

@@ -88,7 +88,9 @@ def _entry(values: dict, key: str, size: int, path: Path) -> np.ndarray:
     return values[key]
 
 
-def _from_projections(P0: np.ndarray, P1: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _from_projections(
+    P0: np.ndarray, P1: np.ndarray, path: Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """K0, K1 and the extrinsics of camera 1 relative to camera 0 from two 3x4 projections."""
     K0, R0, c0 = cv2.decomposeProjectionMatrix(P0)[:3]
     K1, R1, c1 = cv2.decomposeProjectionMatrix(P1)[:3]

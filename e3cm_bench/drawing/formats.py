@@ -82,7 +82,9 @@ def fit_columns(columns: list[str], rows: list[list[str]], right: list[bool], wi
         shown = [*range(keep), *block]
 
         def line(cells: list[str]) -> str:
-            return "  ".join(cells[j].rjust(widths[j]) if right[j] else cells[j].ljust(widths[j]) for j in shown).rstrip()
+            return "  ".join(
+                cells[j].rjust(widths[j]) if right[j] else cells[j].ljust(widths[j]) for j in shown
+            ).rstrip()
 
         if n:
             lines.append("")

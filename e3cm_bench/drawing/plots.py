@@ -115,7 +115,10 @@ def mma_figure(runs: Mapping[str, Mapping]) -> Figure:
     axes[0].set_ylabel("MMA")
     # Build the legend from the runs, not from one panel, so runs missing a split still appear.
     handles = [Line2D([], [], marker="o", markersize=3, color=colors[label]) for label in runs]
-    legend_labels = [f"{label} ({format_number(summary.get('n_matches'), 'n_matches', decimals=0)} matches)" for label, summary in runs.items()]
+    legend_labels = [
+        f"{label} ({format_number(summary.get('n_matches'), 'n_matches', decimals=0)} matches)"
+        for label, summary in runs.items()
+    ]
     fig.legend(handles, legend_labels, loc="outside lower center", ncol=min(len(runs), 3), frameon=False,
                title=f"bands: {interval_note(runs)}", title_fontsize=8)
     return fig
@@ -248,7 +251,14 @@ def plot_pose_auc_bars(runs: Mapping[str, Mapping], path: str | Path, title: str
 
 # --------------------------------------------------------------------------- stereo self-calibration
 
-CALIBRATION_PANELS = (("yaw", "deg"), ("pitch", "deg"), ("roll", "deg"), ("tx", "unit t"), ("ty", "unit t"), ("tz", "unit t"))
+CALIBRATION_PANELS = (
+    ("yaw", "deg"),
+    ("pitch", "deg"),
+    ("roll", "deg"),
+    ("tx", "unit t"),
+    ("ty", "unit t"),
+    ("tz", "unit t"),
+)
 
 
 def calibration_boxplot_figure(windows: pd.DataFrame, frames: int) -> Figure:
@@ -357,7 +367,9 @@ def rank_figure(table: pd.DataFrame, metric: str) -> Figure:
         ax.plot(range(len(cells)), rows["rank"], "-o", color=colors[run], label=run)
         for x, (rank, value) in enumerate(zip(rows["rank"], rows[metric])):
             if np.isfinite(rank):
-                ax.annotate(f"{value:.0f}", (x, rank), textcoords="offset points", xytext=(0, 5), ha="center", fontsize=7)
+                ax.annotate(
+                    f"{value:.0f}", (x, rank), textcoords="offset points", xytext=(0, 5), ha="center", fontsize=7
+                )
     ax.set_xticks(range(len(cells)), cells, rotation=35, ha="right", fontsize=8)
     ax.set_yticks(range(1, len(runs) + 1))
     ax.set_ylim(len(runs) + 0.6, 0.4)

@@ -41,16 +41,16 @@ from e3cm_bench.reporting.escape import markdown_code, markdown_text
 from e3cm_bench.drawing.formats import format_number
 from e3cm_bench.stats.noise import CHECK_ALPHA, metric_alpha
 from e3cm_bench.storage.fingerprint import protocol_items
-from e3cm_bench.storage.environment import ENVIRONMENT_PACKAGES, ISA_KEYS, environment_string
+from e3cm_bench.storage.environment import environment_string
 from e3cm_bench.reporting.runs import Run, eval_settings_of, load_run
 from e3cm_bench.gate.tolerances import (
-    ANY,
-    DEFAULT_TOLERANCES,
-    TOLERANCE_FILE_COLUMNS,
+    ANY,  # noqa: F401 - re-exported: check.ANY is the gate's name for it
+    DEFAULT_TOLERANCES,  # noqa: F401 - re-exported: check.DEFAULT_TOLERANCES is the gate's name for it
+    TOLERANCE_FILE_COLUMNS,  # noqa: F401 - re-exported: check.TOLERANCE_FILE_COLUMNS is the gate's name for it
     Tolerances,
-    parse_tolerance_options,
-    parse_tolerances,
-    read_tolerance_file,
+    parse_tolerance_options,  # noqa: F401 - re-exported: check.parse_tolerance_options is the gate's name for it
+    parse_tolerances,  # noqa: F401 - re-exported: check.parse_tolerances is the gate's name for it
+    read_tolerance_file,  # noqa: F401 - re-exported: check.read_tolerance_file is the gate's name for it
 )
 from e3cm_bench.benchmarks.records import evaluation_of
 from e3cm_bench.storage import RunFolder
@@ -148,7 +148,9 @@ def _baseline_value(value, path: Path, key: tuple[str, str], metric: str) -> flo
 AGREE_RTOL, AGREE_ATOL = 1e-6, 1e-9
 
 
-def _disagreements(benchmark, rows: list[dict], values: Mapping[str, float], ev, where: str = "in the summary") -> list[str]:
+def _disagreements(
+    benchmark, rows: list[dict], values: Mapping[str, float], ev, where: str = "in the summary"
+) -> list[str]:
     """'metric X from the pairs, Y <where>' for each checked metric the rows do not give."""
     try:
         point = benchmark.summarize(rows, ev)
@@ -249,15 +251,19 @@ def compare(runs: list[Run], baseline_path: Path, tolerances: Tolerances | Mappi
             if np.isnan(value) and metric not in measured:
                 continue  # a column of another benchmark's rows
             if np.isnan(value) and not np.isnan(measured.get(metric, np.nan)):
-                raise ValueError(f"{baseline_path}: {metric} of {key[1]} on {key[0]} is empty or NaN while the run "
-                                 "measures it; a baseline must hold every value it checks (rewrite it with check --update)")
+                raise ValueError(
+                    f"{baseline_path}: {metric} of {key[1]} on {key[0]} is empty or NaN while the run "
+                    "measures it; a baseline must hold every value it checks (rewrite it with check --update)"
+                )
             checked += 1
             tolerance = tolerances.get(key[0], key[1], metric)
             if tolerance is None:
                 raise ValueError(f"{baseline_path}: no tolerance for metric {metric!r}; pass --tolerance {metric}=T "
                                  "or give it a row in --tolerances")
             if not math.isfinite(tolerance) or tolerance < 0:  # a plain mapping is not validated on the way in
-                raise ValueError(f"{baseline_path}: tolerance of {metric!r} must be a finite number >= 0, got {tolerance!r}")
+                raise ValueError(
+                    f"{baseline_path}: tolerance of {metric!r} must be a finite number >= 0, got {tolerance!r}"
+                )
             findings.append(Finding(key[0], key[1], metric, value, float(measured.get(metric, np.nan)), tolerance))
         if not checked:
             raise ValueError(f"{baseline_path}: no metric of {key[1]} on {key[0]} has a value to check against")
@@ -284,9 +290,13 @@ def markdown_summary(findings: list[Finding], problems: list[str], baseline_path
     lines += ["", "| benchmark | method | metric | baseline | measured | change | tolerance | status |",
               "|---|---|---|---:|---:|---:|---:|---|"]
     for f in findings:
-        lines.append(f"| {markdown_text(f.benchmark)} | {markdown_text(f.method)} | {markdown_text(f.metric)} | {format_number(f.baseline, f.metric, fraction_decimals=4)} | "
-                     f"{format_number(f.measured, f.metric, fraction_decimals=4)} | "
-                     f"{format_number(f.delta, 'd_', decimals=4 if abs(f.baseline) < 1.5 else 2)} | {f.tolerance:g} | {marks[f.status]} |")
+        lines.append(
+            f"| {markdown_text(f.benchmark)} | {markdown_text(f.method)} | {markdown_text(f.metric)} | "
+            f"{format_number(f.baseline, f.metric, fraction_decimals=4)} | "
+            f"{format_number(f.measured, f.metric, fraction_decimals=4)} | "
+            f"{format_number(f.delta, 'd_', decimals=4 if abs(f.baseline) < 1.5 else 2)} | {f.tolerance:g} | "
+            f"{marks[f.status]} |"
+        )
     lines += [f"- {markdown_text(problem)}" for problem in problems]
     return "\n".join(lines) + "\n"
 
@@ -314,7 +324,9 @@ def gate(runs: list[Run], baseline_path: Path, check_alpha: float = CHECK_ALPHA
     metrics = [c for c in baseline.columns if c not in NOT_METRICS]
     models = noise_gate.run_models(noise_gate.read_pair_baseline(noise_gate.pairs_path(baseline_path)),
                                    read_noise(noise_path(baseline_path)))
-    gated = [run for run in runs if (run.benchmark.name, run.label) in models and (run.benchmark.name, run.label) in rows]
+    gated = [
+        run for run in runs if (run.benchmark.name, run.label) in models and (run.benchmark.name, run.label) in rows
+    ]
     others = [run for run in runs if run not in gated]
     plans = []
     for run in gated:
@@ -358,8 +370,11 @@ def gate_markdown(verdicts: list[noise_gate.RunVerdict], alpha: float, check_alp
              "|---|---|---|---:|---:|---:|---|---:|---|"]
     for v in verdicts:
         for g in v.gates:
-            lines.append(f"| {markdown_text(v.benchmark)} | {markdown_text(v.method)} | {markdown_text(g.metric)} | {g.baseline:.4g} | {g.measured:.4g} | "
-                         f"{g.expected:.4g} | {g.low:.4g}..{g.high:.4g} | {g.p_value:.2g} | {marks[g.status]} |")
+            lines.append(
+                f"| {markdown_text(v.benchmark)} | {markdown_text(v.method)} | {markdown_text(g.metric)} | "
+                f"{g.baseline:.4g} | {g.measured:.4g} | "
+                f"{g.expected:.4g} | {g.low:.4g}..{g.high:.4g} | {g.p_value:.2g} | {marks[g.status]} |"
+            )
     for v in verdicts:
         for status, line in verdict_lines(v):
             if status == "moved":

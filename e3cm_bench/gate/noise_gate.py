@@ -139,8 +139,11 @@ def gate_run(run, model: RunModel, baseline_values: dict[str, float], measured: 
         if samples is None:
             samples = [summarize(row) for row in picks]
         column = benchmark.table_metrics.get(metric, metric)
-        gates.append(resampled_gate(metric, np.array([s.get(column, np.nan) for s in samples], float), now, before, alpha,
-                                    model.draws))
+        gates.append(
+            resampled_gate(
+                metric, np.array([s.get(column, np.nan) for s in samples], float), now, before, alpha, model.draws
+            )
+        )
     moves = []
     for column in model.baseline.columns:
         if column in LABEL_COLUMNS or column not in measured_rows.columns:

@@ -90,7 +90,9 @@ def read_tolerance_file(path: Path) -> dict[tuple[str, str, str], float]:
     table.columns = [str(c).strip() for c in table.columns]
     missing = [c for c in TOLERANCE_FILE_COLUMNS if c not in table.columns]
     if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected {', '.join(TOLERANCE_FILE_COLUMNS)})")
+        raise ValueError(
+            f"{path}: missing column(s) {', '.join(missing)} (expected {', '.join(TOLERANCE_FILE_COLUMNS)})"
+        )
     tolerances: dict[tuple[str, str, str], float] = {}
     lines: dict[tuple[str, str, str], int] = {}
     for index, row in table.iterrows():

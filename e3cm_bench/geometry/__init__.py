@@ -1,1 +1,2 @@
-"""Geometry: two-view geometry, the evaluation's robust estimators as backends, and the metrics (arrays in, numbers out)."""
+"""Geometry: two-view geometry, the evaluation's robust estimators as backends, and the metrics
+(arrays in, numbers out)."""

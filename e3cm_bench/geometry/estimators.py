@@ -1,6 +1,7 @@
 """The robust estimators of the evaluation, as backends behind one loader: ``load_estimator(name)``
 gives the backend (OpenCV, the default, as SuperGlue's and LoFTR's evaluations; PoseLib,
-glue-factory's MegaDepth-1500 default; or pycolmap's LO-RANSAC, COLMAP's own), each with the same three estimates (homography, relative
+glue-factory's MegaDepth-1500 default; or pycolmap's LO-RANSAC, COLMAP's own), each with the same three estimates
+(homography, relative
 pose, fundamental matrix). Which one is an evaluation setting (EvalSettings.estimator): --eval-only
 may change it. A new backend is one class here and one entry in ``BACKENDS``.
 
@@ -156,8 +157,9 @@ class PycolmapEstimator:
         RANSACOptions `options`, or None (fewer than `least` of them, or no estimate)."""
         if len(x0) < least:
             return None
-        found = getattr(self.pycolmap, estimate)(np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64),
-                                                 options)
+        found = getattr(self.pycolmap, estimate)(
+            np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64), options
+        )
         return None if found is None else np.asarray(found[key], np.float64)
 
     def homography(self, x0, x1, threshold_px: float, max_iters: int, confidence: float, seed: int = 0,
@@ -251,10 +253,16 @@ def homography_geometry(x0: np.ndarray, x1: np.ndarray, threshold_px: float, max
     return {"H": H, "inliers": np.nan_to_num(error, nan=np.inf) <= threshold_px}
 
 
-def pose_geometry(x0: np.ndarray, x1: np.ndarray, K0, K1, ransac: PoseRansac, sizes: tuple | None = None) -> dict | None:
+def pose_geometry(
+    x0: np.ndarray, x1: np.ndarray, K0, K1, ransac: PoseRansac, sizes: tuple | None = None
+) -> dict | None:
     """{"R", "t", "inliers"}: the relative pose and its RANSAC's inliers; None where it fails."""
     found = relative_pose(x0, x1, K0, K1, ransac, sizes)
     if found is None:
         return None
     R, t, inliers = found
-    return {"R": np.asarray(R, np.float64), "t": np.asarray(t, np.float64).ravel(), "inliers": np.asarray(inliers, bool)}
+    return {
+        "R": np.asarray(R, np.float64),
+        "t": np.asarray(t, np.float64).ravel(),
+        "inliers": np.asarray(inliers, bool),
+    }

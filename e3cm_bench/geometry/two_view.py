@@ -197,7 +197,9 @@ def rotation_angle_deg(R_est: np.ndarray, R_gt: np.ndarray, formula: str = "near
         raise ValueError(f"rotation error formula must be one of {', '.join(ROTATION_ERRORS)}, got {formula!r}")
     R_est, R_gt = np.asarray(R_est, dtype=np.float64), np.asarray(R_gt, dtype=np.float64)
     if formula == "nearest-rotation":
-        R_est, R_gt = (nearest_rotation(R) if rotation_deviation(R) > ORTHONORMAL_TOLERANCE else R for R in (R_est, R_gt))
+        R_est, R_gt = (
+            nearest_rotation(R) if rotation_deviation(R) > ORTHONORMAL_TOLERANCE else R for R in (R_est, R_gt)
+        )
     cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 

@@ -1,1 +1,2 @@
-"""The ground floor: files, images, devices, the Matches value, library errors, name suggestions; imports nothing of the package."""
+"""The ground floor: files, images, devices, the Matches value, library errors, name suggestions;
+imports nothing of the package."""

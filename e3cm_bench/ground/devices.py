@@ -85,8 +85,10 @@ def resolve_precision(precision: str, device: str) -> tuple[str, str | None]:
             return "bf16", None
         return ("fp16" if kind in ("cuda", "mps") else "fp32"), None
     if precision == "bf16" and kind == "cpu" and not native_bf16(device):
-        return "bf16", (f"this CPU has no native bf16 (AVX-512 BF16 or AMX): bf16 will be emulated, measured "
-                        f"{EMULATED_BF16_SLOWDOWN:.1f}x slower than fp32 on such a CPU; --precision fp32 or auto is faster here")
+        return "bf16", (
+            f"this CPU has no native bf16 (AVX-512 BF16 or AMX): bf16 will be emulated, measured "
+            f"{EMULATED_BF16_SLOWDOWN:.1f}x slower than fp32 on such a CPU; --precision fp32 or auto is faster here"
+        )
     return precision, None
 
 
@@ -98,8 +100,21 @@ _kept = False  # whether glibc now keeps freed memory
 
 
 class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (2.33 and later)
-    _fields_ = [(name, ctypes.c_size_t) for name in
-                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena",
+            "ordblks",
+            "smblks",
+            "hblks",
+            "hblkhd",
+            "usmblks",
+            "fsmblks",
+            "uordblks",
+            "fordblks",
+            "keepcost",
+        )
+    ]
 
 
 @functools.lru_cache(maxsize=1)
@@ -146,7 +161,9 @@ def keep_freed_memory() -> str:
                      and libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(_M_ARENA_MAX, 1) == 1)
         except AttributeError:
             _kept = False
-        _allocator = "glibc, freed memory kept (M_MMAP_MAX=0, no trim, one arena)" if _kept else "system (mallopt failed)"
+        _allocator = (
+            "glibc, freed memory kept (M_MMAP_MAX=0, no trim, one arena)" if _kept else "system (mallopt failed)"
+        )
     return _allocator
 
 

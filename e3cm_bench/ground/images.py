@@ -18,7 +18,9 @@ import numpy as np
 
 
 # Binary PGM/PPM header: magic, width, height, maxval (comments allowed), one whitespace byte.
-_PNM_HEADER = re.compile(rb"P[56](?:\s+(?:#[^\n]*\n\s*)*(\d+)){1}(?:\s+(?:#[^\n]*\n\s*)*(\d+))(?:\s+(?:#[^\n]*\n\s*)*(\d+))\s")
+_PNM_HEADER = re.compile(
+    rb"P[56](?:\s+(?:#[^\n]*\n\s*)*(\d+)){1}(?:\s+(?:#[^\n]*\n\s*)*(\d+))(?:\s+(?:#[^\n]*\n\s*)*(\d+))\s"
+)
 
 
 def image_file_problem(path: str | Path) -> str | None:
@@ -94,8 +96,10 @@ def check_pixel_count(path: str | Path) -> None:
             Image.MAX_IMAGE_PIXELS = previous
     if width * height > bound:
         size = f"{width} x {height} ({width * height / 1e6:.0f} megapixels)"
-        raise ImageError(f"{path}: {size}, over the bound of {bound / 1e6:g} megapixels an image is decoded at "
-                         f"(it is decoded whole before --max-side shrinks it); set {MAX_PIXELS_VARIABLE}=N to raise the bound")
+        raise ImageError(
+            f"{path}: {size}, over the bound of {bound / 1e6:g} megapixels an image is decoded at "
+            f"(it is decoded whole before --max-side shrinks it); set {MAX_PIXELS_VARIABLE}=N to raise the bound"
+        )
 
 
 def load_image(path: str | Path) -> np.ndarray:

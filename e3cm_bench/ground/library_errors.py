@@ -29,5 +29,7 @@ def broken_library_line(exc: ImportError) -> str | None:
     if library is None:
         return None
     reason = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
-    return (f"error: the library {library} could not be imported ({reason}); reinstall it "
-            f"(pip install --force-reinstall {PIP_NAMES.get(library, library)}), or set E3CM_BENCH_DEBUG=1 to see where")
+    return (
+        f"error: the library {library} could not be imported ({reason}); reinstall it "
+        f"(pip install --force-reinstall {PIP_NAMES.get(library, library)}), or set E3CM_BENCH_DEBUG=1 to see where"
+    )

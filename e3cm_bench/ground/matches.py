@@ -75,7 +75,9 @@ def check_in_image(matches: Matches, size0: tuple[int, int], size1: tuple[int, i
     for i, (points, (w, h)) in enumerate(((matches.keypoints0, size0), (matches.keypoints1, size1))):
         bad = ~np.isfinite(points).all(axis=1)
         if bad.any():
-            raise MatchesError(f"keypoints{i}: {int(bad.sum())} point(s) not finite (first: row {int(np.flatnonzero(bad)[0])})")
+            raise MatchesError(
+                f"keypoints{i}: {int(bad.sum())} point(s) not finite (first: row {int(np.flatnonzero(bad)[0])})"
+            )
         if not bounded:
             continue
         lo = -0.5 - EDGE_SLACK_PX

@@ -74,10 +74,14 @@ WHEEL_FILES = {
     "aliked-n32.pth": _lg("aliked-n32.pth", "055283fd1624d3ab46a05c3b617b1a79a3f28d1f551737eef2d653e8c8232890"),
     "aliked-t16.pth": _lg("aliked-t16.pth", "56782336919db220144a884e710e2b6af13b3b8f8da15b915a239078ab471085"),
     "depth-save.pth": _lg("disk-depth-save.pth", "9c2ee4ded238892dfa51569941372601e35e4a74aa6f84ea80053d2ab1c07abe"),
-    "aliked_lightglue_v0-1_arxiv-pth": _lg("aliked_lightglue.pth",
-                                           "d975e965b105311a6143194852297dff4f02aea5cc2e10cecfed966ca0e22503"),
-    "disk_lightglue_v0-1_arxiv-pth": _lg("disk_lightglue.pth",
-                                         "b5b21d47ea24f2c5e501aec9c91b9716e4c8c3429a4dc1e615c133c4c9378335"),
+    "aliked_lightglue_v0-1_arxiv-pth": _lg(
+        "aliked_lightglue.pth", "d975e965b105311a6143194852297dff4f02aea5cc2e10cecfed966ca0e22503"
+    ),
+    "disk_lightglue_v0-1_arxiv-pth": _lg(
+        "disk_lightglue.pth", "b5b21d47ea24f2c5e501aec9c91b9716e4c8c3429a4dc1e615c133c4c9378335"
+    ),
     "xfeat.pt": _xf("xfeat.pt", "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b"),
-    "xfeat-lighterglue.pt": _xf("xfeat-lighterglue.pt", "766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8"),
+    "xfeat-lighterglue.pt": _xf(
+        "xfeat-lighterglue.pt", "766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8"
+    ),
 }

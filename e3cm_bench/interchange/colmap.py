@@ -30,7 +30,14 @@ import numpy as np
 
 from e3cm_bench.ground.files import file_sha256, write_atomically
 from e3cm_bench.ground.matches import Matches, MatchesError
-from e3cm_bench.interchange.base import MAX_POINTS, MissingPair, source_identity, check_declared, image_name, real_points
+from e3cm_bench.interchange.base import (
+    MAX_POINTS,
+    MissingPair,
+    source_identity,
+    check_declared,
+    image_name,
+    real_points,
+)
 from e3cm_bench.ground.pycolmap import pycolmap_module
 from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
@@ -114,8 +121,13 @@ def camera_for(pycolmap, K: np.ndarray | None, size: tuple[int, int], origin: st
     shift = _shift(origin)
     # has_prior_focal_length: the focal is the benchmark's calibration, not a guess, so that
     # COLMAP verifies the pair with an essential matrix and its mapper keeps the intrinsics
-    return pycolmap.Camera(model="PINHOLE", width=w, height=h, params=[K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift],
-                           has_prior_focal_length=True)
+    return pycolmap.Camera(
+        model="PINHOLE",
+        width=w,
+        height=h,
+        params=[K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift],
+        has_prior_focal_length=True,
+    )
 
 
 def write_colmap(out: Path, items, origin: str | None = None, merge_px: float = 0.0, merged=None,
@@ -239,10 +251,12 @@ def check_blob_sizes(copy: Path, database: Path) -> None:
                 f"SELECT {key}, rows, cols, {size} FROM {table} WHERE rows < 0 OR cols < 0 OR rows > ? OR cols > 4096"
                 f"{wide} OR NOT ({fits}) LIMIT 1", (MAX_POINTS,)).fetchone()
             if bad is not None:
-                raise ValueError(f"{database}: table {table}, {_row_name(connection, key, bad[0])}, declares "
-                                 f"{bad[1]} x {bad[2]} entries and holds {bad[3]} bytes; "
-                                 f"{'more rows than the ' + str(MAX_POINTS) + ' an import reads' if bad[1] > MAX_POINTS else 'a damaged row'}"
-                                 ": refused before reading it")
+                raise ValueError(
+                    f"{database}: table {table}, {_row_name(connection, key, bad[0])}, declares "
+                    f"{bad[1]} x {bad[2]} entries and holds {bad[3]} bytes; "
+                    + (f"more rows than the {MAX_POINTS} an import reads" if bad[1] > MAX_POINTS else "a damaged row")
+                    + ": refused before reading it"
+                )
     except sqlite3.Error as error:
         raise ValueError(f"{database}: not a readable COLMAP database ({error})") from None
     finally:

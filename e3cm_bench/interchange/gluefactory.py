@@ -25,15 +25,28 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only: h5py is imported where a file is read
+    import h5py
 
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
 from e3cm_bench.ground.files import file_sha256, write_atomically
 from e3cm_bench.ground.matches import Matches, MatchesError
-from e3cm_bench.interchange.base import MissingPair, source_identity, check_self_contained, image_name, index_array, matched, real_points, score_array
+from e3cm_bench.interchange.base import (
+    MissingPair,
+    source_identity,
+    check_self_contained,
+    image_name,
+    index_array,
+    matched,
+    real_points,
+    score_array,
+)
 from e3cm_bench.interchange.hloc import hloc_pair_key, read_dataset
 from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
@@ -190,8 +203,13 @@ class GluefactorySource:
             for name in ("keypoints1", "matches0"):
                 if name not in group:
                     raise MatchesError(f"{where} has no {name}")
-            points = [real_points(read_dataset(group[k], f"{where}/{k}"), f"{where}/{k}") for k in ("keypoints0", "keypoints1")]
-            index = index_array(read_dataset(group["matches0"], f"{where}/matches0"), f"{where}/matches0", len(points[0]))
+            points = [
+                real_points(read_dataset(group[k], f"{where}/{k}"), f"{where}/{k}")
+                for k in ("keypoints0", "keypoints1")
+            ]
+            index = index_array(
+                read_dataset(group["matches0"], f"{where}/matches0"), f"{where}/matches0", len(points[0])
+            )
             scores = None
             if "matching_scores0" in group:
                 scores = score_array(read_dataset(group["matching_scores0"], f"{where}/matching_scores0"),

@@ -36,15 +36,29 @@ pairs file hloc's match_features, triangulation and reconstruction take.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only: h5py is imported where a file is read
+    import h5py
 
 # h5py is imported in the functions that read or write HDF5: the command line imports this module
 # for the format registry (registry.py) and answers without loading h5py.
 
 from e3cm_bench.ground.files import file_sha256
 from e3cm_bench.ground.matches import Matches, MatchesError
-from e3cm_bench.interchange.base import MissingPair, source_identity, check_declared, check_self_contained, image_name, index_array, matched, real_points, score_array
+from e3cm_bench.interchange.base import (
+    MissingPair,
+    source_identity,
+    check_declared,
+    check_self_contained,
+    image_name,
+    index_array,
+    matched,
+    real_points,
+    score_array,
+)
 from e3cm_bench.interchange.pixels import from_origin, resolve_origin, to_origin
 from e3cm_bench.interchange.registry import Format, register
 

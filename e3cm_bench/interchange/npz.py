@@ -55,7 +55,9 @@ def load_npz(path: Path, keys=KEYS) -> dict[str, np.ndarray]:
         for key in (k for k in keys if k in members):
             with archive.open(members[key]) as f:
                 version = np.lib.format.read_magic(f)
-                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                read_header = (
+                    np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                )
                 shape, _, dtype = read_header(f)
                 check_declared(key, shape, dtype.itemsize)
             with archive.open(members[key]) as f:

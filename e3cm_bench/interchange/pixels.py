@@ -65,8 +65,10 @@ class HalfPixelCheck:
         return self.z > CHECK_Z and self.shifted - self.as_read > CHECK_MIN_GAIN
 
     def line(self) -> str:
-        return (f"pixel convention check: mma@1 {self.as_read:.3f} as read, {self.shifted:.3f} with {self.shift:+.1f} px "
-                f"on both images ({self.n_matches} matches, McNemar z {self.z:.1f})")
+        return (
+            f"pixel convention check: mma@1 {self.as_read:.3f} as read, {self.shifted:.3f} with {self.shift:+.1f} px "
+            f"on both images ({self.n_matches} matches, McNemar z {self.z:.1f})"
+        )
 
 
 def half_pixel_check(pairs_and_matches) -> HalfPixelCheck | None:

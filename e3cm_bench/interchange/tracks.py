@@ -160,7 +160,9 @@ def repeat_share(items: Sequence[tuple[str, str, np.ndarray, np.ndarray]], radiu
     return repeated / total if total else float("nan")
 
 
-def track_lengths(n_keypoints: dict[str, int], names: Sequence[tuple[str, str]], pairs: Sequence[np.ndarray]) -> np.ndarray:
+def track_lengths(
+    n_keypoints: dict[str, int], names: Sequence[tuple[str, str]], pairs: Sequence[np.ndarray]
+) -> np.ndarray:
     """Number of images in each connected track (the connected components of the keypoints
     joined by the matches), for tracks of two images or more: a figure to say what a merge did."""
     from scipy.sparse import coo_matrix

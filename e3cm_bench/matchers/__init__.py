@@ -8,10 +8,26 @@ matcher is built, so listing names does not load a network.
 
 from __future__ import annotations
 
-from e3cm_bench.matchers.base import BACKBONE_SETTINGS, CHANNEL_ORDERS, PRECISIONS, BackboneSettings, Matcher, MatcherEntry
+from e3cm_bench.matchers.base import (
+    BACKBONE_SETTINGS,
+    CHANNEL_ORDERS,
+    PRECISIONS,
+    BackboneSettings,
+    Matcher,
+    MatcherEntry,
+)
 from e3cm_bench.matchers.registry import (
-    ENTRY_POINT_GROUP, broken_plugins, build_matcher, built_settings, check_settings, entries, get_matcher, matcher_names,
-    register, resolve, unregister,
+    ENTRY_POINT_GROUP,
+    broken_plugins,
+    build_matcher,
+    built_settings,
+    check_settings,
+    entries,
+    get_matcher,
+    matcher_names,
+    register,
+    resolve,
+    unregister,
 )
 
 __all__ = [

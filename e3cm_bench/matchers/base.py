@@ -143,8 +143,10 @@ class MatcherEntry:
         missing = [name for name in self.requires if importlib.util.find_spec(name) is None]
         if missing:
             extras = sorted({EXTRA_OF.get(name, "peers") for name in self.requires})
-            raise ValueError(f"{self.name} needs {', '.join(missing)}, which the {' and '.join(extras)} extra installs: "
-                             f"{self.install_hint()}")
+            raise ValueError(
+                f"{self.name} needs {', '.join(missing)}, which the {' and '.join(extras)} extra installs: "
+                f"{self.install_hint()}"
+            )
 
     def install_hint(self) -> str:
         """The extra that installs what it requires (EXTRA_OF: pycolmap's is colmap)."""

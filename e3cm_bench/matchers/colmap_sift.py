@@ -36,7 +36,11 @@ class ColmapSiftSettings:
     cross_check: bool = True
 
     def __post_init__(self) -> None:
-        if not isinstance(self.max_keypoints, int) or isinstance(self.max_keypoints, bool) or not 1 <= self.max_keypoints <= 10**6:
+        if (
+            not isinstance(self.max_keypoints, int)
+            or isinstance(self.max_keypoints, bool)
+            or not 1 <= self.max_keypoints <= 10**6
+        ):
             raise ValueError(f"max_keypoints must be a whole number from 1 to 1000000, got {self.max_keypoints!r}")
         for name in ("ratio", "max_distance"):
             value = getattr(self, name)
@@ -91,6 +95,8 @@ class ColmapSiftMatcher(Matcher):
         info = {"n_keypoints0": len(points0), "n_keypoints1": len(points1)}
         if len(points0) == 0 or len(points1) == 0:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info=info)
-        index = np.asarray(self._matcher.match(keypoints0, descriptors0, keypoints1, descriptors1), np.int64).reshape(-1, 2)
+        index = np.asarray(self._matcher.match(keypoints0, descriptors0, keypoints1, descriptors1), np.int64).reshape(
+            -1, 2
+        )
         # COLMAP's matcher gives no score: every match 1 (its ratio test has passed them all)
         return Matches(points0[index[:, 0]], points1[index[:, 1]], np.ones(len(index)), info=info)

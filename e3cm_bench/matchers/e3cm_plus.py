@@ -113,7 +113,9 @@ class E3CMPlusSettings:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.estimator != "auto" and self.estimator not in ESTIMATORS:
-            raise ValueError(f"unknown cascade estimator {self.estimator!r}; choose auto or one of {', '.join(ESTIMATORS)}")
+            raise ValueError(
+                f"unknown cascade estimator {self.estimator!r}; choose auto or one of {', '.join(ESTIMATORS)}"
+            )
         self.pipelines = {
             kind: E3CMSettings(estimator=AUTO_ESTIMATORS[kind] if self.estimator == "auto" else self.estimator,
                                ratio=self.ratio, sampson_px=self.sampson_px, subpixel=self.subpixel,

@@ -71,7 +71,9 @@ def _nbytes(maps: list[torch.Tensor] | torch.Tensor) -> int:
     return sum(m.numel() * m.element_size() for m in maps)
 
 
-def compact(maps: list[torch.Tensor], dtype: torch.dtype | None, exact: dict[int, bool] | None = None) -> list[torch.Tensor]:
+def compact(
+    maps: list[torch.Tensor], dtype: torch.dtype | None, exact: dict[int, bool] | None = None
+) -> list[torch.Tensor]:
     """Each float32 map in `dtype` where that holds it exactly (maps a reduced-precision
     network computed, then widened), else as it is. exact: level -> whether that level's maps
     are exact in dtype, filled by checking the first map of each level: a level's maps come

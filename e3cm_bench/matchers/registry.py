@@ -278,7 +278,9 @@ def load_plugins() -> None:
         _BROKEN.pop(point.name, None)
         for entry in found:
             if entry.name in _REGISTRY and _REGISTRY[entry.name].origin == "built-in":
-                _BROKEN[point.name] = f"plugin {point.value} ({origin.split(' ', 1)[1]}) tries to replace the built-in {entry.name!r}"
+                _BROKEN[point.name] = (
+                    f"plugin {point.value} ({origin.split(' ', 1)[1]}) tries to replace the built-in {entry.name!r}"
+                )
                 continue
             _REGISTRY[entry.name] = dataclasses.replace(entry, origin=origin, source=source)
 
@@ -328,5 +330,7 @@ def _from_module(name: str) -> MatcherEntry:
             raise ValueError(f"--matcher {name}: {attr}() returned {type(made).__name__}, "
                              "expected a MatcherEntry or a matcher (an object with match(image0, image1))")
     else:
-        raise ValueError(f"--matcher {name}: {attr} is a {type(factory).__name__}, expected a MatcherEntry or a factory")
+        raise ValueError(
+            f"--matcher {name}: {attr} is a {type(factory).__name__}, expected a MatcherEntry or a factory"
+        )
     return dataclasses.replace(entry, origin=origin, source=source)

@@ -34,7 +34,9 @@ def user_files() -> dict[str, str]:
         files = json.loads(os.environ.get(USER_FILES_ENV) or "{}")
     except ValueError:
         return {}
-    return {k: v for k, v in files.items() if isinstance(k, str) and isinstance(v, str)} if isinstance(files, dict) else {}
+    return (
+        {k: v for k, v in files.items() if isinstance(k, str) and isinstance(v, str)} if isinstance(files, dict) else {}
+    )
 
 
 class _OneName(importlib.abc.MetaPathFinder):

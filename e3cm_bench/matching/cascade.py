@@ -25,7 +25,9 @@ class UnitPixels:
         self.rows, self.norms, self.width = rows, norms, width
 
     @classmethod
-    def of(cls, level0_feat: torch.Tensor, rows: torch.Tensor | None = None, norms: torch.Tensor | None = None) -> "UnitPixels":
+    def of(
+        cls, level0_feat: torch.Tensor, rows: torch.Tensor | None = None, norms: torch.Tensor | None = None
+    ) -> "UnitPixels":
         """level0_feat: C x H x W; rows / norms: those of it where already in hand (pixel_rows, pixel_norms)."""
         return cls(pixel_rows(level0_feat) if rows is None else rows,
                    pixel_norms(level0_feat) if norms is None else norms, level0_feat.shape[2])

@@ -18,7 +18,9 @@ def _top2(sim: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
     pad_shape = list(sim.shape)
     pad_shape[dim] = 1
     vals = torch.cat([sim, torch.full(pad_shape, -float("inf"), dtype=sim.dtype, device=sim.device)], dim)
-    idx = torch.cat([torch.zeros_like(sim, dtype=torch.long), torch.zeros(pad_shape, dtype=torch.long, device=sim.device)], dim)
+    idx = torch.cat(
+        [torch.zeros_like(sim, dtype=torch.long), torch.zeros(pad_shape, dtype=torch.long, device=sim.device)], dim
+    )
     return vals, idx
 
 

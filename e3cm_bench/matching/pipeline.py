@@ -19,8 +19,15 @@ import torch
 import torch.nn.functional as F
 
 from e3cm_bench.matching import SCORED_ESTIMATORS
-from e3cm_bench.matching.cascade import (ESTIMATORS, UnitPixels, confidence_scores, epipolar_inliers, estimate_level_fundamental,
-                      pixel_norms, pixel_rows)
+from e3cm_bench.matching.cascade import (
+    ESTIMATORS,
+    UnitPixels,
+    confidence_scores,
+    epipolar_inliers,
+    estimate_level_fundamental,
+    pixel_norms,
+    pixel_rows,
+)
 from e3cm_bench.matching.dense import match_dense_level
 from e3cm_bench.matching.levels import cell_centres, valid_extent
 from e3cm_bench.matching.norms import normalize_channels
@@ -109,7 +116,9 @@ class E3CMSettings:
         return d
 
 
-def subpixel_offsets(map0: torch.Tensor, map1: torch.Tensor, cells0: torch.Tensor, cells1: torch.Tensor) -> torch.Tensor:
+def subpixel_offsets(
+    map0: torch.Tensor, map1: torch.Tensor, cells0: torch.Tensor, cells1: torch.Tensor
+) -> torch.Tensor:
     """N x 2 offsets (dx, dy) in [-0.5, 0.5] of each level-0 match's B pixel towards the peak
     of the similarity to A's pixel: along each axis a parabola through the cosines at B's
     pixel and its two neighbours (an axis whose neighbour lies outside the map, or whose

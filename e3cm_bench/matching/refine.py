@@ -93,7 +93,9 @@ def _children_checked(dist: torch.Tensor, kids0: torch.Tensor, kids1: torch.Tens
         ok_b = ok_b.gather(1, b_of_a)
     # Children in the padding are ruled out before the best ones per parent are chosen, so a
     # parent at the image edge still yields its valid children.
-    valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1).reshape(n, 4)
+    valid = inside(kids0.reshape(-1, 2), extent0).reshape(n, 4) & inside(
+        kids1.gather(1, b_of_a[..., None].expand(n, 4, 2)).reshape(-1, 2), extent1
+    ).reshape(n, 4)
     child_dist = best_a[..., 0].masked_fill(~(mutual & ok_a & ok_b & valid), float("inf"))
     return child_dist, b_of_a
 
@@ -126,7 +128,9 @@ def first_of_each(rows: torch.Tensor) -> torch.Tensor:
     # torch.unique over rows (dim=0) compares them one pair at a time on the CPU; one integer
     # per row sorts the same way and is unique'd as a flat tensor, far faster (docs/speed.md,
     # "Duplicate children found by one key per row"). Rows whose key could overflow fall back.
-    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True) if keys is None else torch.unique(keys, return_inverse=True)
+    uniq, inverse = (
+        torch.unique(rows, dim=0, return_inverse=True) if keys is None else torch.unique(keys, return_inverse=True)
+    )
     first = torch.full((len(uniq),), len(rows), dtype=torch.long, device=rows.device)
     return first.scatter_reduce_(0, inverse, torch.arange(len(rows), device=rows.device), reduce="amin")
 

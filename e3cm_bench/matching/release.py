@@ -305,7 +305,9 @@ class DFMRelease:
 DFM_FIXES = ("ratio_at", "border_y")
 
 
-def dfm_release_stage0(top0: torch.Tensor, top1: torch.Tensor, level: int, settings: DFMRelease) -> tuple[np.ndarray, int]:
+def dfm_release_stage0(
+    top0: torch.Tensor, top1: torch.Tensor, level: int, settings: DFMRelease
+) -> tuple[np.ndarray, int]:
     """Plain mutual NN at the deepest map and the homography B -> A (identity when RANSAC
     gives none; no minimum of inliers). Returns H and the number of stage-0 matches."""
     cells0, cells1 = release_dense(top0, top1, settings.stage0_ratio)
@@ -347,7 +349,11 @@ def dfm_release_final(
     (w0, h0), (w1, h1) = size0, size1
     pad_right1, pad_bottom1 = (-w1) % 16, (-h1) % 16
     # The release compares B's y with (padded width - bottom padding); "border_y" uses the height.
-    limit_y1 = h1 - DFM_FINAL_MARGIN_PX if "border_y" in settings.fixes else w1 + pad_right1 - pad_bottom1 - DFM_FINAL_MARGIN_PX
+    limit_y1 = (
+        h1 - DFM_FINAL_MARGIN_PX
+        if "border_y" in settings.fixes
+        else w1 + pad_right1 - pad_bottom1 - DFM_FINAL_MARGIN_PX
+    )
     with np.errstate(invalid="ignore"):
         keep = (x0[:, 0] < w0 - DFM_FINAL_MARGIN_PX) & (x0[:, 1] < h0 - DFM_FINAL_MARGIN_PX)
         keep &= (x1[:, 0] < w1 - DFM_FINAL_MARGIN_PX) & (x1[:, 1] < limit_y1)

@@ -138,7 +138,9 @@ def refine_lk(image0: np.ndarray, image1: np.ndarray, kpts0: np.ndarray, kpts1: 
     grey0, grey1 = common_size(grey0, grey1)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
     options = dict(winSize=(window, window), maxLevel=1, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    moved, status, _ = cv2.calcOpticalFlowPyrLK(grey0, grey1, kpts0.reshape(-1, 1, 2), kpts1.reshape(-1, 1, 2).copy(), **options)
+    moved, status, _ = cv2.calcOpticalFlowPyrLK(
+        grey0, grey1, kpts0.reshape(-1, 1, 2), kpts1.reshape(-1, 1, 2).copy(), **options
+    )
     back, status_back, _ = cv2.calcOpticalFlowPyrLK(grey1, grey0, moved, kpts0.reshape(-1, 1, 2).copy(), **options)
     moved, back = moved.reshape(-1, 2), back.reshape(-1, 2)
     consistent = (status.ravel() == 1) & (status_back.ravel() == 1) \

@@ -42,7 +42,9 @@ def resolved_side(value, what: str = "max_side") -> int | None:
     """A side as a user wrote it -> the side a MethodSpec records: None (full resolution) for 0
     or None, else the positive number; anything else is a one-line ValueError."""
     if not (value is None or _whole(value)):
-        raise ValueError(f"{what} must be {FULL_RESOLUTION} (full resolution) or a positive whole number, got {value!r}")
+        raise ValueError(
+            f"{what} must be {FULL_RESOLUTION} (full resolution) or a positive whole number, got {value!r}"
+        )
     return None if value in (None, FULL_RESOLUTION) else int(value)
 
 

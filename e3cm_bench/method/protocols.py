@@ -58,65 +58,103 @@ class Protocol:
         return {"protocol": self.name, "drop_failures": self.drop_failures, **self.evaluation.get(benchmark, {})}
 
 
-PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
-    Protocol(
-        "default", "e3cm-bench's own (docs/benchmarks.md, Protocols)",
-        (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
-        notes={"hpatches": "images at full size",
-               "megadepth": "longer side at most 1200; failures count with error inf",
-               "yfcc": "longer side at most 1200; failures count with error inf; images turned upright"},
-    ),
-    Protocol(
-        "wxbs", "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), confidence "
-        "0.999, 100000 iterations; a failed estimate scores 0",
-        ("wxbs", "evd"),
-        notes={"wxbs": "F at 0.25 px", "evd": "H at 0.5 px"},
-        evaluation={
-            "wxbs": {"opencv_method": "magsac", "fundamental_ransac_px": 0.25, "fundamental_confidence": 0.999,
-                     "fundamental_max_iters": 100000},
-            "evd": {"opencv_method": "magsac", "homography_ransac_px": 0.5, "homography_confidence": 0.999,
-                    "homography_max_iters": 100000},
-        },
-    ),
-    Protocol(
-        "loftr", "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "
-        "floored to a multiple of 8, bilinear",
-        ("megadepth",), max_side={"megadepth": 840}, resize={"megadepth": "exact-div8"}, rotation_error="reference",
-    ),
-    Protocol(
-        "superglue", "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
-        "longer side resized to 1600 px (enlarged too), bilinear; essential-matrix RANSAC at 1 px of the resized images",
-        ("yfcc",), max_side={"yfcc": 1600}, resize={"yfcc": "exact"},
-        evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}}, rotation_error="reference",
-    ),
-    Protocol(
-        "gluefactory", "glue-factory's evaluation",
-        ("megadepth", "hpatches"),
-        notes={"megadepth": "its official LightGlue configs: longer side resized to 1600 px (enlarged too), PoseLib's "
-                            "relative pose at 2 px of the resized images (its README's command)",
-               "hpatches": "gluefactory/eval/hpatches.py and eval/utils.py: the ground-truth H applied to "
-                           "corner-convention coordinates, glue-factory's match precision prec@1px/prec@3px "
-                           "(symmetric H error strictly below t; mprec: its median over pairs), PoseLib's H at 1 px, "
-                           "corner error on the corners (0, 0)..(w, h); its 480 px short-side resize is not applied: "
-                           "the errors are in the run's pixels"}, max_side={"megadepth": 1600}, resize={"megadepth": "exact"},
-        evaluation={"megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"},
-                    "hpatches": {"homography_pixel_origin": "corner", "match_precision_px": (1.0, 3.0),
-                                 "estimator": "poselib", "homography_ransac_px": 1.0}},
-        rotation_error="reference",
-    ),
-    Protocol(
-        "e3cm-release", "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
-        "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
-        ("hpatches", "megadepth", "yfcc"),
-        max_side={"hpatches": FULL_RESOLUTION, "megadepth": FULL_RESOLUTION, "yfcc": FULL_RESOLUTION},
-        method_options={
-            "hpatches": {"channel_order": "bgr"},
-            "megadepth": {"channel_order": "bgr", "num_levels": 4},
-            "yfcc": {"channel_order": "bgr", "num_levels": 4},
-        },
-        drop_failures=True, standard=False, rotation_error="reference",
-    ),
-]}
+PROTOCOLS: dict[str, Protocol] = {
+    p.name: p
+    for p in [
+        Protocol(
+            "default",
+            "e3cm-bench's own (docs/benchmarks.md, Protocols)",
+            (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
+            notes={
+                "hpatches": "images at full size",
+                "megadepth": "longer side at most 1200; failures count with error inf",
+                "yfcc": "longer side at most 1200; failures count with error inf; images turned upright",
+            },
+        ),
+        Protocol(
+            "wxbs",
+            "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), confidence "
+            "0.999, 100000 iterations; a failed estimate scores 0",
+            ("wxbs", "evd"),
+            notes={"wxbs": "F at 0.25 px", "evd": "H at 0.5 px"},
+            evaluation={
+                "wxbs": {
+                    "opencv_method": "magsac",
+                    "fundamental_ransac_px": 0.25,
+                    "fundamental_confidence": 0.999,
+                    "fundamental_max_iters": 100000,
+                },
+                "evd": {
+                    "opencv_method": "magsac",
+                    "homography_ransac_px": 0.5,
+                    "homography_confidence": 0.999,
+                    "homography_max_iters": 100000,
+                },
+            },
+        ),
+        Protocol(
+            "loftr",
+            "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "
+            "floored to a multiple of 8, bilinear",
+            ("megadepth",),
+            max_side={"megadepth": 840},
+            resize={"megadepth": "exact-div8"},
+            rotation_error="reference",
+        ),
+        Protocol(
+            "superglue",
+            "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
+            "longer side resized to 1600 px (enlarged too), bilinear; essential-matrix RANSAC at 1 px of the resized "
+            "images",
+            ("yfcc",),
+            max_side={"yfcc": 1600},
+            resize={"yfcc": "exact"},
+            evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
+            rotation_error="reference",
+        ),
+        Protocol(
+            "gluefactory",
+            "glue-factory's evaluation",
+            ("megadepth", "hpatches"),
+            notes={
+                "megadepth": "its official LightGlue configs: longer side resized to 1600 px (enlarged too), PoseLib's "
+                "relative pose at 2 px of the resized images (its README's command)",
+                "hpatches": "gluefactory/eval/hpatches.py and eval/utils.py: the ground-truth H applied to "
+                "corner-convention coordinates, glue-factory's match precision prec@1px/prec@3px "
+                "(symmetric H error strictly below t; mprec: its median over pairs), PoseLib's H at 1 px, "
+                "corner error on the corners (0, 0)..(w, h); its 480 px short-side resize is not applied: "
+                "the errors are in the run's pixels",
+            },
+            max_side={"megadepth": 1600},
+            resize={"megadepth": "exact"},
+            evaluation={
+                "megadepth": {"estimator": "poselib", "pose_ransac_px": 2.0, "pose_ransac_frame": "matched"},
+                "hpatches": {
+                    "homography_pixel_origin": "corner",
+                    "match_precision_px": (1.0, 3.0),
+                    "estimator": "poselib",
+                    "homography_ransac_px": 1.0,
+                },
+            },
+            rotation_error="reference",
+        ),
+        Protocol(
+            "e3cm-release",
+            "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
+            "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
+            ("hpatches", "megadepth", "yfcc"),
+            max_side={"hpatches": FULL_RESOLUTION, "megadepth": FULL_RESOLUTION, "yfcc": FULL_RESOLUTION},
+            method_options={
+                "hpatches": {"channel_order": "bgr"},
+                "megadepth": {"channel_order": "bgr", "num_levels": 4},
+                "yfcc": {"channel_order": "bgr", "num_levels": 4},
+            },
+            drop_failures=True,
+            standard=False,
+            rotation_error="reference",
+        ),
+    ]
+}
 
 
 def rotation_error(protocol: str) -> str:
@@ -148,7 +186,9 @@ def resolve_max_side(benchmark, given: int | None, protocol: str | None = None) 
 
 def get_protocol(name: str, benchmark: str) -> Protocol:
     if name not in PROTOCOLS:
-        raise ValueError(f"unknown protocol {name!r}{did_you_mean(name, PROTOCOLS)}; choose one of {', '.join(PROTOCOLS)}")
+        raise ValueError(
+            f"unknown protocol {name!r}{did_you_mean(name, PROTOCOLS)}; choose one of {', '.join(PROTOCOLS)}"
+        )
     protocol = PROTOCOLS[name]
     if protocol.benchmarks and benchmark not in protocol.benchmarks:
         raise ValueError(f"protocol {name!r} is defined for {', '.join(protocol.benchmarks)}, not {benchmark}")

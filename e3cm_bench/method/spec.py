@@ -31,7 +31,8 @@ class MethodSpec:
     settings: the matcher's own fields (E3CMSettings / DFMSettings) as sorted (key, value)
     pairs, lists turned into tuples, so that the spec is hashable and compares by value.
     max_side: longer side for matching, None = full resolution (already resolved against
-    the benchmark's default; what config.yaml records, options.resolved_side). resize: how images are brought to max_side (images.RESIZE_MODES:
+    the benchmark's default; what config.yaml records, options.resolved_side). resize: how images are brought to
+    max_side (images.RESIZE_MODES:
     shrink, ours; exact, SuperGlue's; exact-div8, LoFTR's). seed: the seed of the matcher's robust estimators, None for
     matchers that draw no random numbers (their matches do not depend on it). upright: match
     images turned upright by their pair list's rot0/rot1 (YFCC, ScanNet; SuperGlue's way).
@@ -146,8 +147,8 @@ class MethodSpec:
         return dict(self.settings)
 
     def default_label(self) -> str:
-        """The matcher's name, then "-backbone" unless the default backbone (vgg19), "-estimator" unless top8, "-variant"
-        of dfm unless release: e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
+        """The matcher's name, then "-backbone" unless the default backbone (vgg19), "-estimator" unless top8,
+        "-variant" of dfm unless release: e.g. e3cm-ransac, dfm-densenet161, dfm-corrected."""
         name = get_matcher(self.matcher).name  # package.module:factory -> the factory's matcher name
         label = name if self.backbone in (None, DEFAULT_BACKBONE) else f"{name}-{self.backbone}"
         settings = self.settings_dict()
@@ -166,8 +167,15 @@ class MethodSpec:
         build_matcher)."""
         from e3cm_bench.matchers import build_matcher
 
-        return build_matcher(self.matcher, self.backbone or DEFAULT_BACKBONE, self.weights, device, pretrained, self.settings_dict(),
-                             loaded=loaded)
+        return build_matcher(
+            self.matcher,
+            self.backbone or DEFAULT_BACKBONE,
+            self.weights,
+            device,
+            pretrained,
+            self.settings_dict(),
+            loaded=loaded,
+        )
 
     @property
     def folder(self) -> str:

@@ -25,7 +25,9 @@ def config_names() -> dict[str, Path]:
     then every file's full stem (``table1_hpatches``, ``design_points_kitti``)."""
     paths = sorted(CONFIG_DIR.glob("*.yaml"))
     prefixes = [path.stem.split("_")[0] for path in paths]
-    short = {prefix: path for prefix, path in zip(prefixes, paths) if prefixes.count(prefix) == 1 and prefix != path.stem}
+    short = {
+        prefix: path for prefix, path in zip(prefixes, paths) if prefixes.count(prefix) == 1 and prefix != path.stem
+    }
     return {**short, **{path.stem: path for path in paths}}
 
 

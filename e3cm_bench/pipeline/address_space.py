@@ -34,6 +34,8 @@ def check_address_space(when: str, pairs: int) -> None:
         return
     soft = resource.getrlimit(resource.RLIMIT_AS)[0]
     kept = f"; the {pairs} pair(s) matched are kept and the same command resumes" if pairs else "; nothing was matched"
-    raise ValueError(f"{when}: the address-space limit (ulimit -v {soft // 1024}) leaves {max(left, 0):.0f} MiB in this "
-                     f"process, and matching and evaluating need about {ADDRESS_SPACE_NEEDED_MB} MiB more (OpenCV's BLAS "
-                     f"crashes without them): raise the limit, e.g. ulimit -v unlimited{kept}")
+    raise ValueError(
+        f"{when}: the address-space limit (ulimit -v {soft // 1024}) leaves {max(left, 0):.0f} MiB in this "
+        f"process, and matching and evaluating need about {ADDRESS_SPACE_NEEDED_MB} MiB more (OpenCV's BLAS "
+        f"crashes without them): raise the limit, e.g. ulimit -v unlimited{kept}"
+    )

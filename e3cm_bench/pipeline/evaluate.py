@@ -215,7 +215,9 @@ def evaluate_and_report(run, console: Console) -> tuple[list[Pair], dict]:
     pairs = [p for p in run.pairs if p.name not in failed]
     if not pairs:
         raise ValueError(f"{out}: no pair could be matched ({skipped[0][1]})")
-    per_pair, summary, failures = evaluate_stage(benchmark, pairs, cache, ev, workdir=out, matcher=run.config.matcher_name)
+    per_pair, summary, failures = evaluate_stage(
+        benchmark, pairs, cache, ev, workdir=out, matcher=run.config.matcher_name
+    )
     if skipped:  # a clean run keeps the usual columns; a run with holes says so in its summary
         summary["n_skipped"] = len(skipped)
     if failures:  # scored as failures (no matches); the count says how many were the matcher's
@@ -240,7 +242,9 @@ def write_skipped(skipped: list[tuple[str, str]], path: Path, console: Console) 
         path.unlink(missing_ok=True)
         return
     write_csv(pd.DataFrame(skipped, columns=["pair", "reason"]), path)
-    console.print(f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False)
+    console.print(
+        f"{len(skipped)} pair(s) skipped for bad input, listed in {path} (first: {skipped[0][1]})", markup=False
+    )
 
 
 def write_failures(failures: list[tuple[str, str]], path: Path, console: Console) -> None:

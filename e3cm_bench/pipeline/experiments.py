@@ -80,7 +80,10 @@ def load_experiment(path: Path) -> dict:
     config = load_yaml(path, what="experiment config")
     unknown = set(config) - EXPERIMENT_KEYS
     if unknown:
-        raise ValueError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has {', '.join(sorted(EXPERIMENT_KEYS))}")
+        raise ValueError(
+            f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has "
+            f"{', '.join(sorted(EXPERIMENT_KEYS))}"
+        )
     if not isinstance(config.get("dataset") or {}, dict):
         raise ValueError(f"{path}: 'dataset' must be a mapping of dataset options")
     _check_types(path, "", config, EXPERIMENT_TYPES, nullable=("dataset",))
@@ -122,8 +125,16 @@ def load_experiment(path: Path) -> dict:
     return config
 
 
-def reproduce(config_path: Path | str, request: RunRequest, *, backbone: str | None = None, max_side: int | None = None,
-              only: list[str] | None = None, compare: bool = True, console: Console | None = None) -> tuple[Path, Path] | None:
+def reproduce(
+    config_path: Path | str,
+    request: RunRequest,
+    *,
+    backbone: str | None = None,
+    max_side: int | None = None,
+    only: list[str] | None = None,
+    compare: bool = True,
+    console: Console | None = None,
+) -> tuple[Path, Path] | None:
     """Run every method of an experiment config (or those labelled in `only`), then write its
     table and plots. config_path: a YAML file, or a shipped config's name (``table1``; paper.config_names).
 
@@ -177,14 +188,18 @@ def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, backbone
         labels = [experiment_method(e, experiment, benchmark, None, max_side, available=False).label for e in entries]
         unknown = sorted(set(only) - set(labels))
         if unknown:
-            raise ValueError(f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}")
+            raise ValueError(
+                f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}"
+            )
         entries = [e for e, label in zip(entries, labels) if label in only]
     methods = []
     for entry in entries:
         try:
             methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
         except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
-            raise ValueError(f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)") from None
+            raise ValueError(
+                f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)"
+            ) from None
     return methods
 
 
@@ -209,8 +224,14 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
 
 
 def write_table(
-    run_dirs: list[Path], out_path: Path, reference: Path | None = None, compare: bool = True,
-    console: Console | None = None, paper_rows: bool = True, latex: bool = False, shape: report.TableShape | None = None,
+    run_dirs: list[Path],
+    out_path: Path,
+    reference: Path | None = None,
+    compare: bool = True,
+    console: Console | None = None,
+    paper_rows: bool = True,
+    latex: bool = False,
+    shape: report.TableShape | None = None,
 ) -> tuple[Path, Path]:
     """Collect runs into the paper's layout (CSV + Markdown) plus the comparison plots beside it.
 

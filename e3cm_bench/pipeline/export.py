@@ -58,7 +58,9 @@ def _run_folder_holding(folder: Path, run_dir: Path) -> Path | None:
         if place == run_dir:
             return place
         here = RunFolder(place)
-        if here.config_path.is_file() and any(p.is_file() for p in (here.matches_path, here.per_pair_path, here.summary_path)):
+        if here.config_path.is_file() and any(
+            p.is_file() for p in (here.matches_path, here.per_pair_path, here.summary_path)
+        ):
             return place
     return None
 
@@ -180,7 +182,9 @@ def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items:
     # Within the terminal's width, or 80 columns in a pipe or a log (formats.text_width: rich alone
     # takes the width of a terminal on stdin, so `export ... > log` wrote lines as wide), words whole.
     say = functools.partial(print_wrapped, console)
-    say(f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} (pixel origin: {origin})")
+    say(
+        f"export: {len(items)} pairs ({n_matches} matches) of {run_dir} -> {fmt.name} in {out} (pixel origin: {origin})"
+    )
     if fmt.stores_geometry:
         verified = sum(item.geometry is not None for item in items)
         say(f"export: {verified} of {len(items)} pairs with a two-view geometry (the evaluation's inliers)")
@@ -188,7 +192,11 @@ def _report(console: Console, run_dir: Path, out: Path, fmt, origin: str, items:
              "pixel_origin": origin}
     if job.merged is not None:
         found.update(_merge_figures(items, job.merged, job.layout, job.merge_px))
-        how = "exact repeats merged" if job.merge_px == 0 else f"exact repeats and points within {job.merge_px:g} px merged"
+        how = (
+            "exact repeats merged"
+            if job.merge_px == 0
+            else f"exact repeats and points within {job.merge_px:g} px merged"
+        )
         say(f"export: one keypoint list per image: {2 * n_matches} matched keypoints -> {found['n_keypoints_merged']} "
             f"({how}); {found['n_tracks']} tracks, {found['mean_track_length']:.2f} images each on average")
         if job.layout is not None:

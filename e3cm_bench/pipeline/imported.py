@@ -78,7 +78,9 @@ class ImportRun(PairRun):
         self.done = {p.name for p in self.pairs} - {p.name for p in todo}
         previous = folder.run_config(required=False)
         if previous is not None and self.done:
-            folder.check_imported(previous, self.benchmark.name, identity, files if source.per_pair else None, self.done)
+            folder.check_imported(
+                previous, self.benchmark.name, identity, files if source.per_pair else None, self.done
+            )
         elif previous is not None and previous.identity != identity:  # nothing imported: nothing to mix with
             console.print(f"{request.out}: holds no matches of its earlier sources; importing these", markup=False,
                           highlight=False, soft_wrap=True)

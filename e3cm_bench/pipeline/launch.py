@@ -30,7 +30,9 @@ def max_cpu_workers() -> tuple[int, str]:
     cores = os.cpu_count() or 1
     free = available_host_memory()
     by_memory = cores if free is None else max(1, free // WORKER_BYTES)
-    why = f"{cores} cores" + ("" if free is None else f", {free / 2**30:.1f} GiB available at about {WORKER_BYTES / 2**30:.0f} GiB each")
+    why = f"{cores} cores" + (
+        "" if free is None else f", {free / 2**30:.1f} GiB available at about {WORKER_BYTES / 2**30:.0f} GiB each"
+    )
     return max(1, min(cores, by_memory)), why
 
 
@@ -65,11 +67,15 @@ def check_slurm(shards: int) -> None:
     if not 1 <= shards <= MAX_SHARDS:
         raise ValueError(f"--shards must be from 1 to {MAX_SHARDS:,}, got {shards}")
     if shutil.which("srun") is None:
-        check_workers(shards, f"--launcher slurm --shards {shards} (no srun here: submitit starts them as local processes)")
+        check_workers(
+            shards, f"--launcher slurm --shards {shards} (no srun here: submitit starts them as local processes)"
+        )
         return
     try:
         done = subprocess.run(["sinfo", "-h"], capture_output=True, text=True, timeout=30)
-        why = None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+        why = (
+            None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+        )
     except (OSError, subprocess.TimeoutExpired) as error:
         why = f"{type(error).__name__}: {error}"
     if why is not None:

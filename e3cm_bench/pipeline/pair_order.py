@@ -96,7 +96,9 @@ def most_alive(order: list[Pair]) -> int:
             first.setdefault(image, k)
             last[image] = k
     alive = top = 0
-    for _, step in sorted([(k, 1) for k in first.values()] + [(k, -1) for k in last.values()], key=lambda e: (e[0], -e[1])):
+    for _, step in sorted(
+        [(k, 1) for k in first.values()] + [(k, -1) for k in last.values()], key=lambda e: (e[0], -e[1])
+    ):
         alive += step
         top = max(top, alive)
     return top

@@ -93,7 +93,9 @@ def _with_dataset(request: RunRequest, console: Console) -> RunRequest:
     if dataset is None:
         if request.root is None:
             raise ValueError("run_benchmark: give the dataset or its root")
-        dataset = benchmark.load_dataset(request.root, skip_bad=request.skip_bad, limit=limit, **request.dataset_options)
+        dataset = benchmark.load_dataset(
+            request.root, skip_bad=request.skip_bad, limit=limit, **request.dataset_options
+        )
         request = request.but(dataset=dataset, dataset_load=RunConfig.dataset_load_of(
             request.root, request.skip_bad, request.dataset_options))
     n_total = len(dataset) + dataset.n_skipped
@@ -159,7 +161,9 @@ class BenchmarkRun(PairRun):
 
     def _check_eval_only(self, previous: RunConfig | None) -> None:
         if previous is None:
-            raise ValueError(f"{self.folder.config_path}: not found; --eval-only needs a finished or resumed run in --out")
+            raise ValueError(
+                f"{self.folder.config_path}: not found; --eval-only needs a finished or resumed run in --out"
+            )
         if self.todo:
             raise ValueError(
                 f"{self.folder.matches_path}: {len(self.todo)} of {len(self.pairs)} pairs have no matches "
@@ -213,7 +217,9 @@ class BenchmarkRun(PairRun):
             self.config.matcher = now
             self.folder.write_config(self.config)
 
-        return MatchJob(self.method, self.todo, self.cache, self.skipped if self.request.dataset.skip_bad else None, record_matcher)
+        return MatchJob(
+            self.method, self.todo, self.cache, self.skipped if self.request.dataset.skip_bad else None, record_matcher
+        )
 
     def add_stats(self, spent: dict) -> None:
         """A match stage's time and feature reuse, added to those of earlier (resumed) stages."""
@@ -221,8 +227,17 @@ class BenchmarkRun(PairRun):
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before, reuse = config.feature_reuse or {}, dict(reuse)
-            for key in ("backbone_passes", "reused", "distinct_images", "read_from_disk", "written_to_disk", "disk_full",
-                        "dropped_from_disk", "products_reused", "batches_run"):
+            for key in (
+                "backbone_passes",
+                "reused",
+                "distinct_images",
+                "read_from_disk",
+                "written_to_disk",
+                "disk_full",
+                "dropped_from_disk",
+                "products_reused",
+                "batches_run",
+            ):
                 if key in reuse:  # counts of a resumed run add up over its stages
                     reuse[key] += before.get(key, 0)
             for key in ("images_alive_at_most", "peak_memory_mb", "peak_disk_mb", "largest_batch"):

@@ -148,8 +148,11 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
         raise ValueError(f"{RunFolder(out).shards_dir}: no shards to merge (run with --shard K/N first)")
     counts = {n for _, n in configs}
     if len(counts) > 1:
-        raise ValueError(f"{RunFolder(out).shards_dir}: shards of different layouts ({', '.join(f'N={n}' for n in sorted(counts))}); "
-                         "keep one and delete the others")
+        raise ValueError(
+            f"{RunFolder(out).shards_dir}: shards of different layouts "
+            f"({', '.join(f'N={n}' for n in sorted(counts))}); "
+            "keep one and delete the others"
+        )
     n = counts.pop()
     check_shard_count((1, n), option=f"{RunFolder(out).shards_dir}: shards of N={n}")
     missing = [(k, n) for k in range(1, n + 1) if (k, n) not in configs]
@@ -163,8 +166,10 @@ def merge_run(out: str | Path, viz: int = 0, console: Console | None = None) -> 
     RunFolder(out).check_shards(configs)
     first = configs[(1, n)]
     if not first.dataset_load:
-        raise ValueError(f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
-                         "cannot be merged from the command line)")
+        raise ValueError(
+            f"{RunFolder(out).shard((1, n)).config_path}: no dataset_load (shards made from a dataset object "
+            "cannot be merged from the command line)"
+        )
     loaded = load_run_pairs(RunFolder(out).shard((1, n)).config_path)
     run = MergeRun(loaded.benchmark, RunFolder(out), evaluation_of(loaded.config), viz, pairs=loaded.pairs,
                    count_evaluated=True, configs=configs, n=n)
@@ -203,7 +208,8 @@ class MergeRun(PairRun):
             run.cache, run.skipped = _merged_matches(run.folder.path, run.n, run.pairs)
 
     def title(self, summary: dict) -> str:
-        return f"{self.benchmark.name} - {self.config.method} ({self.evaluated} pairs, {self.n} shards merged) -> {self.folder.path}"
+        return (f"{self.benchmark.name} - {self.config.method} ({self.evaluated} pairs, {self.n} shards merged) "
+                f"-> {self.folder.path}")
 
 
 def _merged_matches(out: Path, n: int, pairs: list) -> tuple[ShardedCache, list]:
@@ -219,8 +225,10 @@ def _merged_matches(out: Path, n: int, pairs: list) -> tuple[ShardedCache, list]
     failed = {name for name, _ in skipped}
     absent = [p.name for p in pairs if p.name not in cache.where and p.name not in failed]
     if absent:
-        raise ValueError(f"{RunFolder(out).shards_dir}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
-                         "the shards were made from another pair list")
+        raise ValueError(
+            f"{RunFolder(out).shards_dir}: {len(absent)} pair(s) are in no shard's cache (first: {absent[0]}); "
+            "the shards were made from another pair list"
+        )
     return cache, skipped
 
 

@@ -25,8 +25,16 @@ from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from e3cm_bench.pipeline.address_space import check_address_space
 from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
-from e3cm_bench.pipeline.pair import (COST_ATTRS, PAIR_ATTRS, MatcherError, TimeLimit, match_pair, match_worker, matcher_input,
-                                     pair_rotations)
+from e3cm_bench.pipeline.pair import (
+    COST_ATTRS,
+    PAIR_ATTRS,
+    MatcherError,
+    TimeLimit,
+    match_pair,
+    match_worker,
+    matcher_input,
+    pair_rotations,
+)
 from e3cm_bench.pipeline.progress import progress_bar
 
 
@@ -202,9 +210,11 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, options: Mat
         if todo:
             check_address_space("before matching", 0)
         if shared.workers is None and options.pair_timeout is not None:
-            console.print(f"--pair-timeout: CUDA is in use, and it cannot run in a forked child, so the limit runs in this "
-                          "process: a matcher that blocks SIGALRM or never returns from C code is not stopped by it",
-                          markup=False)
+            console.print(
+                "--pair-timeout: CUDA is in use, and it cannot run in a forked child, so the limit runs in this "
+                "process: a matcher that blocks SIGALRM or never returns from C code is not stopped by it",
+                markup=False,
+            )
         _pass_over_pairs(jobs, shared, console, options)
     finally:
         for worker in shared.workers or []:
@@ -369,5 +379,8 @@ def too_big_message(method: MethodSpec, error: BaseException) -> str:
     # A MemoryError of DeepMatcher.check_memory says how much is needed and which side fits.
     hint = str(error) if isinstance(error, MemoryError) and "--max-side" in str(error) else \
         "pass a smaller --max-side, e.g. 1600"
-    return (f"its images at {method.resize_description} do not fit in memory for {method.label} (the pairs matched before it are "
-            f"kept): {hint}")
+    return (
+        f"its images at {method.resize_description} do not fit in memory for {method.label} (the pairs matched before "
+        "it are "
+        f"kept): {hint}"
+    )

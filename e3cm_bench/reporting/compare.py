@@ -69,12 +69,24 @@ class Comparison:
         pairs; d = b - a with its interval [d_lo, d_hi]; p_value and verdict from that interval."""
         rows = []
         for metric, r in zip(self.metrics, self.results):
-            rows.append({
-                "metric": r.metric, "statistic": r.statistic, "better": "higher" if metric.higher_is_better else "lower",
-                "n": r.n, "a": r.a, "b": r.b, "d": r.diff, "d_lo": r.lo, "d_hi": r.hi, "p_value": r.p_value,
-                "verdict": r.verdict, "confidence": self.confidence, "bootstrap_samples": self.n_samples,
-                "bootstrap_seed": self.seed,
-            })
+            rows.append(
+                {
+                    "metric": r.metric,
+                    "statistic": r.statistic,
+                    "better": "higher" if metric.higher_is_better else "lower",
+                    "n": r.n,
+                    "a": r.a,
+                    "b": r.b,
+                    "d": r.diff,
+                    "d_lo": r.lo,
+                    "d_hi": r.hi,
+                    "p_value": r.p_value,
+                    "verdict": r.verdict,
+                    "confidence": self.confidence,
+                    "bootstrap_samples": self.n_samples,
+                    "bootstrap_seed": self.seed,
+                }
+            )
         return pd.DataFrame(rows)
 
     def display(self, wide: bool = True) -> tuple[list[str], list[list[str]]]:
@@ -89,10 +101,17 @@ class Comparison:
             header = ["metric", "n", "A", "B", interval, "verdict"]
         body = []
         for row in self.table().to_dict("records"):
-            cells = {"metric": row["metric"], "statistic": row["statistic"], "better": row["better"], "n": str(row["n"]),
-                     "a": _value(row["a"]), "b": _value(row["b"]),
-                     "d": _difference(row),
-                     "p": _p_value(row["p_value"], self.n_samples), "verdict": row["verdict"]}
+            cells = {
+                "metric": row["metric"],
+                "statistic": row["statistic"],
+                "better": row["better"],
+                "n": str(row["n"]),
+                "a": _value(row["a"]),
+                "b": _value(row["b"]),
+                "d": _difference(row),
+                "p": _p_value(row["p_value"], self.n_samples),
+                "verdict": row["verdict"],
+            }
             keys = (["metric", "statistic", "better", "n", "a", "b", "d", "p", "verdict"] if wide
                     else ["metric", "n", "a", "b", "d", "verdict"])
             body.append([cells[k] for k in keys])
@@ -185,9 +204,13 @@ def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEF
     if isinstance(benchmark, HomographyBenchmark):
         return [
             *(PairedMetric(f"mma@{t}", _column(f"mma@{t}"), higher_is_better=True) for t in mma),
-            PairedMetric("h_error", _column("h_error", failure_is_inf=True), higher_is_better=False, statistic="median"),
-            *(PairedMetric(f"h_acc@{t}", _passes("h_error", t, inclusive=True), higher_is_better=True)
-              for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS),
+            PairedMetric(
+                "h_error", _column("h_error", failure_is_inf=True), higher_is_better=False, statistic="median"
+            ),
+            *(
+                PairedMetric(f"h_acc@{t}", _passes("h_error", t, inclusive=True), higher_is_better=True)
+                for t in metrics.HOMOGRAPHY_ACCURACY_THRESHOLDS
+            ),
         ]
     if isinstance(benchmark, PoseBenchmark):
         precision = benchmark.table_metrics.get("P", metrics.precision_key(metrics.PRECISION_THRESHOLDS[0]))
@@ -212,7 +235,10 @@ def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEF
 def _pairs(run: Run) -> pd.DataFrame:
     per_pair = run.per_pair
     if per_pair.empty or "pair" not in per_pair.columns:
-        raise ValueError(f"{run.folder.per_pair_path}: missing, empty or without a 'pair' column; compare reads each run's pairs from it")
+        raise ValueError(
+            f"{run.folder.per_pair_path}: missing, empty or without a 'pair' column; compare reads each run's pairs "
+            "from it"
+        )
     duplicated = per_pair["pair"][per_pair["pair"].duplicated()]
     if len(duplicated):
         raise ValueError(f"{run.folder.per_pair_path}: pair {duplicated.iloc[0]!r} appears more than once")
@@ -275,7 +301,10 @@ def print_comparison(comparison: Comparison, console: Console | None = None) -> 
     header, body = comparison.display(wide=False)
     same_n = all(r.n == comparison.n_common for r in comparison.results)
     if same_n:  # the n column would repeat the heading's number on every row: room for the verdict
-        header, body = [h for k, h in enumerate(header) if k != 1], [[c for k, c in enumerate(row) if k != 1] for row in body]
+        header, body = (
+            [h for k, h in enumerate(header) if k != 1],
+            [[c for k, c in enumerate(row) if k != 1] for row in body],
+        )
     every = ", each row over all of them (n)" if same_n else ""
     console.print(f"{comparison.benchmark}: {comparison.n_common} pairs in both runs are compared{every}", markup=False,
                   highlight=False, width=width)
@@ -301,7 +330,11 @@ def to_markdown(comparison: Comparison) -> str:
     right = {3, 4, 5, 6, 7}
 
     def line(cells: Sequence[str]) -> str:
-        return "| " + " | ".join(c.rjust(w) if k in right else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths))) + " |"
+        return (
+            "| "
+            + " | ".join(c.rjust(w) if k in right else c.ljust(w) for k, (c, w) in enumerate(zip(cells, widths)))
+            + " |"
+        )
 
     rule = "| " + " | ".join("-" * (w - 1) + ":" if k in right else "-" * w for k, w in enumerate(widths)) + " |"
     # the heading holds the two labels: their characters stay text (no HTML, no link)

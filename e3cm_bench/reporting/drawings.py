@@ -72,7 +72,9 @@ def draw_pairs(runs: list[Run], chosen: list[str], out: Path, notes: list[str]) 
                 notes.append(f"{run.label}: {error}; no drawing")
                 continue
             correct = run.benchmark.correct_mask(pair, matches, ev) if len(matches) else None
-            canvas = draw_matches(image0, image1, matches.keypoints0, matches.keypoints1, correct=correct, max_lines=400)
+            canvas = draw_matches(
+                image0, image1, matches.keypoints0, matches.keypoints1, correct=correct, max_lines=400
+            )
             scale = min(1.0, DRAWING_WIDTH / canvas.shape[1])
             if scale < 1:
                 canvas = cv2.resize(canvas, (round(canvas.shape[1] * scale), round(canvas.shape[0] * scale)),

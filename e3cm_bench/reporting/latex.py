@@ -44,8 +44,12 @@ def compared_columns(table: pd.DataFrame, columns: list[str]) -> list[str]:
     """The columns whose best value is bold: the paper's metrics and the measured numbers with an
     interval; never a count (how much was run or registered: formats.is_count) or a descriptive
     figure."""
-    with_interval = {c for c in columns if intervals.lo_key(c) in table.columns and table[intervals.lo_key(c)].notna().any()}
-    paper_metrics = {c for c in columns if c in table.columns and table.loc[table["source"] == "paper", c].notna().any()}
+    with_interval = {
+        c for c in columns if intervals.lo_key(c) in table.columns and table[intervals.lo_key(c)].notna().any()
+    }
+    paper_metrics = {
+        c for c in columns if c in table.columns and table.loc[table["source"] == "paper", c].notna().any()
+    }
     return [c for c in columns if c in with_interval | paper_metrics and not is_count(c) and c not in _DESCRIPTIVE]
 
 

@@ -59,8 +59,10 @@ def write_report(run_dirs: list[Path], out: Path, console: Console | None = None
         raise ValueError(f"report: runs of different benchmarks ({listing}); one report per benchmark")
     labels = [r.label for r in runs]
     if len(set(labels)) != len(labels):
-        raise ValueError(f"report: two runs share a label ({', '.join(sorted({l for l in labels if labels.count(l) > 1}))}); "
-                         "give each its own --label")
+        raise ValueError(
+            f"report: two runs share a label ({', '.join(sorted({l for l in labels if labels.count(l) > 1}))}); "
+            "give each its own --label"
+        )
     for run in runs:
         if run.per_pair.empty:
             raise ValueError(f"{run.folder.per_pair_path}: missing or empty; the report reads each run's pairs from it")

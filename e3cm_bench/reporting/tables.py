@@ -126,7 +126,9 @@ def _read_reference(path: Path, benchmark: Benchmark) -> pd.DataFrame:
     return reference
 
 
-def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: str | Path | None = None) -> pd.DataFrame:
+def paper_table(
+    runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: str | Path | None = None
+) -> pd.DataFrame:
     """The paper's table layout: the paper's rows (source 'paper') then one row per run ('measured').
 
     Columns: ``method, source``, the paper's metrics (HPatches: h_acc@1/3/5 as
@@ -163,8 +165,19 @@ def paper_table(runs: Sequence[Run], benchmark: str | Benchmark, reference_csv: 
     sources = {**table_metrics, **{extra: extra for extra in extras
                                    if not extra.startswith(intervals.COUNTS) and extra not in intervals.PEAKS}}
     measured_rows = [_measured_row(run, benchmark, paper_by_key, sources, extras) for run in runs]
-    columns = ["method", "source", *table_metrics, *extras, "vs_paper", "protocol", *(f"d_{m}" for m in table_metrics),
-               OUTSIDE, OTHER_PAIRS, *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))), "confidence"]
+    columns = [
+        "method",
+        "source",
+        *table_metrics,
+        *extras,
+        "vs_paper",
+        "protocol",
+        *(f"d_{m}" for m in table_metrics),
+        OUTSIDE,
+        OTHER_PAIRS,
+        *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))),
+        "confidence",
+    ]
     return pd.DataFrame(paper_rows + measured_rows, columns=columns)
 
 
@@ -293,7 +306,9 @@ def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list
                 text += f" ({OTHER_PAIRS_MARK})"
             elif c.startswith("d_") and c[2:] in outside:
                 confidence = record.get("confidence")
-                level = f"{float(confidence):.0%} " if isinstance(confidence, float) and confidence == confidence else ""
+                level = (
+                    f"{float(confidence):.0%} " if isinstance(confidence, float) and confidence == confidence else ""
+                )
                 text += f" (outside {level}CI)"
             cells.append(text)
         body.append(cells)

@@ -35,9 +35,21 @@ class SfMBenchmark(Benchmark):
     ransac_field: str = "pose_ransac_px"
     table_metrics: Mapping[str, str] = field(default_factory=lambda: {
         **{f"auc@{t}": f"auc@{t}" for t in metrics.POSE_AUC_THRESHOLDS}, "mAA": sfm_metrics.MAA})
-    table_extras: tuple[str, ...] = ("n_pairs", "n_failures", "registered_images", "n_images", "n_models", "points",
-                                     "mean_track_length", "mean_reprojection_error", "track_length_database", "repeat_share",
-                                     "merge_displacement_px", "mapper_seeds", "auc@10_sd")
+    table_extras: tuple[str, ...] = (
+        "n_pairs",
+        "n_failures",
+        "registered_images",
+        "n_images",
+        "n_models",
+        "points",
+        "mean_track_length",
+        "mean_reprojection_error",
+        "track_length_database",
+        "repeat_share",
+        "merge_displacement_px",
+        "mapper_seeds",
+        "auc@10_sd",
+    )
     report_columns: tuple[str, ...] = ("n_matches", "n_inliers", "model", "err_pose")
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
@@ -120,12 +132,16 @@ class SfMBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *self.table_metrics.values(), "registered_images", "n_models"]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from e3cm_bench.drawing import plots  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import (
+            plots,
+        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
 
         cdf = stem.with_name(stem.stem + "_pose_cdf.png")
         return [plots.plot_pose_error_cdf({label: p for label, (_, p) in runs.items()}, cdf)]

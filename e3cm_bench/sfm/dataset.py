@@ -2,7 +2,8 @@
 
 Each pair is an ordinary pose pair (K0, K1, T_0to1), so the match stage, its cache, shards and
 feature reuse treat it as any other; as a views.ViewPair it also carries the two views' names,
-which the reconstruction keys its images by, its bag and the set's protocol. Pairs are named ``SET/<stem0>--<stem1>``, SET being the
+which the reconstruction keys its images by, its bag and the set's protocol. Pairs are named ``SET/<stem0>--<stem1>``,
+SET being the
 scene_info file's or the model folder's name (the pair list's own names otherwise).
 """
 
@@ -11,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, PairList, require_directory
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.protocol import _whole, parse_protocol
 from e3cm_bench.sfm.reconstruct import mapper_settings
@@ -42,8 +43,8 @@ class SetOptions:
 
 
 class MultiViewSet(PairList):
-    """The pairs of a multi-view set, by its options (SetOptions): ``scene_info`` (MegaDepth, absolute poses), ``colmap_model``
-    (a sparse model's folder, absolute poses) or ``pairs`` (a SuperGlue list: those pairs, their
+    """The pairs of a multi-view set, by its options (SetOptions): ``scene_info`` (MegaDepth, absolute poses),
+    ``colmap_model`` (a sparse model's folder, absolute poses) or ``pairs`` (a SuperGlue list: those pairs, their
     relative poses). Exactly one is given. With absolute poses the graph is every pair, or
     ``window`` (each image with the next K), or ``graph`` (a file of image-name pairs).
 
@@ -57,7 +58,9 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, options: SetOptions = SetOptions(), skip_bad: bool = False,
                  first: int | None = None) -> None:
-        from e3cm_bench.ground.pycolmap import pycolmap_module  # on first use: the command line's help reads this module
+        from e3cm_bench.ground.pycolmap import (
+            pycolmap_module,
+        )  # on first use: the command line's help reads this module
 
         o = options  # as given: each is checked here
         self.root = require_directory(root, "image set")
@@ -117,8 +120,10 @@ class MultiViewSet(PairList):
             name = f"{set_name}/{labels[item.view0]}--{labels[item.view1]}"
             key = frozenset((item.view0, item.view1))
             if key in seen:
-                raise DatasetError(f"{self.graph or self.source}: pairs {seen[key]} and {name} join the same two images "
-                                   f"({item.view0} and {item.view1}); a reconstruction holds one match list per image pair")
+                raise DatasetError(
+                    f"{self.graph or self.source}: pairs {seen[key]} and {name} join the same two images "
+                    f"({item.view0} and {item.view1}); a reconstruction holds one match list per image pair"
+                )
             seen[key] = name
             try:
                 T = item.T_0to1 if item.T_0to1 is not None else V.relative_pose(
@@ -191,8 +196,13 @@ def graph_components(pairs, views, allow_disconnected: bool, source) -> list[lis
     found = V.components((p.view0, p.view1) for p in pairs)
     if len(found) > 1 and not allow_disconnected:
         labels = V.pair_labels(views)
-        shown = ", ".join("{" + ", ".join(labels[n] for n in names[:3]) + (f", ... {len(names)} images" if len(names) > 3
-                                                                          else "") + "}" for names in found[:4])
+        shown = ", ".join(
+            "{"
+            + ", ".join(labels[n] for n in names[:3])
+            + (f", ... {len(names)} images" if len(names) > 3 else "")
+            + "}"
+            for names in found[:4]
+        )
         more = f" and {len(found) - 4} more" if len(found) > 4 else ""
         raise DatasetError(f"{source}: the pair graph has {len(found)} components that share no "
                            f"image: {shown}{more}; pass --allow-disconnected to reconstruct each as its own bag")

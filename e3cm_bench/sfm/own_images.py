@@ -38,7 +38,11 @@ def image_names(root: Path) -> list[str]:
     names = []
     for path in root.rglob("*"):
         relative = path.relative_to(root)
-        if path.suffix.lower() in IMAGE_SUFFIXES and path.is_file() and not any(p.startswith(".") for p in relative.parts):
+        if (
+            path.suffix.lower() in IMAGE_SUFFIXES
+            and path.is_file()
+            and not any(p.startswith(".") for p in relative.parts)
+        ):
             names.append(relative.as_posix())
     return sorted(names)
 
@@ -111,7 +115,9 @@ class ImageFolder(PairList):
                             image1=self.root / item.view1, view0=item.view0, view1=item.view1, setup=setup)
                  for item in listed]
         super().__init__(built, self.pairs_file or self.root, skip_bad)
-        self.components = graph_components(self.pairs, self.views, self.allow_disconnected, self.pairs_file or self.root)
+        self.components = graph_components(
+            self.pairs, self.views, self.allow_disconnected, self.pairs_file or self.root
+        )
 
     def preamble(self) -> str:
         sizes = [len(names) for names in self.components]
@@ -196,8 +202,17 @@ class ReconstructBenchmark(Benchmark):
 
 
 RECONSTRUCT = ReconstructBenchmark(
-    name="reconstruct", dataset=ImageFolder,
-    dataset_options=("window", "pairs", "merge_px", "camera_model", "camera_per_image", "max_pairs", "allow_disconnected"),
+    name="reconstruct",
+    dataset=ImageFolder,
+    dataset_options=(
+        "window",
+        "pairs",
+        "merge_px",
+        "camera_model",
+        "camera_per_image",
+        "max_pairs",
+        "allow_disconnected",
+    ),
     summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
     default_max_side=1200,
 )

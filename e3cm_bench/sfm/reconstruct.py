@@ -80,15 +80,25 @@ def mapper_settings() -> dict:
         version = pycolmap_module().__version__
     except ValueError:
         version = None
-    return {"pycolmap": version, "seed": "evaluation.seed + 0..mapper_seeds-1",
-            "incremental": {"method": "pycolmap.incremental_mapping", "options": dict(MAPPER_OPTIONS),
-                            **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()}},
-            "global": {"method": "pycolmap.global_mapping", "options": dict(GLOBAL_OPTIONS),
-                       **{k: dict(v) for k, v in GLOBAL_SUB_OPTIONS.items()}},
-            "verification": {"estimator": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
-                             "colmap": {"method": "pycolmap.verify_matches", "options": dict(VERIFY_OPTIONS),
-                                        "seed": "evaluation.seed"}},
-            "keypoints": "merged per image (interchange.tracks.merge_keypoints) as dataset.protocol.merge says"}
+    return {
+        "pycolmap": version,
+        "seed": "evaluation.seed + 0..mapper_seeds-1",
+        "incremental": {
+            "method": "pycolmap.incremental_mapping",
+            "options": dict(MAPPER_OPTIONS),
+            **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
+        },
+        "global": {
+            "method": "pycolmap.global_mapping",
+            "options": dict(GLOBAL_OPTIONS),
+            **{k: dict(v) for k, v in GLOBAL_SUB_OPTIONS.items()},
+        },
+        "verification": {
+            "estimator": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
+            "colmap": {"method": "pycolmap.verify_matches", "options": dict(VERIFY_OPTIONS), "seed": "evaluation.seed"},
+        },
+        "keypoints": "merged per image (interchange.tracks.merge_keypoints) as dataset.protocol.merge says",
+    }
 
 
 def _set(options, values: dict, group: str = "") -> None:
@@ -270,7 +280,9 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     if not by_estimator:
         inliers = _colmap_verification(workdir, items, ev.seed)
     keypoints, indices = merged
-    lengths = tracks.track_lengths({n: len(k) for n, k in keypoints.items()}, [(a, b) for a, b, _, _ in listed], indices)
+    lengths = tracks.track_lengths(
+        {n: len(k) for n, k in keypoints.items()}, [(a, b) for a, b, _, _ in listed], indices
+    )
     radius = QUANTIZE_MAX_ERROR if quantize else protocol.merge_px
     numbers = {"repeat_share": tracks.repeat_share(listed, radius),
                "track_length_database": float(np.mean(lengths)) if len(lengths) else float("nan"),

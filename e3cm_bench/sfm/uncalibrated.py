@@ -5,14 +5,16 @@ Where the sfm benchmark knows each image's K and keeps it fixed (sfm/reconstruct
 intrinsics are unknown, as for a user's photos: each image's camera as COLMAP's image reader
 makes it (the focal length from EXIF where the file has it, else 1.2 x the longer side; the
 principal point at the centre), shared by the images whose cameras come out the same (COLMAP's
-single_camera, per size and EXIF focal), and refined by the mapper's bundle adjustment. Without K there is no essential matrix to check the
+single_camera, per size and EXIF focal), and refined by the mapper's bundle adjustment. Without K there is no essential
+matrix to check the
 matches with, so COLMAP verifies them itself (pycolmap.verify_matches: its fundamental /
 essential / homography RANSAC, seeded), as hloc's pipelines do, and the mapper runs on its
 inliers.
 
 The products, in the run folder: ``database.db`` (keypoints, matches, verified geometries),
 ``pairs.txt`` (the pair graph, ``name0 name1`` per line) and ``sparse/N/`` per model, largest
-first (``sparse/0``), in COLMAP's binary and text formats (``cameras``, ``images``, ``points3D``): ``colmap gui --import_path``,
+first (``sparse/0``), in COLMAP's binary and text formats (``cameras``, ``images``, ``points3D``): ``colmap gui
+--import_path``,
 ``pycolmap.Reconstruction(path)`` and hloc read them. A rerun (resume, --overwrite) replaces them.
 """
 

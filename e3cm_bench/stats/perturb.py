@@ -92,7 +92,9 @@ def perturb_map(x: torch.Tensor) -> torch.Tensor:
     import torch
 
     values = x.detach().float().cpu()
-    generator = torch.Generator().manual_seed(int(np.random.SeedSequence(_seed(p.draw, 1, values.numpy())).generate_state(1)[0]))
+    generator = torch.Generator().manual_seed(
+        int(np.random.SeedSequence(_seed(p.draw, 1, values.numpy())).generate_state(1)[0])
+    )
     noise = torch.empty_like(x, dtype=torch.float32, device="cpu").normal_(generator=generator).to(x.device)
     rms = x.float().pow(2).mean(dim=tuple(range(1, x.dim())), keepdim=True).sqrt()
     return x + (noise * (p.feature_scale * rms)).to(x.dtype)

@@ -261,8 +261,10 @@ def _read_entry(group: h5py.Group, block: Path, name: str) -> Matches:
     expected = {"keypoints0": (n, 2), "keypoints1": (n, 2), "scores": (n,)}
     if n < 0 or n > MAX_PAIR_MATCHES or any(shapes[d] != expected[d] for d in DATASETS):
         declared = ", ".join(f"{d} {'x'.join(map(str, shapes[d])) or 'scalar'}" for d in DATASETS)
-        raise ValueError(f"{block}: pair {name}: the file declares {declared}; expected N x 2, N x 2 and N with N at most "
-                         f"{MAX_PAIR_MATCHES:,} (a damaged or foreign file: delete it or rerun with --overwrite)")
+        raise ValueError(
+            f"{block}: pair {name}: the file declares {declared}; expected N x 2, N x 2 and N with N at most "
+            f"{MAX_PAIR_MATCHES:,} (a damaged or foreign file: delete it or rerun with --overwrite)"
+        )
     info = {k: _plain(v) for k, v in group.attrs.items() if k != COMPLETE_ATTR}
     return Matches(keypoints0=group["keypoints0"][()], keypoints1=group["keypoints1"][()],
                    scores=group["scores"][()], info=info)

@@ -173,7 +173,9 @@ class RunFolder:
                 folder = folder.parent
             return True
 
-        return [cls(p.parent) for p in sorted(top.rglob(cls.CONFIG)) if cls(p.parent).is_run() and not in_report(p.parent)]
+        return [
+            cls(p.parent) for p in sorted(top.rglob(cls.CONFIG)) if cls(p.parent).is_run() and not in_report(p.parent)
+        ]
 
     def lock(self) -> FolderLock:
         """The folder's exclusive lock (a context manager), taken before anything in it is read
@@ -236,7 +238,9 @@ class RunFolder:
                              "re-evaluates it, --overwrite replaces its matches")
         if eval_only or before is None or identity is None:
             return previous
-        changed = list(changes(before, identity)) if changes is not None else ([] if before == identity else ["identity"])
+        changed = (
+            list(changes(before, identity)) if changes is not None else ([] if before == identity else ["identity"])
+        )
         if previous.benchmark != benchmark:
             changed.insert(0, "benchmark")
         if changed and not self.holds_matches():
@@ -302,9 +306,11 @@ class RunFolder:
         for (k, _), config in sorted(configs.items()):
             for key in ("benchmark", "identity", "dataset_load", "evaluation"):
                 if getattr(config, key) != getattr(first, key):
-                    raise ValueError(f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s "
-                                     f"({changed_values(first.record, config.record, [key])}); shards of one run must be made "
-                                     "with one command")
+                    raise ValueError(
+                        f"{self.shard((k, n)).config_path}: its {key} differs from shard 1-of-{n}'s "
+                        f"({changed_values(first.record, config.record, [key])}); shards of one run must be made "
+                        "with one command"
+                    )
 
     def holds_matches(self) -> bool:
         """Whether any pair's matches (or a matcher's failure on it) were written here; a block of

@@ -20,7 +20,7 @@ from e3cm_bench.interchange import tracks
 from e3cm_bench.sfm import metrics as sfm_metrics
 from e3cm_bench.sfm.protocol import DENSE_MERGE_PX, Protocol, keypoints_are_detections, parse_protocol
 from e3cm_bench.stats import compare_paired
-from helpers import invoke, one_line_error
+from helpers import invoke
 
 pycolmap = pytest.importorskip("pycolmap", reason="the sfm benchmark needs pycolmap (the colmap extra)")
 

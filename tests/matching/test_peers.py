@@ -233,7 +233,7 @@ def test_superglue_release_weights_load_into_transformers_and_compute_the_releas
     attention equals the release's on the same input; without the reordering it would not."""
     from transformers import SuperGlueConfig, SuperGlueForKeypointMatching, SuperPointConfig
 
-    from e3cm_bench.matchers.peers.superglue import load_release, release_state_dict
+    from e3cm_bench.matchers.peers.superglue import release_state_dict
 
     state = superglue_release_checkpoint()
     converted = release_state_dict(state, heads=4)

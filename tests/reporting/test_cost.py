@@ -11,7 +11,6 @@ import pandas as pd
 import pytest
 
 from e3cm_bench.drawing.plots import pareto_front
-from e3cm_bench.ground.cost import measured
 from e3cm_bench.pipeline.evaluate import cost_summary
 from e3cm_bench.storage import RunFolder
 from helpers import invoke

@@ -12,7 +12,7 @@ import yaml
 
 from e3cm_bench.benchmarks.records import dataset_source, evaluation_of, load_run_pairs
 from e3cm_bench.storage import RunConfig, RunFolder
-from helpers import invoke, one_line_error
+from helpers import invoke
 
 REPO = Path(__file__).resolve().parents[2]
 # What the one-reader scan reads: the package and the scripts (scripts/results/ reads runs too).

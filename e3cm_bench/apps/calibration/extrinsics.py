@@ -48,7 +48,8 @@ def estimate_extrinsics(
     for plain least squares). Cauchy, because a loss with a linear tail is not robust enough
     here: moving the epipole towards the image shrinks the Sampson errors of wrong matches,
     so with Huber (or soft-L1) a few percent of wrong SIFT matches pulled a synthetic rig's
-    estimate 3-4 degrees from a correct RANSAC start; Cauchy kept it within 0.06 degrees. robust=False starts from the 8-point E on all matches
+    estimate 3-4 degrees from a correct RANSAC start; Cauchy kept it within 0.06 degrees. robust=False starts from the
+    8-point E on all matches
     instead of RANSAC (to show what the robust steps are worth). None without 8 matches or
     an estimate. The caller seeds OpenCV's RNG for a repeatable RANSAC.
     """

@@ -44,7 +44,9 @@ def intrinsics(width: int, height: int, focal: float) -> np.ndarray:
     return np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]], np.float64)
 
 
-def look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, -1.0, 0.0])) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    centre: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, -1.0, 0.0])
+) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) of a camera at `centre` looking at `target` (y down in the image)."""
     centre, target = np.asarray(centre, np.float64), np.asarray(target, np.float64)
     z = target - centre

@@ -38,7 +38,9 @@ def procedural_scene(size: tuple[int, int] = DEMO_SIZE, seed: int = 0) -> np.nda
             cv2.line(image, (x, y), end, colour, int(rng.integers(1, 5)), cv2.LINE_AA)
         else:
             text = "".join(chr(c) for c in rng.integers(65, 91, 4))
-            cv2.putText(image, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.5, 1.5)), colour, 2, cv2.LINE_AA)
+            cv2.putText(
+                image, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.5, 1.5)), colour, 2, cv2.LINE_AA
+            )
     return image
 
 
@@ -49,7 +51,11 @@ def demo_homography(size: tuple[int, int] = DEMO_SIZE) -> np.ndarray:
     angle = np.deg2rad(12.0)
     scale = 0.9
     rotate = np.array(
-        [[scale * np.cos(angle), -scale * np.sin(angle), 0], [scale * np.sin(angle), scale * np.cos(angle), 0], [0, 0, 1]]
+        [
+            [scale * np.cos(angle), -scale * np.sin(angle), 0],
+            [scale * np.sin(angle), scale * np.cos(angle), 0],
+            [0, 0, 1],
+        ]
     )
     perspective = np.array([[1, 0, 0], [0, 1, 0], [1.5e-4, -1e-4, 1]])
     return np.linalg.inv(centre) @ perspective @ rotate @ centre

@@ -35,7 +35,9 @@ class LoFTRSettings:
     match_threshold: float = 0.2
 
     def __post_init__(self) -> None:
-        _check(self.weights in LOFTR_WEIGHTS, f"weights must be one of {', '.join(LOFTR_WEIGHTS)}, got {self.weights!r}")
+        _check(
+            self.weights in LOFTR_WEIGHTS, f"weights must be one of {', '.join(LOFTR_WEIGHTS)}, got {self.weights!r}"
+        )
         _check(isinstance(self.match_threshold, (int, float)) and 0 <= self.match_threshold < 1,
                f"match_threshold must be in [0, 1), got {self.match_threshold!r}")
 
@@ -227,8 +229,10 @@ def lightglue_weights(kind: str):
             from kornia.feature.aliked.aliked import _CHECKPOINT_URLS
 
             extractor = HubFile.of([url.format(settings.model) for url in _CHECKPOINT_URLS])
-        lightglue = HubFile.of([hf_url("lightglue", f"{kind}_lightglue.pth"), KF.LightGlue.url.format(KF.LightGlue.version, kind)],
-                               lightglue_file_name(kind))
+        lightglue = HubFile.of(
+            [hf_url("lightglue", f"{kind}_lightglue.pth"), KF.LightGlue.url.format(KF.LightGlue.version, kind)],
+            lightglue_file_name(kind),
+        )
         return [extractor, lightglue]
 
     return files
@@ -259,29 +263,91 @@ def _as_published(settings: dict) -> bool:
 
 
 PEERS = (
-    MatcherEntry("loftr", "LoFTR, detector-free transformer matching (kornia; weights outdoor / indoor)",
-                 _loftr, LoFTRSettings, model=True, requires=("kornia",), weights=_loftr_weights, paper_row="LoFTR",
-                 paper_setting=_as_published),
-    MatcherEntry("superpoint+superglue", "SuperPoint + SuperGlue (transformers; Magic Leap's weights, non-commercial licence)",
-                 _superglue, SuperGlueSettings, model=True, requires=("transformers",), weights=_superglue_weights,
-                 weights_beside=_superpoint_weights, keypoints_are_detections=True,
-                 paper_row="SuperPoint+SuperGlue", paper_setting=_as_published),
-    MatcherEntry("superpoint+lightglue", "SuperPoint (transformers) + LightGlue (kornia)",
-                 _lightglue("superpoint"), LightGlueSettings, model=True, requires=("kornia", "transformers"),
-                 weights=lightglue_weights("superpoint"),
-                 weights_beside=_lightglue_extractor("superpoint"), keypoints_are_detections=True),
-    MatcherEntry("disk+lightglue", "DISK + LightGlue (kornia)", _lightglue("disk"), DiskLightGlueSettings, model=True,
-                 requires=("kornia",), weights=lightglue_weights("disk"),
-                 weights_beside=_lightglue_extractor("disk"), keypoints_are_detections=True),
-    MatcherEntry("aliked+lightglue", "ALIKED-n16 (n16rot, n32) + LightGlue (kornia)", _lightglue("aliked"),
-                 AlikedLightGlueSettings, model=True, requires=("kornia",), weights=lightglue_weights("aliked"),
-                 weights_beside=_lightglue_extractor("aliked"), keypoints_are_detections=True),
-    MatcherEntry("xfeat", "XFeat sparse, mutual nearest neighbours (kornia; the release's weights)", _xfeat("sparse"),
-                 XFeatSettings, model=True, requires=("kornia",), weights=_xfeat_weights("sparse"),
-                 keypoints_are_detections=True),
-    MatcherEntry("xfeat-star", "XFeat* semi-dense, refined (kornia; the release's weights)", _xfeat("star"),
-                 XFeatStarSettings, model=True, requires=("kornia",), weights=_xfeat_weights("star")),
-    MatcherEntry("xfeat+lighterglue", "XFeat + LighterGlue (kornia; the release's weights)", _xfeat("lighterglue"),
-                 XFeatLighterGlueSettings, model=True, requires=("kornia",), weights=_xfeat_weights("lighterglue"),
-                 weights_beside=_xfeat_beside("lighterglue"), keypoints_are_detections=True),
+    MatcherEntry(
+        "loftr",
+        "LoFTR, detector-free transformer matching (kornia; weights outdoor / indoor)",
+        _loftr,
+        LoFTRSettings,
+        model=True,
+        requires=("kornia",),
+        weights=_loftr_weights,
+        paper_row="LoFTR",
+        paper_setting=_as_published,
+    ),
+    MatcherEntry(
+        "superpoint+superglue",
+        "SuperPoint + SuperGlue (transformers; Magic Leap's weights, non-commercial licence)",
+        _superglue,
+        SuperGlueSettings,
+        model=True,
+        requires=("transformers",),
+        weights=_superglue_weights,
+        weights_beside=_superpoint_weights,
+        keypoints_are_detections=True,
+        paper_row="SuperPoint+SuperGlue",
+        paper_setting=_as_published,
+    ),
+    MatcherEntry(
+        "superpoint+lightglue",
+        "SuperPoint (transformers) + LightGlue (kornia)",
+        _lightglue("superpoint"),
+        LightGlueSettings,
+        model=True,
+        requires=("kornia", "transformers"),
+        weights=lightglue_weights("superpoint"),
+        weights_beside=_lightglue_extractor("superpoint"),
+        keypoints_are_detections=True,
+    ),
+    MatcherEntry(
+        "disk+lightglue",
+        "DISK + LightGlue (kornia)",
+        _lightglue("disk"),
+        DiskLightGlueSettings,
+        model=True,
+        requires=("kornia",),
+        weights=lightglue_weights("disk"),
+        weights_beside=_lightglue_extractor("disk"),
+        keypoints_are_detections=True,
+    ),
+    MatcherEntry(
+        "aliked+lightglue",
+        "ALIKED-n16 (n16rot, n32) + LightGlue (kornia)",
+        _lightglue("aliked"),
+        AlikedLightGlueSettings,
+        model=True,
+        requires=("kornia",),
+        weights=lightglue_weights("aliked"),
+        weights_beside=_lightglue_extractor("aliked"),
+        keypoints_are_detections=True,
+    ),
+    MatcherEntry(
+        "xfeat",
+        "XFeat sparse, mutual nearest neighbours (kornia; the release's weights)",
+        _xfeat("sparse"),
+        XFeatSettings,
+        model=True,
+        requires=("kornia",),
+        weights=_xfeat_weights("sparse"),
+        keypoints_are_detections=True,
+    ),
+    MatcherEntry(
+        "xfeat-star",
+        "XFeat* semi-dense, refined (kornia; the release's weights)",
+        _xfeat("star"),
+        XFeatStarSettings,
+        model=True,
+        requires=("kornia",),
+        weights=_xfeat_weights("star"),
+    ),
+    MatcherEntry(
+        "xfeat+lighterglue",
+        "XFeat + LighterGlue (kornia; the release's weights)",
+        _xfeat("lighterglue"),
+        XFeatLighterGlueSettings,
+        model=True,
+        requires=("kornia",),
+        weights=_xfeat_weights("lighterglue"),
+        weights_beside=_xfeat_beside("lighterglue"),
+        keypoints_are_detections=True,
+    ),
 )

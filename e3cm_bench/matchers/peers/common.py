@@ -17,7 +17,9 @@ def grey(image: np.ndarray, device: str) -> torch.Tensor:
 
 def rgb(image: np.ndarray, device: str) -> torch.Tensor:
     """H x W x 3 uint8 RGB -> 1 x 3 x H x W float in [0, 1]."""
-    return (torch.from_numpy(np.ascontiguousarray(image)).to(device=device, dtype=torch.float32) / 255.0).permute(2, 0, 1)[None]
+    return (torch.from_numpy(np.ascontiguousarray(image)).to(device=device, dtype=torch.float32) / 255.0).permute(
+        2, 0, 1
+    )[None]
 
 
 def numpy(tensor: torch.Tensor) -> np.ndarray:

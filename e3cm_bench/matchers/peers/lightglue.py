@@ -38,8 +38,11 @@ class Extractor:
         else:
             options = {"max_num_keypoints": settings.max_keypoints, "detection_threshold": settings.detection_threshold,
                        "nms_radius": settings.nms_radius}
-            self.model = (KF.ALIKED.from_pretrained(settings.model, device=torch.device(device), **options) if pretrained
-                          else KF.ALIKED(settings.model, **options))
+            self.model = (
+                KF.ALIKED.from_pretrained(settings.model, device=torch.device(device), **options)
+                if pretrained
+                else KF.ALIKED(settings.model, **options)
+            )
         self.model = self.model.eval().to(device)
 
     @torch.inference_mode()

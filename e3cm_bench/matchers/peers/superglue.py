@@ -93,7 +93,9 @@ def load_release(model, path: Path) -> None:
         raise ValueError(f"{path}: cannot load as SuperGlue's release weights ({reason})") from None
     missing = [k for k in missing if not k.startswith("keypoint_detector.")]
     if missing or unexpected:
-        raise ValueError(f"{path}: cannot load as SuperGlue's release weights (missing {missing[:3]}, unexpected {unexpected[:3]})")
+        raise ValueError(
+            f"{path}: cannot load as SuperGlue's release weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
+        )
 
 
 class SuperGlueMatcher(Matcher):
@@ -105,18 +107,27 @@ class SuperGlueMatcher(Matcher):
     name = "superpoint+superglue"
 
     def __init__(self, settings, device: str = "cpu", weights: str | Path | None = None, pretrained: bool = True):
-        from transformers import SuperGlueConfig, SuperGlueForKeypointMatching, SuperPointConfig, SuperPointForKeypointDetection
+        from transformers import (
+            SuperGlueConfig,
+            SuperGlueForKeypointMatching,
+            SuperPointConfig,
+            SuperPointForKeypointDetection,
+        )
 
         options = {"sinkhorn_iterations": settings.sinkhorn_iterations, "matching_threshold": settings.match_threshold}
         if weights is not None:  # the release's .pth; SuperPoint from transformers' cache
-            self.model = SuperGlueForKeypointMatching(SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict(), **options))
+            self.model = SuperGlueForKeypointMatching(
+                SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict(), **options)
+            )
             load_release(self.model, Path(weights))
             if pretrained:
                 self.model.keypoint_detector = SuperPointForKeypointDetection.from_pretrained(SUPERPOINT_REPO)
         elif pretrained:
             self.model = SuperGlueForKeypointMatching.from_pretrained(SUPERGLUE_REPOS[settings.weights], **options)
         else:
-            self.model = SuperGlueForKeypointMatching(SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict(), **options))
+            self.model = SuperGlueForKeypointMatching(
+                SuperGlueConfig(keypoint_detector_config=SuperPointConfig().to_dict(), **options)
+            )
         decoder = self.model.keypoint_detector.keypoint_decoder  # detection settings are read from here
         decoder.keypoint_threshold = settings.keypoint_threshold
         decoder.max_keypoints = settings.max_keypoints
@@ -129,7 +140,9 @@ class SuperGlueMatcher(Matcher):
 
     @torch.inference_mode()
     def _detect(self, image: np.ndarray):
-        return superpoint_keypoints(self.model.keypoint_detector(pixel_values=grey(image, self.device)), image, self.device)
+        return superpoint_keypoints(
+            self.model.keypoint_detector(pixel_values=grey(image, self.device)), image, self.device
+        )
 
     @torch.inference_mode()
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
@@ -148,8 +161,13 @@ class SuperGlueMatcher(Matcher):
         # transformers' matching step (a private method: its forward detects on one stacked pair
         # of equal-size images, which our pairs are not)
         matches, scores, _, _ = self.model._match_image_pair(
-            keypoints, torch.stack([padded(d0, n), padded(d1, n)])[None], torch.stack([padded(s0, n), padded(s1, n)])[None],
-            size0[1], size0[0], mask=mask)
+            keypoints,
+            torch.stack([padded(d0, n), padded(d1, n)])[None],
+            torch.stack([padded(s0, n), padded(s1, n)])[None],
+            size0[1],
+            size0[0],
+            mask=mask,
+        )
         index0 = matches[0, 0, :len(k0)]
         valid = torch.nonzero(index0 > -1)[:, 0]
         return Matches(numpy(k0[valid]), numpy(k1[index0[valid]]), numpy(scores[0, 0, valid]), info)

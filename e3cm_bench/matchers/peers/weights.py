@@ -58,8 +58,10 @@ class HubFile:
         try:
             load_state_dict_from_url(list(self.urls), file_name=self.file_name, map_location="cpu")
         except Exception as error:  # noqa: BLE001 - offline, refused, cut short: one line
-            raise ValueError(f"weights {self.file_name} are not in {path.parent} and could not be downloaded from "
-                             f"{self.urls[0]} ({type(error).__name__}); download it into that folder, or pass --weights FILE") from None
+            raise ValueError(
+                f"weights {self.file_name} are not in {path.parent} and could not be downloaded from "
+                f"{self.urls[0]} ({type(error).__name__}); download it into that folder, or pass --weights FILE"
+            ) from None
         return path
 
 

@@ -1,0 +1,66 @@
+"""The house's rules that a reader of the code relies on (issue 71): typed data instead of keyed
+side channels, one rule per default across sfm and reconstruct, the linter clean."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from e3cm_bench.sfm.protocol import Protocol, keypoints_are_detections
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "e3cm_bench"
+
+
+def test_no_keyed_side_channel_in_the_package():
+    """What an evaluation reads is a typed field (ViewPair.view0/view1/bag/setup,
+    CorrespondencePair.corrs), not a `Pair.meta` key: a misspelt key is a KeyError at scoring
+    time, a misspelt field an error where the pair is built."""
+    found = [f"{path.relative_to(REPO)}:{n}" for path in sorted(PACKAGE.rglob("*.py"))
+             for n, line in enumerate(path.read_text().splitlines(), 1) if re.search(r"\.meta\[", line)]
+    assert not found, f"Pair.meta subscripted: {found}"
+
+
+@pytest.mark.parametrize("matcher, radius", [("sift", 0.0), ("aliked+lightglue", 0.0), ("e3cm", 2.0),
+                                             ("xfeat-star", 2.0), ("loftr", 2.0)])
+def test_reconstruct_merges_as_sfm_does(tmp_path, matcher, radius):
+    """One rule for the merge default: reconstruct's folder resolves it as sfm's `--merge auto`
+    does, from the matcher's keypoints_are_detections (reconstruct once merged by needs_backbone,
+    which left xfeat-star's and LoFTR's semi-dense keypoints unmerged)."""
+    from e3cm_bench.sfm.own_images import ImageFolder
+
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"view{k}.png"), np.full((16, 16, 3), 40 * k, np.uint8))
+    folder = ImageFolder(tmp_path)
+    detections = keypoints_are_detections(matcher)
+    own = folder.reconstruction().protocol.resolved(detections)
+    assert own.merge_px == Protocol().resolved(detections).merge_px == radius
+    given = ImageFolder(tmp_path, merge_px=1.5).reconstruction().protocol.resolved(detections)
+    assert given.merge_px == 1.5  # a radius given is kept, for either kind
+
+
+def test_pairs_of_a_folder_are_view_pairs(tmp_path):
+    from e3cm_bench.sfm.own_images import FolderSetup, ImageFolder
+    from e3cm_bench.sfm.views import ViewPair
+
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"v{k}.png"), np.zeros((8, 8, 3), np.uint8))
+    pairs = list(ImageFolder(tmp_path, camera_per_image=True))
+    assert all(isinstance(p, ViewPair) and isinstance(p.setup, FolderSetup) for p in pairs)
+    assert [(p.view0, p.view1) for p in pairs] == [("v0.png", "v1.png"), ("v0.png", "v2.png"), ("v1.png", "v2.png")]
+    assert pairs[0].setup is pairs[1].setup and pairs[0].setup.camera_per_image
+    # a record written before the option took its flag's name still loads
+    assert ImageFolder(tmp_path, single_camera=False).reconstruction().camera_per_image
+
+
+@pytest.mark.skipif(shutil.which("ruff") is None, reason="ruff is not installed (pip install -e '.[test]')")
+def test_ruff_is_clean():
+    """pyproject.toml's [tool.ruff]: what .ci/run checks, checked here too for a local run."""
+    done = subprocess.run(["ruff", "check", "--no-cache", "."], cwd=REPO, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-1000:]
