@@ -29,6 +29,7 @@ from e3cm_bench.cli.common import (
     CompareOpt,
     PlotFormatOpt,
     PairTimeoutOpt,
+    OverwriteOpt,
 )
 
 
@@ -269,6 +270,21 @@ def reproduce(
             run_experiment_shards(config, request, choices, shards, console=console)
         else:
             reproduce_experiment(config, request, console=console, **choices)
+
+
+@app.command()
+@friendly_errors
+def rerun(
+    run: Annotated[Path, typer.Argument(help="A run folder, or its config.yaml: the run's configuration.")],
+    out: OutOpt,
+    device: DeviceOpt = "cpu",
+    overwrite: OverwriteOpt = False,
+) -> None:
+    """Make a run again from its config.yaml alone, in another folder: the same pairs, method and evaluation
+    (per_pair.csv comes out the same)."""
+    from e3cm_bench.pipeline.rerun import rerun as rerun_run
+
+    rerun_run(run, out, device=device, overwrite=overwrite, console=console)
 
 
 @app.command()

@@ -1,0 +1,54 @@
+"""A run made again from its record: a run's config.yaml holds everything its numbers depend on
+(the benchmark, the method's identity, the dataset as it was loaded, the evaluation settings,
+the --limit), so it is the run's configuration, and `e3cm-bench rerun RUN --out NEW` makes the
+same run in another folder from it alone: the same pairs, matched by the same method, scored
+under the same settings, so per_pair.csv comes out byte for byte the same (cost.csv, the time
+and memory, is a measurement and moves with the machine).
+
+Each part is read back by the one reader of that part (benchmarks/records.py): the method from
+its identity (a built-in matcher's only: a record is data and never names code to run), the
+dataset from dataset_load, the evaluation from its block. What only decides how the matching
+ran (the feature cache, the device, shards) is not part of the result and takes this machine's
+defaults.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.console import Console
+
+from e3cm_bench.benchmarks.records import benchmark_of, dataset_source, evaluation_of, method_of
+from e3cm_bench.pipeline.request import RunRequest
+from e3cm_bench.storage.record import RunConfig
+
+
+def record_of(run: str | Path) -> RunConfig:
+    """The record of a run folder, or of the config.yaml given itself."""
+    path = Path(run)
+    return RunConfig.read(path / "config.yaml" if path.is_dir() else path)
+
+
+def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False) -> RunRequest:
+    """The RunRequest that makes `run` (a folder or its config.yaml) again in `out`."""
+    config = record_of(run)
+    if config.shard is not None:
+        raise ValueError(f"{config.where}: a shard's record; rerun the merged run (its folder above shards/)")
+    if config.imported_files:
+        raise ValueError(f"{config.where}: an imported run's matches came from files, not a method; "
+                         "import them again (e3cm-bench import)")
+    benchmark = benchmark_of(config)
+    root, skip_bad, options = dataset_source(config, benchmark)
+    out = Path(out)
+    if out.resolve() == (config.path.parent if config.path else out).resolve():
+        raise ValueError(f"{out}: is the run itself; give another --out")
+    return RunRequest(benchmark, out, method_of(config), root=Path(root), skip_bad=skip_bad, dataset_options=options,
+                      ev=evaluation_of(config), limit=config.limit, device=device, overwrite=overwrite)
+
+
+def rerun(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False,
+          console: Console | None = None):
+    """Make the run again in `out` from its record; returns the new summary row."""
+    from e3cm_bench.pipeline.runner import run_benchmark
+
+    return run_benchmark(rerun_request(run, out, device, overwrite), console=console)

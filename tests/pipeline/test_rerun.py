@@ -1,0 +1,95 @@
+"""`e3cm-bench rerun RUN --out NEW` (issue 71): a run made again from its config.yaml alone gives
+the same per_pair.csv byte for byte, for a two-view benchmark, a method of a YAML experiment
+config run by `reproduce`, an sfm run on the shared KITTI frames and a `reconstruct` run."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from helpers import invoke, one_line_error
+
+SCENE_INFO = "megadepth_test_1500/scene_info/kitti00_seq.npz"
+
+
+def rerun_gives_the_same_rows(run: Path, out: Path, given: Path | None = None) -> None:
+    result = invoke("rerun", given or run, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert (out / "per_pair.csv").read_bytes() == (run / "per_pair.csv").read_bytes()
+    before, after = (yaml.safe_load((f / "config.yaml").read_text()) for f in (run, out))
+    for block in ("benchmark", "identity", "evaluation"):
+        assert after[block] == before[block], block
+
+
+def test_an_hpatches_run_reruns_from_its_folder_and_from_its_config(shared_data, tmp_path):
+    root = shared_data / "hpatches-sequences-release"
+    run = tmp_path / "run"
+    made = invoke("hpatches", "--root", root, "--matcher", "sift", "--limit", 3, "--seed", 4, "--out", run)
+    assert made.exit_code == 0, made.output
+    rerun_gives_the_same_rows(run, tmp_path / "again")
+    rerun_gives_the_same_rows(run, tmp_path / "from-yaml", given=run / "config.yaml")
+    assert yaml.safe_load((tmp_path / "again" / "config.yaml").read_text())["evaluation"]["seed"] == 4
+
+
+def test_a_yaml_configured_reproduce_method_reruns(shared_data, tmp_path):
+    config = tmp_path / "exp.yaml"
+    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "max_side": 320, "methods": [
+        {"label": "sift-tight", "matcher": "sift", "settings": {"ratio": 0.7}}]}))
+    root = shared_data / "hpatches-sequences-release"
+    made = invoke("reproduce", config, "--root", root, "--out", tmp_path / "exp", "--limit", 3, "--no-compare")
+    assert made.exit_code == 0, made.output
+    run = next(p.parent for p in (tmp_path / "exp").rglob("per_pair.csv"))
+    rerun_gives_the_same_rows(run, tmp_path / "again")
+
+
+@pytest.fixture(scope="module")
+def kitti6(shared_data, tmp_path_factory) -> Path:
+    from e3cm_bench.datasets.megadepth import load_scene_info
+
+    scene = load_scene_info(shared_data / SCENE_INFO)
+    paths = np.array(scene["image_paths"], dtype=object)
+    paths[6:] = None
+    path = tmp_path_factory.mktemp("kitti6") / "kitti6.npz"
+    np.savez(path, image_paths=paths, intrinsics=scene["intrinsics"], poses=scene["poses"],
+             pair_infos=scene["pair_infos"])
+    return path
+
+
+def test_an_sfm_run_on_the_kitti_frames_reruns(shared_data, kitti6, tmp_path):
+    run = tmp_path / "run"
+    made = invoke("sfm", "--root", shared_data / "megadepth_test_1500", "--scene-info", kitti6, "--window", 2,
+                  "--matcher", "sift", "--mapper-seeds", 2, "--out", run)
+    assert made.exit_code == 0, made.output
+    rerun_gives_the_same_rows(run, tmp_path / "again")
+    protocol = yaml.safe_load((tmp_path / "again" / "config.yaml").read_text())["dataset"]["protocol"]
+    assert protocol["mapper_seeds"] == 2  # the dataset's options came from the record
+
+
+def test_a_reconstruct_run_reruns(tmp_path):
+    from e3cm_bench.apps.synth.multiview import write_multiview
+
+    write_multiview(tmp_path / "room", n_views=4)
+    run = tmp_path / "run"
+    made = invoke("reconstruct", tmp_path / "room" / "images", "--out", run, "--matcher", "sift", "--window", 2)
+    assert made.exit_code == 0, made.output
+    rerun_gives_the_same_rows(run, tmp_path / "again")
+
+
+def test_what_cannot_be_rerun_is_one_line(shared_data, tmp_path):
+    root = shared_data / "hpatches-sequences-release"
+    run = tmp_path / "run"
+    assert invoke("hpatches", "--root", root, "--matcher", "sift", "--limit", 1, "--out", run).exit_code == 0
+    line = one_line_error(invoke("rerun", run, "--out", run))
+    assert "is the run itself" in line
+    line = one_line_error(invoke("rerun", tmp_path / "nothing", "--out", tmp_path / "new"))
+    assert "nothing" in line
+    shutil.copy(run / "config.yaml", tmp_path / "broken.yaml")
+    record = yaml.safe_load((tmp_path / "broken.yaml").read_text())
+    record["identity"] = {"matcher": "my-plugin", "plugin": {"package": "x"}}
+    (tmp_path / "broken.yaml").write_text(yaml.safe_dump(record))
+    line = one_line_error(invoke("rerun", tmp_path / "broken.yaml", "--out", tmp_path / "new"))
+    assert "broken.yaml" in line and "built-in matcher" in line
