@@ -14,6 +14,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 RUNNABLE = re.compile(r"<!-- runnable -->\n```python\n(.*?)```", re.S)
+# What a runnable block prints, where the page shows it: the next ```text block marked prints
+# (before the next runnable block); its lines must come out in this order.
+PRINTS = re.compile(r"(?:(?!<!-- runnable -->).)*?<!-- prints -->\n```text\n(.*?)```", re.S)
 
 
 def runnable_blocks() -> list[tuple[str, int, str]]:
@@ -24,6 +27,14 @@ def runnable_blocks() -> list[tuple[str, int, str]]:
         for index, match in enumerate(RUNNABLE.finditer(page.read_text())):
             blocks.append((page.name, index, match.group(1)))
     return blocks
+
+
+def printed_lines(page: str, index: int) -> list[str] | None:
+    """The lines the page says its index-th runnable block prints, or None where it shows none."""
+    text = (REPO / "docs" / page).read_text()
+    block = list(RUNNABLE.finditer(text))[index]
+    shown = PRINTS.match(text, block.end())
+    return shown.group(1).splitlines() if shown else None
 
 
 def test_there_are_runnable_examples_and_the_api_page_has_one():
@@ -57,6 +68,17 @@ def test_runnable_examples_run_as_written(page, index, code, request, tmp_path):
         (tmp_path / "shared").symlink_to(request.getfixturevalue("shared_data").parent)
     done = subprocess.run([sys.executable, "-c", code], cwd=work, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, f"{page} block {index}:\n{done.stderr[-2000:]}"
+    # what it prints is what the page shows, line for line and in order (other lines may come
+    # between: progress, tables); a block that shows no output asserts what it made instead
+    expected = printed_lines(page, index)
+    if expected is None:
+        assert re.search(r"^\s*assert ", code, re.M), f"{page} block {index}: shows no output and asserts nothing"
+        return
+    lines, at = done.stdout.splitlines(), 0
+    for line in expected:
+        found = next((k for k in range(at, len(lines)) if lines[k].rstrip() == line.rstrip()), None)
+        assert found is not None, f"{page} block {index}: does not print {line!r} (after line {at}):\n{done.stdout[-2000:]}"
+        at = found + 1
 
 
 def test_readme_headline_table_is_the_csvs():

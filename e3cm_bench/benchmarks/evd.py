@@ -207,9 +207,8 @@ class EVDBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         names = {label: f"{label} (mAA {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[accuracy_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}

@@ -108,16 +108,14 @@ class HomographyBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *(f"mma@{t}" for t in metrics.MMA_THRESHOLDS), *self.table_metrics.values()]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         plots.plot_mma_curves({label: summary}, out / "mma.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         summaries = {label: summary for label, (summary, _) in runs.items()}
         # The headline (h_acc, the table's columns) first, then the MMA curves of the paper's Fig. 5.

@@ -120,9 +120,8 @@ class PoseBenchmark(Benchmark):
         return distances < ev.precision_thresholds[0]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 

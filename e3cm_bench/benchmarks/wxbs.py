@@ -31,6 +31,7 @@ import pandas as pd
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
 from e3cm_bench.geometry.estimators import fundamental
 from e3cm_bench.geometry.two_view import to_homogeneous
+from e3cm_bench.ground.images import header_size
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
 
@@ -175,7 +176,7 @@ class WxBS(PairList):
     def _pair(folder: Path, name: str) -> CorrespondencePair:
         image0, image1 = (_image_path(folder, stem) for stem in ("01", "02"))
         corrs = read_correspondences(folder / "corrs.txt")
-        check_inside(corrs, (_stored_size(image0), _stored_size(image1)), folder / "corrs.txt")
+        check_inside(corrs, (header_size(image0), header_size(image1)), folder / "corrs.txt")
         return CorrespondencePair(name=name, image0=image0, image1=image1, meta={"category": folder.parent.name},
                                   corrs=corrs)
 
@@ -233,17 +234,6 @@ def check_inside(corrs: np.ndarray, sizes, path: Path) -> None:
                                "ground truth off the image cannot be scored")
 
 
-def _stored_size(path: Path) -> tuple[int, int] | None:
-    """(w, h) from the image file's header, None where it cannot be read."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError):
-        return None
-
-
 # ----------------------------------------------------------------------------- benchmark
 
 
@@ -252,9 +242,8 @@ def threshold_curves_figure(curves: Mapping[str, Sequence[float]], thresholds: S
                             bands: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Figure:
     """One line per run: a metric against its pixel thresholds (WxBS recall, EVD accuracy), with
     its bootstrap interval at each threshold as a band (bands: label -> (lo, hi) per threshold)."""
-    from matplotlib.figure import (
-        Figure,
-    )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+    # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+    from matplotlib.figure import Figure
 
     fig = Figure(figsize=(6.4, 4.6), layout="constrained")
     ax = fig.subplots()
@@ -365,9 +354,8 @@ class WxBSBenchmark(Benchmark):
 
     @staticmethod
     def _plot(summaries: Mapping[str, Mapping], path: Path) -> Path:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         names = {label: f"{label} (mAA@10px {float(s[MAA]):.3f})" for label, s in summaries.items()}
         curves = {names[label]: [float(s[recall_key(t)]) for t in THRESHOLDS] for label, s in summaries.items()}

@@ -78,6 +78,18 @@ def max_pixels() -> int:
     return bound
 
 
+def header_size(path: str | Path) -> tuple[int, int] | None:
+    """(w, h) from an image file's header, without decoding it; None where PIL cannot tell
+    (a format it does not know, a damaged file, a header over PIL's own pixel bound)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError):
+        return None
+
+
 def check_pixel_count(path: str | Path) -> None:
     """ImageError when the header announces more pixels than max_pixels(), read before any
     decoding: a small file can hold a huge image (a 389 KB PNG of 20000 x 20000 decodes into

@@ -18,7 +18,7 @@ from e3cm_bench.benchmarks.base import DUPLICATES, with_duplicates
 from e3cm_bench.storage.cache import MatchCache, check_free_space
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.files import CSV_FLOAT_FORMAT, write_csv
-from e3cm_bench.ground.images import load_image
+from e3cm_bench.ground.images import header_size, load_image
 from e3cm_bench.benchmarks.intervals import metric_keys, summary_intervals
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.storage import FAILED_ATTR
@@ -137,7 +137,9 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
 
     def mean_over_repeats(idx) -> dict:
         picked = [indexed[r](idx) for r in draw.integers(0, len(indexed), len(indexed))]
-        return {key: float(np.mean([p[key] for p in picked])) for key in keys}
+        # a resample may hold no pair of a group (a WxBS category): its keys are then absent, as
+        # from one evaluation's resample, and the bootstrap counts them as NaN
+        return {key: float(np.mean([p[key] for p in picked])) for key in keys if all(key in p for p in picked)}
 
     summary.update(summary_intervals(benchmark, first, ev, summary=summary, indexed=mean_over_repeats))
     return summary
@@ -184,7 +186,7 @@ def report_bytes(per_pair: pd.DataFrame, summary: dict, skipped: list[tuple[str,
     for pair, matches in drawings:
         sizes = [matches.info.get(f"size{i}") for i in (0, 1)]
         if any(size is None for size in sizes):
-            sizes = [_header_size(path) for path in (pair.image0, pair.image1)]
+            sizes = [header_size(path) for path in (pair.image0, pair.image1)]
         if any(size is None for size in sizes):
             need += DRAWING_BYTES
             continue
@@ -192,17 +194,6 @@ def report_bytes(per_pair: pd.DataFrame, summary: dict, skipped: list[tuple[str,
         height = max(h0, h1)
         need += height * ((w0 + w1) * 3 + 1) + PNG_HEADER_BYTES
     return need
-
-
-def _header_size(path: Path) -> tuple[int, int] | None:
-    """(w, h) from an image file's header, without decoding it; None where PIL cannot tell."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError):
-        return None
 
 
 def evaluate_and_report(run, console: Console) -> tuple[list[Pair], dict]:

@@ -58,9 +58,8 @@ class MultiViewSet(PairList):
 
     def __init__(self, root: str | Path, options: SetOptions = SetOptions(), skip_bad: bool = False,
                  first: int | None = None) -> None:
-        from e3cm_bench.ground.pycolmap import (
-            pycolmap_module,
-        )  # on first use: the command line's help reads this module
+        # on first use: the command line's help reads this module
+        from e3cm_bench.ground.pycolmap import pycolmap_module
 
         o = options  # as given: each is checked here
         self.root = require_directory(root, "image set")
