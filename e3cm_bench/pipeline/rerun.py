@@ -10,6 +10,11 @@ its identity (a built-in matcher's only: a record is data and never names code t
 dataset from dataset_load, the evaluation from its block. What only decides how the matching
 ran (the feature cache, the device, shards) is not part of the result and takes this machine's
 defaults.
+
+A record may be edited into another run (another seed, RANSAC threshold or dataset option):
+the readers skip keys they do not know, which suits an older record but would let a misspelt
+edit pass unnoticed, so a rerun checks every key of the parts it reads first, and refuses an
+unknown one in one line naming it and the nearest known key.
 """
 
 from __future__ import annotations
@@ -18,15 +23,46 @@ from pathlib import Path
 
 from rich.console import Console
 
+from dataclasses import fields
+
+from e3cm_bench.benchmarks.base import EvalSettings
 from e3cm_bench.benchmarks.records import benchmark_of, dataset_source, evaluation_of, method_of
+from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.request import RunRequest
-from e3cm_bench.storage.record import RunConfig
+from e3cm_bench.storage.record import SAMPLE_OPTIONS, RunConfig
+
+# Top-level keys of records older versions wrote, read by nothing a rerun uses.
+LEGACY_KEYS = ("match_options",)
 
 
 def record_of(run: str | Path) -> RunConfig:
     """The record of a run folder, or of the config.yaml given itself."""
     path = Path(run)
     return RunConfig.read(path / "config.yaml" if path.is_dir() else path)
+
+
+def check_keys(config: RunConfig, benchmark) -> None:
+    """Every key of the parts a rerun reads is one it knows: a ValueError naming the file, the key
+    and the nearest known one otherwise."""
+    record = config.record or {}
+    identity = set(MethodSpec.__dataclass_fields__) - {"label"}
+    known = {
+        "": {f.name for f in fields(RunConfig)} - set(RunConfig.UNWRITTEN) | set(LEGACY_KEYS),
+        "identity": identity,
+        "evaluation": {f.name for f in fields(EvalSettings)},
+        "dataset_load": {"root", "skip_bad", "options"},
+        "dataset_load.options": set(benchmark.option_names) | set(SAMPLE_OPTIONS),
+    }
+    load = record.get("dataset_load") if isinstance(record.get("dataset_load"), dict) else {}
+    parts = {"": record, "identity": record.get("identity"), "evaluation": record.get("evaluation"),
+             "dataset_load": load, "dataset_load.options": load.get("options")}
+    for part, values in parts.items():
+        for key in values or {}:
+            if key not in known[part]:
+                name = f"{part}.{key}" if part else str(key)
+                raise ValueError(f"{config.where}: {name} is not a key a run's record holds"
+                                 f"{did_you_mean(str(key), known[part])}")
 
 
 def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False) -> RunRequest:
@@ -38,6 +74,7 @@ def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwri
         raise ValueError(f"{config.where}: an imported run's matches came from files, not a method; "
                          "import them again (e3cm-bench import)")
     benchmark = benchmark_of(config)
+    check_keys(config, benchmark)
     root, skip_bad, options = dataset_source(config, benchmark)
     out = Path(out)
     if out.resolve() == (config.path.parent if config.path else out).resolve():

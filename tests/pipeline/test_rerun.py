@@ -93,3 +93,26 @@ def test_what_cannot_be_rerun_is_one_line(shared_data, tmp_path):
     (tmp_path / "broken.yaml").write_text(yaml.safe_dump(record))
     line = one_line_error(invoke("rerun", tmp_path / "broken.yaml", "--out", tmp_path / "new"))
     assert "broken.yaml" in line and "built-in matcher" in line
+
+
+def test_an_edited_record_is_a_new_run_and_a_misspelt_key_is_refused(shared_data, tmp_path):
+    """config.yaml edited into another run: the edited evaluation is taken; a key no record holds
+    (a misspelt edit, which the tolerant readers would skip) is refused naming the nearest one."""
+    root = shared_data / "hpatches-sequences-release"
+    run = tmp_path / "run"
+    assert invoke("hpatches", "--root", root, "--matcher", "sift", "--limit", 2, "--out", run).exit_code == 0
+    record = yaml.safe_load((run / "config.yaml").read_text())
+    record["evaluation"]["homography_ransac_px"] = 1.0
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(record))
+    assert invoke("rerun", edited, "--out", tmp_path / "one-px").exit_code == 0
+    assert yaml.safe_load((tmp_path / "one-px" / "config.yaml").read_text())["evaluation"]["homography_ransac_px"] == 1.0
+    for part, key, nearest in (("evaluation", "homography_ransac_pix", "homography_ransac_px"),
+                               ("identity", "matchr", "matcher"), (None, "evalution", "evaluation")):
+        bad = yaml.safe_load((run / "config.yaml").read_text())
+        (bad[part] if part else bad)[key] = 1
+        path = tmp_path / f"bad-{key}.yaml"
+        path.write_text(yaml.safe_dump(bad))
+        line = one_line_error(invoke("rerun", path, "--out", tmp_path / f"new-{key}"))
+        assert str(path) in line and (f"{part}.{key}" if part else key) in line and f"did you mean '{nearest}'" in line
+        assert not (tmp_path / f"new-{key}").exists()
