@@ -106,9 +106,8 @@ def run_demo(
 def _run_set(demo: _Demo, step: int, set_name: str, data: tuple) -> pd.DataFrame:
     """One set of the demo: every method's run (through the benchmark's one path to a method,
     Benchmark.resolve_method, under its default protocol), then its table; returns the table."""
-    from e3cm_bench.pipeline.experiments import (
-        write_table,
-    )  # here, not at the top: the command line's help reads METHODS
+    # here, not at the top: the command line's help reads METHODS
+    from e3cm_bench.pipeline.experiments import write_table
     from e3cm_bench.pipeline.runner import run_methods  # without loading scipy (cli/common.py, Startup)
 
     benchmark_name, description = SETS[set_name]

@@ -194,7 +194,7 @@ def cast_weights(module: nn.Module, dtype: torch.dtype) -> None:
 
     Autocast casts them to that dtype at every call, and the cast of a tensor already in it
     is the tensor itself, so the passes compute the same bits; a VGG19 pass no longer reads
-    and converts its 18M float32 weights (scripts/archive/weight_cast_ab.py), and they take half
+    and converts its 18M float32 weights (docs/speed.md), and they take half
     the memory. Normalisation layers keep float32 parameters, as autocast leaves them."""
     for m in module.modules():
         if isinstance(m, (nn.Conv2d, nn.Linear)):
@@ -221,7 +221,7 @@ def _maps(x: torch.Tensor) -> list[torch.Tensor]:
 
 # Elements of one band of rows in channel_first_float: a few hundred KiB to 1 MiB, which
 # the caches hold (256K elements measured best or within 10% of it at every level of VGG19
-# and Lite0; scripts/archive/maps_copy_ab.py). Maps of at most 4 bands are copied whole.
+# and Lite0; the removed A/B script maps_copy_ab.py, in the git history). Maps of at most 4 bands are copied whole.
 COPY_BAND = 1 << 18
 
 

@@ -11,34 +11,15 @@ import typer
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.cli.benchmarks import option_parameter
 from e3cm_bench.interchange.registry import formats, origin_help
-from e3cm_bench.cli.common import (
-    OnceEach,
-    app,
-    console,
-    say,
-    LabelOpt,
-    ProtocolOpt,
-    friendly_errors,
-    RootOpt,
-    OutOpt,
-    SeedOpt,
-    OverwriteOpt,
-    VizOpt,
-    SkipBadOpt,
-    RansacOpt,
-    PoseEstimatorOpt,
-    PlotFormatOpt,
-)
+from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt,
+                                   SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt,
+                                   PlotFormatOpt)
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
-PixelOriginOpt = Annotated[
-    Optional[str],
-    typer.Option(
-        "--pixel-origin",
-        help=f"center (top-left pixel's centre at 0,0) or corner (at 0.5,0.5): overrides the format's own "
-        f"({origin_help()}).",
-    ),
-]
+PixelOriginOpt = Annotated[Optional[str], typer.Option(
+    "--pixel-origin", help=f"center (top-left pixel's centre at 0,0) or corner (at 0.5,0.5): overrides the format's "
+                           "own "
+                           f"({origin_help()}).")]
 EXPORT_TO_HELP = ", ".join(f"{fmt.name} ({fmt.writes})" for fmt in formats().values())
 MERGING = ", ".join(fmt.name for fmt in formats().values() if fmt.merges)
 
@@ -47,17 +28,14 @@ MERGING = ", ".join(fmt.name for fmt in formats().values() if fmt.merges)
 @friendly_errors
 def download(
     name: Annotated[str, typer.Argument(help="hpatches, megadepth-1500, yfcc or scannet-1500.")],
-    to: Annotated[
-        Optional[Path], typer.Option("--to", help="Folder for the data (default: $E3CM_BENCH_DATA, else ./data).")
-    ] = None,
-    origin: Annotated[
-        Optional[str],
-        typer.Option("--from", help="A mirror URL or a file already downloaded, instead of the source's URL."),
-    ] = None,
+    to: Annotated[Optional[Path], typer.Option("--to",
+        help="Folder for the data (default: $E3CM_BENCH_DATA, else ./data).")] = None,
+    origin: Annotated[Optional[str], typer.Option("--from",
+                                                  help="A mirror URL or a file already downloaded, instead of the "
+                                                       "source's URL.")] = None,
     sha256: Annotated[Optional[str], typer.Option("--sha256", help="The expected sha256 of the --from file.")] = None,
-    check: Annotated[
-        bool, typer.Option("--check", help="Only check what is in place (counts against a complete copy).")
-    ] = False,
+    check: Annotated[bool, typer.Option("--check",
+                                        help="Only check what is in place (counts against a complete copy).")] = False,
 ) -> None:
     """Fetch a benchmark's data (progress, resume, sha256), unpack it safely, and check it."""
     from e3cm_bench.datasets.sources import data_dir, get_source
@@ -75,9 +53,8 @@ def download(
 @app.command()
 @friendly_errors
 def datasets(
-    to: Annotated[
-        Optional[Path], typer.Option("--to", help="The data folder (default: $E3CM_BENCH_DATA, else ./data).")
-    ] = None,
+    to: Annotated[Optional[Path], typer.Option("--to",
+        help="The data folder (default: $E3CM_BENCH_DATA, else ./data).")] = None,
 ) -> None:
     """Where each benchmark's data is looked for, and whether it is missing, incomplete or complete."""
     from e3cm_bench.datasets.sources import SOURCES, data_dir
@@ -95,9 +72,8 @@ def import_matches(
     out: OutOpt,
     root: RootOpt = None,
     pixel_origin: PixelOriginOpt = None,
-    limit: Annotated[
-        Optional[int], typer.Option("--limit", help="Only the first N pairs (as a benchmark run's --limit).")
-    ] = None,
+    limit: Annotated[Optional[int], typer.Option("--limit",
+                                                 help="Only the first N pairs (as a benchmark run's --limit).")] = None,
     label: LabelOpt = None,
     skip_bad: SkipBadOpt = False,
     overwrite: OverwriteOpt = False,
@@ -125,9 +101,8 @@ def import_matches(
     root = find_root(bench.name, root)
     mine = {o.name for o in bench.command_options()}
     dataset_options = {k: v for k, v in options.items() if k not in known}
-    foreign = sorted(
-        OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False, [])
-    )
+    foreign = sorted(OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False,
+            []))
     if foreign:
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
     options = {k: _as_declared(bench, k, v) for k, v in dataset_options.items() if k in mine}
@@ -139,18 +114,9 @@ def import_matches(
     from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
-        request = RunRequest(
-            bench,
-            out,
-            root=root,
-            dataset=dataset,
-            skip_bad=skip_bad,
-            ev=ev,
-            limit=limit,
-            overwrite=overwrite,
-            viz=viz,
-            dataset_load=RunConfig.dataset_load_of(root, skip_bad, options),
-        )
+        request = RunRequest(bench, out, root=root, dataset=dataset, skip_bad=skip_bad, ev=ev, limit=limit,
+                             overwrite=overwrite, viz=viz, dataset_load=RunConfig.dataset_load_of(root, skip_bad,
+                                     options))
         import_run(request, source, label=label, console=console)
 
 
@@ -232,14 +198,9 @@ def export_matches(
     to: Annotated[str, typer.Option("--to", help=EXPORT_TO_HELP)],
     pixel_origin: PixelOriginOpt = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the files already in OUT.")] = False,
-    merge_px: Annotated[
-        float,
-        typer.Option(
-            "--merge-px",
-            help=f"{MERGING}: write an image's keypoints within this many pixels of one another as one (exact repeats "
-                 "always are), for dense matchers.",
-        ),
-    ] = 0.0,
+    merge_px: Annotated[float, typer.Option("--merge-px",
+                                            help=f"{MERGING}: write an image's keypoints within this many pixels of "
+        "one another as one (exact repeats always are), for dense matchers.")] = 0.0,
 ) -> None:
     """Write a run's matches for another tool, in one of the formats of --to (docs: Matches in and out)."""
     from e3cm_bench.pipeline.export import export_run

@@ -10,49 +10,30 @@ import typer
 from rich.markup import escape
 
 from e3cm_bench.backbones.names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
-from e3cm_bench.cli.common import (
-    app,
-    console,
-    method_option,
-    method_values,
-    warn,
-    MatcherOpt,
-    WeightsOpt,
-    DeviceOpt,
-    EstimatorOpt,
-    SampsonOpt,
-    RatioOpt,
-    SetOpt,
-    PrecisionOpt,
-    ChannelOrderOpt,
-    friendly_errors,
-)
+from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, MatcherOpt, WeightsOpt, DeviceOpt,
+                                   EstimatorOpt, SampsonOpt, RatioOpt, SetOpt, PrecisionOpt, ChannelOrderOpt,
+                                   friendly_errors)
 
 
 # match's own words for two method options (declared in options.METHOD_OPTIONS)
-MatchMaxSideOpt = method_option(
-    "max_side", help="Resize so the longer side is at most N px (0 or none: full resolution)."
-)
+MatchMaxSideOpt = method_option("max_side", help="Resize so the longer side is at most N px (0 or none: full "
+                                                 "resolution).")
 MatchSeedOpt = method_option("seed", help="Seed of the robust estimators inside the matcher.")
 
 
 @app.command()
 @friendly_errors
 def match(
-    image0: Annotated[
-        Optional[Path], typer.Argument(help="First image (omit both for the built-in demo pair).")
-    ] = None,
+    image0: Annotated[Optional[Path],
+                      typer.Argument(help="First image (omit both for the built-in demo pair).")] = None,
     image1: Annotated[Optional[Path], typer.Argument(help="Second image.")] = None,
     matcher: MatcherOpt = "e3cm",
     # its default depends on the images (the demo pair's needs no download), hence None here
-    backbone: Annotated[
-        Optional[str],
-        typer.Option(
-            "--backbone",
-            help=f"One of: {', '.join(BACKBONES)} (default {DEFAULT_BACKBONE}, the paper's: its ImageNet weights "
-                 f"download once; {OFFLINE_BACKBONE} needs no download, and the demo pair uses it).",
-        ),
-    ] = None,
+    backbone: Annotated[Optional[str], typer.Option("--backbone",
+                                                    help=f"One of: {', '.join(BACKBONES)} (default "
+                                                         f"{DEFAULT_BACKBONE}, the paper's: its ImageNet weights "
+                                                         f"download once; {OFFLINE_BACKBONE} needs no download, and "
+                                                         "the demo pair uses it).")] = None,
     weights: WeightsOpt = None,
     max_side: MatchMaxSideOpt = None,
     device: DeviceOpt = "cpu",
@@ -64,15 +45,9 @@ def match(
     settings: SetOpt = None,
     precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb",
-    verbose: Annotated[
-        bool,
-        typer.Option(
-            "--verbose",
-            "-v",
-            help="Also print how the memory allocator was set up (a run folder's config.yaml records it as "
-                 "environment.allocator).",
-        ),
-    ] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v",
+                                          help="Also print how the memory allocator was set up (a run folder's "
+                                               "config.yaml records it as environment.allocator).")] = False,
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     from e3cm_bench.ground.devices import keep_freed_memory
@@ -85,26 +60,10 @@ def match(
     writable_folder(out, create=False)  # before any work: a folder that cannot take the results is one line now
     img0, img1, H, backbone = _images(image0, image1, backbone)
     # no benchmark: the one path without one (the side as given, 0 or none: full resolution)
-    method = build_method(
-        method_values(
-            dict(
-                matcher=matcher,
-                backbone=backbone,
-                weights=weights,
-                max_side=max_side,
-                estimator=estimator,
-                sampson_px=sampson_px,
-                ratio=ratio,
-                seed=seed,
-                settings=settings,
-                precision=precision,
-                channel_order=channel_order,
-            )
-        ),
-        None,
-        device,
-        warn=warn,
-    )
+    method = build_method(method_values(dict(matcher=matcher, backbone=backbone, weights=weights, max_side=max_side,
+                                       estimator=estimator, sampson_px=sampson_px, ratio=ratio, seed=seed,
+                                       settings=settings, precision=precision, channel_order=channel_order)),
+                          None, device, warn=warn)
     kept = keep_freed_memory()  # the second image's pass reuses the first's pages, as in a run (docs/speed.md)
     t = time.perf_counter()
     m = method.build(device)

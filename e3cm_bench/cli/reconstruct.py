@@ -8,33 +8,11 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
-from e3cm_bench.cli.common import (
-    app,
-    console,
-    method_option,
-    method_values,
-    warn,
-    BackboneOpt,
-    ChannelOrderOpt,
-    DeviceOpt,
-    FeatureCacheOpt,
-    MatcherOpt,
-    OnMatcherErrorOpt,
-    OutOpt,
-    OverwriteOpt,
-    PairTimeoutOpt,
-    PrecisionOpt,
-    SeedOpt,
-    SetOpt,
-    SkipBadOpt,
-    WeightsOpt,
-    friendly_errors,
-    DevicesOpt,
-    LauncherOpt,
-    ShardOpt,
-    ShardsOpt,
-    WorkersOpt,
-)
+from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt,
+                                   DeviceOpt,
+                     FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
+                     SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
+                     ShardsOpt, WorkersOpt)
 
 ReconMaxSideOpt = method_option("max_side", help="Match at a longer side of at most N px (default 1200, as sfm; 0: "
                                                  "full resolution); keypoints are mapped back to the images' pixels.")
@@ -106,27 +84,14 @@ def reconstruct(
     given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
                  channel_order=channel_order, seed=seed, max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
-    request = RunRequest(
-        RECONSTRUCT,
-        out,
-        method,
-        root=images,
-        skip_bad=skip_bad,
-        overwrite=overwrite,
-        device=device,
-        dataset_options=dict(
-            window=window,
-            pairs=pairs,
-            merge_px=merge_px,
-            camera_model=camera_model,
-            camera_per_image=camera_per_image,
-            max_pairs=max_pairs,
-            allow_disconnected=allow_disconnected,
-        ),
-        ev=RECONSTRUCT.resolve_eval(seed=seed),
-        options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error, pair_timeout=pair_timeout),
-        shard=parse_shard(shard) if shard else None,
-    )
+    request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
+                         dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
+                                              camera_per_image=camera_per_image, max_pairs=max_pairs,
+                                              allow_disconnected=allow_disconnected),
+                         ev=RECONSTRUCT.resolve_eval(seed=seed),
+                         options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
+                                              pair_timeout=pair_timeout),
+                         shard=parse_shard(shard) if shard else None)
     run_scaled(scale, request)
     _say_model(Path(out), scale)
 

@@ -12,69 +12,35 @@ from rich.text import Text
 from e3cm_bench.apps.demo import METHODS as DEMO_METHODS
 from e3cm_bench.paper import config_names, resolve_config
 from e3cm_bench.stats.noise import CHECK_ALPHA
-from e3cm_bench.cli.common import (
-    app,
-    console,
-    DeviceOpt,
-    friendly_errors,
-    ShardOpt,
-    LauncherOpt,
-    ShardsOpt,
-    RootOpt,
-    OutOpt,
-    MaxSideOpt,
-    LimitOpt,
-    VizOpt,
-    SkipBadOpt,
-    CompareOpt,
-    PlotFormatOpt,
-    PairTimeoutOpt,
-    OverwriteOpt,
-)
+from e3cm_bench.cli.common import (app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt,
+                                   OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt,
+                                   PairTimeoutOpt, OverwriteOpt)
 
 
 @app.command()
 @friendly_errors
 def table(
-    run_dirs: Annotated[
-        list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one benchmark.")
-    ],
-    out: Annotated[
-        Path,
-        typer.Option(
-            "--out",
-            help="The table's file stem: STEM.csv, STEM.md (STEM.tex with --latex) and STEM_<plot>.png; an existing "
-                 "folder (or a path ending in /) gets table.* inside it.",
-        ),
-    ],
-    reference: Annotated[
-        Optional[Path],
-        typer.Option("--reference", help="Paper numbers (default: the shipped e3cm_bench/paper/tableN.csv)."),
-    ] = None,
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one "
+                                                        "benchmark.")],
+    out: Annotated[Path, typer.Option("--out", help="The table's file stem: STEM.csv, STEM.md (STEM.tex with --latex) "
+                                                    "and STEM_<plot>.png; an existing folder (or a path ending in /) "
+                                                    "gets table.* inside it.")],
+    reference: Annotated[Optional[Path], typer.Option("--reference",
+                                                      help="Paper numbers (default: the shipped "
+                                                           "e3cm_bench/paper/tableN.csv).")] = None,
     compare: CompareOpt = True,
-    latex: Annotated[
-        bool,
-        typer.Option(
-            "--latex",
-            help="Also write OUT.tex: a booktabs table for a paper (each number with its interval, the best per "
-                 "column in bold).",
-        ),
-    ] = False,
-    paper: Annotated[
-        bool,
-        typer.Option("--paper/--no-paper", help="The paper's rows above the runs' (--no-paper: the runs' rows only)."),
-    ] = True,
+    latex: Annotated[bool, typer.Option("--latex",
+                                        help="Also write OUT.tex: a booktabs table for a paper (each number with its "
+                                             "interval, the best per column in bold).")] = False,
+    paper: Annotated[bool, typer.Option("--paper/--no-paper",
+        help="The paper's rows above the runs' (--no-paper: the runs' rows only).")] = True,
     plot_format: PlotFormatOpt = "png",
-    metrics: Annotated[
-        Optional[str],
-        typer.Option(
-            "--metrics", help="Comma-separated columns to keep, e.g. auc@10,maa (default: all the benchmark's)."
-        ),
-    ] = None,
-    caption: Annotated[
-        Optional[str],
-        typer.Option("--caption", help="The LaTeX table's caption (default: what its brackets and bold mean)."),
-    ] = None,
+    metrics: Annotated[Optional[str], typer.Option("--metrics",
+                                                   help="Comma-separated columns to keep, e.g. auc@10,maa (default: "
+                                                        "all the benchmark's).")] = None,
+    caption: Annotated[Optional[str], typer.Option("--caption",
+                                                   help="The LaTeX table's caption (default: what its brackets and "
+                                                        "bold mean).")] = None,
 ) -> None:
     """Collect runs into the paper's table layout, with the paper's numbers and differences."""
     from e3cm_bench.pipeline.experiments import write_table
@@ -90,13 +56,10 @@ def table(
 @app.command()
 @friendly_errors
 def report(
-    run_dirs: Annotated[
-        list[Path],
-        typer.Argument(help="Run folders of one benchmark (each with config.yaml, summary.csv, per_pair.csv)."),
-    ],
-    out: Annotated[Path, typer.Option("--out", help="Folder of the site (index.html, pairs/, runs/, img/).")] = Path(
-        "report"
-    ),
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders of one benchmark (each with config.yaml, "
+                                                        "summary.csv, per_pair.csv).")],
+    out: Annotated[Path, typer.Option("--out",
+                                      help="Folder of the site (index.html, pairs/, runs/, img/).")] = Path("report"),
     compare: CompareOpt = True,
 ) -> None:
     """A static site of runs: the paper-layout table, plots, every pair per method (sortable, filterable)
@@ -112,12 +75,10 @@ def compare_command(
     run_a: Annotated[Path, typer.Argument(help="Run folder A (config.yaml, summary.csv, per_pair.csv).")],
     run_b: Annotated[Path, typer.Argument(help="Run folder B, of the same benchmark.")],
     out: Annotated[Optional[Path], typer.Option("--out", help="Folder for compare.csv and compare.md.")] = None,
-    mma: Annotated[
-        Optional[str], typer.Option("--mma", help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")
-    ] = None,
-    alpha: Annotated[
-        float, typer.Option("--alpha", help="False-alarm rate of each test; intervals at 1 - alpha.")
-    ] = 0.05,
+    mma: Annotated[Optional[str], typer.Option("--mma",
+        help="Homography: the mma@k compared: 3 (default), 1,3,5 or all.")] = None,
+    alpha: Annotated[float, typer.Option("--alpha",
+                                         help="False-alarm rate of each test; intervals at 1 - alpha.")] = 0.05,
 ) -> None:
     """Two runs of one benchmark, pair by pair on the pairs both hold: per metric B - A of one
     statistic (the mean; the median of an error, a failure counting as +inf) with its
@@ -137,53 +98,26 @@ def compare_command(
 @app.command("sweep")
 @friendly_errors
 def sweep_command(
-    run_dirs: Annotated[
-        list[Path],
-        typer.Argument(
-            help="Two or more run folders of one two-view pose benchmark (their cached matches are scored again; "
-                 "nothing is matched)."
-        ),
-    ],
-    out: Annotated[
-        Path,
-        typer.Option(
-            "--out",
-            help="Folder for sweep.csv, tau.csv, flips.csv, sweep.md, ranks.png, sweep.yaml and cells/ (a sweep "
-                 "resumes from cells/).",
-        ),
-    ],
-    estimators: Annotated[
-        str,
-        typer.Option(
-            "--estimators",
-            help="Comma-separated: opencv-ransac, opencv-magsac (USAC_MAGSAC), opencv-accurate (USAC_ACCURATE), "
-                 "poselib, pycolmap.",
-        ),
-    ] = "opencv-ransac,opencv-magsac,opencv-accurate,poselib,pycolmap",
-    thresholds: Annotated[
-        str,
-        typer.Option(
-            "--thresholds",
-            help="Comma-separated thresholds with units: 0.5px (stored pixels), 1mpx (pixels as matched), 5e-4f "
-                 "(fraction of the mean focal length).",
-        ),
-    ] = "0.5px,1px,2px",
-    seeds: Annotated[
-        int,
-        typer.Option(
-            "--seeds",
-            help="RANSAC seeds per cell (evaluation seed + 0..N-1); the intervals resample them with the pairs.",
-        ),
-    ] = 3,
+    run_dirs: Annotated[list[Path], typer.Argument(help="Two or more run folders of one two-view pose benchmark "
+                                                        "(their cached matches are scored again; nothing is "
+                                                        "matched).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for sweep.csv, tau.csv, flips.csv, sweep.md, ranks.png, "
+                                                    "sweep.yaml and cells/ (a sweep resumes from cells/).")],
+    estimators: Annotated[str, typer.Option("--estimators",
+                                            help="Comma-separated: opencv-ransac, opencv-magsac (USAC_MAGSAC), "
+        "opencv-accurate (USAC_ACCURATE), poselib, pycolmap.")] = (
+        "opencv-ransac,opencv-magsac,opencv-accurate,poselib,pycolmap"),
+    thresholds: Annotated[str, typer.Option("--thresholds",
+                                            help="Comma-separated thresholds with units: 0.5px (stored pixels), 1mpx "
+        "(pixels as matched), 5e-4f (fraction of the mean focal length).")] = "0.5px,1px,2px",
+    seeds: Annotated[int, typer.Option("--seeds",
+                                       help="RANSAC seeds per cell (evaluation seed + 0..N-1); the intervals resample "
+                                            "them with the pairs.")] = 3,
     metric: Annotated[str, typer.Option("--metric", help="The ranking's metric: auc@5, auc@10 or auc@20.")] = "auc@10",
-    tune: Annotated[
-        bool,
-        typer.Option(
-            "--tune",
-            help="Add a cell per estimator with each run at its best px threshold, chosen on half of the pairs "
-                 "(sha256 of the name even); every number is then reported on the other half.",
-        ),
-    ] = False,
+    tune: Annotated[bool, typer.Option("--tune",
+                                       help="Add a cell per estimator with each run at its best px threshold, chosen "
+                                            "on half of the pairs (sha256 of the name even); every number is then "
+                                            "reported on the other half.")] = False,
 ) -> None:
     """Two-view protocol sweep: the runs ranked again under each estimator x threshold, with
     Kendall's tau against the runs' own protocol and each rank flip's paired interval."""
@@ -200,9 +134,8 @@ def sweep_command(
     runs = sweeping.load_runs(run_dirs)
     cells = sweeping.grid(estimators, thresholds, sweeping.cell_of(runs[0].ev))
     out.mkdir(parents=True, exist_ok=True)
-    result = sweeping.sweep(
-        runs, cells, seeds, out, metric, tune, progress=lambda line: console.print(line, markup=False)
-    )
+    result = sweeping.sweep(runs, cells, seeds, out, metric, tune, progress=lambda line: console.print(line,
+            markup=False))
     written = sweeping.write_sweep(result, runs, cells, seeds, tune, out)
     console.print(sweeping.markdown(result), markup=False, soft_wrap=True)
     console.print(f"sweep: {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
@@ -211,31 +144,26 @@ def sweep_command(
 @app.command()
 @friendly_errors
 def reproduce(
-    config: Annotated[
-        str, typer.Argument(help=f"Experiment config: a shipped name ({', '.join(config_names())}) or a YAML file.")
-    ],
+    config: Annotated[str, typer.Argument(help=f"Experiment config: a shipped name ({', '.join(config_names())}) or a "
+                                               "YAML file.")],
     out: OutOpt,
     root: RootOpt = None,
-    backbone: Annotated[
-        Optional[str], typer.Option("--backbone", help="Use this backbone for every deep method (labels say so).")
-    ] = None,
+    backbone: Annotated[Optional[str], typer.Option("--backbone",
+        help="Use this backbone for every deep method (labels say so).")] = None,
     limit: LimitOpt = None,
     device: DeviceOpt = "cpu",
     max_side: MaxSideOpt = None,
-    scene_info: Annotated[
-        Optional[list[Path]], typer.Option("--scene-info", help="MegaDepth: scene_info files instead of the config's.")
-    ] = None,
+    scene_info: Annotated[Optional[list[Path]], typer.Option("--scene-info",
+                                                             help="MegaDepth: scene_info files instead of the "
+                                                                  "config's.")] = None,
     pairs: Annotated[Optional[Path], typer.Option("--pairs", help="YFCC: pair list instead of the default.")] = None,
     sequences: Annotated[Optional[list[str]], typer.Option("--sequences", help="HPatches: sequences to keep.")] = None,
     skip_bad: SkipBadOpt = False,
     compare: CompareOpt = True,
     shard: ShardOpt = None,
-    methods: Annotated[
-        Optional[str],
-        typer.Option(
-            "--methods", help="Comma-separated labels: run only these methods of the config (e.g. without the peers)."
-        ),
-    ] = None,
+    methods: Annotated[Optional[str], typer.Option("--methods",
+                                                   help="Comma-separated labels: run only these methods of the config "
+                                                        "(e.g. without the peers).")] = None,
     launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
     pair_timeout: PairTimeoutOpt = None,
@@ -290,9 +218,8 @@ def rerun(
 @app.command()
 @friendly_errors
 def merge(
-    run_dir: Annotated[
-        Path, typer.Argument(help="A sharded run's --out (with shards/), or a sharded reproduce's --out.")
-    ],
+    run_dir: Annotated[Path, typer.Argument(help="A sharded run's --out (with shards/), or a sharded reproduce's "
+                                                 "--out.")],
     viz: VizOpt = 0,
     compare: CompareOpt = True,
     plot_format: PlotFormatOpt = "png",
@@ -312,22 +239,15 @@ def merge(
 @app.command()
 @friendly_errors
 def demo(
-    out: Annotated[Path, typer.Option("--out", help="Folder for the data, the runs, the tables and the plots.")] = Path(
-        "e3cm-demo"
-    ),
-    seed: Annotated[
-        int, typer.Option("--seed", help="Seed of every robust estimator (the data is always the same).")
-    ] = 0,
-    quick: Annotated[
-        bool,
-        typer.Option(
-            "--quick",
-            help="Fewer pairs of the same kinds: 10 HPatches-format (viewpoint and illumination), 2 scene pairs.",
-        ),
-    ] = False,
-    methods: Annotated[
-        Optional[str], typer.Option("--methods", help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")
-    ] = None,
+    out: Annotated[Path, typer.Option("--out",
+        help="Folder for the data, the runs, the tables and the plots.")] = Path("e3cm-demo"),
+    seed: Annotated[int, typer.Option("--seed",
+                                      help="Seed of every robust estimator (the data is always the same).")] = 0,
+    quick: Annotated[bool, typer.Option("--quick",
+                                        help="Fewer pairs of the same kinds: 10 HPatches-format (viewpoint and "
+                                             "illumination), 2 scene pairs.")] = False,
+    methods: Annotated[Optional[str], typer.Option("--methods",
+        help=f"Comma-separated subset of: {', '.join(DEMO_METHODS)}.")] = None,
     device: DeviceOpt = "cpu",
     plot_format: PlotFormatOpt = "png",
 ) -> None:
@@ -347,64 +267,34 @@ def demo(
 @app.command()
 @friendly_errors
 def check(
-    run_dirs: Annotated[
-        list[Path], typer.Argument(help="Run folders, or folders holding run folders (e.g. e3cm-demo/hpatches).")
-    ],
-    baseline: Annotated[
-        Path,
-        typer.Option(
-            "--baseline",
-            help="Baseline CSV (benchmark, method, metrics, environment), e.g. results/baselines/demo_hpatches.csv.",
-        ),
-    ],
-    tolerance: Annotated[
-        Optional[list[str]],
-        typer.Option(
-            "--tolerance",
-            help="METRIC=T, or METHOD:METRIC=T for one method: allowed fall (absolute) of a metric; repeatable; wins "
-                 "over --tolerances.",
-        ),
-    ] = None,
-    tolerances: Annotated[
-        Optional[Path],
-        typer.Option(
-            "--tolerances",
-            help="CSV of tolerances: benchmark, method, metric, tolerance (* = any; the most specific row applies; "
-                 "other columns ignored).",
-        ),
-    ] = None,
-    update: Annotated[
-        bool,
-        typer.Option(
-            "--update",
-            help="Write the baseline from these runs (aggregate + per-pair values, each run's identity and "
-                 "environment) instead of checking.",
-        ),
-    ] = False,
-    ensemble: Annotated[
-        int,
-        typer.Option(
-            "--ensemble",
-            help="With --update: rerun every run K times under CPU-scale perturbations and store the draws beside the "
-                 "baseline (the noise model check then gates with).",
-        ),
-    ] = 0,
-    ensemble_dir: Annotated[
-        Optional[Path],
-        typer.Option(
-            "--ensemble-dir",
-            help="Work folder of the ensemble's reruns (resumable; default .e3cm-ensemble/BASELINE_NAME).",
-        ),
-    ] = None,
-    alpha: Annotated[
-        float,
-        typer.Option(
-            "--alpha", help="False-alarm rate of the whole check under the noise model (split over its metrics)."
-        ),
-    ] = CHECK_ALPHA,
-    summary: Annotated[
-        Optional[Path], typer.Option("--summary", help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")
-    ] = None,
+    run_dirs: Annotated[list[Path], typer.Argument(help="Run folders, or folders holding run folders (e.g. "
+                                                        "e3cm-demo/hpatches).")],
+    baseline: Annotated[Path, typer.Option("--baseline", help="Baseline CSV (benchmark, method, metrics, "
+                                                              "environment), e.g. "
+                                                              "results/baselines/demo_hpatches.csv.")],
+    tolerance: Annotated[Optional[list[str]], typer.Option("--tolerance",
+                                                           help="METRIC=T, or METHOD:METRIC=T for one method: allowed "
+                                                                "fall (absolute) of a metric; repeatable; wins over "
+                                                                "--tolerances.")] = None,
+    tolerances: Annotated[Optional[Path], typer.Option("--tolerances",
+                                                       help="CSV of tolerances: benchmark, method, metric, tolerance "
+                                                            "(* = any; the most specific row applies; other columns "
+                                                            "ignored).")] = None,
+    update: Annotated[bool, typer.Option("--update",
+                                         help="Write the baseline from these runs (aggregate + per-pair values, each "
+                                              "run's identity and environment) instead of checking.")] = False,
+    ensemble: Annotated[int, typer.Option("--ensemble",
+                                          help="With --update: rerun every run K times under CPU-scale perturbations "
+                                               "and store the draws beside the baseline (the noise model check then "
+                                               "gates with).")] = 0,
+    ensemble_dir: Annotated[Optional[Path], typer.Option("--ensemble-dir",
+                                                         help="Work folder of the ensemble's reruns (resumable; "
+                                                              "default .e3cm-ensemble/BASELINE_NAME).")] = None,
+    alpha: Annotated[float, typer.Option("--alpha",
+                                         help="False-alarm rate of the whole check under the noise model (split over "
+                                              "its metrics).")] = CHECK_ALPHA,
+    summary: Annotated[Optional[Path], typer.Option("--summary",
+        help="Append a Markdown report here (e.g. $GITHUB_STEP_SUMMARY).")] = None,
 ) -> None:
     """Compare runs with a baseline: exit 1 naming each metric that fell beyond its noise (or its tolerance).
 
@@ -413,7 +303,7 @@ def check(
     rate --alpha per check; the pairs that moved are named, each against its own noise. Runs
     the ensemble does not hold are checked against tolerances. Where a run's versions or CPU
     settings differ from its baseline row's, one line names each difference (information)."""
-    from e3cm_bench.gate import check as regression, notes as check_notes
+    from e3cm_bench.gate import check as regression
 
     runs = regression.find_runs(run_dirs)
     if update:
@@ -421,16 +311,23 @@ def check(
         return
     if not 0 < alpha < 1:
         raise ValueError(f"--alpha must be between 0 and 1, got {alpha}")
+    if _check_runs(runs, baseline, alpha, tolerance, tolerances, summary):
+        raise typer.Exit(1)
+
+
+def _check_runs(runs, baseline: Path, alpha: float, tolerance, tolerances, summary) -> int:
+    """check's verdict on `runs` against `baseline`, printed (and appended to `summary`): the
+    number of regressions and problems."""
     from e3cm_bench.drawing.formats import text_width
+    from e3cm_bench.gate import check as regression, notes as check_notes
 
     width = text_width(console)  # 80 columns in a CI log or a pipe
     # First: a broken per-pair baseline is refused before the noise gate reads it.
     consistency = regression.consistency_problems(runs, baseline)
     bad, lines, text, others, checked = _noise_gate(runs, baseline, alpha, width)
     limits = regression.Tolerances.load(tolerance, tolerances)
-    findings, problems = regression.compare(
-        others, baseline, limits, checked_runs=[(r.benchmark.name, r.label) for r in runs]
-    )
+    findings, problems = regression.compare(others, baseline, limits,
+                                            checked_runs=[(r.benchmark.name, r.label) for r in runs])
     problems += consistency
     checked += len(findings)
     notes = check_notes.environment_notes(runs, baseline) + check_notes.protocol_check_notes(runs, baseline)
@@ -449,15 +346,10 @@ def check(
         console.print(Text.assemble((status, styles[status]), f": {line}"), highlight=False, width=width)
     bad += sum(f.status == "regression" for f in findings) + len(problems)
     # The verdict first, so that a wrapped line never splits it (CI logs are searched for it).
-    console.print(
-        ("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
-        + f": {checked} metrics of {len(runs)} runs against {baseline}",
-        width=width,
-        highlight=False,
-        markup=False,
-    )
-    if bad:
-        raise typer.Exit(1)
+    console.print(("check: no regression" if not bad else f"check: {bad} regression(s)/problem(s)")
+                  + f": {checked} metrics of {len(runs)} runs against {baseline}", width=width, highlight=False,
+                  markup=False)
+    return bad
 
 
 def _noise_gate(runs, baseline: Path, alpha: float, width: int) -> tuple[int, list, str, list, int]:
@@ -495,16 +387,13 @@ def _update_baseline(runs, baseline: Path, ensemble: int, ensemble_dir: Path | N
                           markup=False)
         return
     work = ensemble_dir or Path(".e3cm-ensemble") / baseline.stem
-    console.print(
-        f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False, markup=False
-    )
+    console.print(f"ensemble: {ensemble} draws of {len(runs)} runs in {work} (resumable)", highlight=False,
+                  markup=False)
     t = time.perf_counter()
     table = build_ensemble(runs, range(1, ensemble + 1), work, console=console)
     write_noise(table, noise)
-    console.print(
-        f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s",
-        highlight=False,
-        markup=False,
-    )
+    console.print(f"ensemble: {noise} written, {len(table)} pair draws in {time.perf_counter() - t:.0f} s",
+                  highlight=False,
+                  markup=False)
 
 

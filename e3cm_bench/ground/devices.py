@@ -137,7 +137,7 @@ def keep_freed_memory() -> str:
     (at most 32 MiB: a feature map, a convolution's output) with a fresh mmap and unmaps it
     when freed: the next pass touches new pages, and the kernel zeroes each one on a page
     fault. On this project's machine that was up to a quarter of a VGG19 pass
-    (scripts/archive/allocator_ab.py, docs/speed.md). With mmap off (M_MMAP_MAX 0) and the heap
+    (docs/speed.md; its removed A/B script is in the git history). With mmap off (M_MMAP_MAX 0) and the heap
     never trimmed, the pages of one pass serve the next. The values computed are the same (a
     test compares the matches); the process keeps its peak memory until it exits.
     Idempotent; E3CM_BENCH_ALLOCATOR=system leaves the allocator as it is; a C library other

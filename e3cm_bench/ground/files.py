@@ -1,8 +1,7 @@
 """Reading and writing the files of a run: atomic writes, YAML, CSV, hashes, versions, environment.
 
 Every file is written through `write_atomically` (an interrupted write leaves the old file or the
-new one); every reader turns a broken file into a one-line ValueError that names the file.
-"""
+new one); every reader turns a broken file into a one-line ValueError that names the file."""
 
 from __future__ import annotations
 
@@ -24,17 +23,7 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-PACKAGES = (
-    "e3cm-bench",
-    "torch",
-    "torchvision",
-    "numpy",
-    "opencv-python-headless",
-    "h5py",
-    "pandas",
-    "poselib",
-    "pycolmap",
-)
+PACKAGES = tuple("e3cm-bench torch torchvision numpy opencv-python-headless h5py pandas poselib pycolmap".split())
 # Variables that choose the CPU kernels (oneDNN, ATen), and the CPU flags the defaults pick them by.
 ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
 CPU_FLAGS = ("avx512_bf16", "amx_bf16", "avx512f", "avx2")
@@ -312,11 +301,7 @@ def writable_folder(folder: Path, create: bool = True) -> Path:
         raise ValueError(f"{existing}: is a file, not a folder; choose another --out")
     if not create:
         if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
-            what = (
-                "the folder is not writable"
-                if existing == folder
-                else f"cannot create the folder ({existing} is not writable)"
-            )
+            what = f"cannot create the folder ({existing} is not writable)" if existing != folder else "not writable"
             raise ValueError(f"{folder}: {what}; choose another --out or make it writable")
         return folder
     try:
@@ -362,11 +347,8 @@ class FolderLock:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
             os.close(fd)
-            what = (
-                "not a regular file"
-                if not stat.S_ISREG(info.st_mode)
-                else f"a file with {info.st_nlink} names (hard links)"
-            )
+            what = ("not a regular file" if not stat.S_ISREG(info.st_mode)
+                    else f"a file with {info.st_nlink} names (hard links)")
             raise ValueError(f"{self.path}: is {what}; e3cm-bench writes its lock only into a file of its own: "
                              f"remove it or choose another {self.option}")
         try:

@@ -7,7 +7,7 @@ in the same order, a channel at a time over every position (vectorised across po
 `acc += x[k] * x[k]`, the product rounded before it is added (`addcmul_` fuses the two on
 this machine's torch, rounding once, and gives other bits). On a 64-channel level 0 that
 takes about 0.4x the time of adding the squares a band of positions at a time, which it
-replaced, and a seventh of torch's (scripts/archive/norm_ab.py).
+replaced, and a seventh of torch's (the removed A/B script norm_ab.py, in the git history).
 
 That order is torch's choice, not a promise, so the sum is used only after it has given
 torch's own norm bit for bit on probe maps of the same channel count, checked once per

@@ -38,8 +38,7 @@ LEGACY_KEYS = ("match_options",)
 
 def record_of(run: str | Path) -> RunConfig:
     """The record of a run folder, or of the config.yaml given itself."""
-    path = Path(run)
-    return RunConfig.read(path / "config.yaml" if path.is_dir() else path)
+    return RunConfig.read(run)  # a folder's own record, or the file given
 
 
 def check_keys(config: RunConfig, benchmark) -> None:

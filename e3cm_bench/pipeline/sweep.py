@@ -45,13 +45,8 @@ from e3cm_bench.geometry import metrics
 from e3cm_bench.geometry.estimators import ESTIMATORS, POSE_METHODS
 from e3cm_bench.ground.files import save_yaml, write_csv
 from e3cm_bench.ground.matches import distinct
-from e3cm_bench.stats.bootstrap import (
-    BOOTSTRAP_SAMPLES,
-    BOOTSTRAP_SEED,
-    CONFIDENCE,
-    percentile_interval,
-    resample_indices,
-)
+from e3cm_bench.stats.bootstrap import (BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, percentile_interval,
+                                        resample_indices)
 
 UNITS = {"px": "pixels of the stored images", "mpx": "pixels of the images as matched",
          "f": "a fraction of the pair's mean focal length"}
@@ -81,11 +76,8 @@ class Cell:
     def settings(self, ev: EvalSettings, focal: float, seed: int) -> EvalSettings:
         """The evaluation of one pair in this cell."""
         value = self.threshold
-        px, frame = (
-            (value * focal, "original")
-            if self.unit == "f"
-            else (value, "matched" if self.unit == "mpx" else "original")
-        )
+        px, frame = (value * focal, "original") if self.unit == "f" else (value,
+                "matched" if self.unit == "mpx" else "original")
         return replace(ev, estimator=self.estimator, opencv_method=self.method, pose_ransac_px=float(px),
                        pose_ransac_frame=frame, seed=int(seed), repeats=1)
 
@@ -265,16 +257,9 @@ def tuned_thresholds(errors_by_cell: dict[Cell, dict[str, np.ndarray]], tune: np
     return chosen
 
 
-def sweep(
-    runs: Sequence[SweepRun],
-    cells: Sequence[Cell],
-    seeds: int,
-    out: Path,
-    metric: str = "auc@10",
-    tune: bool = False,
-    n_samples: int = BOOTSTRAP_SAMPLES,
-    progress: Callable[[str], None] = print,
-) -> SweepResult:
+def sweep(runs: Sequence[SweepRun], cells: Sequence[Cell], seeds: int, out: Path, metric: str = "auc@10",
+          tune: bool = False, n_samples: int = BOOTSTRAP_SAMPLES, progress: Callable[[str],
+                  None] = print) -> SweepResult:
     """The sweep of the module docstring over the pairs every run holds (in the first run's order)."""
     if metric not in AUCS:
         raise ValueError(f"--metric {metric!r}: choose one of {', '.join(AUCS)}")
@@ -355,18 +340,14 @@ def write_sweep(result: SweepResult, runs: Sequence[SweepRun], cells: Sequence[C
 
 def markdown(result: SweepResult) -> str:
     metric = result.metric
-    lines = [
-        f"# Protocol sweep: {metric} per cell (default cell: {result.default})",
-        "",
-        "| cell | Kendall tau vs default | flips | ranking (" + metric + " [95% interval]) |",
-        "|---|---:|---:|---|",
-    ]
+    lines = [f"# Protocol sweep: {metric} per cell (default cell: {result.default})", "",
+             "| cell | Kendall tau vs default | flips | ranking (" + metric + " [95% interval]) |",
+             "|---|---:|---:|---|"]
     for _, tau in result.taus.iterrows():
         chosen = result.table[result.table["cell"] == tau["cell"]].sort_values("rank")
-        ranking = "; ".join(
-            f"{r['rank']}. {r['run']} {r[metric]:.1f} [{r[metric + '_lo']:.1f}, {r[metric + '_hi']:.1f}]"
-            for _, r in chosen.iterrows()
-        )
+        ranking = "; ".join(f"{r['rank']}. {r['run']} {r[metric]:.1f} [{r[metric + '_lo']:.1f}, "
+                            f"{r[metric + '_hi']:.1f}]"
+                            for _, r in chosen.iterrows())
         lines.append(f"| {tau['cell']} | {tau['kendall_tau']:.2f} | {tau['flips']} | {ranking} |")
     if len(result.flips):
         lines += ["", "Flips (B - A in the default cell, then in the cell with its interval):", ""]
@@ -414,7 +395,6 @@ def load_runs(run_dirs: Sequence[Path]) -> list[SweepRun]:
 
 def check_seeds(seeds: int) -> int:
     if int(seeds) != seeds or not 1 <= seeds <= MOST_SEEDS:
-        raise ValueError(
-            f"--seeds {seeds}: give 1 to {MOST_SEEDS} (each seed is one more RANSAC per pair, cell and run)"
-        )
+        raise ValueError(f"--seeds {seeds}: give 1 to {MOST_SEEDS} (each seed is one more RANSAC per pair, cell and "
+        "run)")
     return int(seeds)

@@ -73,12 +73,10 @@ def index_page(runs: list[Run], table: pd.DataFrame, plots: list[str], run_links
         cells = "".join(f"<td class=\"t\">{html_text('' if text == '-' else text)}</td>" if c in text_columns
                         else f"<td>{html_text(text)}</td>" for c, text in zip(shown, cells_text))
         rows.append(f"<tr class=\"{html_text(str(source))}\">{cells}</tr>")
-    intervals_note = (
-        "[lo, hi]: the bootstrap interval over the pairs (95% unless the run recorded another), "
-        "where the run has one; \"outside CI\": the paper's number lies outside it (a run on the paper's "
-        "pairs); \"other pairs\": the run's pairs are not the paper's, so the difference is no regression "
-        "and no improvement (the note above says which pairs each side holds)."
-    )
+    intervals_note = ("[lo, hi]: the bootstrap interval over the pairs (95% unless the run recorded another), "
+                      "where the run has one; \"outside CI\": the paper's number lies outside it (a run on the paper's "
+                      "pairs); \"other pairs\": the run's pairs are not the paper's, so the difference is no "
+                      "regression and no improvement (the note above says which pairs each side holds).")
     run_items = []
     for k, (run, links) in enumerate(zip(runs, run_links), start=1):
         items = " · ".join(f"<a href=\"{html_text(path)}\">{html_text(name)}</a>" for name, path in links.items())
@@ -163,8 +161,9 @@ SCRIPT = r"""
 const data = JSON.parse(document.getElementById('pair-data').textContent);
 const cols = data.columns, table = document.getElementById('pairs');
 let sortKey = null, sortDir = 1;
-function esc(t) { return String(t).replace(/[&<>"]/g, ch => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"':
-'&quot;'}[ch])); }
+function esc(t) {
+  return String(t).replace(/[&<>"]/g, ch => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'}[ch]));
+}
 function cell(v, c) { if (v === null || v === undefined) return '-'; if (typeof v === 'string') return v;
   if (c === 'n_matches') return String(v); return Math.abs(v) >= 100 ? v.toFixed(1) : v.toFixed(3); }
 function num(v) { return v === null ? -Infinity : v === 'inf' ? Infinity : v === '-inf' ? -Infinity : v; }
@@ -183,8 +182,8 @@ function render() {
   let rows = data.pairs.filter(p => (!s.q || p.pair.includes(s.q))
     && (s.fails === '' || p.cells[+s.fails].fail === true)
     && (s.passes === '' || p.cells[+s.passes].fail === false));
-  if (sortKey) rows = rows.slice().sort((a, b) => { if (sortKey === 'pair') return sortDir *
-  a.pair.localeCompare(b.pair);
+  if (sortKey) rows = rows.slice().sort((a, b) => {
+    if (sortKey === 'pair') return sortDir * a.pair.localeCompare(b.pair);
     const [k, c] = sortKey.split(':'); return sortDir * (num(a.cells[k][c]) - num(b.cells[k][c])); });
   table.tBodies[0].innerHTML = rows.map(p => {
     const name = p.page ? `<a href="${esc(p.page)}">${esc(p.pair)}</a>` : esc(p.pair);
@@ -202,9 +201,8 @@ render();
 """
 
 
-def write_pair_page(
-    out: Path, name: str, runs: list[Run], pairs: pd.DataFrame, drawings: dict[str, dict[int, str]]
-) -> None:
+def write_pair_page(out: Path, name: str, runs: list[Run], pairs: pd.DataFrame,
+                    drawings: dict[str, dict[int, str]]) -> None:
     columns = runs[0].benchmark.report_columns
     blocks = []
     for k, run in enumerate(runs):
@@ -215,9 +213,8 @@ def write_pair_page(
             "<p class=\"muted\">no drawing (no cached matches or no ground truth here)</p>"
         blocks.append(f"<div class=\"drawing\"><h2>{html_text(run.label)}{' (fails)' if failed else ''}</h2>"
                       f"<p>{numbers}</p>{picture}</div>")
-    body = (
-        f'<p><a href="../index.html">back to the report</a></p><h1>{html_text(name)}</h1>'
-        '<p class="muted">Green: right by the ground truth; red: wrong (at most 400 lines drawn).</p>' + "".join(blocks)
-    )
+    body = (f"<p><a href=\"../index.html\">back to the report</a></p><h1>{html_text(name)}</h1>"
+            "<p class=\"muted\">Green: right by the ground truth; red: wrong (at most 400 lines drawn).</p>"
+            + "".join(blocks))
     page = _page(name, body)
     write_atomically(out / "pairs" / f"{file_slug(name)}.html", lambda tmp: tmp.write_text(page))

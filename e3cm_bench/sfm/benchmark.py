@@ -132,16 +132,14 @@ class SfMBenchmark(Benchmark):
         return ["n_pairs", "n_matches", *self.table_metrics.values(), "registered_images", "n_models"]
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         plots.plot_pose_error_cdf({label: per_pair}, out / "pose_error_cdf.png")
 
     def plot_comparison(self, runs: Mapping[str, tuple[dict, pd.DataFrame]], stem: Path) -> list[Path]:
-        from e3cm_bench.drawing import (
-            plots,
-        )  # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        # matplotlib, on first use: the command line's help reads this registry (cli/common.py, Startup)
+        from e3cm_bench.drawing import plots
 
         cdf = stem.with_name(stem.stem + "_pose_cdf.png")
         return [plots.plot_pose_error_cdf({label: p for label, (_, p) in runs.items()}, cdf)]

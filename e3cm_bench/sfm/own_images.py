@@ -26,7 +26,7 @@ from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_direc
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
-from e3cm_bench.sfm.protocol import Protocol, _radius, keypoints_are_detections
+from e3cm_bench.sfm.protocol import BY_COLMAP, Protocol, _radius, keypoints_are_detections
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
@@ -129,7 +129,7 @@ class ImageFolder(PairList):
         """How the set is reconstructed: it travels with each pair (ViewPair.setup), as the sfm
         set's protocol does, to the evaluation that maps them."""
         protocol = Protocol(mapper="incremental", mapper_seeds=1, merge="auto", merge_px=self.merge_px,
-                            verification="colmap")
+                            verification=BY_COLMAP)
         return FolderSetup(self.root, protocol, self.camera_model, self.camera_per_image)
 
     def settings(self) -> dict:

@@ -26,7 +26,8 @@ from e3cm_bench.datasets.base import DatasetError
 
 MAPPERS = ("global", "incremental")
 MERGES = ("auto", "exact", "radius", "quantize")
-VERIFICATIONS = ("estimator", "colmap")
+BY_COLMAP = "colmap"  # the verification by COLMAP's own two-view geometry (reconstruct's, always)
+VERIFICATIONS = ("estimator", BY_COLMAP)
 SCORE_MODELS = ("any", "largest")
 # The merge radius of a matcher whose keypoints are not detections (dense, semi-dense, sub-pixel
 # refined): docs/sfm.md's grid measured 2 px (a merge within 1 px still leaves most tracks at

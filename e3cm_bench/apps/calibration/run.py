@@ -54,9 +54,8 @@ def windows(n_frames: int, size: int) -> list[range]:
     return [range(start, start + size) for start in range(0, n_frames - size + 1)]
 
 
-def calibrate_windows(
-    sequence: StereoSequence, matches: list, settings: CalibrationSettings, image_size
-) -> pd.DataFrame:
+def calibrate_windows(sequence: StereoSequence, matches: list, settings: CalibrationSettings,
+                      image_size) -> pd.DataFrame:
     """One row per window: errors (ERROR_COLUMNS), match counts, vertical disparity before/after."""
     rows = []
     for size in settings.frames:
@@ -73,9 +72,8 @@ def calibrate_windows(
                 continue
             row.update(extrinsic_errors(estimate["R"], estimate["t"], sequence.R, sequence.t))
             row["inliers_1px"] = estimate["inliers_1px"]
-            before, after = vertical_disparity(
-                x0, x1, sequence.K0, sequence.K1, estimate["R"], estimate["t"], image_size
-            )
+            before, after = vertical_disparity(x0, x1, sequence.K0, sequence.K1, estimate["R"], estimate["t"],
+                                               image_size)
             _, with_truth = vertical_disparity(x0, x1, sequence.K0, sequence.K1, sequence.R, sequence.t, image_size)
             row.update({"vdisp_before": before, "vdisp_after": after, "vdisp_after_truth": with_truth})
             rows.append(row)
@@ -158,9 +156,8 @@ def run_calibration(
     record = {"sequence": str(sequence.root), "calibration": asdict(settings), "methods": {}}
     if record_path.is_file() and not overwrite:
         before = load_yaml(record_path)
-        if before.get("sequence") != record["sequence"] or before.get("calibration") != yaml_plain(
-            record["calibration"]
-        ):
+        if (before.get("sequence") != record["sequence"]
+                or before.get("calibration") != yaml_plain(record["calibration"])):
             raise ValueError(f"{record_path}: this folder holds a calibration of another sequence or with other "
                              "settings; pass --overwrite or choose another --out")
         record["methods"] = dict(before.get("methods") or {})
@@ -174,25 +171,22 @@ def run_calibration(
         save_yaml(record, record_path)
     for label, folder in record["methods"].items():
         if label not in all_windows:  # calibrated by an earlier run into this folder
-            all_windows[label] = read_csv(RunFolder(out / folder).windows_path, what=f"{label}'s windows.csv").assign(
-                method=label
-            )
+            all_windows[label] = read_csv(RunFolder(out / folder).windows_path,
+                                          what=f"{label}'s windows.csv").assign(method=label)
     windows_df = pd.concat(all_windows.values(), ignore_index=True)
     write_csv(windows_df, RunFolder(out).windows_path)
-    summary = pd.concat(
-        [summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0]) for w in all_windows.values()]
-    )
+    summary = pd.concat([summarize(w.drop(columns="method")).assign(method=w["method"].iloc[0])
+                         for w in all_windows.values()])
     summary = summary[["method", *[c for c in summary.columns if c != "method"]]]
     write_csv(summary, RunFolder(out).summary_path)  # the set's table, where a run keeps its summary
     boxplot, vs_frames = (out / name for name in RunFolder.CALIBRATION_PLOTS)
     plots.plot_calibration_boxplots(windows_df, max(settings.frames), boxplot)
     plots.plot_calibration_vs_frames(summary, vs_frames)
     for _, row in summary[summary["frames"] == max(settings.frames)].iterrows():
-        print_summary(
-            {k: row[k] for k in ("n_windows", *ERROR_COLUMNS, "vdisp_before", "vdisp_after", "vdisp_after_truth")},
-            f"{row['method']}: mean |error| over windows of {row['frames']} frames (degrees; unit t)",
-            console,
-        )
+        print_summary({k: row[k] for k in ("n_windows", *ERROR_COLUMNS, "vdisp_before", "vdisp_after",
+                                           "vdisp_after_truth")},
+                      f"{row['method']}: mean |error| over windows of {row['frames']} frames (degrees; unit t)",
+                      console)
     console.print(f"calibrate: windows.csv, summary.csv, calibration_boxplot.png, calibration_vs_frames.png in {out}",
                   markup=False)
     return summary
