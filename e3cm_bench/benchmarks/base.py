@@ -19,6 +19,9 @@ from e3cm_bench.ground.matches import Matches
 from e3cm_bench.method.options import DATASET_KINDS
 
 
+MAX_INTERVAL_SEEDS = 20  # each seed is one more evaluation of every pair
+
+
 @dataclass(frozen=True)
 class EvalSettings:
     """Everything that changes only the metrics, never the matches (`--eval-only` may change it).
@@ -59,6 +62,11 @@ class EvalSettings:
     # summary is the mean over the repeats with each metric's spread (evaluate.py), as RoMa (5)
     # and the Image Matching Challenge code (3) report it.
     repeats: int = 1
+    # The RANSAC seeds the interval holds (seed, seed+1, ...): each bootstrap resample of the pairs
+    # takes one of them, so the interval holds the estimation's spread beside the pairs'; the
+    # run's numbers stay its own seed's (a one-evaluation interval where 1). The commands'
+    # default is the benchmark's default_interval_seeds under e3cm-bench's protocol.
+    interval_seeds: int = 1
 
     def __post_init__(self) -> None:
         from e3cm_bench.geometry.estimators import POSE_METHODS, check_estimator
@@ -70,6 +78,8 @@ class EvalSettings:
             raise ValueError(f"opencv_method must be one of {', '.join(POSE_METHODS)}, got {self.opencv_method!r}")
         if int(self.repeats) < 1:
             raise ValueError(f"--repeats must be at least 1, got {self.repeats}")
+        if not 1 <= int(self.interval_seeds) <= MAX_INTERVAL_SEEDS:
+            raise ValueError(f"--interval-seeds must be 1 to {MAX_INTERVAL_SEEDS}, got {self.interval_seeds}")
 
     @classmethod
     def from_record(cls, record: Mapping | None, **changes) -> EvalSettings:
@@ -163,6 +173,11 @@ class Benchmark:
     # The protocol a run gets when none is named (benchmarks/protocols.py): the reference code's
     # where the benchmark has one (WxBS, EVD: wxbs-benchmark's), else e3cm-bench's own.
     default_protocol: str = "default"
+    # How many RANSAC seeds a run's interval holds when neither the user nor the protocol says
+    # (EvalSettings.interval_seeds): measured beside the pairs' spread, RANSAC's is not negligible
+    # on any shared two-view set (docs/sweep.md). A reference's protocol keeps its one evaluation
+    # (Protocol.interval_seeds); sfm and reconstruct hold their mapper's seeds instead (1).
+    default_interval_seeds: int = 3
     # Whether its dataset takes the run's --limit (`first`) and builds no pair beyond it (sfm: a
     # set's exhaustive graph grows with the square of its images).
     builds_to_limit: bool = False
@@ -241,15 +256,21 @@ class Benchmark:
         return build_method({"matcher": matcher, "protocol": protocol, **options}, benchmark=self, available=available)
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
-                     estimator: str | None = None, repeats: int = 1) -> EvalSettings:
-        """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator, --repeats."""
+                     estimator: str | None = None, repeats: int = 1,
+                     interval_seeds: int | None = None) -> EvalSettings:
+        """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator,
+        --repeats, --interval-seeds (None: the protocol's, else the benchmark's default)."""
         from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 
-        values = get_protocol(resolve_protocol(self, protocol), self.name).eval_fields(self.name)
+        chosen = get_protocol(resolve_protocol(self, protocol), self.name)
+        values = chosen.eval_fields(self.name)
         if estimator:
             values["estimator"] = estimator
         if repeats != 1:
             values["repeats"] = repeats
+        if interval_seeds is None:
+            interval_seeds = chosen.interval_seeds if chosen.interval_seeds is not None else self.default_interval_seeds
+        values["interval_seeds"] = interval_seeds
         return self.eval_settings(seed=seed, ransac_px=ransac_px, **values)
 
     # ---- scoring: subclasses

@@ -22,6 +22,7 @@ from e3cm_bench.benchmarks import Benchmark, EvalSettings
 LO, HI = "_lo", "_hi"
 SETTINGS = ("bootstrap_samples", "bootstrap_seed", "confidence")
 SD, REPEATS = "_sd", "repeats"  # --repeats: a metric's spread over the repeats, and their number
+INTERVAL_SEEDS = "interval_seeds"  # the RANSAC seeds the interval holds (EvalSettings.interval_seeds)
 COUNTS = ("n_pairs", "n_failures", "n_skipped")  # prefixes: n_pairs_i, n_pairs_v too
 # The run's highest per-pair memory peaks (pipeline/evaluate.py cost_summary): facts of this run
 # on this machine, not an estimate over pairs, so no interval either.
@@ -39,7 +40,7 @@ def hi_key(key: str) -> str:
 def is_interval_key(key: str) -> bool:
     """A column that belongs to an interval (a bound, a bootstrap setting, a spread over
     --repeats, their number), not a metric."""
-    return key.endswith((LO, HI, SD)) or key in SETTINGS or key == REPEATS
+    return key.endswith((LO, HI, SD)) or key in SETTINGS or key in (REPEATS, INTERVAL_SEEDS)
 
 
 def metric_keys(summary: Mapping) -> list[str]:

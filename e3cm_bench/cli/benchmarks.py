@@ -38,6 +38,7 @@ from e3cm_bench.cli.common import (
     SkipBadOpt,
     RansacOpt,
     RepeatsOpt,
+    IntervalSeedsOpt,
     OnMatcherErrorOpt,
     PairTimeoutOpt,
     PoseEstimatorOpt,
@@ -119,7 +120,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
     # taken where the run opens the folder, pipeline/driver.open_run).
     RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
-    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats)
+    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats, o.interval_seeds)
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
                            pair_timeout=o.pair_timeout)
     root = find_root(bench.name, o.root)
@@ -199,6 +200,7 @@ COMMON_AFTER = (
     ("ransac_px", RansacOpt, None),
     ("pose_estimator", PoseEstimatorOpt, None),
     ("repeats", RepeatsOpt, 1),
+    ("interval_seeds", IntervalSeedsOpt, None),
     ("on_matcher_error", OnMatcherErrorOpt, "stop"),
     ("pair_timeout", PairTimeoutOpt, None),
     ("shard", ShardOpt, None),

@@ -358,6 +358,15 @@ RepeatsOpt = Annotated[
              "with each metric's spread (_sd).",
     ),
 ]
+IntervalSeedsOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--interval-seeds",
+        show_default="3 under e3cm-bench's protocol, 1 under a reference's",
+        help="RANSAC seeds the interval holds (SEED..SEED+K-1; each resample of the pairs takes one): the numbers "
+             "stay SEED's, the interval holds the estimation's spread too. 1: the pairs' only.",
+    ),
+]
 OnMatcherErrorOpt = Annotated[
     str,
     typer.Option(

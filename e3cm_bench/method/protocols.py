@@ -39,6 +39,9 @@ class Protocol:
     evaluation: dict = field(default_factory=dict)
     standard: bool = True
     rotation_error: str = "nearest-rotation"
+    # The RANSAC seeds a run's interval holds: a reference's evaluation runs once (1); None: the
+    # benchmark's own default (Benchmark.default_interval_seeds), e3cm-bench's protocol.
+    interval_seeds: int | None = 1
     notes: dict = field(default_factory=dict)  # {benchmark: what the protocol does there}, after the description
 
     def resize_mode(self, benchmark: str) -> str:
@@ -65,6 +68,7 @@ PROTOCOLS: dict[str, Protocol] = {
             "default",
             "e3cm-bench's own (docs/benchmarks.md, Protocols)",
             (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
+            interval_seeds=None,
             notes={
                 "hpatches": "images at full size",
                 "megadepth": "longer side at most 1200; failures count with error inf",

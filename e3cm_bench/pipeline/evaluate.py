@@ -19,7 +19,7 @@ from e3cm_bench.storage.cache import MatchCache, check_free_space
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.files import CSV_FLOAT_FORMAT, write_csv
 from e3cm_bench.ground.images import header_size, load_image
-from e3cm_bench.benchmarks.intervals import metric_keys, summary_intervals
+from e3cm_bench.benchmarks.intervals import INTERVAL_SEEDS, metric_keys, summary_intervals
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.storage import FAILED_ATTR
 from e3cm_bench.drawing.matches import draw_matches, drawn, drawn_pairs, save_image
@@ -54,8 +54,11 @@ def evaluate_stage(
         summary = repeated_summary(benchmark, pairs, cache, ev, rows)
     else:
         summary = benchmark.summarize(rows, ev)
-        summary.update(summary_intervals(benchmark, rows, ev, summary=summary,
-                                         indexed=benchmark.interval_summary(rows, ev)))
+        indexed = benchmark.interval_summary(rows, ev)
+        if ev.interval_seeds > 1 and not benchmark.evaluates_set:
+            indexed = seeded_interval_summary(benchmark, pairs, cache, ev, rows)
+            summary[INTERVAL_SEEDS] = ev.interval_seeds
+        summary.update(summary_intervals(benchmark, rows, ev, summary=summary, indexed=indexed))
     summary.update(set_numbers)  # after the intervals: facts of the one set, not resampled
     summary.update(cost_summary(costs))
     # with_duplicates: a benchmark that does not list the column still gets it, the rows hold it
@@ -143,6 +146,24 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
 
     summary.update(summary_intervals(benchmark, first, ev, summary=summary, indexed=mean_over_repeats))
     return summary
+
+
+def seeded_interval_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
+                            first: list[dict]):
+    """The resample summary of an interval that holds RANSAC's spread (ev.interval_seeds K): the
+    pairs scored again with the seeds ev.seed + 1 .. K-1 (`first` is the run's own seed's rows),
+    and each bootstrap resample of the pairs summarised under one of the K seeds, drawn from a
+    generator of its own. The run's numbers stay its own seed's: the interval is that of one
+    evaluation, a draw of the pairs and of the estimator's seed alike."""
+    seeded = [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
+                         for pair in pairs] for r in range(1, ev.interval_seeds)]
+    indexed = [benchmark.indexed_summary(rows, ev) for rows in seeded]
+    draw = np.random.default_rng(ev.seed)
+
+    def one_seed(idx) -> dict:
+        return indexed[int(draw.integers(0, len(indexed)))](idx)
+
+    return one_seed
 
 
 def write_reports(run, per_pair: pd.DataFrame, summary: dict, pairs: list[Pair]) -> None:

@@ -54,6 +54,7 @@ class SfMBenchmark(Benchmark):
     failure: tuple[str, float] | None = ("err_pose", 10.0)  # a miss at mAA's last threshold
     paired_columns: tuple[tuple[str, bool], ...] = (("err_pose", False), ("err_R", False), ("err_t", False))
     evaluates_set = True
+    default_interval_seeds: int = 1  # its interval holds the mapper's seeds (--mapper-seeds), and their verification
     builds_to_limit: bool = True
 
     def build_dataset(self, root: str | Path, skip_bad: bool, options: dict) -> MultiViewSet:
@@ -63,10 +64,14 @@ class SfMBenchmark(Benchmark):
         return MultiViewSet(root, SetOptions(**given), skip_bad=skip_bad, first=first)
 
     def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
-                     estimator: str | None = None, repeats: int = 1) -> EvalSettings:
+                     estimator: str | None = None, repeats: int = 1,
+                     interval_seeds: int | None = None) -> EvalSettings:
         if repeats != 1:  # said before matching (evaluate_set says it again for the Python API)
             raise ValueError("--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model")
-        return super().resolve_eval(protocol, seed, ransac_px, estimator, repeats)
+        if interval_seeds not in (None, 1):  # its interval holds the mapper's seeds and their verification draws
+            raise ValueError("--interval-seeds does not apply to sfm: --mapper-seeds K reruns the verification and "
+                             "the mapper, and its interval holds them")
+        return super().resolve_eval(protocol, seed, ransac_px, estimator, repeats, interval_seeds)
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "bag", "n_matches", "n_inliers", "registered0", "registered1", "model",

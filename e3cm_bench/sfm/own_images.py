@@ -149,6 +149,7 @@ class ReconstructBenchmark(Benchmark):
     table_extras: tuple[str, ...] = ("n_pairs", "registered_images", "largest_model_images", "largest_model_points",
                                      "n_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")
     evaluates_set = True
+    default_interval_seeds: int = 1  # no score, no interval
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "n_matches", "n_verified", "registered0", "registered1", "model"])

@@ -8,7 +8,9 @@ iterations, the RANSAC seed, repeats), the multi-view protocol where the benchma
 libraries whose estimators score them (OpenCV, PoseLib, pycolmap). Not covered: what made the
 matches (the matcher, its settings and the image size it matched at: the row's method and its
 identity say them; an imported run's matches, made elsewhere, are scored under the same
-protocol as a native run's and so share its fingerprint) and the data (its pairs).
+protocol as a native run's and so share its fingerprint), the data (its pairs), and what
+decides only the interval beside each number (the RANSAC seeds it holds, interval_seeds, like
+the bootstrap's settings: summary.csv says them beside the interval).
 
 `table`, `compare` and `check` print one line naming what differs where fingerprints differ
 (protocol_notes); the summary.csv of every run holds its own (column ``fingerprint``).
@@ -23,6 +25,7 @@ from e3cm_bench.storage.record import RunConfig
 
 FINGERPRINT = "fingerprint"  # the summary's column
 ESTIMATOR_PACKAGES = ("opencv-python-headless", "poselib", "pycolmap")
+INTERVAL_ONLY = ("interval_seeds",)  # evaluation settings that change the interval, not a number
 
 
 def _flat(prefix: str, value, out: dict) -> None:
@@ -41,7 +44,7 @@ def protocol_items(config: RunConfig | Mapping) -> dict[str, str]:
         config = RunConfig.from_dict(dict(config))
     versions = config.versions or {}
     items: dict[str, str] = {}
-    _flat("evaluation", dict(config.evaluation or {}), items)
+    _flat("evaluation", {k: v for k, v in (config.evaluation or {}).items() if k not in INTERVAL_ONLY}, items)
     protocol = (config.dataset or {}).get("protocol")
     if isinstance(protocol, Mapping):  # sfm's multi-view protocol (a pose set's "protocol" is a name)
         _flat("sfm", dict(protocol), items)

@@ -34,8 +34,10 @@ def ok(*args):
 @pytest.fixture(scope="module")
 def sift_run(shared_data: Path, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("intervals") / "sift"
+    # --interval-seeds 1: the pairs-only interval these tests rebuild from per_pair.csv (the seeds'
+    # interval is tests/benchmarks/test_interval_seeds.py's)
     ok("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", out, "--matcher", "sift",
-       "--max-side", 320)
+       "--max-side", 320, "--interval-seeds", 1)
     return out
 
 
