@@ -144,3 +144,16 @@ def same_tables(a: Path, b: Path) -> None:
                                    if c.removesuffix("_lo").removesuffix("_hi") in COST_KEYS])
 
     pd.testing.assert_frame_equal(accuracy(a), accuracy(b), check_exact=True, obj=str(a))
+
+
+def kitti_frames(shared_data: Path, n: int, path: Path) -> Path:
+    """A scene_info at `path` holding the first `n` of the shared KITTI 00 frames (the other
+    images' paths left out, None), so that an sfm set stays small."""
+    from e3cm_bench.datasets.megadepth import load_scene_info
+
+    scene = load_scene_info(shared_data / "megadepth_test_1500" / "scene_info" / "kitti00_seq.npz")
+    paths = np.array(scene["image_paths"], dtype=object)
+    paths[n:] = None
+    np.savez(path, image_paths=paths, intrinsics=scene["intrinsics"], poses=scene["poses"],
+             pair_infos=scene["pair_infos"])
+    return path

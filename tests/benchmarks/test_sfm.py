@@ -21,7 +21,7 @@ from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.sfm.views import ViewPair
 from e3cm_bench.datasets.megadepth import load_scene_info
 from e3cm_bench.ground.matches import Matches
-from helpers import invoke, one_line_error
+from helpers import invoke, kitti_frames, one_line_error
 
 pycolmap = pytest.importorskip("pycolmap", reason="the sfm benchmark needs pycolmap (the colmap extra)")
 
@@ -33,13 +33,7 @@ SCENE_INFO = "megadepth_test_1500/scene_info/kitti00_seq.npz"
 def kitti(shared_data, tmp_path_factory) -> tuple[Path, Path]:
     """(root, scene_info) of the first 8 KITTI 00 frames: a scene_info written from the shared
     one with the other images' paths left out (None), so the set stays small."""
-    scene = load_scene_info(shared_data / SCENE_INFO)
-    paths = np.array(scene["image_paths"], dtype=object)
-    paths[8:] = None
-    out = tmp_path_factory.mktemp("kitti8") / "kitti00_first8.npz"
-    np.savez(out, image_paths=paths, intrinsics=scene["intrinsics"], poses=scene["poses"],
-             pair_infos=scene["pair_infos"])
-    return shared_data / KITTI, out
+    return shared_data / KITTI, kitti_frames(shared_data, 8, tmp_path_factory.mktemp("kitti8") / "kitti00_first8.npz")
 
 
 def kitti_args(kitti) -> list:

@@ -7,13 +7,10 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
-from helpers import invoke, one_line_error
-
-SCENE_INFO = "megadepth_test_1500/scene_info/kitti00_seq.npz"
+from helpers import invoke, kitti_frames, one_line_error
 
 
 def rerun_gives_the_same_rows(run: Path, out: Path, given: Path | None = None) -> None:
@@ -48,15 +45,7 @@ def test_a_yaml_configured_reproduce_method_reruns(shared_data, tmp_path):
 
 @pytest.fixture(scope="module")
 def kitti6(shared_data, tmp_path_factory) -> Path:
-    from e3cm_bench.datasets.megadepth import load_scene_info
-
-    scene = load_scene_info(shared_data / SCENE_INFO)
-    paths = np.array(scene["image_paths"], dtype=object)
-    paths[6:] = None
-    path = tmp_path_factory.mktemp("kitti6") / "kitti6.npz"
-    np.savez(path, image_paths=paths, intrinsics=scene["intrinsics"], poses=scene["poses"],
-             pair_infos=scene["pair_infos"])
-    return path
+    return kitti_frames(shared_data, 6, tmp_path_factory.mktemp("kitti6") / "kitti6.npz")
 
 
 def test_an_sfm_run_on_the_kitti_frames_reruns(shared_data, kitti6, tmp_path):
