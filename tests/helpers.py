@@ -157,3 +157,11 @@ def kitti_frames(shared_data: Path, n: int, path: Path) -> Path:
     np.savez(path, image_paths=paths, intrinsics=scene["intrinsics"], poses=scene["poses"],
              pair_infos=scene["pair_infos"])
     return path
+
+
+def sift_hpatches_run(shared_data: Path, out: Path, max_side: int = 240, limit: int = 2) -> Path:
+    """A small SIFT run on the shared HPatches sample in `out` (the reporting tests' run)."""
+    result = invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", out, "--matcher", "sift",
+                    "--max-side", max_side, "--limit", limit)
+    assert result.exit_code == 0, result.output
+    return out

@@ -21,7 +21,7 @@ import yaml
 
 from e3cm_bench.benchmarks import intervals
 from e3cm_bench.benchmarks import get_benchmark
-from helpers import invoke, one_line_error
+from helpers import invoke, one_line_error, sift_hpatches_run
 
 WIDTH = 80
 
@@ -62,11 +62,7 @@ def pose_rows(rng, n: int, scale: float, fail: float) -> pd.DataFrame:
 
 @pytest.fixture(scope="module")
 def sift_run(shared_data: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("compare") / "sift"
-    result = invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", out, "--matcher", "sift",
-                    "--max-side", 320, "--limit", 6)
-    assert result.exit_code == 0, result.output
-    return out
+    return sift_hpatches_run(shared_data, tmp_path_factory.mktemp("compare") / "sift", max_side=320, limit=6)
 
 
 def no_wide_line(text: str) -> None:

@@ -8,16 +8,12 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from helpers import invoke, one_line_error
+from helpers import invoke, one_line_error, sift_hpatches_run
 
 
 @pytest.fixture(scope="module")
 def run(shared_data: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("shape") / "sift"
-    result = invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", out, "--matcher", "sift",
-                    "--max-side", 240, "--limit", 2)
-    assert result.exit_code == 0, result.output
-    return out
+    return sift_hpatches_run(shared_data, tmp_path_factory.mktemp("shape") / "sift", max_side=240, limit=2)
 
 
 def test_metrics_choose_the_columns(run, tmp_path):
