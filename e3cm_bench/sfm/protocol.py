@@ -30,8 +30,9 @@ BY_COLMAP = "colmap"  # the verification by COLMAP's own two-view geometry (reco
 VERIFICATIONS = ("estimator", BY_COLMAP)
 SCORE_MODELS = ("any", "largest")
 # The merge radius of a matcher whose keypoints are not detections (dense, semi-dense, sub-pixel
-# refined): docs/sfm.md's grid measured 2 px (a merge within 1 px still leaves most tracks at
-# two views; hloc's 4 px quantization moves points far enough to cost two-view accuracy).
+# refined): issue 60's grid chose 2 px (within 1 px most tracks stay at two views; hloc's 4 px
+# quantization then cost e3cm-plus). Remade with per-seed verification (docs/sfm.md, the grid),
+# the quantization is level with it or above under the global mapper, within the intervals.
 DENSE_MERGE_PX = 2.0
 QUANTIZE_CELL, QUANTIZE_MAX_ERROR = 4.0, 4.0  # hloc's dense matching defaults
 DEFAULT_SEEDS = 3
