@@ -86,9 +86,14 @@ class EvalSettings:
         """The settings as a run folder's config.yaml records them (its `evaluation` block; YAML
         lists back to tuples, defaults for fields an older record lacks, unknown keys ignored),
         with `changes` applied (another seed for a rerun)."""
-        names = {f.name for f in fields(cls)}
+        names = cls.record_keys()
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in dict(record or {}).items() if k in names}
         return cls(**{**values, **changes})
+
+    @classmethod
+    def record_keys(cls) -> set[str]:
+        """The keys of the `evaluation` block this version reads."""
+        return {f.name for f in fields(cls)}
 
 
 # How a dataset option reads on the command line: a switch, one path, several paths (the option

@@ -118,8 +118,13 @@ class MethodSpec:
         fields["settings"] = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in settings.items()))
         if fields.get("plugin") is not None:
             fields["plugin"] = tuple(sorted(dict(fields["plugin"]).items()))
-        known = set(cls.__dataclass_fields__) - {"label"}
+        known = cls.identity_keys()
         return cls(**{k: v for k, v in fields.items() if k in known}, label=label)
+
+    @classmethod
+    def identity_keys(cls) -> set[str]:
+        """The keys of the `identity` block this version reads."""
+        return set(cls.__dataclass_fields__) - {"label"}
 
     def with_label(self, label: str) -> MethodSpec:
         return MethodSpec(**{**self.identity_fields(), "label": label})

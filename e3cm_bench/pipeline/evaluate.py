@@ -114,6 +114,14 @@ def evaluate_pair(benchmark: Benchmark, pair: Pair, matches: Matches, ev: EvalSe
     return {**benchmark.evaluate_pair(pair, kept, ev), DUPLICATES: repeats}
 
 
+def seeded_rows(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
+                first: list[dict], k: int) -> list[list[dict]]:
+    """Every pair's row under each of the K seeds ev.seed + 0..K-1, no rematching; `first` is
+    seed ev.seed's (the run's own rows, not scored again)."""
+    return [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
+                       for pair in pairs] for r in range(1, k)]
+
+
 def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache, ev: EvalSettings,
                      first: list[dict]) -> dict:
     """--repeats K: the summary of each of K evaluations (seeds ev.seed + r; the first is
@@ -121,8 +129,7 @@ def repeated_summary(benchmark: Benchmark, pairs: list[Pair], cache: MatchCache,
     over the repeats (``<metric>_sd``), and the two-level bootstrap interval of that mean (the
     pairs resampled, and with them the repeats).
     per_pair.csv keeps the first repeat's rows."""
-    repeats = [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
-                          for pair in pairs] for r in range(1, ev.repeats)]
+    repeats = seeded_rows(benchmark, pairs, cache, ev, first, ev.repeats)
     each = [benchmark.summarize(rows, ev) for rows in repeats]
     keys = metric_keys(each[0])
     summary = dict(each[0])
@@ -155,9 +162,8 @@ def seeded_interval_summary(benchmark: Benchmark, pairs: list[Pair], cache: Matc
     and each bootstrap resample of the pairs summarised under one of the K seeds, drawn from a
     generator of its own. The run's numbers stay its own seed's: the interval is that of one
     evaluation, a draw of the pairs and of the estimator's seed alike."""
-    seeded = [first] + [[evaluate_pair(benchmark, pair, cache.read(pair.name), replace(ev, seed=ev.seed + r))
-                         for pair in pairs] for r in range(1, ev.interval_seeds)]
-    indexed = [benchmark.indexed_summary(rows, ev) for rows in seeded]
+    indexed = [benchmark.indexed_summary(rows, ev)
+               for rows in seeded_rows(benchmark, pairs, cache, ev, first, ev.interval_seeds)]
     draw = np.random.default_rng(ev.seed)
 
     def one_seed(idx) -> dict:

@@ -23,8 +23,6 @@ from pathlib import Path
 
 from rich.console import Console
 
-from dataclasses import fields
-
 from e3cm_bench.benchmarks.base import EvalSettings
 from e3cm_bench.benchmarks.records import benchmark_of, dataset_source, evaluation_of, method_of
 from e3cm_bench.ground.suggest import did_you_mean
@@ -36,20 +34,14 @@ from e3cm_bench.storage.record import SAMPLE_OPTIONS, RunConfig
 LEGACY_KEYS = ("match_options",)
 
 
-def record_of(run: str | Path) -> RunConfig:
-    """The record of a run folder, or of the config.yaml given itself."""
-    return RunConfig.read(run)  # a folder's own record, or the file given
-
-
 def check_keys(config: RunConfig, benchmark) -> None:
-    """Every key of the parts a rerun reads is one it knows: a ValueError naming the file, the key
-    and the nearest known one otherwise."""
+    """Every key of the parts a rerun reads is one its reader knows (each reader's own key set): a
+    ValueError naming the file, the key and the nearest known one otherwise."""
     record = config.record or {}
-    identity = set(MethodSpec.__dataclass_fields__) - {"label"}
     known = {
-        "": {f.name for f in fields(RunConfig)} - set(RunConfig.UNWRITTEN) | set(LEGACY_KEYS),
-        "identity": identity,
-        "evaluation": {f.name for f in fields(EvalSettings)},
+        "": RunConfig.record_keys() | set(LEGACY_KEYS),
+        "identity": MethodSpec.identity_keys(),
+        "evaluation": EvalSettings.record_keys(),
         "dataset_load": {"root", "skip_bad", "options"},
         "dataset_load.options": set(benchmark.option_names) | set(SAMPLE_OPTIONS),
     }
@@ -66,7 +58,7 @@ def check_keys(config: RunConfig, benchmark) -> None:
 
 def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False) -> RunRequest:
     """The RunRequest that makes `run` (a folder or its config.yaml) again in `out`."""
-    config = record_of(run)
+    config = RunConfig.read(run)
     if config.shard is not None:
         raise ValueError(f"{config.where}: a shard's record; rerun the merged run (its folder above shards/)")
     if config.imported_files:
@@ -76,7 +68,7 @@ def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwri
     check_keys(config, benchmark)
     root, skip_bad, options = dataset_source(config, benchmark)
     out = Path(out)
-    if out.resolve() == (config.path.parent if config.path else out).resolve():
+    if out.resolve() == config.path.parent.resolve():  # read() always says where the record came from
         raise ValueError(f"{out}: is the run itself; give another --out")
     return RunRequest(benchmark, out, method_of(config), root=Path(root), skip_bad=skip_bad, dataset_options=options,
                       ev=evaluation_of(config), limit=config.limit, device=device, overwrite=overwrite)

@@ -63,9 +63,14 @@ class RunConfig:
                 and not (f.name in self.OPTIONAL and getattr(self, f.name) is None)}
 
     @classmethod
+    def record_keys(cls) -> set[str]:
+        """The top-level keys of config.yaml this version reads."""
+        return {f.name for f in fields(cls)} - set(cls.UNWRITTEN)
+
+    @classmethod
     def from_dict(cls, record: dict, path: str | Path | None = None) -> RunConfig:
         """The record as a RunConfig (keys it does not know kept in `record` only)."""
-        names = {f.name for f in fields(cls)} - set(cls.UNWRITTEN)
+        names = cls.record_keys()
         values = {k: v for k, v in record.items() if k in names}
         for name, default in (("benchmark", None), ("method", ""), ("identity", None)):
             values.setdefault(name, default)
