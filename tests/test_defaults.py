@@ -57,7 +57,7 @@ def _fallbacks(tree: ast.AST, names: set[str]) -> list[ast.AST]:
 
 def _parameter_defaults(tree: ast.AST, name: str) -> list[ast.AST]:
     """The defaults given to a parameter or dataclass field called `name`, and the third element
-    of a command's option tuple ("name", TypedOpt, default) (cli/benchmarks.py COMMON_AFTER)."""
+    of a command's option tuple ("name", TypedOpt, default) (cli/benchmarks.py common_after)."""
     found = []
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):

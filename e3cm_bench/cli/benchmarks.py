@@ -13,10 +13,12 @@ import typer
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
 from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
 from e3cm_bench.cli.common import (
     OnceEach,
     app,
     console,
+    eval_option,
     method_option,
     method_values,
     warn,
@@ -36,12 +38,8 @@ from e3cm_bench.cli.common import (
     EvalOnlyOpt,
     VizOpt,
     SkipBadOpt,
-    RansacOpt,
-    RepeatsOpt,
-    IntervalSeedsOpt,
     OnMatcherErrorOpt,
     PairTimeoutOpt,
-    PoseEstimatorOpt,
     PlotFormatOpt,
 )
 
@@ -100,7 +98,7 @@ class Scale:
 def run_command(bench: Benchmark, given: dict) -> None:
     """What every benchmark command does with its options (the commands are made by
     benchmark_command): `given` holds the method options (options.METHOD_OPTIONS), the
-    benchmark's dataset options and the run's options (COMMON_BEFORE, COMMON_AFTER)."""
+    benchmark's dataset options and the run's options (common_before, common_after)."""
     from e3cm_bench.data.download import find_root
     from e3cm_bench.method.spec import build_method
     from e3cm_bench.storage.folder import RunFolder
@@ -110,6 +108,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
 
     dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
     method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
+    eval_given = {name: given.pop(name) for name in EVAL_OPTIONS if name in given}
     o = SimpleNamespace(**given)
     protocol = resolve_protocol(bench, method_given["protocol"])  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
@@ -120,7 +119,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
     # taken where the run opens the folder, pipeline/driver.open_run).
     RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
-    ev = bench.resolve_eval(protocol, method_given["seed"], o.ransac_px, o.pose_estimator, o.repeats, o.interval_seeds)
+    ev = bench.resolve_eval(protocol, method_given["seed"], **eval_keywords(eval_given))
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
                            pair_timeout=o.pair_timeout)
     root = find_root(bench.name, o.root)
@@ -176,40 +175,62 @@ def _method(*names: str) -> tuple:
     return tuple((name, method_option(name), METHOD_OPTIONS[name].default) for name in names)
 
 
+# Where --help lists the method options it knows; one declared later (options.METHOD_OPTIONS) comes
+# after them by itself, and every evaluation option (eval_options.EVAL_OPTIONS) in its table's order:
+# a new one needs no line here.
+_METHOD_FIRST = ("matcher", "backbone", "weights", "max_side")
+_METHOD_SECOND = ("seed",)
+
+
+def _other_method_options() -> tuple:
+    placed = set(_METHOD_FIRST) | set(_METHOD_SECOND)
+    return _method(*(name for name in METHOD_OPTIONS if name not in placed))
+
+
+def _eval_options() -> tuple:
+    return tuple((name, eval_option(name), option.default) for name, option in EVAL_OPTIONS.items())
+
+
 # Every benchmark command's options, in the order --help lists them; the benchmark's own
-# dataset options (Benchmark.dataset_options) come between the two groups.
+# dataset options (Benchmark.dataset_options) come between the two groups. Functions, so that an
+# option declared after this module loaded (a test's toy option) is on a command built later.
 _NO_DEFAULT = inspect.Parameter.empty
-COMMON_BEFORE = (
-    ("out", OutOpt, _NO_DEFAULT),
-    ("root", RootOpt, None),
-    *_method("matcher", "backbone", "weights", "max_side"),
-    ("limit", LimitOpt, None),
-    ("sample", SampleOpt, None),
-    ("sample_seed", SampleSeedOpt, 0),
-    ("device", DeviceOpt, "cpu"),
-    *_method("seed"),
-    ("overwrite", OverwriteOpt, False),
-    ("eval_only", EvalOnlyOpt, False),
-    ("viz", VizOpt, 0),
-    *_method("estimator", "sampson_px", "ratio", "label", "settings", "protocol", "precision", "channel_order"),
-    ("feature_cache_mb", FeatureCacheOpt, None),
-    ("backbone_batch", BackboneBatchOpt, None),
-)
-COMMON_AFTER = (
-    ("skip_bad", SkipBadOpt, False),
-    ("ransac_px", RansacOpt, None),
-    ("pose_estimator", PoseEstimatorOpt, None),
-    ("repeats", RepeatsOpt, 1),
-    ("interval_seeds", IntervalSeedsOpt, None),
-    ("on_matcher_error", OnMatcherErrorOpt, "stop"),
-    ("pair_timeout", PairTimeoutOpt, None),
-    ("shard", ShardOpt, None),
-    ("workers", WorkersOpt, 0),
-    ("devices", DevicesOpt, None),
-    ("launcher", LauncherOpt, "local"),
-    ("shards", ShardsOpt, 0),
-    ("plot_format", PlotFormatOpt, "png"),
-)
+
+
+def common_before() -> tuple:
+    """The options --help lists before the benchmark's dataset options."""
+    return (
+        ("out", OutOpt, _NO_DEFAULT),
+        ("root", RootOpt, None),
+        *_method(*_METHOD_FIRST),
+        ("limit", LimitOpt, None),
+        ("sample", SampleOpt, None),
+        ("sample_seed", SampleSeedOpt, 0),
+        ("device", DeviceOpt, "cpu"),
+        *_method(*_METHOD_SECOND),
+        ("overwrite", OverwriteOpt, False),
+        ("eval_only", EvalOnlyOpt, False),
+        ("viz", VizOpt, 0),
+        *_other_method_options(),
+        ("feature_cache_mb", FeatureCacheOpt, None),
+        ("backbone_batch", BackboneBatchOpt, None),
+    )
+
+
+def common_after() -> tuple:
+    """The options --help lists after the benchmark's dataset options."""
+    return (
+        ("skip_bad", SkipBadOpt, False),
+        *_eval_options(),
+        ("on_matcher_error", OnMatcherErrorOpt, "stop"),
+        ("pair_timeout", PairTimeoutOpt, None),
+        ("shard", ShardOpt, None),
+        ("workers", WorkersOpt, 0),
+        ("devices", DevicesOpt, None),
+        ("launcher", LauncherOpt, "local"),
+        ("shards", ShardsOpt, 0),
+        ("plot_format", PlotFormatOpt, "png"),
+    )
 
 
 def option_parameter(option, help_text: str) -> inspect.Parameter:
@@ -239,7 +260,7 @@ def benchmark_command(bench: Benchmark):
 
     common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
                                               annotation=annotation) for name, annotation, default in group]
-    params = common(COMMON_BEFORE) + dataset_parameters(bench) + common(COMMON_AFTER)
+    params = common(common_before()) + dataset_parameters(bench) + common(common_after())
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     command.__name__ = command.__qualname__ = bench.name.replace("-", "_")

@@ -28,6 +28,7 @@ from e3cm_bench.benchmarks import BENCHMARKS
 from e3cm_bench.method.protocols import PROTOCOLS
 from e3cm_bench.matching import ESTIMATORS
 from e3cm_bench.method.options import METHOD_OPTIONS
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 
 
 app = typer.Typer(
@@ -62,8 +63,15 @@ def method_option(name: str, help: str | None = None, flags: tuple[str, ...] | N
     return Annotated[option.cli_type, typer.Option(*(flags or option.flags), help=text)]
 
 
-# Options shared by `match` and the benchmark commands (the benchmark commands list theirs by
-# name: cli/benchmarks.py COMMON_BEFORE).
+def eval_option(name: str):
+    """The typer option of an evaluation option, made from its one declaration (eval_options.EVAL_OPTIONS)."""
+    option = EVAL_OPTIONS[name]
+    return Annotated[option.cli_type, typer.Option(option.flag, help=option.help, show_default=option.show_default
+                                                   if option.show_default is not None else True)]
+
+
+# Options shared by `match`, `reconstruct` and `import` (the benchmark commands take every method
+# and evaluation option from its table: cli/benchmarks.py common_before, common_after).
 MatcherOpt = method_option("matcher")
 BackboneOpt = method_option("backbone")
 WeightsOpt = method_option("weights")
@@ -77,6 +85,8 @@ ChannelOrderOpt = method_option("channel_order")
 ProtocolOpt = method_option("protocol")
 MaxSideOpt = method_option("max_side")
 SeedOpt = method_option("seed")
+RansacOpt = eval_option("ransac_px")
+PoseEstimatorOpt = eval_option("pose_estimator")
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
 BackboneBatchOpt = Annotated[
     Optional[int],
@@ -346,27 +356,6 @@ CompareOpt = Annotated[
         help="Difference columns (measured - paper); off for data other than the paper's benchmark.",
     ),
 ]
-RansacOpt = Annotated[
-    Optional[float],
-    typer.Option("--ransac-px", help="Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5)."),
-]
-RepeatsOpt = Annotated[
-    int,
-    typer.Option(
-        "--repeats",
-        help="Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their mean, "
-             "with each metric's spread (_sd).",
-    ),
-]
-IntervalSeedsOpt = Annotated[
-    Optional[int],
-    typer.Option(
-        "--interval-seeds",
-        show_default="3 under e3cm-bench's protocol, 1 under a reference's",
-        help="RANSAC seeds the interval holds (SEED..SEED+K-1; each resample of the pairs takes one): the numbers "
-             "stay SEED's, the interval holds the estimation's spread too. 1: the pairs' only.",
-    ),
-]
 OnMatcherErrorOpt = Annotated[
     str,
     typer.Option(
@@ -387,13 +376,4 @@ PairTimeoutOpt = Annotated[
 # style and drops it (tests/test_startup.py reads every help as Rich renders it).
 PlotFormatOpt = Annotated[
     str, typer.Option("--format", help="File format of the plots written: png, pdf or svg (vector, for a paper).")
-]
-PoseEstimatorOpt = Annotated[
-    Optional[str],
-    typer.Option(
-        "--pose-estimator",
-        help="Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), poselib "
-             "(pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; 'e3cm-bench\\[colmap]'); "
-             "--eval-only may change it.",
-    ),
 ]

@@ -93,6 +93,7 @@ KINDS: dict[str, Kind] = {
     "paths": Kind(_texts, "text or a list of texts", list[Path]),
     "names": Kind(_texts, "text or a list of texts", list[str]),
     "whole": Kind(_whole, "a whole number >= 0", int),
+    "number": Kind(_number, "a number", float),
     # comma-separated on the command line ("0.9,0.9,0.95"), a number or a list in a config
     "numbers": Kind(_numbers, "a number or a list of numbers", str),
     # --set KEY=VALUE (repeatable) on the command line, a mapping in a config

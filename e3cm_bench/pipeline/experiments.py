@@ -22,7 +22,9 @@ from e3cm_bench.ground.files import absolute_paths, load_yaml, save_yaml
 from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.method.options import KINDS, config_keys
+from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, config_keys
+from e3cm_bench.benchmarks.eval_options import check_eval_values, eval_keywords
+from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.paper import resolve_config
 from e3cm_bench.storage.fingerprint import protocol_items, protocol_notes
 from e3cm_bench.storage import RunFolder
@@ -30,12 +32,23 @@ from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
-# The keys of a config and the kind of each value (options.KINDS), made from the method options'
-# declarations (options.METHOD_OPTIONS: where a config takes each); the experiment's own besides.
-METHOD_TYPES = config_keys("method")
-EXPERIMENT_TYPES = {"name": "text", "benchmark": "text", "dataset": "mapping", **config_keys("experiment")}
-METHOD_KEYS = set(METHOD_TYPES)
-EXPERIMENT_KEYS = set(EXPERIMENT_TYPES) | {"methods"}
+# The keys of a config and the kind of each value (options.KINDS), made from the declarations: the
+# method options' (options.METHOD_OPTIONS says where a config takes each), the evaluation options'
+# (eval_options.EVAL_OPTIONS: an ``evaluation:`` section, as a run's config.yaml has one), the
+# experiment's own besides. Read when a config is, so an option declared later is a key too.
+EXPERIMENT_OWN = {"name": "text", "benchmark": "text", "dataset": "mapping", "evaluation": "mapping"}
+
+
+def method_types() -> dict[str, str]:
+    return config_keys("method")
+
+
+def experiment_types() -> dict[str, str]:
+    return {**EXPERIMENT_OWN, **config_keys("experiment")}
+
+
+def experiment_keys() -> set[str]:
+    return set(experiment_types()) | {"methods"}
 
 
 def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = ()) -> None:
@@ -58,15 +71,15 @@ def experiment_method(
     The default label follows the method's own backbone and estimator; a backbone forced on
     every deep method (reproduce --backbone) is appended in brackets.
     """
-    matcher = entry["matcher"]
-    own_backbone = entry.get("backbone", experiment.get("backbone", DEFAULT_BACKBONE))
-    max_side = max_side_override if max_side_override is not None else entry.get("max_side", experiment.get("max_side"))
-    spec = benchmark.resolve_method(
-        matcher, protocol=experiment.get("protocol"), backbone=backbone_override or own_backbone,
-        weights=entry.get("weights"), estimator=entry.get("estimator"), sampson_px=entry.get("sampson_px"),
-        ratio=entry.get("ratio"), max_side=max_side, seed=int(experiment.get("seed", 0)),
-        settings=entry.get("settings"), available=available,
-    )
+    # every method option a config takes: the entry's, else the experiment's (options.config_keys)
+    taken = (set(config_keys("method")) | set(config_keys("experiment"))) - {"matcher", "label"}
+    given = {name: entry.get(name, experiment.get(name)) for name in METHOD_OPTIONS if name in taken}
+    own_backbone = given["backbone"] or DEFAULT_BACKBONE
+    if max_side_override is not None:
+        given["max_side"] = max_side_override
+    given["seed"] = int(given["seed"] or 0)
+    given["backbone"] = backbone_override or own_backbone
+    spec = benchmark.resolve_method(entry["matcher"], available=available, **given)
     deep = spec.backbone is not None
     # The default label names the method's own backbone; a forced one is added in brackets.
     label = entry.get("label") or replace(spec, backbone=own_backbone if spec.backbone else None).default_label()
@@ -78,15 +91,16 @@ def experiment_method(
 def load_experiment(path: Path) -> dict:
     """Read and check an experiment config (paper/configs/*.yaml, or one of one's own)."""
     config = load_yaml(path, what="experiment config")
-    unknown = set(config) - EXPERIMENT_KEYS
+    known = experiment_keys()
+    unknown = sorted(set(config) - known, key=str)
     if unknown:
-        raise ValueError(
-            f"{path}: unknown key(s) {', '.join(sorted(unknown))}; an experiment has "
-            f"{', '.join(sorted(EXPERIMENT_KEYS))}"
-        )
-    if not isinstance(config.get("dataset") or {}, dict):
-        raise ValueError(f"{path}: 'dataset' must be a mapping of dataset options")
-    _check_types(path, "", config, EXPERIMENT_TYPES, nullable=("dataset",))
+        raise ValueError(f"{path}: {unknown[0]!r} is not a key of an experiment{did_you_mean(unknown[0], known)}; "
+                         f"it has {', '.join(sorted(known))}")
+    for section in ("dataset", "evaluation"):
+        if not isinstance(config.get(section) or {}, dict):
+            raise ValueError(f"{path}: '{section}' must be a mapping of {section} options")
+    _check_types(path, "", config, experiment_types(), nullable=("dataset", "evaluation"))
+    check_eval_values(config.get("evaluation") or {}, f"{path}: evaluation: ")
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])
@@ -99,14 +113,16 @@ def load_experiment(path: Path) -> dict:
     for i, method in enumerate(methods):
         if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
             raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
-        _check_types(path, f"methods[{i}]: ", method, METHOD_TYPES, nullable=tuple(set(METHOD_TYPES) - {"matcher"}))
+        types = method_types()
+        _check_types(path, f"methods[{i}]: ", method, types, nullable=tuple(set(types) - {"matcher"}))
         try:
             get_matcher(method["matcher"], allow_import=True)
         except ValueError as exc:
             raise ValueError(f"{path}: methods[{i}]: {exc}") from None
-        unknown = set(method) - METHOD_KEYS
+        unknown = sorted(set(method) - set(types), key=str)
         if unknown:
-            raise ValueError(f"{path}: methods[{i}] has unknown key(s) {', '.join(sorted(unknown))}")
+            raise ValueError(f"{path}: methods[{i}]: {unknown[0]!r} is not a key of a method"
+                             f"{did_you_mean(unknown[0], types)}; it has {', '.join(sorted(types))}")
         try:
             spec = experiment_method(method, config, benchmark, available=False)
         except ValueError as exc:
@@ -153,7 +169,8 @@ def reproduce(
     dataset = benchmark.load_dataset(request.root, skip_bad=request.skip_bad, **options)
     # No `protocol:`: the benchmark's default, as its command has it (WxBS, EVD: wxbs)
     protocol = get_protocol(resolve_protocol(benchmark, experiment.get("protocol")), benchmark.name)
-    ev = benchmark.resolve_eval(protocol.name, seed=int(experiment.get("seed", 0)))
+    ev = benchmark.resolve_eval(protocol.name, seed=int(experiment.get("seed", 0)),
+                                **eval_keywords(experiment.get("evaluation") or {}))
     out = Path(request.out)
     methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
     save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)

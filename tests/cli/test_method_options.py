@@ -18,12 +18,11 @@ from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.method.protocols import PROTOCOLS, Protocol
 from e3cm_bench.cli import app
 from e3cm_bench.pipeline.experiments import (
-    EXPERIMENT_KEYS,
-    EXPERIMENT_TYPES,
-    METHOD_KEYS,
-    METHOD_TYPES,
+    experiment_keys,
     experiment_method,
+    experiment_types,
     load_experiment,
+    method_types,
 )
 from e3cm_bench.method.spec import MethodSpec
 
@@ -126,11 +125,11 @@ def test_a_declared_option_is_in_the_benchmark_commands_help(name):
 def test_the_experiment_keys_are_those_the_table_places_in_configs():
     in_methods = {n for n, o in opts.METHOD_OPTIONS.items() if o.config in ("method", "both")}
     in_experiment = {n for n, o in opts.METHOD_OPTIONS.items() if o.config in ("experiment", "both")}
-    assert METHOD_KEYS == in_methods and {k: opts.METHOD_OPTIONS[k].kind for k in in_methods} == METHOD_TYPES
-    assert in_experiment <= EXPERIMENT_KEYS and in_experiment <= set(EXPERIMENT_TYPES)
-    assert EXPERIMENT_KEYS - in_experiment == {"name", "benchmark", "dataset", "methods"}
+    assert set(method_types()) == in_methods and {k: opts.METHOD_OPTIONS[k].kind for k in in_methods} == method_types()
+    assert in_experiment <= experiment_keys() and in_experiment <= set(experiment_types())
+    assert experiment_keys() - in_experiment == {"name", "benchmark", "dataset", "evaluation", "methods"}
     # the command-line-only options are not config keys (they are matcher settings there)
-    assert "precision" not in METHOD_KEYS | EXPERIMENT_KEYS
+    assert "precision" not in set(method_types()) | experiment_keys()
 
 
 @pytest.mark.parametrize("keyword, value, words", [

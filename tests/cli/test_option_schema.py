@@ -1,0 +1,194 @@
+"""The benchmark commands and the run's configuration agree, option for option.
+
+A run's configuration has its sections: the method (options.METHOD_OPTIONS, into a MethodSpec),
+the evaluation (eval_options.EVAL_OPTIONS, into EvalSettings), the dataset (the benchmark's
+DatasetOptions and the sample), the run (RunRequest's fields), the match stage (MatchOptions')
+and how the shards run (Scale's). Every option of a benchmark command is a key of one section,
+and every key a user sets is an option of every benchmark command: a command that lists an
+option no section declares, or a section's key no command offers, fails here. The toy options
+show docs/development.md's recipes: a method or evaluation option declared in its table is on
+every benchmark command, its help beside it, is a key of an experiment config, and reaches its
+consumer, with no other line written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+
+import pytest
+import typer
+import yaml
+from typer.testing import CliRunner
+
+from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
+from e3cm_bench.benchmarks.base import Benchmark
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, EvalOption
+from e3cm_bench.cli.benchmarks import Scale, benchmark_command
+from e3cm_bench.method.options import METHOD_OPTIONS, MethodOption
+from e3cm_bench.pipeline.experiments import load_experiment, method_types
+from e3cm_bench.pipeline.request import RunRequest
+from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.storage.record import SAMPLE_OPTIONS
+
+from helpers import flat
+
+# Keys of a section that no command offers, each with its reason.
+API_ONLY = {
+    "benchmark": "the command itself",
+    "method": "built from the method options",
+    "ev": "built from the evaluation options",
+    "options": "built from the match stage's options",
+    "dataset": "a PairList object, from Python",
+    "dataset_options": "built from the dataset options",
+    "dataset_load": "how a given dataset loads again, from Python (reproduce, merge)",
+    "spill_mb": "the disk for the feature maps, from Python (the command takes half the free disk)",
+}
+# Command options that are no key of the run: they change how its files look, not what it holds.
+OUTPUT_ONLY = {"plot_format": "the plots' file format"}
+
+
+def sections(bench: Benchmark) -> dict[str, set[str]]:
+    names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
+    return {
+        "method": set(METHOD_OPTIONS),
+        "evaluation": set(EVAL_OPTIONS),
+        "dataset": {o.name for o in bench.command_options()} | set(SAMPLE_OPTIONS),
+        "run": names(RunRequest) - set(API_ONLY),
+        "match": names(MatchOptions) - set(API_ONLY),
+        "scale": names(Scale),
+    }
+
+
+def parameters(bench: Benchmark) -> dict[str, inspect.Parameter]:
+    return dict(inspect.signature(benchmark_command(bench)).parameters)
+
+
+@pytest.mark.parametrize("name", sorted(BENCHMARKS))
+def test_every_option_of_a_benchmark_command_is_a_key_of_the_configuration(name):
+    bench = get_benchmark(name)
+    declared = set().union(*sections(bench).values()) | set(OUTPUT_ONLY)
+    stray = sorted(set(parameters(bench)) - declared)
+    assert not stray, f"{name}: options no section of the configuration declares: {stray}"
+
+
+@pytest.mark.parametrize("name", sorted(BENCHMARKS))
+def test_every_key_a_user_sets_is_an_option_of_every_benchmark_command(name):
+    bench = get_benchmark(name)
+    offered = set(parameters(bench))
+    for section, keys in sections(bench).items():
+        missing = sorted(keys - offered)
+        assert not missing, f"{name}: the {section} section's {missing} are on no option of its command"
+
+
+@pytest.mark.parametrize("name", sorted(EVAL_OPTIONS))
+def test_an_evaluation_option_has_its_declared_flag_and_help(name):
+    option = EVAL_OPTIONS[name]
+    result = CliRunner().invoke(typer_app_of(get_benchmark("hpatches")), ["hpatches", "--help"], env={"COLUMNS": "200"})
+    assert option.flag in result.output
+    assert flat(option.help.replace("\\[", "["))[:40] in flat(result.output)
+
+
+def test_the_evaluation_keywords_are_those_resolve_eval_takes():
+    taken = set(inspect.signature(Benchmark.resolve_eval).parameters)
+    assert {o.keyword for o in EVAL_OPTIONS.values()} <= taken
+
+
+def typer_app_of(bench: Benchmark) -> typer.Typer:
+    """A one-command application holding the benchmark's command, built now (from the tables as
+    they are now)."""
+    app = typer.Typer()
+    app.command(bench.name)(benchmark_command(bench))
+
+    @app.callback()
+    def main() -> None:  # a callback keeps the command a subcommand, as in e3cm-bench
+        pass
+
+    return app
+
+
+class Reached(Exception):
+    """Raised by the stand-ins below once they saw what they were handed: the run stops there."""
+
+
+@pytest.fixture
+def toys(monkeypatch):
+    """One toy method option and one toy evaluation option, declared in their tables only."""
+    method = MethodOption("toy_px", ("--toy-px",), "whole", None, "A toy method option (tests only).")
+    evaluation = EvalOption("toy_seeds", "--toy-seeds", "whole", None, "A toy evaluation option (tests only).",
+                            keyword="toy_seeds")
+    monkeypatch.setitem(METHOD_OPTIONS, method.name, method)
+    monkeypatch.setitem(EVAL_OPTIONS, evaluation.name, evaluation)
+    return method, evaluation
+
+
+def test_a_toy_option_declared_in_its_table_is_on_the_command_and_reaches_its_reader(tmp_path, toys, monkeypatch):
+    seen = {}
+
+    def resolve_eval(self, protocol=None, seed=0, **keywords):
+        seen["evaluation"] = keywords
+        return original(self, protocol, seed, **{k: v for k, v in keywords.items() if k != "toy_seeds"})
+
+    def build_method(given, *args, **kwargs):
+        seen["method"] = dict(given)
+        raise Reached
+
+    original = Benchmark.resolve_eval
+    monkeypatch.setattr(Benchmark, "resolve_eval", resolve_eval)
+    monkeypatch.setattr("e3cm_bench.method.spec.build_method", build_method)
+    app = typer_app_of(get_benchmark("hpatches"))
+    text = flat(CliRunner().invoke(app, ["hpatches", "--help"], env={"COLUMNS": "200"}).output)
+    assert "--toy-px" in text and "A toy method option" in text and "--toy-seeds" in text
+    result = CliRunner().invoke(app, ["hpatches", "--root", str(tmp_path), "--out", str(tmp_path / "out"),
+                                      "--matcher", "sift", "--toy-px", "7", "--toy-seeds", "2"])
+    assert isinstance(result.exception, Reached), result.output
+    assert seen["method"]["toy_px"] == 7 and seen["evaluation"]["toy_seeds"] == 2
+
+
+def test_a_toy_method_option_is_a_key_of_an_experiment_config(tmp_path, toys, monkeypatch):
+    assert method_types()["toy_px"] == "whole"
+    config = tmp_path / "toy.yaml"
+    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "sift", "toy_px": 3}],
+                                      "evaluation": {"toy_seeds": 2}}))
+    assert load_experiment(config)["methods"][0]["toy_px"] == 3
+    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "sift", "toy_px": "x"}]}))
+    with pytest.raises(ValueError, match="'toy_px' must be a whole number"):
+        load_experiment(config)
+
+
+@pytest.mark.parametrize("content, words", [
+    ({"benchmark": "hpatches", "methods": [{"matcher": "sift"}], "evalution": {}},
+     "'evalution' is not a key of an experiment (did you mean 'evaluation'?)"),
+    ({"benchmark": "hpatches", "methods": [{"matcher": "sift", "ratoi": 0.8}]},
+     "methods[0]: 'ratoi' is not a key of a method (did you mean 'ratio'?)"),
+    ({"benchmark": "hpatches", "methods": [{"matcher": "sift"}], "evaluation": {"ransac": 2}},
+     "evaluation: 'ransac' is not an evaluation option (did you mean 'ransac_px'?)"),
+    ({"benchmark": "hpatches", "methods": [{"matcher": "sift"}], "evaluation": {"repeats": "two"}},
+     "evaluation: 'repeats' must be a whole number >= 0, got 'two'"),
+    ({"benchmark": "hpatches", "methods": [{"matcher": "sift"}], "evaluation": [1]},
+     "'evaluation' must be a mapping of evaluation options"),
+])
+def test_an_experiment_config_refuses_an_unknown_key_naming_the_nearest(tmp_path, content, words):
+    config = tmp_path / "bad.yaml"
+    config.write_text(yaml.safe_dump(content))
+    with pytest.raises(ValueError) as error:
+        load_experiment(config)
+    message = str(error.value)
+    assert message.startswith(str(config)) and words in message and "\n" not in message
+
+
+def test_an_experiment_configs_evaluation_section_is_the_runs(tmp_path, shared_data):
+    """`evaluation:` in an experiment config reaches the run's EvalSettings, as the flags do, and
+    its config.yaml records it: the same section name a run's record has."""
+    from e3cm_bench.pipeline.experiments import reproduce
+    from e3cm_bench.storage.record import RunConfig
+
+    config = tmp_path / "toy.yaml"
+    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "dataset": {"sequences": ["v_graffiti"]},
+                                      "evaluation": {"ransac_px": 2.5, "interval_seeds": 2},
+                                      "methods": [{"matcher": "sift", "max_side": 240}]}))
+    request = RunRequest("hpatches", tmp_path / "out", root=shared_data / "hpatches-sequences-release", limit=1)
+    reproduce(config, request, compare=False)
+    record = RunConfig.read(tmp_path / "out" / "sift")
+    assert record.record["evaluation"]["homography_ransac_px"] == 2.5
+    assert record.record["evaluation"]["interval_seeds"] == 2
