@@ -42,8 +42,8 @@ def test_the_paper_data_is_found_through_importlib_resources():
     for benchmark in with_tables:
         reference = report.paper_reference(benchmark)
         assert reference.is_file() and reference.read_text() == data.joinpath(benchmark.paper_table).read_text()
-    # the top of the checkout keeps only the lock; a second copy of the configs would drift
-    assert sorted(p.name for p in (REPO / "configs").iterdir()) == ["constraints.txt"]
+    # the top of the checkout keeps only the locks; a second copy of the configs would drift
+    assert sorted(p.name for p in (REPO / "configs").iterdir()) == ["constraints-cpu.txt", "constraints.txt"]
     assert not list((REPO / "results").glob("paper/*"))
 
 
@@ -122,3 +122,29 @@ def test_a_wheel_installed_away_from_the_checkout_reports_the_paper_rows(tmp_pat
     paper = pd.read_csv(PAPER_DIR / "table1.csv")["method"]
     assert all(f'<tr class="paper"><td class="t">{html.escape(m)}</td>' in page for m in paper)
     assert page.count('<tr class="paper">') == len(paper)
+
+
+CUDA_ONLY = ("cuda-", "nvidia-", "triton==")  # torch's CUDA build's own packages (PyPI's torch)
+
+
+def _pins(path: Path) -> list[str]:
+    return [line for line in path.read_text().splitlines() if line and not line.startswith("#")]
+
+
+def test_the_cpu_lock_is_the_lock_without_cuda():
+    """configs/constraints-cpu.txt (the README's line for a machine without a GPU): every pin of
+    the lock but the CUDA libraries, torch and torchvision as their CPU builds of the same version."""
+    lock, cpu = _pins(REPO / "configs" / "constraints.txt"), _pins(REPO / "configs" / "constraints-cpu.txt")
+    cuda = [pin for pin in lock if pin.startswith(CUDA_ONLY)]
+    assert len(cuda) >= 10 and not [pin for pin in cpu if pin.startswith(CUDA_ONLY)]
+    expected = [pin + "+cpu" if pin.split("==")[0] in ("torch", "torchvision") else pin
+                for pin in lock if pin not in cuda]
+    assert cpu == expected
+    assert "torch==2.14.1+cpu" in cpu
+
+
+def test_the_readme_installs_the_cpu_lock_from_pytorchs_index():
+    readme = (REPO / "README.md").read_text()
+    line = next(line for line in readme.splitlines() if line.startswith("# No GPU?"))
+    command = line.split(": ", 1)[1]
+    assert "-c configs/constraints-cpu.txt" in command and "--extra-index-url https://download.pytorch.org/whl/cpu" in command

@@ -28,6 +28,7 @@ from e3cm_bench.benchmarks import BENCHMARKS
 from e3cm_bench.method.protocols import PROTOCOLS
 from e3cm_bench.matching import ESTIMATORS
 from e3cm_bench.method.options import METHOD_OPTIONS
+from e3cm_bench.drawing.formats import LogConsole
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 
 
@@ -37,8 +38,12 @@ app = typer.Typer(
     help="Training-free deep feature matching (E3CM, DFM, SIFT+NN) and the HPatches / MegaDepth-1500 / YFCC100M / "
          "WxBS / EVD benchmarks.",
 )
-console = Console()
-err_console = Console(stderr=True)
+class _Console(LogConsole, Console):
+    """The commands' consoles: messages unwrapped in a pipe (drawing/formats.LogConsole)."""
+
+
+console = _Console()
+err_console = _Console(stderr=True)
 
 
 def _print_version(given: bool) -> None:

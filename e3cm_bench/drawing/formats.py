@@ -92,6 +92,21 @@ def fit_columns(columns: list[str], rows: list[list[str]], right: list[bool], wi
     return lines
 
 
+class LogConsole:
+    """Mixed into a rich Console: a message (a line of plain text) is one physical line wherever
+    the console does not write to a terminal (a pipe, a log, CI), however long, so that a log
+    never breaks a sentence or a path and grep finds it whole; on a terminal rich wraps it at the
+    terminal's width. Tables and listings are laid out by their own width (text_width) either way."""
+
+    @property
+    def soft_wrap(self) -> bool:
+        return self._soft_wrap or not self.is_terminal
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        self._soft_wrap = value
+
+
 def text_width(console) -> int:
     """The width a table or message is laid out for: the terminal's where the console writes to
     one; else COLUMNS where set, else 80. (rich alone takes the width of whichever of stdin,
