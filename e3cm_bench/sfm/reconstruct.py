@@ -29,26 +29,35 @@ from pathlib import Path
 
 import numpy as np
 
-# The incremental mapper's options that differ from pycolmap 4.2.1's defaults, and why:
+# The incremental mapper's options that differ from pycolmap 4.2.1's defaults, and why; the one
+# table for `sfm` (a set's ground-truth K: calibrated) and `reconstruct` (a folder's own images).
+# For both:
 # - min_model_size 3: COLMAP's 10 would drop every model of a small set (the synthetic scene
 #   has 12 views) and the shared KITTI frames' sub-models;
-# - intrinsics fixed (no focal, principal point or extra parameter refinement): the set's K
-#   is the ground truth, so a model is judged on its poses alone;
 # - init_min_tri_angle 4 degrees (COLMAP's 16): the initial pair must see its points under this
 #   angle, which a photo collection's wide baselines give and a video's forward motion does not
 #   (8 KITTI frames, each with the next 2: no model at 16, 8 of 8 registered at 4);
-# - extract_colors off: colours need the images decoded again and change no number here;
 # - num_threads 1 (with the seed): deterministic models.
-MAPPER_OPTIONS = {
-    "min_model_size": 3,
-    "ba_refine_focal_length": False,
-    "ba_refine_principal_point": False,
-    "ba_refine_extra_params": False,
-    "extract_colors": False,
-    "num_threads": 1,
-}
-MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0, "abs_pose_refine_focal_length": False,
-                                 "abs_pose_refine_extra_params": False, "num_threads": 1}}
+# Calibrated only (CALIBRATED_OPTIONS): intrinsics fixed (no focal, principal point or extra
+# parameter refinement), since the set's K is the ground truth and a model is judged on its
+# poses alone; extract_colors off, since colours need the images decoded again and change no
+# number scored. `reconstruct` refines its unknown intrinsics and keeps the colours of the model
+# it hands to the user.
+MAPPER_OPTIONS = {"min_model_size": 3, "num_threads": 1}
+MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0, "num_threads": 1}}
+CALIBRATED_OPTIONS = {"ba_refine_focal_length": False, "ba_refine_principal_point": False,
+                      "ba_refine_extra_params": False, "extract_colors": False}
+CALIBRATED_SUB_OPTIONS = {"mapper": {"abs_pose_refine_focal_length": False, "abs_pose_refine_extra_params": False}}
+
+
+def incremental_options(calibrated: bool = True) -> tuple[dict, dict]:
+    """The incremental mapper's options and its {group: options} as the table above sets them."""
+    if not calibrated:
+        return dict(MAPPER_OPTIONS), {k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()}
+    groups = {k: {**v, **CALIBRATED_SUB_OPTIONS.get(k, {})} for k, v in MAPPER_SUB_OPTIONS.items()}
+    return {**MAPPER_OPTIONS, **CALIBRATED_OPTIONS}, groups
+
+
 # The global mapper's (GLOMAP's) options that differ from pycolmap 4.2.1's defaults: the same
 # choices (intrinsics fixed in its bundle adjustment, one thread, no GPU, min_model_size 3).
 GLOBAL_OPTIONS = {"min_model_size": 3, "num_threads": 1}
@@ -85,8 +94,8 @@ def mapper_settings() -> dict:
         "seed": "evaluation.seed + 0..mapper_seeds-1",
         "incremental": {
             "method": "pycolmap.incremental_mapping",
-            "options": dict(MAPPER_OPTIONS),
-            **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
+            "options": incremental_options()[0],
+            **incremental_options()[1],
         },
         "global": {
             "method": "pycolmap.global_mapping",
@@ -114,13 +123,16 @@ def _set(options, values: dict, group: str = "") -> None:
     setattr(options, head, sub)
 
 
-def mapper_options(seed: int, mapper: str = "incremental", override: dict | None = None):
+def mapper_options(seed: int, mapper: str = "incremental", override: dict | None = None, calibrated: bool = True):
     """pycolmap's options of `mapper` as the benchmark sets them, seeded; `override`: more
-    {dotted group: {option: value}} (a caller that refines the intrinsics, say), set last."""
+    {dotted group: {option: value}} (a caller that refines the intrinsics, say), set last.
+    calibrated=False: `reconstruct`'s (the incremental mapper, its intrinsics refined)."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     if mapper == "global":
+        if not calibrated:
+            raise ValueError("the global mapper runs on calibrated sets only (reconstruct runs the incremental one)")
         options = pycolmap.GlobalPipelineOptions()
         _set(options, GLOBAL_OPTIONS)
         for group, values in GLOBAL_SUB_OPTIONS.items():
@@ -129,8 +141,9 @@ def mapper_options(seed: int, mapper: str = "incremental", override: dict | None
             _set(options, {"random_seed": int(seed)}, group)
     else:
         options = pycolmap.IncrementalPipelineOptions()
-        _set(options, MAPPER_OPTIONS)
-        for group, values in MAPPER_SUB_OPTIONS.items():
+        top, groups = incremental_options(calibrated)
+        _set(options, top)
+        for group, values in groups.items():
             _set(options, values, group)
         for group in ("", "mapper", "triangulation"):
             _set(options, {"random_seed": int(seed)}, group)

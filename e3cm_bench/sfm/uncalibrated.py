@@ -27,18 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
-from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, model_of
+from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, incremental_options, mapper_options, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
-
-# The incremental mapper's options that differ from pycolmap 4.2.1's defaults, and why:
-# - min_model_size 3: COLMAP's 10 would drop every model of a small set;
-# - init_min_tri_angle 4 degrees (COLMAP's 16): a video's forward motion (the shared KITTI
-#   frames) gives no initial pair at 16 (sfm/reconstruct.py measured it);
-# - one thread and the run's seed (interchange.colmap.mapper_options): the same matches give
-#   the same model. Intrinsics are refined (COLMAP's default): they are unknown here.
-MAPPER_OPTIONS = {"min_model_size": 3}
-MAPPER_SUB_OPTIONS = {"mapper": {"init_min_tri_angle": 4.0}}
 
 
 def settings(camera_model: str, camera_per_image: bool, merge_px: float | None) -> dict:
@@ -50,28 +41,12 @@ def settings(camera_model: str, camera_per_image: bool, merge_px: float | None) 
     except ValueError:
         version = None
     return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": version,
-            "options": dict(MAPPER_OPTIONS), **{k: dict(v) for k, v in MAPPER_SUB_OPTIONS.items()},
+            "options": incremental_options(calibrated=False)[0], **incremental_options(calibrated=False)[1],
             "seed": "evaluation.seed", "camera_model": camera_model,
             "cameras": "one per image" if camera_per_image else "shared by the images of one size and EXIF focal",
             "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
             "intrinsics": "refined by the mapper",
             "merge_px": merge_px}
-
-
-def mapper_options(seed: int):
-    from e3cm_bench.ground.pycolmap import pycolmap_module
-    from e3cm_bench.interchange.colmap import mapper_options as checked_options
-
-    options = checked_options(pycolmap_module(), calibrated=False)
-    for key, value in MAPPER_OPTIONS.items():
-        setattr(options, key, value)
-    for group, values in MAPPER_SUB_OPTIONS.items():
-        sub = getattr(options, group)
-        for key, value in values.items():
-            setattr(sub, key, value)
-        setattr(options, group, sub)
-    options.random_seed = options.mapper.random_seed = options.triangulation.random_seed = int(seed)
-    return options
 
 
 def cameras_for(root: Path, names: Sequence[str], camera_model: str, camera_per_image: bool) -> dict:
@@ -128,7 +103,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         shutil.rmtree(mapper_out, ignore_errors=True)
         mapper_out.mkdir()
         found = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root), str(mapper_out),
-                                             options=mapper_options(seed))
+                                             options=mapper_options(seed, calibrated=False))
     finally:
         pycolmap.logging.minloglevel = level
     shutil.rmtree(mapper_out, ignore_errors=True)

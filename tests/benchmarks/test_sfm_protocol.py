@@ -197,3 +197,22 @@ def test_bags_are_reconstructed_apart(room, tmp_path):
         assert db.num_images() == 3
     assert all(np.isfinite(r["err_pose"]) for r in rows), rows
     assert numbers["n_images"] == 6 and numbers["registered_images"] == 6
+
+
+def test_one_mapper_table_for_sfm_and_reconstruct():
+    """sfm (a set's ground-truth K) and reconstruct (a folder's own images) take the incremental
+    mapper's options from one table (sfm/reconstruct.py): the same choices for both, the
+    intrinsics fixed and the colours skipped only where the set is calibrated."""
+    pytest.importorskip("pycolmap")
+    from e3cm_bench.sfm.reconstruct import mapper_options
+
+    calibrated, own = mapper_options(7), mapper_options(7, calibrated=False)
+    for options in (calibrated, own):
+        assert options.min_model_size == 3 and options.num_threads == 1 and options.mapper.num_threads == 1
+        assert options.mapper.init_min_tri_angle == 4.0
+        assert options.random_seed == options.mapper.random_seed == options.triangulation.random_seed == 7
+    assert not calibrated.ba_refine_focal_length and not calibrated.mapper.abs_pose_refine_focal_length
+    assert not calibrated.extract_colors
+    assert own.ba_refine_focal_length and own.ba_refine_extra_params and own.extract_colors
+    with pytest.raises(ValueError, match="global mapper runs on calibrated sets only"):
+        mapper_options(7, "global", calibrated=False)
