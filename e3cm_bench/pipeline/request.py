@@ -10,11 +10,12 @@ one field here (or in MatchOptions), one row of the option table and its one con
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from e3cm_bench.benchmarks import Benchmark, EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import PairList
+from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.stage import MatchOptions
 
@@ -58,6 +59,17 @@ class RunRequest:
             raise ValueError(f"--limit must be at least 1, got {self.limit}")
         if self.viz < 0:
             raise ValueError(f"--viz must be 0 (no drawings) or more, got {self.viz}")
+
+    @classmethod
+    def of(cls, benchmark, out=None, method=None, **given) -> RunRequest:
+        """A request from the Python API's keywords (run_benchmark's, run_methods'): a keyword that is
+        no field is a TypeError naming it and the nearest field, as a command names the nearest flag."""
+        known = {f.name for f in fields(cls)}
+        for name in given:
+            if name not in known:
+                raise TypeError(f"{name!r} is not a field of a run's request{did_you_mean(name, known)}; "
+                                f"it has {', '.join(sorted(known))}")
+        return cls(benchmark, out, method, **given)
 
     @property
     def bench(self) -> Benchmark:

@@ -47,7 +47,7 @@ def run_benchmark(benchmark: str | Benchmark | RunRequest, out=None, method: Met
     last shard to finish merges all of them into OUT (shards.merge_run).
     """
     if not isinstance(benchmark, RunRequest):
-        benchmark = RunRequest(benchmark, out, method, **request)
+        benchmark = RunRequest.of(benchmark, out, method, **request)
     request, console = benchmark, console or Console()
     if request.method is None and not request.eval_only:
         raise ValueError("run_benchmark: a method is needed unless eval_only")
@@ -72,7 +72,7 @@ def run_methods(benchmark: str | Benchmark, runs: list[tuple], dataset: PairList
     the other fields of a RunRequest (ev, limit, viz, device, dataset_load, options).
     """
     console = console or Console()
-    request = RunRequest(benchmark, dataset=dataset, **request)
+    request = RunRequest.of(benchmark, dataset=dataset, **request)
     _check_device(request, [method for _, method in runs])
     limit = request.limit
     console.print(f"{request.bench.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")

@@ -192,3 +192,10 @@ def test_an_experiment_configs_evaluation_section_is_the_runs(tmp_path, shared_d
     record = RunConfig.read(tmp_path / "out" / "sift")
     assert record.record["evaluation"]["homography_ransac_px"] == 2.5
     assert record.record["evaluation"]["interval_seeds"] == 2
+
+
+def test_the_python_api_names_the_nearest_field_of_a_mistyped_keyword(tmp_path):
+    from e3cm_bench import run_benchmark
+
+    with pytest.raises(TypeError, match=r"'limt' is not a field of a run's request \(did you mean 'limit'\?\)"):
+        run_benchmark("hpatches", tmp_path / "out", None, eval_only=True, limt=3)
