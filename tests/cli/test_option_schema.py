@@ -199,3 +199,16 @@ def test_the_python_api_names_the_nearest_field_of_a_mistyped_keyword(tmp_path):
 
     with pytest.raises(TypeError, match=r"'limt' is not a field of a run's request \(did you mean 'limit'\?\)"):
         run_benchmark("hpatches", tmp_path / "out", None, eval_only=True, limt=3)
+
+
+def test_every_option_of_reconstruct_is_a_key_of_the_configuration():
+    """`reconstruct` lists its options by name; each one is still a key of a section: the method's,
+    the folder set's (FolderOptions: its dataset options), the run's, the match stage's, the shards'."""
+    from e3cm_bench.cli.reconstruct import reconstruct
+    from e3cm_bench.sfm.own_images import FolderOptions
+
+    names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
+    declared = (set(METHOD_OPTIONS) | names(FolderOptions) | names(RunRequest) | names(MatchOptions) | names(Scale)
+                | {"images"})  # the folder: the request's root
+    given = set(inspect.signature(inspect.unwrap(reconstruct)).parameters)
+    assert given and not sorted(given - declared)
