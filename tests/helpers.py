@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import h5py
@@ -165,3 +166,10 @@ def sift_hpatches_run(shared_data: Path, out: Path, max_side: int = 240, limit: 
                     "--max-side", max_side, "--limit", limit)
     assert result.exit_code == 0, result.output
     return out
+
+
+def table_lines(text: str) -> list[str]:
+    """The lines of a command's output that belong to a table or listing (columns two spaces or
+    more apart, or a rule): in a pipe these are laid out for 80 columns, while a message is one
+    line however long (docs/cli.md, Output)."""
+    return [line for line in text.splitlines() if re.search(r"\S {2,}\S|[─━│┃]", line.strip())]

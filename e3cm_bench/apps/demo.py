@@ -99,7 +99,7 @@ def run_demo(
     write_atomically(out / "orderings.md", lambda tmp: tmp.write_text(text))
     console.print("The paper's orderings on these data:", markup=False, highlight=False)
     for line in lines:
-        console.print(f"- {line}", markup=False, highlight=False, soft_wrap=False, overflow="fold")
+        console.print(f"- {line}", markup=False, highlight=False)  # whole in a log (LogConsole)
     return tables
 
 

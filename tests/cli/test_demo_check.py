@@ -33,11 +33,17 @@ def demo_out(demo_run) -> Path:
 
 @pytest.mark.slow  # the quick demo they read: 396 s alone on a loaded 2-core machine (CI runs the demo too)
 def test_demo_prints_a_short_account_and_logs_the_rest(demo_run):
-    """A line per set and per method with its headline numbers, at most 80 columns;
-    the runs' own tables go to demo.log."""
+    """A line per set and per method with its headline numbers, the tables within 80 columns,
+    each message (the sets, the orderings, the files) one whole line in a pipe; the runs' own
+    tables go to demo.log."""
     out, output = demo_run
     lines = output.splitlines()
-    assert len(lines) <= 30 and max(map(len, lines)) <= 80, output
+    rows = [line for line in lines if line.startswith("  ")]  # the sets' tables
+    assert len(lines) <= 30 and rows and max(map(len, rows)) <= 80, output
+    # the orderings, then the files: each one whole line (none broken mid-sentence)
+    after = lines[lines.index("The paper's orderings on these data:") + 1:]
+    assert after and after[-1].startswith("demo: tables, plots and match drawings under ") and after[-1].endswith(")")
+    assert all(line.startswith("- ") and (line.endswith(")") or "none judged" in line) for line in after[:-1]), output
     assert "10 pairs (5 illumination, 5 viewpoint)" in output
     table = pd.read_csv(out / "hpatches_table.csv").set_index("method")
     for method in ("e3cm-ransac", "sift"):

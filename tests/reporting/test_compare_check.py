@@ -9,7 +9,6 @@ plus one small SIFT run on the shared HPatches sample.
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -22,7 +21,7 @@ import yaml
 
 from e3cm_bench.benchmarks import intervals
 from e3cm_bench.benchmarks import get_benchmark
-from helpers import invoke, one_line_error, sift_hpatches_run
+from helpers import invoke, one_line_error, sift_hpatches_run, table_lines
 
 WIDTH = 80
 
@@ -69,7 +68,7 @@ def sift_run(shared_data: Path, tmp_path_factory) -> Path:
 def no_wide_line(text: str) -> None:
     """A pipe's layout (docs/cli.md, Output): a table's line (columns two spaces or more apart, or
     a rule) within 80 columns; a message (a sentence) one line however long; nothing cut."""
-    table = [line for line in text.splitlines() if re.search(r"\S {2,}\S|[─━│┃]", line.strip())]
+    table = table_lines(text)
     wide = [line for line in table if len(line) > WIDTH]
     assert table and not wide, wide
     assert "…" not in text  # nothing cut
