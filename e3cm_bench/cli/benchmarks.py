@@ -113,7 +113,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     protocol = resolve_protocol(bench, method_given["protocol"])  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
-    check_run_flags(o)
+    RunRequest.check_counts(o.limit, o.viz)
     values = method_values(method_given)
     check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
@@ -148,14 +148,6 @@ def run_scaled(scale: Scale, request):
     else:
         return run_benchmark(request, console=console)
     return None
-
-
-def check_run_flags(o: SimpleNamespace) -> None:
-    """The run's numeric flags, before anything loads (run_benchmark checks them again for the API)."""
-    if o.limit is not None and o.limit < 1:
-        raise ValueError(f"--limit must be at least 1, got {o.limit}")
-    if o.viz < 0:
-        raise ValueError(f"--viz must be 0 (no drawings) or more, got {o.viz}")
 
 
 # Options of the benchmark commands.

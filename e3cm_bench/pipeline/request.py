@@ -55,10 +55,16 @@ class RunRequest:
         if self.ev is None:  # the benchmark's default protocol's settings, as its command has them
             self.ev = self.bench.resolve_eval()
         self.options = self.options or MatchOptions()
-        if self.limit is not None and self.limit < 1:
-            raise ValueError(f"--limit must be at least 1, got {self.limit}")
-        if self.viz < 0:
-            raise ValueError(f"--viz must be 0 (no drawings) or more, got {self.viz}")
+        self.check_counts(self.limit, self.viz)
+
+    @staticmethod
+    def check_counts(limit: int | None, viz: int) -> None:
+        """The run's counts, one line for the first out of range; the command calls it with its
+        flags before anything loads, the request with its fields (the Python API)."""
+        if limit is not None and limit < 1:
+            raise ValueError(f"--limit must be at least 1, got {limit}")
+        if viz < 0:
+            raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
 
     @classmethod
     def of(cls, benchmark, out=None, method=None, **given) -> RunRequest:
