@@ -90,8 +90,6 @@ ChannelOrderOpt = method_option("channel_order")
 ProtocolOpt = method_option("protocol")
 MaxSideOpt = method_option("max_side")
 SeedOpt = method_option("seed")
-RansacOpt = eval_option("ransac_px")
-PoseEstimatorOpt = eval_option("pose_estimator")
 DeviceOpt = Annotated[str, typer.Option("--device", help="cpu, cuda or mps.")]
 BackboneBatchOpt = Annotated[
     Optional[int],

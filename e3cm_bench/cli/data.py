@@ -10,10 +10,10 @@ import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.cli.benchmarks import option_parameter
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
 from e3cm_bench.interchange.registry import formats, origin_help
-from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, RootOpt, OutOpt,
-                                   SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, RansacOpt, PoseEstimatorOpt,
-                                   PlotFormatOpt)
+from e3cm_bench.cli.common import (OnceEach, app, console, eval_option, say, LabelOpt, ProtocolOpt, friendly_errors,
+                                   RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, PlotFormatOpt)
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
 PixelOriginOpt = Annotated[Optional[str], typer.Option(
@@ -79,11 +79,10 @@ def import_matches(
     overwrite: OverwriteOpt = False,
     viz: VizOpt = 0,
     seed: SeedOpt = 0,
-    ransac_px: RansacOpt = None,
-    pose_estimator: PoseEstimatorOpt = None,
     protocol: ProtocolOpt = None,  # None: the benchmark's default_protocol
     plot_format: PlotFormatOpt = "png",
-    **options,  # one --FORMAT per interchange format (source_parameters) and every benchmark's dataset options
+    **options,  # one --FORMAT per interchange format (source_parameters), every benchmark's dataset options and
+                # every evaluation option (eval_options.EVAL_OPTIONS)
 ) -> None:
     """Evaluate another tool's matches: a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs)."""
     from e3cm_bench.pipeline.imported import import_run
@@ -92,6 +91,7 @@ def import_matches(
     from e3cm_bench.storage import RunConfig
 
     known = formats()
+    eval_given = {name: options.pop(name) for name in EVAL_OPTIONS if name in options}
     given = {name: options.pop(name) for name in known if options.get(name) is not None}
     if len(given) != 1:
         each = [f"--{fmt.name} {' '.join(fmt.reads)}" for fmt in known.values()]
@@ -107,7 +107,7 @@ def import_matches(
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
     options = {k: _as_declared(bench, k, v) for k, v in dataset_options.items() if k in mine}
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
-    ev = bench.resolve_eval(protocol, seed, ransac_px, pose_estimator)
+    ev = bench.resolve_eval(protocol, seed, **eval_keywords(eval_given))
     (name, paths), = given.items()
     source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
                                 origin=pixel_origin)
@@ -153,6 +153,13 @@ def all_dataset_parameters() -> list[inspect.Parameter]:
     return [option_parameter(option, f"{', '.join(names)}: {option.help}") for option, names in seen.values()]
 
 
+def eval_parameters() -> list[inspect.Parameter]:
+    """Every evaluation option, from its one declaration (eval_options.EVAL_OPTIONS), as the benchmark
+    commands have them: an import is scored as a run is."""
+    return [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option.default,
+                              annotation=eval_option(name)) for name, option in EVAL_OPTIONS.items()]
+
+
 def _with_dataset_options(command):
     """`command` with each format's source option and every benchmark's dataset options added to its
     signature (typer reads it)."""
@@ -160,7 +167,7 @@ def _with_dataset_options(command):
     fixed = [p for p in signature.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
     fixed = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) if p.default is not inspect.Parameter.empty else p
              for p in fixed]
-    params = fixed + source_parameters() + all_dataset_parameters()
+    params = fixed + source_parameters() + all_dataset_parameters() + eval_parameters()
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     return command

@@ -212,3 +212,19 @@ def test_every_option_of_reconstruct_is_a_key_of_the_configuration():
                 | {"images"})  # the folder: the request's root
     given = set(inspect.signature(inspect.unwrap(reconstruct)).parameters)
     assert given and not sorted(given - declared)
+
+
+def test_every_option_of_import_is_a_key_of_the_configuration():
+    """`import` scores another tool's matches as a run is scored: every evaluation option from its
+    table, the dataset options of every benchmark, the run's; besides them only its sources (one
+    --FORMAT per interchange format) and their pixel origin."""
+    from e3cm_bench.cli.data import import_matches
+    from e3cm_bench.interchange.registry import formats
+
+    bench_options = {o.name for b in BENCHMARKS.values() for o in b.command_options()}
+    names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
+    declared = (set(METHOD_OPTIONS) | set(EVAL_OPTIONS) | bench_options | names(RunRequest) | set(OUTPUT_ONLY)
+                | set(formats()) | {"pixel_origin"})
+    given = set(inspect.signature(import_matches).parameters)
+    assert set(EVAL_OPTIONS) <= given
+    assert not sorted(given - declared)

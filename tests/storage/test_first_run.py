@@ -128,9 +128,12 @@ def test_an_imported_run_carries_the_source_name(shared_data, tmp_path):
     assert invoke("hpatches", "--root", root, "--out", run, "--matcher", "sift", *SMALL).exit_code == 0
     assert invoke("export", run, tmp_path / "sift-exported", "--to", "npz").exit_code == 0
     back = tmp_path / "back"
-    result = invoke("import", "hpatches", "--root", root, "--out", back, "--npz", tmp_path / "sift-exported", *SMALL[:4])
+    result = invoke("import", "hpatches", "--root", root, "--out", back, "--npz", tmp_path / "sift-exported", *SMALL[:4],
+                    "--interval-seeds", 1, "--ransac-px", 2.5)  # the evaluation options, from their table
     assert result.exit_code == 0, (result.output, result.exception)
-    assert yaml.safe_load((back / "config.yaml").read_text())["method"] == "sift-exported"
+    record = yaml.safe_load((back / "config.yaml").read_text())
+    assert record["method"] == "sift-exported"
+    assert record["evaluation"]["interval_seeds"] == 1 and record["evaluation"]["homography_ransac_px"] == 2.5
     assert not (back / ".lock").exists()
 
 
