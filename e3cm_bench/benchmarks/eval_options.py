@@ -13,17 +13,16 @@ random or resized): they are not here. This module imports nothing heavy (`--hel
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
-from e3cm_bench.method.options import KINDS
+from e3cm_bench.method.options import KindOf
 
 
 @dataclass(frozen=True)
-class EvalOption:
+class EvalOption(KindOf):
     """name: the config key and the command's parameter; flag: its spelling on the command line;
     kind: a key of options.KINDS; default: the value when none is given (None: the protocol's,
-    else the benchmark's); keyword: Benchmark.resolve_eval's parameter it fills; show_default:
-    what --help says the default is, where the value itself says nothing."""
+    else the benchmark's); keyword: Benchmark.resolve_eval's parameter it fills (its name where
+    not given); show_default: what --help says the default is, where the value itself says nothing."""
 
     name: str
     flag: str
@@ -34,15 +33,9 @@ class EvalOption:
     show_default: str | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"evaluation option {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
+        super().__post_init__()
         if not self.keyword:
             object.__setattr__(self, "keyword", self.name)
-
-    @property
-    def cli_type(self):
-        base = KINDS[self.kind].cli
-        return Optional[base] if self.default is None else base
 
 
 EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
@@ -66,16 +59,3 @@ def eval_keywords(given: dict) -> dict:
     """Evaluation options by name (a command's, a config's ``evaluation:``) -> Benchmark.resolve_eval's
     keywords; a value not given (None) is left out, so the protocol's or the benchmark's holds."""
     return {EVAL_OPTIONS[name].keyword: value for name, value in given.items() if value is not None}
-
-
-def check_eval_values(values: dict, where: str = "") -> None:
-    """Each value of its declared kind, and every name declared: one line naming the first that is
-    not (and, for an unknown name, the nearest known one)."""
-    from e3cm_bench.ground.suggest import did_you_mean
-
-    for name, value in values.items():
-        option = EVAL_OPTIONS.get(name)
-        if option is None:
-            raise ValueError(f"{where}{name!r} is not an evaluation option{did_you_mean(str(name), EVAL_OPTIONS)}")
-        if value is not None and not KINDS[option.kind].test(value):
-            raise ValueError(f"{where}{name!r} must be {KINDS[option.kind].wanted}, got {value!r}")

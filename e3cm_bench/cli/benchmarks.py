@@ -179,8 +179,15 @@ def _other_method_options() -> tuple:
     return _method(*(name for name in METHOD_OPTIONS if name not in placed))
 
 
-def _eval_options() -> tuple:
+def eval_options() -> tuple:
+    """Every evaluation option as a command's option tuple, from its table (also `import`'s)."""
     return tuple((name, eval_option(name), option.default) for name, option in EVAL_OPTIONS.items())
+
+
+def keyword_parameters(group: tuple) -> list[inspect.Parameter]:
+    """A group of (name, typer annotation, default) as the keyword parameters typer reads."""
+    return [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+            for name, annotation, default in group]
 
 
 # Every benchmark command's options, in the order --help lists them; the benchmark's own
@@ -213,7 +220,7 @@ def common_after() -> tuple:
     """The options --help lists after the benchmark's dataset options."""
     return (
         ("skip_bad", SkipBadOpt, False),
-        *_eval_options(),
+        *eval_options(),
         ("on_matcher_error", OnMatcherErrorOpt, "stop"),
         ("pair_timeout", PairTimeoutOpt, None),
         ("shard", ShardOpt, None),
@@ -250,9 +257,7 @@ def benchmark_command(bench: Benchmark):
         with plots_as(given.pop("plot_format")):
             run_command(bench, given)
 
-    common = lambda group: [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,  # noqa: E731
-                                              annotation=annotation) for name, annotation, default in group]
-    params = common(common_before()) + dataset_parameters(bench) + common(common_after())
+    params = keyword_parameters(common_before()) + dataset_parameters(bench) + keyword_parameters(common_after())
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     command.__name__ = command.__qualname__ = bench.name.replace("-", "_")

@@ -9,10 +9,10 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
-from e3cm_bench.cli.benchmarks import option_parameter
+from e3cm_bench.cli.benchmarks import eval_options, keyword_parameters, option_parameter
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
 from e3cm_bench.interchange.registry import formats, origin_help
-from e3cm_bench.cli.common import (OnceEach, app, console, eval_option, say, LabelOpt, ProtocolOpt, friendly_errors,
+from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors,
                                    RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, PlotFormatOpt)
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
@@ -153,13 +153,6 @@ def all_dataset_parameters() -> list[inspect.Parameter]:
     return [option_parameter(option, f"{', '.join(names)}: {option.help}") for option, names in seen.values()]
 
 
-def eval_parameters() -> list[inspect.Parameter]:
-    """Every evaluation option, from its one declaration (eval_options.EVAL_OPTIONS), as the benchmark
-    commands have them: an import is scored as a run is."""
-    return [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option.default,
-                              annotation=eval_option(name)) for name, option in EVAL_OPTIONS.items()]
-
-
 def _with_dataset_options(command):
     """`command` with each format's source option and every benchmark's dataset options added to its
     signature (typer reads it)."""
@@ -167,7 +160,8 @@ def _with_dataset_options(command):
     fixed = [p for p in signature.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
     fixed = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) if p.default is not inspect.Parameter.empty else p
              for p in fixed]
-    params = fixed + source_parameters() + all_dataset_parameters() + eval_parameters()
+    # every evaluation option, as the benchmark commands have them: an import is scored as a run is
+    params = fixed + source_parameters() + all_dataset_parameters() + keyword_parameters(eval_options())
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     return command

@@ -16,3 +16,11 @@ def pycolmap_module():
     except ImportError:
         raise ValueError("this needs pycolmap (COLMAP's bindings): pip install 'e3cm-bench[colmap]'") from None
     return pycolmap
+
+
+def pycolmap_version() -> str | None:
+    """The version a record names (None where pycolmap is not installed)."""
+    try:
+        return pycolmap_module().__version__
+    except ValueError:
+        return None

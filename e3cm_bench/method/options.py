@@ -105,9 +105,24 @@ KINDS: dict[str, Kind] = {
 DATASET_KINDS = ("flag", "path", "paths", "names", "text")
 
 
+class KindOf:
+    """What its kind gives an option declared as data (a method's here, an evaluation's in
+    benchmarks/eval_options.py): the check that the kind exists, and the type typer reads."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"option {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
+
+    @property
+    def cli_type(self):
+        """The annotation typer reads: the kind's type, Optional where the default is None."""
+        base = KINDS[self.kind].cli
+        return Optional[base] if self.default is None else base
+
+
 # ---- the method options
 @dataclass(frozen=True)
-class MethodOption:
+class MethodOption(KindOf):
     """One option of a method.
 
     name: the keyword (MethodSpec.create, Benchmark.resolve_method) and the experiment-config key.
@@ -129,16 +144,6 @@ class MethodOption:
     help: str
     concerns: str = "all"
     config: str = "method"
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"option {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
-
-    @property
-    def cli_type(self):
-        """The annotation typer reads: the kind's type, Optional where the default is None."""
-        base = KINDS[self.kind].cli
-        return Optional[base] if self.default is None else base
 
 
 _BACKBONE_HELP = (f"One of: {', '.join(BACKBONES)} ({DEFAULT_BACKBONE}: the paper's, downloads its ImageNet weights "

@@ -23,7 +23,7 @@ from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, config_keys
-from e3cm_bench.benchmarks.eval_options import check_eval_values, eval_keywords
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.paper import resolve_config
 from e3cm_bench.storage.fingerprint import protocol_items, protocol_notes
@@ -62,6 +62,15 @@ def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tu
             raise ValueError(f"{path}: {where}{key!r} must be {KINDS[kind].wanted}, got {values[key]!r}")
 
 
+def _refuse_unknown(path: Path, where: str, values: dict, known, what: str) -> None:
+    """A one-line ValueError naming the file and the first key of `values` not in `known` (the
+    nearest known one, and all of them), `what` saying what the key is not."""
+    unknown = sorted(set(values) - set(known), key=str)
+    if unknown:
+        raise ValueError(f"{path}: {where}{unknown[0]!r} is not {what}{did_you_mean(unknown[0], known)}; "
+                         f"it has {', '.join(sorted(known))}")
+
+
 def experiment_method(
     entry: dict, experiment: dict, benchmark: Benchmark, backbone_override: str | None = None,
     max_side_override: int | None = None, available: bool = True,
@@ -91,16 +100,15 @@ def experiment_method(
 def load_experiment(path: Path) -> dict:
     """Read and check an experiment config (paper/configs/*.yaml, or one of one's own)."""
     config = load_yaml(path, what="experiment config")
-    known = experiment_keys()
-    unknown = sorted(set(config) - known, key=str)
-    if unknown:
-        raise ValueError(f"{path}: {unknown[0]!r} is not a key of an experiment{did_you_mean(unknown[0], known)}; "
-                         f"it has {', '.join(sorted(known))}")
+    _refuse_unknown(path, "", config, experiment_keys(), "a key of an experiment")
     for section in ("dataset", "evaluation"):
         if not isinstance(config.get(section) or {}, dict):
             raise ValueError(f"{path}: '{section}' must be a mapping of {section} options")
     _check_types(path, "", config, experiment_types(), nullable=("dataset", "evaluation"))
-    check_eval_values(config.get("evaluation") or {}, f"{path}: evaluation: ")
+    evaluation = config.get("evaluation") or {}
+    _refuse_unknown(path, "evaluation: ", evaluation, EVAL_OPTIONS, "an evaluation option")
+    _check_types(path, "evaluation: ", evaluation, {n: o.kind for n, o in EVAL_OPTIONS.items()},
+                 nullable=tuple(EVAL_OPTIONS))
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])
@@ -109,20 +117,16 @@ def load_experiment(path: Path) -> dict:
     methods = config.get("methods")
     if not isinstance(methods, list) or not methods:
         raise ValueError(f"{path}: 'methods' must be a non-empty list")
-    labels = set()
+    labels, types = set(), method_types()
     for i, method in enumerate(methods):
         if not isinstance(method, dict) or not isinstance(method.get("matcher"), str):
             raise ValueError(f"{path}: methods[{i}] needs 'matcher' (e3cm-bench matchers lists them)")
-        types = method_types()
         _check_types(path, f"methods[{i}]: ", method, types, nullable=tuple(set(types) - {"matcher"}))
         try:
             get_matcher(method["matcher"], allow_import=True)
         except ValueError as exc:
             raise ValueError(f"{path}: methods[{i}]: {exc}") from None
-        unknown = sorted(set(method) - set(types), key=str)
-        if unknown:
-            raise ValueError(f"{path}: methods[{i}]: {unknown[0]!r} is not a key of a method"
-                             f"{did_you_mean(unknown[0], types)}; it has {', '.join(sorted(types))}")
+        _refuse_unknown(path, f"methods[{i}]: ", method, types, "a key of a method")
         try:
             spec = experiment_method(method, config, benchmark, available=False)
         except ValueError as exc:

@@ -58,6 +58,12 @@ def incremental_options(calibrated: bool = True) -> tuple[dict, dict]:
     return {**MAPPER_OPTIONS, **CALIBRATED_OPTIONS}, groups
 
 
+def incremental_record(calibrated: bool = True) -> dict:
+    """The table as config.yaml records it: ``options``, then each group's."""
+    top, groups = incremental_options(calibrated)
+    return {"options": top, **groups}
+
+
 # The global mapper's (GLOMAP's) options that differ from pycolmap 4.2.1's defaults: the same
 # choices (intrinsics fixed in its bundle adjustment, one thread, no GPU, min_model_size 3).
 GLOBAL_OPTIONS = {"min_model_size": 3, "num_threads": 1}
@@ -83,19 +89,14 @@ DATABASE, MODELS, LOG = "database.db", "models", "mapper.log"
 def mapper_settings() -> dict:
     """What config.yaml records of the reconstruction (the seed is the evaluation's; which
     mapper, merge and verification ran: dataset.protocol)."""
-    from e3cm_bench.ground.pycolmap import pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_version
 
-    try:
-        version = pycolmap_module().__version__
-    except ValueError:
-        version = None
     return {
-        "pycolmap": version,
+        "pycolmap": pycolmap_version(),
         "seed": "evaluation.seed + 0..mapper_seeds-1",
         "incremental": {
             "method": "pycolmap.incremental_mapping",
-            "options": incremental_options()[0],
-            **incremental_options()[1],
+            **incremental_record(),
         },
         "global": {
             "method": "pycolmap.global_mapping",

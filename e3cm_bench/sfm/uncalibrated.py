@@ -27,21 +27,17 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
-from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, incremental_options, mapper_options, model_of
+from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, incremental_record, mapper_options, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
 
 
 def settings(camera_model: str, camera_per_image: bool, merge_px: float | None) -> dict:
     """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
-    from e3cm_bench.ground.pycolmap import pycolmap_module
+    from e3cm_bench.ground.pycolmap import pycolmap_version
 
-    try:
-        version = pycolmap_module().__version__
-    except ValueError:
-        version = None
-    return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": version,
-            "options": incremental_options(calibrated=False)[0], **incremental_options(calibrated=False)[1],
+    return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": pycolmap_version(),
+            **incremental_record(calibrated=False),
             "seed": "evaluation.seed", "camera_model": camera_model,
             "cameras": "one per image" if camera_per_image else "shared by the images of one size and EXIF focal",
             "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
