@@ -19,12 +19,28 @@ PACKAGE = REPO / "e3cm_bench"
 
 
 def test_no_keyed_side_channel_in_the_package():
-    """What an evaluation reads is a typed field (ViewPair.view0/view1/bag/setup,
-    CorrespondencePair.corrs), not a `Pair.meta` key: a misspelt key is a KeyError at scoring
-    time, a misspelt field an error where the pair is built."""
+    """What a run reads of a pair is a typed field (its labels Pair.sequence/scene/category, its
+    rotations, ViewPair.view0/view1/bag/setup, CorrespondencePair.corrs), not a `Pair.meta` key:
+    a misspelt key is a silent default where it is read, a misspelt field an error where the
+    pair is built. `.meta` is read nowhere in the package, neither subscripted nor by `.get`."""
     found = [f"{path.relative_to(REPO)}:{n}" for path in sorted(PACKAGE.rglob("*.py"))
-             for n, line in enumerate(path.read_text().splitlines(), 1) if re.search(r"\.meta\[", line)]
-    assert not found, f"Pair.meta subscripted: {found}"
+             for n, line in enumerate(path.read_text().splitlines(), 1) if re.search(r"\.meta(\[|\.get\()", line)]
+    assert not found, f"Pair.meta read: {found}"
+
+
+def test_a_pairs_labels_are_typed_and_the_old_meta_still_builds_one():
+    """`meta=` still builds a pair (code written against the dict), each key landing in its
+    field; a key that names no label is refused where the pair is built; `pair.meta` is gone."""
+    from e3cm_bench.datasets.base import Pair, stratum
+
+    old = Pair("v_x/1-2", Path("a"), Path("b"), meta={"sequence": "v_x", "rot0": 1, "rot1": 3})
+    assert (old.sequence, old.rotations, old.labels) == ("v_x", (1, 3), {"sequence": "v_x"})
+    assert old == Pair("v_x/1-2", Path("a"), Path("b"), sequence="v_x", rotations=(1, 3))
+    assert stratum(old) == ("v", "v_x")
+    with pytest.raises(ValueError, match="unknown label.*sequnce"):
+        Pair("p", Path("a"), Path("b"), meta={"sequnce": "v_x"})
+    with pytest.raises(AttributeError, match="meta"):
+        old.meta
 
 
 @pytest.mark.parametrize("matcher, radius", [("sift", 0.0), ("aliked+lightglue", 0.0), ("e3cm", 2.0),

@@ -136,7 +136,7 @@ def _run_set(demo: _Demo, step: int, set_name: str, data: tuple) -> pd.DataFrame
 
 def _pairs_text(dataset) -> str:
     """'10 pairs (5 illumination, 5 viewpoint)' for HPatches-format data, else '2 pairs'."""
-    kinds = pd.Series([str(p.meta.get("sequence", ""))[:2] for p in dataset]).value_counts()
+    kinds = pd.Series([p.sequence[:2] for p in dataset]).value_counts()
     names = {"i_": "illumination", "v_": "viewpoint"}
     split = ", ".join(f"{kinds[k]} {names[k]}" for k in sorted(kinds.index) if k in names)
     return f"{len(dataset)} pairs" + (f" ({split})" if split else "")

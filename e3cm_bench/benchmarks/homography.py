@@ -51,7 +51,7 @@ class HomographyBenchmark(Benchmark):
             for t, column in zip(ev.match_precision_px, _precision_columns(ev)):
                 # glue-factory: strictly below t; a pair without matches scores 0 (its nan_to_num)
                 row[column] = float(np.mean(error < t)) if len(error) else 0.0
-        return {"pair": pair.name, "sequence": pair.meta.get("sequence", ""), **row}
+        return {"pair": pair.name, "sequence": pair.sequence, **row}
 
     @classmethod
     def two_view_geometry(cls, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:

@@ -140,7 +140,7 @@ class CorrespondencePair(Pair):
 
 class WxBS(PairList):
     """The WxBS pairs of one split (test: the release's test pairs; val: its 2 validation
-    pairs; all), each a CorrespondencePair, its category in ``meta`` (a sampling level, as a
+    pairs; all), each a CorrespondencePair, its category in ``Pair.category`` (a sampling level, as a
     sequence or a scene is)."""
 
     name = "wxbs"
@@ -177,7 +177,7 @@ class WxBS(PairList):
         image0, image1 = (_image_path(folder, stem) for stem in ("01", "02"))
         corrs = read_correspondences(folder / "corrs.txt")
         check_inside(corrs, (header_size(image0), header_size(image1)), folder / "corrs.txt")
-        return CorrespondencePair(name=name, image0=image0, image1=image1, meta={"category": folder.parent.name},
+        return CorrespondencePair(name=name, image0=image0, image1=image1, category=folder.parent.name,
                                   corrs=corrs)
 
     def settings(self) -> dict:
@@ -292,7 +292,7 @@ class WxBSBenchmark(Benchmark):
         corrs = pair.corrs
         F = self.estimate(matches, ev)
         curve = recall_curve(F, corrs)
-        return {"pair": pair.name, "category": pair.meta.get("category", ""), "n_matches": len(matches.keypoints0),
+        return {"pair": pair.name, "category": pair.category, "n_matches": len(matches.keypoints0),
                 "n_gt": len(corrs), "f_found": int(F is not None), MAA: maa(curve),
                 **{recall_key(t): float(v) for t, v in zip(THRESHOLDS, curve)}}
 

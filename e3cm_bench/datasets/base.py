@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,15 @@ class Pair:
     the ``pair`` column of ``per_pair.csv``. Homography pairs carry ``H`` (maps pixels of
     image 0 to image 1); pose pairs carry ``K0``, ``K1`` (original images) and ``T_0to1``
     (4x4, camera 0 to camera 1).
+
+    The labels a sample is stratified by and a table grouped by are typed fields, so that a
+    misspelt label is an error where the pair is built, not an empty group where it is read:
+    ``sequence`` (HPatches), ``scene`` (MegaDepth, YFCC, a multi-view set), ``category``
+    (WxBS). ``rotations``: the quarter turns (image 0, image 1) that make the pair upright
+    (YFCC's list), which a method with ``upright`` applies before matching.
+
+    ``meta`` is taken at construction only, for code written against the dict these labels
+    once were: each of its keys must name a label (``rot0``/``rot1`` the rotations).
     """
 
     name: str
@@ -33,7 +42,36 @@ class Pair:
     K0: np.ndarray | None = None
     K1: np.ndarray | None = None
     T_0to1: np.ndarray | None = None
-    meta: dict = field(default_factory=dict)  # e.g. {"sequence": "v_boat"}
+    sequence: str = ""
+    scene: str = ""
+    category: str = ""
+    rotations: tuple[int, int] = (0, 0)
+    meta: InitVar[dict | None] = None
+
+    def __post_init__(self, meta: dict | None) -> None:
+        if not meta:
+            return
+        unknown = sorted(set(meta) - {*LABELS, "rot0", "rot1"})
+        if unknown:
+            raise ValueError(f"pair {self.name}: unknown label(s) {', '.join(unknown)}; a pair's labels are "
+                             f"{', '.join(LABELS)}, rot0, rot1")
+        for key in LABELS:
+            if key in meta:
+                setattr(self, key, str(meta[key]))
+        if "rot0" in meta or "rot1" in meta:
+            self.rotations = (int(meta.get("rot0", 0)), int(meta.get("rot1", 0)))
+
+    @property
+    def labels(self) -> dict:
+        """The labels this pair has (the non-empty ones), by name."""
+        return {key: getattr(self, key) for key in LABELS if getattr(self, key)}
+
+
+# The labels a sample is stratified by, coarse to fine (stratum).
+LABELS = ("category", "scene", "sequence")
+# `meta` is a constructor argument only: without this, the InitVar's default would stay behind as a
+# class attribute and code still reading the old dict would fail on None instead of naming `meta`.
+del Pair.meta
 
 
 class PairList:
@@ -137,8 +175,8 @@ def stratum(pair: Pair) -> tuple[str, ...]:
     """The group a pair is drawn from, coarse to fine: its category (WxBS), scene (MegaDepth,
     YFCC) and sequence (HPatches, with the sequence's kind, the `i`/`v` of `i_leuven`, above
     it so that a sample holds both kinds). A pair with none of these is in the one group ()."""
-    levels = [str(pair.meta.get(key)) for key in ("category", "scene") if pair.meta.get(key)]
-    sequence = str(pair.meta.get("sequence") or "")
+    levels = [label for label in (pair.category, pair.scene) if label]
+    sequence = pair.sequence
     if sequence:
         if "_" in sequence:
             levels.append(sequence.split("_", 1)[0])

@@ -78,7 +78,7 @@ class HPatches(PairList):
             image0=folder / "1.ppm",
             image1=folder / f"{k}.ppm",
             H=read_homography(folder / f"H_1_{k}"),
-            meta={"sequence": sequence},
+            sequence=sequence,
         )
 
     def settings(self) -> dict:

@@ -100,7 +100,7 @@ class MegaDepth1500(PairList):
                 bad.append((name, str(error)))
                 continue
             pairs.append(Pair(name=name, image0=image0, image1=image1, K0=K0, K1=K1, T_0to1=T_0to1,
-                              meta={"scene": path.stem}))
+                              scene=path.stem))
         return pairs, bad
 
     def settings(self) -> dict:
@@ -148,7 +148,7 @@ def read_gluefactory(folder: Path) -> tuple[list[Pair], list[tuple[str, str]]]:
             bad.append((name, str(error)))
             continue
         pairs.append(Pair(name=name, image0=image0, image1=image1, K0=K0, K1=K1, T_0to1=T_0to1,
-                          meta={"scene": GLUEFACTORY_SCENE}))
+                          scene=GLUEFACTORY_SCENE))
     return pairs, bad
 
 

@@ -3,7 +3,7 @@
 One pair a line: ``name0 name1 rot0 rot1 K0(9) K1(9) T_0to1(16)``, whitespace-separated.
 rot0/rot1 are the EXIF quarter turns SuperGlue applies to make an image upright before
 matching; the K and T_0to1 of the line describe the images as stored, so they stay valid
-whatever the rotation. The rotations are passed on in ``Pair.meta`` for a runner that wants
+whatever the rotation. The rotations are passed on in ``Pair.rotations`` for a runner that wants
 to match upright images (and map the matches back) and are otherwise unused.
 """
 
@@ -87,7 +87,7 @@ class YFCC100M(PairList):
             K0=values[:9].reshape(3, 3),
             K1=values[9:18].reshape(3, 3),
             T_0to1=values[18:].reshape(4, 4),
-            meta={"scene": path0.parts[0] if folder != "." else "", "rot0": rot0, "rot1": rot1},
+            scene=path0.parts[0] if folder != "." else "", rotations=(rot0, rot1),
         )
 
     def _resolve(self, name: str) -> Path:

@@ -171,9 +171,9 @@ def unrotate_points(points: np.ndarray, quarter_turns: int, stored_size: tuple[i
 
 
 def pair_rotations(pair: Pair, method: MethodSpec) -> tuple[int, int]:
-    """The quarter turns that make the pair upright (rot0/rot1 of its list), unless the method
+    """The quarter turns that make the pair upright (`Pair.rotations`, from its list), unless the method
     matches images as stored."""
     if not method.upright:
         return (0, 0)
-    return int(pair.meta.get("rot0", 0)), int(pair.meta.get("rot1", 0))
+    return pair.rotations
 

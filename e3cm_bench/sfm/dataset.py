@@ -131,7 +131,7 @@ class MultiViewSet(PairList):
                 bad.append((name, str(error)))
                 continue
             built.append(V.ViewPair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
-                                    meta={"scene": set_name}, view0=item.view0, view1=item.view1,
+                                    scene=set_name, view0=item.view0, view1=item.view1,
                                     setup=self.protocol))
         return built, bad
 

@@ -260,7 +260,7 @@ def image_size(pair, matches, side: int) -> tuple[int, int]:
 
 
 def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protocol=None) -> tuple[list, dict]:
-    """The database of `pairs` (each with meta view0/view1) and their `matches` (each
+    """The database of `pairs` (each a ViewPair: view0/view1) and their `matches` (each
     correspondence once) in a fresh workdir, verified as the protocol says (a resolved
     protocol.Protocol; None: exact merge, the estimator's verification). Returns each pair's
     {"n_inliers", and the estimator's geometry where it ran} and the tracks' numbers

@@ -56,12 +56,11 @@ def main() -> None:
     for pair in dataset:
         if pair.name not in plus.index:
             continue
-        upright = spec.upright and pair.meta
         images = []
-        for path, turns in ((pair.image0, "rot0"), (pair.image1, "rot1")):
+        for path, turns in zip((pair.image0, pair.image1), pair.rotations):
             image = load_image(path)
-            if upright:
-                image = np.ascontiguousarray(np.rot90(image, int(pair.meta.get(turns, 0))))
+            if spec.upright and turns:
+                image = np.ascontiguousarray(np.rot90(image, turns))
             images.append(resize_max_side(image, spec.max_side, spec.resize)[0])
         feats0, feats1, _ = matcher.pyramids(*images)
         size0, size1 = ((im.shape[1], im.shape[0]) for im in images)

@@ -50,8 +50,8 @@ def test_hpatches_pairs_names_and_ground_truth(hpatches_root: Path):
     boat = pairs[5]
     assert boat.image0 == hpatches_root / "v_boat" / "1.ppm"
     assert boat.image1 == hpatches_root / "v_boat" / "2.ppm"
-    assert boat.meta == {"sequence": "v_boat"}
-    assert pairs[0].meta == {"sequence": "i_leuven"}
+    assert boat.sequence == "v_boat" and boat.labels == {"sequence": "v_boat"}
+    assert pairs[0].labels == {"sequence": "i_leuven"}
     np.testing.assert_array_equal(boat.H, np.loadtxt(hpatches_root / "v_boat" / "H_1_2"))
     # The centre of image 1 lands inside image 2.
     height0, width0 = cv2.imread(str(boat.image0), cv2.IMREAD_GRAYSCALE).shape
@@ -64,7 +64,7 @@ def test_hpatches_pairs_names_and_ground_truth(hpatches_root: Path):
 def test_hpatches_sequence_filter(hpatches_root: Path):
     viewpoint = HPatches(hpatches_root, sequences=["v_*"])
     assert len(viewpoint) == 10
-    assert {p.meta["sequence"][:2] for p in viewpoint} == {"v_"}
+    assert {p.sequence[:2] for p in viewpoint} == {"v_"}
     assert len(HPatches(hpatches_root, sequences=["i_leuven", "v_boat"])) == 10
     assert len(HPatches(hpatches_root, sequences="v_boat")) == 5
     with pytest.raises(DatasetError, match="v_nothing"):
@@ -147,7 +147,7 @@ def test_megadepth_kitti_pairs(megadepth_root: Path):
     first = dataset[0]
     assert first.name == "kitti00_seq/000100--000103"
     assert first.image0 == megadepth_root / "Undistorted_SfM" / "kitti00" / "images" / "000100.png"
-    assert first.meta == {"scene": "kitti00_seq"}
+    assert first.labels == {"scene": "kitti00_seq"}
     assert first.K0.shape == first.K1.shape == (3, 3)
     for pair in dataset:
         assert_rigid(pair.T_0to1)
@@ -312,7 +312,7 @@ def test_scannet_sample_list(shared_data: Path):
     first = dataset[0]
     assert first.name == "scene0711_00_frame-001680--scene0711_00_frame-001995"
     assert first.image0 == root / "images" / "scene0711_00_frame-001680.jpg"
-    assert first.meta == {"scene": "", "rot0": 0, "rot1": 0}
+    assert first.labels == {} and first.rotations == (0, 0)
     assert first.K0[0, 0] == pytest.approx(1163.45) and first.K0[1, 2] == pytest.approx(481.6)
     for pair in dataset:
         assert_rigid(pair.T_0to1, atol=1e-4)  # the list prints rotations to 5 decimals
@@ -345,7 +345,7 @@ def test_yfcc_names_with_folders(tmp_path: Path):
     pairs = write_pair_list(tmp_path / "pairs.txt", [line])
     pair = YFCC100M(tmp_path, pairs=pairs)[0]
     assert pair.name == "sceneA/images/a--b"
-    assert pair.meta == {"scene": "sceneA", "rot0": 0, "rot1": 1}
+    assert pair.labels == {"scene": "sceneA"} and pair.rotations == (0, 1)
     assert pair.T_0to1[0, 3] == 0.5
 
 

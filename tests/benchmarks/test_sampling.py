@@ -23,12 +23,12 @@ def _pairs(groups: dict[str, int], key: str = "category") -> list[Pair]:
 def test_a_sample_spreads_over_the_strata_and_is_deterministic():
     # As WxBS's test set: six categories of very different sizes, sorted by category.
     pairs = _pairs({"WGABS": 5, "WGALBS": 9, "WGBS": 6, "WGLBS": 9, "WGSBS": 2, "WLABS": 2})
-    first3 = {p.meta["category"] for p in pairs[:3]}
+    first3 = {p.category for p in pairs[:3]}
     assert first3 == {"WGABS"}  # what --limit 3 takes: one category
     sample = stratified_sample(pairs, 3, seed=0)
-    assert len({p.meta["category"] for p in sample}) == 3  # three categories, one pair each
+    assert len({p.category for p in sample}) == 3  # three categories, one pair each
     six = stratified_sample(pairs, 6, seed=0)
-    assert Counter(p.meta["category"] for p in six) == Counter({c: 1 for c in ("WGABS", "WGALBS", "WGBS", "WGLBS",
+    assert Counter(p.category for p in six) == Counter({c: 1 for c in ("WGABS", "WGALBS", "WGBS", "WGLBS",
                                                                                 "WGSBS", "WLABS")})
     # deterministic given the seed, another seed draws other pairs, and the order is the dataset's
     assert [p.name for p in stratified_sample(pairs, 6, seed=0)] == [p.name for p in six]
@@ -44,10 +44,10 @@ def test_hpatches_strata_put_both_kinds_in_a_sample():
              for s in ("i_ajuntament", "i_boutique", "i_castle", "v_adam", "v_bird") for k in range(2, 7)]
     assert stratum(pairs[0]) == ("i", "i_ajuntament")
     for seed in range(5):
-        kinds = sorted(p.meta["sequence"][0] for p in stratified_sample(pairs, 2, seed))
+        kinds = sorted(p.sequence[0] for p in stratified_sample(pairs, 2, seed))
         assert kinds == ["i", "v"]
         # 4 pairs: 4 different sequences (two of each kind), not 4 pairs of one
-        assert len({p.meta["sequence"] for p in stratified_sample(pairs, 4, seed)}) == 4
+        assert len({p.sequence for p in stratified_sample(pairs, 4, seed)}) == 4
     assert stratum(Pair("x", Path("a"), Path("b"))) == ()  # EVD: one group, a seeded random draw
 
 
@@ -55,7 +55,7 @@ def test_viz_draws_a_spread_not_the_first_pairs():
     pairs = [Pair(f"{s}/1-{k}", Path("a"), Path("b"), meta={"sequence": s})
              for s in ("i_a", "i_b", "i_c", "v_a", "v_b") for k in range(2, 7)]
     drawn = drawn_pairs(pairs, 3)
-    assert {p.meta["sequence"][0] for p in drawn} == {"i", "v"} and len({p.meta["sequence"] for p in drawn}) == 3
+    assert {p.sequence[0] for p in drawn} == {"i", "v"} and len({p.sequence for p in drawn}) == 3
     assert drawn == drawn_pairs(pairs, 3) and drawn_pairs(pairs, 0) == []
 
 
@@ -63,7 +63,7 @@ def test_sampled_pair_list_records_its_sample(wxbs_root):
     bench = get_benchmark("wxbs")
     full = bench.load_dataset(wxbs_root)
     sample = bench.load_dataset(wxbs_root, sample=6, sample_seed=3)
-    assert len(sample) == 6 and len({p.meta["category"] for p in sample}) == 6
+    assert len(sample) == 6 and len({p.category for p in sample}) == 6
     assert sample.describe()["sample"] == {"n": 6, "seed": 3, "from": len(full), "strata": 6}
     assert "sample" not in full.describe()  # an unsampled run's record is unchanged
     assert [p.name for p in bench.load_dataset(wxbs_root, sample=6, sample_seed=3)] == [p.name for p in sample]
@@ -103,8 +103,8 @@ def test_hpatches_sample_holds_both_kinds(shared_data):
     bench = get_benchmark("hpatches")
     root = shared_data / "hpatches-sequences-release"
     first = bench.load_dataset(root)
-    assert {p.meta["sequence"][0] for p in list(first)[:3]} == {"i"}  # the first 3: illumination only
+    assert {p.sequence[0] for p in list(first)[:3]} == {"i"}  # the first 3: illumination only
     for seed in range(3):
         sample = bench.load_dataset(root, sample=3, sample_seed=seed)
-        assert {p.meta["sequence"][0] for p in sample} == {"i", "v"}
+        assert {p.sequence[0] for p in sample} == {"i", "v"}
     assert {p.name for p in sample} <= {p.name for p in first}

@@ -28,7 +28,7 @@ def test_wxbs_splits_on_the_shared_data(wxbs_root):
     assert (len(test), len(val), len(both)) == (31, 2, 33)
     assert [p.name for p in val] == ["WGABS/petrzin", "WGALBS/kyiv_dolltheater2"]
     assert {p.name for p in test} | {p.name for p in val} == {p.name for p in both}
-    assert {p.meta["category"] for p in both} == {"WGABS", "WGALBS", "WGBS", "WGLBS", "WGSBS", "WLABS"}
+    assert {p.category for p in both} == {"WGABS", "WGALBS", "WGBS", "WGLBS", "WGSBS", "WLABS"}
     thermal = next(p for p in both if p.name == "WGSBS/kettle")
     assert thermal.corrs.shape[1] == 4 and len(thermal.corrs) >= 8
     # the root may be the version folder itself
