@@ -80,3 +80,17 @@ def test_ruff_is_clean():
     """pyproject.toml's [tool.ruff]: what .ci/run checks, checked here too for a local run."""
     done = subprocess.run(["ruff", "check", "--no-cache", "."], cwd=REPO, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-1000:]
+
+
+def test_every_module_a_comment_points_at_exists():
+    """A comment or docstring that names one of the package's modules by path (`method/protocols.py`)
+    names one that exists: five once pointed at modules that had moved. Another project's files are
+    named with that project's folder first (`gluefactory/...`, `hloc/...`), which is none of ours."""
+    ours = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    stale = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            for named in re.findall(r"(?<![\w./])([a-z_]+/[a-z_/]*[a-z_]+\.py)\b", line):
+                if named.split("/")[0] in ours and not (PACKAGE / named).exists():
+                    stale.append(f"{path.relative_to(REPO)}:{n}: {named}")
+    assert not stale, f"comments naming modules that do not exist: {stale}"

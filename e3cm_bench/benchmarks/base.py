@@ -46,7 +46,7 @@ class EvalSettings:
     pose_confidence: float = 0.99999
     precision_thresholds: tuple[float, ...] = metrics.PRECISION_THRESHOLDS
     correct_px: float = 3.0  # --viz: a homography match is drawn green within this reprojection error
-    protocol: str = "default"  # benchmarks/protocols.py; a non-default one also sets the method's resize etc.
+    protocol: str = "default"  # method/protocols.py; a non-default one also sets the method's resize etc.
     drop_failures: bool = False  # pose pairs without an estimate leave the AUC (protocol e3cm-release)
     # The robust estimator of the evaluation's H and relative pose: opencv or poselib (estimators.py).
     estimator: str = "opencv"
@@ -175,7 +175,7 @@ class Benchmark:
     # higher is better (a lower-is-better error the run could not compute counts as +inf); each
     # count metric is compared too, as pass/fail. Homography and pose benchmarks have their own.
     paired_columns: tuple[tuple[str, bool], ...] = ()
-    # The protocol a run gets when none is named (benchmarks/protocols.py): the reference code's
+    # The protocol a run gets when none is named (method/protocols.py): the reference code's
     # where the benchmark has one (WxBS, EVD: wxbs-benchmark's), else e3cm-bench's own.
     default_protocol: str = "default"
     # How many RANSAC seeds a run's interval holds when neither the user nor the protocol says

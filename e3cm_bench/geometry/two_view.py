@@ -165,7 +165,7 @@ def unshuffle(values: np.ndarray, order: np.ndarray) -> np.ndarray:
     return out
 
 
-# How a rotation error is measured (benchmarks/protocols.py picks one per protocol):
+# How a rotation error is measured (method/protocols.py picks one per protocol):
 # "nearest-rotation": each matrix that is not orthonormal (beyond ORTHONORMAL_TOLERANCE) is
 # first replaced by its nearest rotation (SVD), then the angle of R_est^T R_gt is taken;
 # "reference": that angle from the matrices as given, arccos((trace - 1) / 2) clipped to

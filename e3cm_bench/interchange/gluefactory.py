@@ -9,13 +9,13 @@ export divides by the resize scales and the loader multiplies them back), ``matc
 each keypoint of image 0 the index into image 1's, -1 for none), ``matching_scores0``, and
 (exported by glue-factory, not needed by its metrics) the ``*1`` and ``keypoint_scores*``
 twins. Keypoints are in glue-factory's corner convention: the top-left pixel's centre is
-(0.5, 0.5) (geometry/wrappers.py ``from_colmap``; its SuperPoint and DISK wrappers add 0.5).
+(0.5, 0.5) (gluefactory/geometry/wrappers.py ``from_colmap``; its SuperPoint and DISK wrappers add 0.5).
 
 Pair names: HPatches, ``f"{seq}/{idx}.ppm"`` where idx is the pair's index in glue-factory's
 item list (every entry of the dataset folder, sorted, five pairs (1, 2..6) each, the 8 large
 sequences left out unless ``ignore_large_images`` is false; datasets/hpatches.py), so that
 idx % 5 + 2 is the second image's number whatever the folder holds; MegaDepth-1500, the two
-views' names with '/' turned into '-', joined by '/' (datasets/posed_images.py), glue-factory
+views' names with '/' turned into '-', joined by '/' (gluefactory/datasets/posed_images.py), glue-factory
 naming views by file name; any other benchmark, hloc's names_to_pair of the images' paths
 relative to the dataset root. Keypoints are written as float64 so that half a pixel added to
 our float32 values comes back exactly.

@@ -107,7 +107,7 @@ class RunConfig:
     # ---- what readers need
     @property
     def protocol(self) -> str:
-        """The evaluation protocol's name (benchmarks/protocols.py)."""
+        """The evaluation protocol's name (method/protocols.py)."""
         return (self.evaluation or {}).get("protocol", "default")
 
     @property

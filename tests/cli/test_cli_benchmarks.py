@@ -543,3 +543,14 @@ def test_a_backbone_batch_below_one_is_a_one_line_error(hpatches_root, tmp_path)
     line = one_line_error(invoke("hpatches", "--root", hpatches_root, "--out", tmp_path / "o", "--matcher", "sift",
                                  "--sequences", "v_boat", "--limit", "1", "--backbone-batch", "0"))
     assert "--backbone-batch must be at least 1, got 0" in line
+
+
+def test_the_top_level_help_lists_every_registered_benchmark():
+    """The help's benchmarks come from the registry: the hand-written list once missed sfm."""
+    from e3cm_bench.benchmarks import BENCHMARKS
+
+    result = invoke("--help", env={"COLUMNS": "400"})
+    assert result.exit_code == 0, result.output
+    listed = re.search(r"one command each: ([a-z0-9_, -]+)\.", flat(result.output))
+    assert listed, result.output
+    assert listed.group(1).split(", ") == list(BENCHMARKS) and "sfm" in BENCHMARKS
