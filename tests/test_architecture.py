@@ -15,8 +15,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
-# The run folder's owners: storage/folder.py (the layout) and storage/record.py (config.yaml's record).
-OWNERS = (PACKAGE / "storage" / "folder.py", PACKAGE / "storage" / "record.py")
+# The run folder's owners: storage/folder.py (the layout) and storage/run_config.py (config.yaml's record).
+OWNERS = (PACKAGE / "storage" / "folder.py", PACKAGE / "storage" / "run_config.py")
 RUN_FILES = ("matches.h5", "config.yaml", "per_pair.csv", "summary.csv", "skipped.csv", "failures.csv", ".feature-spill")
 
 
@@ -121,7 +121,7 @@ def test_only_the_run_folder_names_its_files():
     as_path, in_prose = run_file_uses()
     if in_prose:
         print("run-folder files mentioned in messages and help (not failed):", *in_prose, sep="\n  ")
-    assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and storage/record.py:\n" + "\n".join(as_path)
+    assert not as_path, "run-folder file names outside e3cm_bench/storage/folder.py and storage/run_config.py:\n" + "\n".join(as_path)
 
 
 def test_the_owner_names_them():
@@ -426,7 +426,7 @@ def test_every_method_is_made_through_the_one_path():
 # The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol;
 # COLMAP's own geometric verification, an sfm protocol setting (--verification colmap).
 OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "method/protocols.py"},
-                  "colmap": {"sfm/protocol.py", "sfm/reconstruct.py", "matchers/base.py"}}  # base: the extra
+                  "colmap": {"sfm/protocol.py", "sfm/mapper.py", "matchers/base.py"}}  # base: the extra
 
 
 def _declared_formats() -> dict[str, str]:

@@ -32,7 +32,7 @@ RESOLVERS = {
 NOT_A_RUN_DEFAULT = {
     # A record written before protocols were recorded ran under e3cm-bench's own: the record's
     # fact, not the default of a new run.
-    ("protocol", "e3cm_bench/storage/record.py", "protocol"),
+    ("protocol", "e3cm_bench/storage/run_config.py", "protocol"),
 }
 # Reads in modules being rewritten into one pipeline (issue 63, point 2), left to that rewrite:
 # run_benchmark, run_methods and import_run without `ev` take EvalSettings(), protocol `default`

@@ -31,7 +31,7 @@ def register(benchmark: Benchmark) -> Benchmark:
 # Modules of this package that define no benchmark (the base classes, a run's intervals, what a
 # record rebuilds), and the benchmark modules that live with their own package: the multi-view
 # benchmark is sfm's (it sits above this package, so it is found by name, as a plugin would be).
-NOT_BENCHMARKS = ("base", "intervals", "records")
+NOT_BENCHMARKS = ("base", "intervals", "from_record")
 ELSEWHERE = {"sfm": "e3cm_bench.sfm.benchmark"}
 
 

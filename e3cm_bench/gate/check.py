@@ -52,7 +52,7 @@ from e3cm_bench.gate.tolerances import (
     parse_tolerances,  # noqa: F401 - re-exported: check.parse_tolerances is the gate's name for it
     read_tolerance_file,  # noqa: F401 - re-exported: check.read_tolerance_file is the gate's name for it
 )
-from e3cm_bench.benchmarks.records import evaluation_of
+from e3cm_bench.benchmarks.from_record import evaluation_of
 from e3cm_bench.storage import RunFolder
 
 KEYS = ("benchmark", "method")

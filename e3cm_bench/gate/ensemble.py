@@ -21,7 +21,7 @@ from rich.console import Console
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.ground.files import read_csv, read_keyed_csv, write_csv
 from e3cm_bench.stats.perturb import Perturbation, perturbed
-from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs, method_of
+from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs, method_of
 from e3cm_bench.storage import RunConfig, RunFolder
 
 NOISE_SUFFIX = ".noise.csv"

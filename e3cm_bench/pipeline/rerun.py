@@ -5,7 +5,7 @@ same run in another folder from it alone: the same pairs, matched by the same me
 under the same settings, so per_pair.csv comes out byte for byte the same (cost.csv, the time
 and memory, is a measurement and moves with the machine).
 
-Each part is read back by the one reader of that part (benchmarks/records.py): the method from
+Each part is read back by the one reader of that part (benchmarks/from_record.py): the method from
 its identity (a built-in matcher's only: a record is data and never names code to run), the
 dataset from dataset_load, the evaluation from its block. What only decides how the matching
 ran (the feature cache, the device, shards) is not part of the result and takes this machine's
@@ -24,11 +24,11 @@ from pathlib import Path
 from rich.console import Console
 
 from e3cm_bench.benchmarks.base import EvalSettings
-from e3cm_bench.benchmarks.records import benchmark_of, dataset_source, evaluation_of, method_of
+from e3cm_bench.benchmarks.from_record import benchmark_of, dataset_source, evaluation_of, method_of
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.request import RunRequest
-from e3cm_bench.storage.record import SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
 
 # Top-level keys of records older versions wrote, read by nothing a rerun uses.
 LEGACY_KEYS = ("match_options",)

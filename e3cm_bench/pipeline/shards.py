@@ -22,8 +22,8 @@ import pandas as pd
 from rich.console import Console
 
 from e3cm_bench.pipeline.driver import PairRun, run_pipeline
-from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
-from e3cm_bench.storage.record import RunConfig
+from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
+from e3cm_bench.storage.run_config import RunConfig
 from e3cm_bench.storage.folder import RunFolder
 
 # The most shards one run may have: a merge lists every one of them (E3CM_SHARDS=1000000000

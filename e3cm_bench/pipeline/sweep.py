@@ -362,7 +362,7 @@ def load_runs(run_dirs: Sequence[Path]) -> list[SweepRun]:
     """The runs to sweep: folders of one two-view pose benchmark with their cached matches; one
     line naming the folder where one is not."""
     from e3cm_bench.benchmarks import PoseBenchmark
-    from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+    from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
     from e3cm_bench.reporting.runs import load_run
     from e3cm_bench.storage import RunFolder
     from e3cm_bench.storage.fingerprint import of_config

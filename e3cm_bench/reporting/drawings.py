@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
 from e3cm_bench.reporting.runs import Run
 
 N_WORST = 8          # pairs drawn because most methods fail there

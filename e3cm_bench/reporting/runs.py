@@ -17,7 +17,7 @@ import pandas as pd
 from e3cm_bench.benchmarks import intervals
 from e3cm_bench.benchmarks import Benchmark
 from e3cm_bench.ground.files import read_csv, read_keyed_csv
-from e3cm_bench.benchmarks.records import benchmark_of, evaluation_of
+from e3cm_bench.benchmarks.from_record import benchmark_of, evaluation_of
 from e3cm_bench.storage import RunConfig, RunFolder
 
 

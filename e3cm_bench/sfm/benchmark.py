@@ -3,7 +3,7 @@
 The pairs of a multi-view set's graph are matched as any pose pairs are (the match stage, its
 cache, resume, shards, feature reuse, --on-matcher-error); the evaluation then scores them
 together: one COLMAP database from all their matches, pycolmap's incremental mapper
-(sfm/reconstruct.py), and each pair's pose error read from the models (sfm/metrics.py), with
+(sfm/mapper.py), and each pair's pose error read from the models (sfm/metrics.py), with
 AUC@5/10/20 and IMC 2020's mAA over the pairs (bootstrap intervals) and the set's own
 numbers: images registered, models, points, mean track length, mean reprojection error.
 The reconstruction's files stay in the run folder, under ``sfm/`` (database.db, models/N/).
@@ -86,7 +86,7 @@ class SfMBenchmark(Benchmark):
 
     def two_view_geometry(self, pair: Pair, matches: Matches, ev: EvalSettings) -> dict | None:
         """The pose benchmarks' relative pose and RANSAC inliers: the two-view geometry the
-        reconstruction's database holds (sfm/reconstruct.py), so that `export --to colmap` of an
+        reconstruction's database holds (sfm/mapper.py), so that `export --to colmap` of an
         sfm run writes the same one."""
         return PoseBenchmark.two_view_geometry(pair, matches, ev)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from e3cm_bench.datasets.base import DatasetError, PairList, require_directory
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.protocol import _whole, parse_protocol
-from e3cm_bench.sfm.reconstruct import mapper_settings
+from e3cm_bench.sfm.mapper import mapper_settings
 
 
 @dataclass(frozen=True)

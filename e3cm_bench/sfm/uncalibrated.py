@@ -1,7 +1,7 @@
 """Matches of one's own images (no ground truth) -> a COLMAP database -> COLMAP's verification
 -> pycolmap's incremental mapper -> the model, written where COLMAP's GUI and hloc open it.
 
-Where the sfm benchmark knows each image's K and keeps it fixed (sfm/reconstruct.py), here the
+Where the sfm benchmark knows each image's K and keeps it fixed (sfm/mapper.py), here the
 intrinsics are unknown, as for a user's photos: each image's camera as COLMAP's image reader
 makes it (the focal length from EXIF where the file has it, else 1.2 x the longer side; the
 principal point at the centre), shared by the images whose cameras come out the same (COLMAP's
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
-from e3cm_bench.sfm.reconstruct import Reconstruction, image_size, incremental_record, mapper_options, model_of
+from e3cm_bench.sfm.mapper import Reconstruction, image_size, incremental_record, mapper_options, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
 

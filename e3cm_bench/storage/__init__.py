@@ -3,6 +3,6 @@ the one writer and reader of config.yaml) and the match cache (MatchCache). Impo
 ground floor: what a run folder holds is read here, what runs into it is the pipeline's."""
 
 from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
-from e3cm_bench.storage.record import RunConfig
+from e3cm_bench.storage.run_config import RunConfig
 
 __all__ = ["FAILED_ATTR", "RunConfig", "RunFolder"]

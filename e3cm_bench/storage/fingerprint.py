@@ -21,7 +21,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping, Sequence
 
-from e3cm_bench.storage.record import RunConfig
+from e3cm_bench.storage.run_config import RunConfig
 
 FINGERPRINT = "fingerprint"  # the summary's column
 ESTIMATOR_PACKAGES = ("opencv-python-headless", "poselib", "pycolmap")

@@ -8,7 +8,7 @@ config's ``identity``: a MethodSpec's, an import's sources) decides whether a fo
 be resumed; the evaluation settings (``evaluation``) change only the metrics, and
 ``--eval-only`` may change them.
 
-    OUT/config.yaml      the RunConfig record (record.py: its one writer and reader)
+    OUT/config.yaml      the RunConfig record (run_config.py: its one writer and reader)
     OUT/matches.h5       the match cache (cache.MatchCache; blocks matches.NNN.h5 beside it)
     OUT/per_pair.csv     one row per pair;  OUT/summary.csv: the run's numbers with intervals
     OUT/cost.csv         each pair's matching time and peak memory (measurements: they move with the machine)
@@ -30,7 +30,7 @@ from pathlib import Path
 
 from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.ground.files import FolderLock, save_yaml
-from e3cm_bench.storage.record import CONFIG_FILE, RunConfig
+from e3cm_bench.storage.run_config import CONFIG_FILE, RunConfig
 
 # The cache attribute of a pair whose matcher failed (--on-matcher-error fail-pair): the message.
 # The pair is stored with no matches, so that it scores as a failure and a resume keeps it;

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "results"))
 from sfm_protocol_grid import evaluate_copy  # noqa: E402
 
 from e3cm_bench.ground.pycolmap import pycolmap_module  # noqa: E402
-from e3cm_bench.sfm import reconstruct  # noqa: E402
+from e3cm_bench.sfm import mapper as reconstruct  # noqa: E402
 
 MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": "2"}}
 

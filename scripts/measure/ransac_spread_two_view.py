@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
 from e3cm_bench.pipeline.evaluate import evaluate_stage
 from e3cm_bench.storage import RunFolder
 

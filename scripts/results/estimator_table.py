@@ -16,7 +16,7 @@ import pandas as pd
 from rich.console import Console
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.benchmarks.records import evaluation_of
+from e3cm_bench.benchmarks.from_record import evaluation_of
 from e3cm_bench.ground.files import write_csv
 from e3cm_bench.pipeline.runner import run_benchmark
 from e3cm_bench.storage import RunFolder

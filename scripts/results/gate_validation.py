@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from e3cm_bench.gate import noise_gate
-from e3cm_bench.benchmarks.records import evaluation_of
+from e3cm_bench.benchmarks.from_record import evaluation_of
 from e3cm_bench.gate.check import baseline_metrics, read_baseline
 from e3cm_bench.gate.ensemble import noise_path, read_noise
 from e3cm_bench.pipeline.evaluate import evaluate_pair

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from e3cm_bench.benchmarks.records import benchmark_of, dataset_source
+from e3cm_bench.benchmarks.from_record import benchmark_of, dataset_source
 from e3cm_bench.ground.images import load_image, resize_max_side
 from e3cm_bench.matchers.e3cm_plus import E3CMPlusMatcher, prewarp_decision
 from e3cm_bench.method.spec import MethodSpec

@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.benchmarks.records import evaluation_of
+from e3cm_bench.benchmarks.from_record import evaluation_of
 from e3cm_bench.apps.demo import METHODS
 from e3cm_bench.pipeline.runner import run_benchmark
 from e3cm_bench.reporting.compare import compare_runs

@@ -81,7 +81,7 @@ def main() -> None:
 def two_view(run_dir: Path) -> tuple[dict, pd.DataFrame]:
     """The pose benchmark's summary (with intervals) and rows on an sfm run's pairs and matches,
     and IMC's stereo mAA of the same errors with its interval."""
-    from e3cm_bench.benchmarks.records import evaluation_of, load_run_pairs
+    from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
     from e3cm_bench.pipeline.evaluate import evaluate_stage
     from e3cm_bench.storage import RunFolder
     from e3cm_bench.sfm.metrics import maa

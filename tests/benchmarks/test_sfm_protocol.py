@@ -201,10 +201,10 @@ def test_bags_are_reconstructed_apart(room, tmp_path):
 
 def test_one_mapper_table_for_sfm_and_reconstruct():
     """sfm (a set's ground-truth K) and reconstruct (a folder's own images) take the incremental
-    mapper's options from one table (sfm/reconstruct.py): the same choices for both, the
+    mapper's options from one table (sfm/mapper.py): the same choices for both, the
     intrinsics fixed and the colours skipped only where the set is calibrated."""
     pytest.importorskip("pycolmap")
-    from e3cm_bench.sfm.reconstruct import mapper_options
+    from e3cm_bench.sfm.mapper import mapper_options
 
     calibrated, own = mapper_options(7), mapper_options(7, calibrated=False)
     for options in (calibrated, own):

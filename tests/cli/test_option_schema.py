@@ -29,7 +29,7 @@ from e3cm_bench.method.options import METHOD_OPTIONS, MethodOption
 from e3cm_bench.pipeline.experiments import load_experiment, method_types
 from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.stage import MatchOptions
-from e3cm_bench.storage.record import SAMPLE_OPTIONS
+from e3cm_bench.storage.run_config import SAMPLE_OPTIONS
 
 from helpers import flat
 
@@ -181,7 +181,7 @@ def test_an_experiment_configs_evaluation_section_is_the_runs(tmp_path, shared_d
     """`evaluation:` in an experiment config reaches the run's EvalSettings, as the flags do, and
     its config.yaml records it: the same section name a run's record has."""
     from e3cm_bench.pipeline.experiments import reproduce
-    from e3cm_bench.storage.record import RunConfig
+    from e3cm_bench.storage.run_config import RunConfig
 
     config = tmp_path / "toy.yaml"
     config.write_text(yaml.safe_dump({"benchmark": "hpatches", "dataset": {"sequences": ["v_graffiti"]},

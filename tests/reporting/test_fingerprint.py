@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from e3cm_bench.storage.fingerprint import FINGERPRINT, differences, fingerprint, protocol_items, protocol_notes
-from e3cm_bench.storage.record import RunConfig
+from e3cm_bench.storage.run_config import RunConfig
 from helpers import invoke
 
 pytestmark = pytest.mark.slow  # three runs: about 7 s

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.benchmarks.records import dataset_source, evaluation_of, load_run_pairs
+from e3cm_bench.benchmarks.from_record import dataset_source, evaluation_of, load_run_pairs
 from e3cm_bench.storage import RunConfig, RunFolder
 from helpers import invoke
 
@@ -170,10 +170,10 @@ def test_the_scan_finds_a_raw_reader():
 
 
 # Every YAML file the package and the scripts read, by the function that reads it: a run's
-# config.yaml in storage/record.py only; the others are not run records. No script reads YAML.
+# config.yaml in storage/run_config.py only; the others are not run records. No script reads YAML.
 YAML_READERS = {
-    ("e3cm_bench/storage/record.py", "RunConfig.read"),  # config.yaml
-    ("e3cm_bench/storage/record.py", "RunConfig.read_if_present"),  # config.yaml
+    ("e3cm_bench/storage/run_config.py", "RunConfig.read"),  # config.yaml
+    ("e3cm_bench/storage/run_config.py", "RunConfig.read_if_present"),  # config.yaml
     ("e3cm_bench/pipeline/experiments.py", "load_experiment"),  # an experiment config (paper/configs/*.yaml)
     ("e3cm_bench/pipeline/experiments.py", "merge_experiment"),  # the experiment config copied into a reproduce's OUT
     ("e3cm_bench/apps/calibration/run.py", "run_calibration"),  # a calibration folder's set file (calibrate.yaml)
@@ -241,6 +241,6 @@ def test_the_reader_scan_covers_the_scripts(tmp_path):
 
 def test_no_module_or_script_but_run_config_reads_config_yaml():
     # the scan reads the package and the scripts, not empty folders
-    assert (REPO / "e3cm_bench" / "storage" / "record.py").is_file() and (REPO / "scripts" / "results").is_dir(), REPO
+    assert (REPO / "e3cm_bench" / "storage" / "run_config.py").is_file() and (REPO / "scripts" / "results").is_dir(), REPO
     readers = raw_config_readers()
-    assert not readers, f"read config.yaml through RunConfig.read (storage/record.py): {readers}"
+    assert not readers, f"read config.yaml through RunConfig.read (storage/run_config.py): {readers}"

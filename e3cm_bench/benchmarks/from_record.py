@@ -1,6 +1,6 @@
 """What a run's record rebuilds: the benchmark it was made on, its evaluation settings, the
 method that made it, and its pairs with their ground truth, loaded again as the run loaded
-them. The record itself (storage/record.py) is plain data that imports nothing above the
+them. The record itself (storage/run_config.py) is plain data that imports nothing above the
 ground floor; these readers sit here, above the benchmarks and methods they build."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.storage.record import SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
 
 
 def benchmark_of(config: RunConfig):

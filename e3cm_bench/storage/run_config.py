@@ -1,6 +1,6 @@
 """A run's config.yaml: its one writer and its one reader (`RunConfig`), a plain record that
 imports only the ground floor (what it rebuilds, a benchmark, its settings, a method, the
-run's pairs, is benchmarks/records.py's).
+run's pairs, is benchmarks/from_record.py's).
 
 Every module that needs what a run recorded (its benchmark, its identity, its evaluation
 settings, where its pairs came from, the environment its numbers were made in, a shard's
