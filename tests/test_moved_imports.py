@@ -47,3 +47,16 @@ def test_a_module_that_exists_is_never_intercepted():
     import e3cm_bench.ground.matches as real
 
     assert real.__spec__.loader is not e3cm_bench.ground.moved.FINDER
+
+
+def test_a_renamed_name_warns_and_leads_to_the_new_one():
+    """A name renamed inside a module that stayed (RENAMED): the old name still imports, with a
+    DeprecationWarning naming the new import; a name never there is Python's AttributeError."""
+    from e3cm_bench.ground.moved import RENAMED
+
+    for (module, old), new in RENAMED.items():
+        with pytest.warns(DeprecationWarning, match=f"from {module} import {new}"):
+            got = getattr(importlib.import_module(module), old)
+        assert got is getattr(importlib.import_module(module), new)
+    with pytest.raises(AttributeError, match="no attribute 'Protocl'"):
+        importlib.import_module("e3cm_bench.method.protocols").Protocl

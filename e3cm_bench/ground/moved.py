@@ -90,6 +90,22 @@ MOVED = {
 }
 # What to write instead, where the old path's names are the package's own public API.
 PUBLIC = {"e3cm_bench.matches": "from e3cm_bench import Matches"}
+# Names that were renamed inside a module that stayed: (module, old name) -> the new name. The
+# module's own `__getattr__` calls `renamed` for a name it lacks.
+RENAMED = {
+    ("e3cm_bench.method.protocols", "Protocol"): "ReferenceProtocol",
+}
+
+
+def renamed(module: str, name: str):
+    """The object `module` now holds under the new name of `name`, with a DeprecationWarning naming
+    it; an AttributeError as Python gives it for a name that was never there."""
+    new = RENAMED.get((module, name))
+    if new is None:
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+    warnings.warn(f"{module}.{name} was renamed {new}: from {module} import {new} "
+                  "(the old name works until the next release)", DeprecationWarning, stacklevel=3)
+    return getattr(importlib.import_module(module), new)
 
 
 def new_import(old: str) -> str:

@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 
 from e3cm_bench.method.options import FULL_RESOLUTION
 from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.ground.moved import renamed
 
 
 @dataclass(frozen=True)
-class Protocol:
+class ReferenceProtocol:
     """benchmarks: those the protocol is defined for; empty: every benchmark. max_side:
     {benchmark: longer side for matching, None = full resolution}; a benchmark not listed
     keeps its own default. resize: {benchmark: how images are brought to that side,
@@ -61,10 +62,10 @@ class Protocol:
         return {"protocol": self.name, "drop_failures": self.drop_failures, **self.evaluation.get(benchmark, {})}
 
 
-PROTOCOLS: dict[str, Protocol] = {
+PROTOCOLS: dict[str, ReferenceProtocol] = {
     p.name: p
     for p in [
-        Protocol(
+        ReferenceProtocol(
             "default",
             "e3cm-bench's own (docs/benchmarks.md, Protocols)",
             (),  # it sets nothing of its own, so it holds for every benchmark, a newly added one too
@@ -75,7 +76,7 @@ PROTOCOLS: dict[str, Protocol] = {
                 "yfcc": "longer side at most 1200; failures count with error inf; images turned upright",
             },
         ),
-        Protocol(
+        ReferenceProtocol(
             "wxbs",
             "wxbs-benchmark's example estimators (its README): OpenCV USAC_MAGSAC (MAGSAC++), confidence "
             "0.999, 100000 iterations; a failed estimate scores 0",
@@ -96,7 +97,7 @@ PROTOCOLS: dict[str, Protocol] = {
                 },
             },
         ),
-        Protocol(
+        ReferenceProtocol(
             "loftr",
             "LoFTR's MegaDepth-1500 test config: longer side resized to 840 px (enlarged too), each side then "
             "floored to a multiple of 8, bilinear",
@@ -105,7 +106,7 @@ PROTOCOLS: dict[str, Protocol] = {
             resize={"megadepth": "exact-div8"},
             rotation_error="reference",
         ),
-        Protocol(
+        ReferenceProtocol(
             "superglue",
             "SuperGlue's YFCC evaluation (match_pairs.py --resize 1600): images turned upright by rot0/rot1, "
             "longer side resized to 1600 px (enlarged too), bilinear; essential-matrix RANSAC at 1 px of the resized "
@@ -116,7 +117,7 @@ PROTOCOLS: dict[str, Protocol] = {
             evaluation={"yfcc": {"pose_ransac_px": 1.0, "pose_ransac_frame": "matched"}},
             rotation_error="reference",
         ),
-        Protocol(
+        ReferenceProtocol(
             "gluefactory",
             "glue-factory's evaluation",
             ("megadepth", "hpatches"),
@@ -142,7 +143,7 @@ PROTOCOLS: dict[str, Protocol] = {
             },
             rotation_error="reference",
         ),
-        Protocol(
+        ReferenceProtocol(
             "e3cm-release",
             "the E3CM release's eval scripts: full resolution, BGR input, 4 levels (match_small_img) on "
             "the pose benchmarks, failed pairs dropped from the AUC (non-standard)",
@@ -188,7 +189,7 @@ def resolve_max_side(benchmark, given: int | None, protocol: str | None = None) 
     return preset.max_side.get(benchmark.name, benchmark.default_max_side)
 
 
-def get_protocol(name: str, benchmark: str) -> Protocol:
+def get_protocol(name: str, benchmark: str) -> ReferenceProtocol:
     if name not in PROTOCOLS:
         raise ValueError(
             f"unknown protocol {name!r}{did_you_mean(name, PROTOCOLS)}; choose one of {', '.join(PROTOCOLS)}"
@@ -197,3 +198,7 @@ def get_protocol(name: str, benchmark: str) -> Protocol:
     if protocol.benchmarks and benchmark not in protocol.benchmarks:
         raise ValueError(f"protocol {name!r} is defined for {', '.join(protocol.benchmarks)}, not {benchmark}")
     return protocol
+
+
+def __getattr__(name: str):
+    return renamed(__name__, name)  # a name renamed here (ground/moved.py RENAMED), else AttributeError

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from e3cm_bench.method import options as opts
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
-from e3cm_bench.method.protocols import PROTOCOLS, Protocol
+from e3cm_bench.method.protocols import PROTOCOLS, ReferenceProtocol
 from e3cm_bench.cli import app
 from e3cm_bench.pipeline.experiments import (
     experiment_keys,
@@ -171,7 +171,7 @@ def test_full_resolution_spelled_each_way_gives_one_identity():
     assert PROTOCOLS["e3cm-release"].max_side["megadepth"] == opts.FULL_RESOLUTION
     assert megadepth.resolve_method("e3cm", protocol="e3cm-release").max_side is None
     assert hpatches.resolve_method("sift").max_side is None  # HPatches' default side: full
-    old = Protocol("old", "", (), max_side={"megadepth": None})
+    old = ReferenceProtocol("old", "", (), max_side={"megadepth": None})
     assert old.max_side.get("megadepth", 1200) is None and opts.resolved_side(None) is None
 
 
