@@ -122,3 +122,40 @@ def _say_model(out: Path, scale) -> None:
                   + (f" and {int(points)} points" if points is not None and pd.notna(points) else "")
                   + " (COLMAP binary and text: colmap gui --import_path, pycolmap.Reconstruction)",
                   markup=False, soft_wrap=True)
+
+
+MatchersOpt = Annotated[str, typer.Option("--matchers", help="The matchers to rank, comma-separated: names (e3cm-bench "
+                                                             "matchers lists them) or package.module:factory.")]
+
+
+@app.command()
+@friendly_errors
+def rank(
+    images: Annotated[Path, typer.Argument(
+        help="The folder of images (sub-folders included), as reconstruct reads it.")],
+    out: OutOpt,
+    matchers: MatchersOpt,
+    window: WindowOpt = None,
+    pairs: PairsOpt = None,
+    max_pairs: MaxPairsOpt = None,
+    allow_disconnected: AllowDisconnectedOpt = False,
+    camera_model: CameraModelOpt = "SIMPLE_RADIAL",
+    camera_per_image: CameraPerImageOpt = False,
+    backbone: BackboneOpt = None,
+    max_side: ReconMaxSideOpt = None,
+    precision: PrecisionOpt = "fp32",
+    seed: SeedOpt = 0,
+    device: DeviceOpt = "cpu",
+) -> None:
+    """Which matcher for your images, at what cost: each matcher reconstructs the folder (as reconstruct does, into
+    OUT/runs/NAME), then they are ranked without ground truth by how well each one's poses agree with the others'
+    reconstructions -> OUT/verdict.csv and OUT/index.html (docs/own-images.md)."""
+    from e3cm_bench.apps.rank import RankRequest, print_verdict, rank_folder
+
+    request = RankRequest(images, out, tuple(m.strip() for m in matchers.split(",") if m.strip()),
+                          method=dict(backbone=backbone, max_side=max_side, precision=precision, seed=seed),
+                          dataset_options=dict(window=window, pairs=pairs, camera_model=camera_model,
+                                               camera_per_image=camera_per_image, max_pairs=max_pairs,
+                                               allow_disconnected=allow_disconnected),
+                          seed=seed, device=device)
+    print_verdict(rank_folder(request, console), Path(out), console)

@@ -311,6 +311,9 @@ def plot_calibration_vs_frames(summary: pd.DataFrame, path: str | Path) -> Path:
     return _save_figure(calibration_vs_frames_figure(summary), path)
 
 
+MATCHING_TIME = "seconds per pair (matching only; log scale)"  # the x axis of a benchmark's cost plot
+
+
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     """Indices of the points (seconds, accuracy) no other point beats on both (at most as slow and
     at least as accurate, better on one), by increasing time: the curve a reader chooses along."""
@@ -323,7 +326,7 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
-def cost_accuracy_figure(runs: Mapping[str, Mapping], metric: str) -> Figure:
+def cost_accuracy_figure(runs: Mapping[str, Mapping], metric: str, x_label: str = MATCHING_TIME) -> Figure:
     """Accuracy (`metric`) against the mean seconds per pair, one point per run with both
     intervals (bootstrap over the pairs), the Pareto front drawn through the runs no other
     beats on both; log-scaled time."""
@@ -342,16 +345,17 @@ def cost_accuracy_figure(runs: Mapping[str, Mapping], metric: str) -> Figure:
         ax.plot([points[i][0] for i in front], [points[i][1] for i in front], "--", color="0.5", lw=1,
                 label="Pareto front")
     ax.set_xscale("log")
-    ax.set_xlabel("seconds per pair (matching only; log scale)")
+    ax.set_xlabel(x_label)
     ax.set_ylabel(metric)
-    ax.set_title(f"{metric} against time per pair; bars: {interval_note({k: runs[k] for k in labels})}")
+    ax.set_title(f"{metric} against {x_label.split(' (')[0]}; bars: {interval_note({k: runs[k] for k in labels})}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="best")
     return fig
 
 
-def plot_cost_accuracy(runs: Mapping[str, Mapping], metric: str, path: str | Path) -> Path:
-    return _save_figure(cost_accuracy_figure(runs, metric), path)
+def plot_cost_accuracy(runs: Mapping[str, Mapping], metric: str, path: str | Path,
+                       x_label: str = MATCHING_TIME) -> Path:
+    return _save_figure(cost_accuracy_figure(runs, metric, x_label), path)
 
 
 def rank_figure(table: pd.DataFrame, metric: str) -> Figure:
