@@ -21,7 +21,7 @@ docs/own-images.md says how it was validated against ground truth and where it m
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,10 +86,13 @@ def robust_mean(poses: Sequence[RelativePose]) -> RelativePose:
     return RelativePose(R, t / max(np.linalg.norm(t), 1e-12))
 
 
-def consensus_errors(poses: Mapping[str, Sequence[RelativePose | None]]) -> dict[str, np.ndarray]:
-    """Each matcher's error per pair against the medoid of the other matchers' poses (the module's
-    rule): inf where it has no pose, NaN where no other matcher has one. poses: matcher -> its
-    relative pose of each pair (None: not both images in one of its models), pairs in one order."""
+def consensus_errors(poses: Mapping[str, Sequence], reference: Callable[[Sequence], object] | None = None,
+                     distance: Callable[[object, object], float] | None = None) -> dict[str, np.ndarray]:
+    """Each matcher's error per pair against the reference made of the other matchers' estimates (the
+    module's rule): inf where it has none, NaN where no other matcher has one. poses: matcher -> its
+    estimate of each pair (None: none), pairs in one order; by default relative poses, judged by
+    `robust_mean` and `pose_distance` (a planar set's homographies: `Planar`)."""
+    reference, distance = reference or robust_mean, distance or pose_distance
     names = list(poses)
     counts = {len(v) for v in poses.values()}
     if len(counts) > 1:
@@ -102,8 +105,38 @@ def consensus_errors(poses: Mapping[str, Sequence[RelativePose | None]]) -> dict
             if not others:
                 continue
             own = poses[name][k]
-            errors[name][k] = float("inf") if own is None else pose_distance(own, robust_mean(others))
+            errors[name][k] = float("inf") if own is None else distance(own, reference(others))
     return errors
+
+
+@dataclass(frozen=True)
+class Planar:
+    """A planar set's estimates (HPatches): each pair's homography as where it maps image 0's
+    corners (4 x 2), the reference their geometric median, the distance the mean corner distance in
+    pixels (the homography benchmark's corner error), the score the share within `threshold` px."""
+
+    threshold: float = 3.0
+
+    @staticmethod
+    def corners(H: np.ndarray, width: int, height: int) -> np.ndarray:
+        from e3cm_bench.geometry.two_view import warp_points
+
+        box = np.array([[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]], np.float64)
+        return warp_points(np.asarray(H, np.float64), box)
+
+    @staticmethod
+    def reference(estimates: Sequence[np.ndarray]) -> np.ndarray:
+        return _weiszfeld(np.stack([np.asarray(e, np.float64).ravel() for e in estimates])).reshape(4, 2)
+
+    @staticmethod
+    def distance(a: np.ndarray, b: np.ndarray) -> float:
+        error = float(np.mean(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=1)))
+        return error if np.isfinite(error) else float("inf")
+
+    def score(self, errors: np.ndarray) -> float:
+        errors = np.asarray(errors, np.float64)
+        errors = errors[~np.isnan(errors)]
+        return float(100.0 * np.mean(errors <= self.threshold)) if errors.size else float("nan")
 
 
 def score(errors: np.ndarray, threshold: float = SCORE_THRESHOLD) -> float:

@@ -1,13 +1,17 @@
-"""How the ground-truth-free score (sfm/consensus.py) agrees with the ground truth, on finished sfm
-runs of several matchers over one set (each run's own reconstruction, models under RUN/sfm/models).
+"""How the ground-truth-free score (sfm/consensus.py) agrees with the ground truth, on finished runs of
+several matchers over one set, the ground truth used only to judge the score:
 
-    python scripts/validate/consensus_vs_truth.py RUN [RUN ...] [--csv OUT.csv] [--exclude NAME ...]
+    python scripts/validate/consensus_vs_truth.py RUN [RUN ...] [--csv OUT.csv] [--planar]
 
-For every run: its ground-truth auc@10 over the pairs (from its per_pair.csv, the first mapper
-seed), and its consensus score against the other runs' reconstructions of the same pairs. Prints
-both rankings, Kendall's tau between the two scores (scipy.stats), Spearman's rho per pair between
-the ground-truth error and the consensus error (pooled over matchers), and every pair of matchers
-that both paired intervals separate in opposite directions.
+Multi-view runs (sfm, or reconstruct runs of the same images beside sfm runs of them): each run's
+relative poses in its own reconstruction (models under RUN/sfm/models or RUN/sparse), the truth its
+per_pair.csv's err_pose, both scored as AUC@10. --planar: homography runs (hpatches), each pair's H
+estimated from the run's matches as its evaluation does, the truth its per_pair.csv's h_error, both
+scored as the share within 3 px (h_acc@3).
+
+Prints both scores per run, Kendall's tau between them (scipy.stats), Spearman's rho per pair
+between the true error and the consensus error (pooled over the runs), and every pair of runs that
+both paired intervals (1000 resamples of the pairs, seed 0) separate in opposite directions.
 """
 
 from __future__ import annotations
@@ -28,9 +32,32 @@ from e3cm_bench.stats.bootstrap import percentile_interval, resample_indices  # 
 from e3cm_bench.storage.folder import RunFolder  # noqa: E402
 
 
-def paired_interval(a: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
-    """Interval of score(a) - score(b) over the resamples idx (rows of pair indices)."""
-    return percentile_interval(np.array([consensus.score(a[r]) - consensus.score(b[r]) for r in idx]))
+def posed(run: Path) -> tuple[list[str], list, np.ndarray]:
+    found = run_poses(run)
+    truth = pd.read_csv(RunFolder(run).per_pair_path).set_index("pair").loc[found.names, "err_pose"]
+    return found.names, found.poses, truth.to_numpy(np.float64)
+
+
+def planar(run: Path) -> tuple[list[str], list, np.ndarray]:
+    """Each pair's H as the run's evaluation estimates it, as the corners it maps image 0's to."""
+    from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
+    from e3cm_bench.storage.cache import MatchCache
+
+    loaded = load_run_pairs(run)
+    ev, cache = evaluation_of(loaded.config), MatchCache(RunFolder(run).matches_path)
+    names, estimates = [], []
+    for pair in loaded.pairs:
+        matches = cache.read(pair.name)
+        found = loaded.benchmark.two_view_geometry(pair, matches, ev)
+        width, height = (int(v) for v in matches.info["size0"])
+        names.append(pair.name)
+        estimates.append(None if found is None else consensus.Planar.corners(found["H"], width, height))
+    truth = pd.read_csv(RunFolder(run).per_pair_path).set_index("pair").loc[names, "h_error"]
+    return names, estimates, truth.to_numpy(np.float64)
+
+
+def paired_interval(score, a: np.ndarray, b: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
+    return percentile_interval(np.array([score(a[r]) - score(b[r]) for r in idx]))
 
 
 def main() -> None:
@@ -39,39 +66,43 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--csv", type=Path)
+    parser.add_argument("--planar", action="store_true", help="homography runs (hpatches)")
     args = parser.parse_args()
-    names, poses, truth = None, {}, {}
+    read = planar if args.planar else posed
+    judge = consensus.Planar() if args.planar else None
+    score = judge.score if judge else consensus.score
+    names, estimates, truth = None, {}, {}
     for run in args.runs:
-        found = run_poses(run)
-        if names is not None and found.names != names:
+        found_names, found, true_errors = read(run)
+        if names is not None and found_names != names:
             raise SystemExit(f"{run}: its pairs differ from {args.runs[0]}'s")
-        names = found.names
-        per_pair = pd.read_csv(RunFolder(run).per_pair_path).set_index("pair").loc[names]
-        poses[run.name], truth[run.name] = found.poses, per_pair["err_pose"].to_numpy(np.float64)
-    errors = consensus.consensus_errors(poses)
-    table = pd.DataFrame({"method": list(poses),
-                          "truth_auc10": [consensus.score(truth[m]) for m in poses],
-                          "consensus": [consensus.score(errors[m]) for m in poses]})
-    tau = stats.kendalltau(table["truth_auc10"], table["consensus"]).statistic
-    both = np.concatenate([np.stack([truth[m], errors[m]], 1) for m in poses])
+        names, estimates[run.name], truth[run.name] = found_names, found, true_errors
+    errors = (consensus.consensus_errors(estimates, judge.reference, judge.distance) if judge
+              else consensus.consensus_errors(estimates))
+    methods = list(estimates)
+    table = pd.DataFrame({"method": methods, "truth": [score(truth[m]) for m in methods],
+                          "consensus": [score(errors[m]) for m in methods]})
+    tau = stats.kendalltau(table["truth"], table["consensus"]).statistic
+    both = np.concatenate([np.stack([truth[m], errors[m]], 1) for m in methods])
     both = both[~np.isnan(both).any(axis=1)]
     rho = stats.spearmanr(both[:, 0], both[:, 1]).statistic
     idx = resample_indices(len(names), 1000, 0)
     contradictions = []
-    methods = list(poses)
     for i, a in enumerate(methods):
         for b in methods[i + 1:]:
-            t_lo, t_hi = paired_interval(truth[a], truth[b], idx)
-            c_lo, c_hi = paired_interval(errors[a], errors[b], idx)
+            t_lo, t_hi = paired_interval(score, truth[a], truth[b], idx)
+            c_lo, c_hi = paired_interval(score, errors[a], errors[b], idx)
             if (t_lo > 0 and c_hi < 0) or (t_hi < 0 and c_lo > 0):
-                contradictions.append(f"{a} vs {b}: truth [{t_lo:+.1f}, {t_hi:+.1f}], consensus [{c_lo:+.1f}, {c_hi:+.1f}]")
-    print(table.sort_values("truth_auc10", ascending=False).to_string(index=False, float_format="%.1f"))
-    print(f"Kendall tau {tau:.3f}; Spearman rho per pair {rho:.3f} ({len(both)} matcher-pairs); "
+                contradictions.append(f"{a} vs {b}: truth [{t_lo:+.1f}, {t_hi:+.1f}], "
+                                      f"consensus [{c_lo:+.1f}, {c_hi:+.1f}]")
+    print(table.sort_values("truth", ascending=False).to_string(index=False, float_format="%.1f"))
+    print(f"{len(names)} pairs; Kendall tau {tau:.3f}; Spearman rho per pair {rho:.3f} ({len(both)} run-pairs); "
           f"contradictions: {len(contradictions)}")
     for line in contradictions:
         print("  " + line)
     if args.csv:
-        table.assign(tau=tau, rho=rho, contradictions=len(contradictions)).to_csv(args.csv, index=False)
+        table.assign(n_pairs=len(names), tau=tau, rho=rho, contradictions=len(contradictions)).to_csv(args.csv,
+                                                                                                    index=False)
 
 
 if __name__ == "__main__":

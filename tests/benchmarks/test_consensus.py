@@ -71,3 +71,20 @@ def test_a_matcher_never_votes_for_itself():
     assert (errors["wrong"] > 25).all() and (errors["x"] < 2).all()
     with pytest.raises(ValueError, match="same pairs"):
         consensus_errors({"a": poses, "b": poses[:2]})
+
+
+def test_a_planar_sets_homographies_are_judged_by_their_corners():
+    """Planar: the corners a homography maps image 0's to, their median, the corner distance; a
+    matcher whose H is off by 5 px scores below two within 1 px, judged by the other two."""
+    from e3cm_bench.sfm.consensus import Planar
+
+    rng = np.random.default_rng(4)
+    truths = [np.array([[1, 0.05 * rng.normal(), 20 * rng.normal()], [0.05 * rng.normal(), 1, 10], [0, 0, 1]])
+              for _ in range(20)]
+    given = {}
+    for name, sd in (("good", 0.3), ("fine", 0.5), ("off", 5.0)):
+        given[name] = [Planar.corners(H, 640, 480) + rng.normal(0, sd, (4, 2)) for H in truths]
+    planar = Planar()
+    errors = consensus_errors(given, planar.reference, planar.distance)
+    assert planar.score(errors["off"]) < 20 < planar.score(errors["fine"]) <= 100
+    assert planar.score(np.array([1.0, 4.0, np.inf, np.nan])) == pytest.approx(100 / 3)
