@@ -20,6 +20,7 @@ from e3cm_bench.method.options import DATASET_KINDS
 
 
 MAX_INTERVAL_SEEDS = 20  # each seed is one more evaluation of every pair
+MAX_REPEATS = 100  # --repeats: each is one more evaluation of every pair (RoMa reports 5, the IMC code 3)
 
 
 @dataclass(frozen=True)
@@ -76,8 +77,8 @@ class EvalSettings:
             raise ValueError(f"homography_pixel_origin must be center or corner, got {self.homography_pixel_origin!r}")
         if self.opencv_method not in POSE_METHODS:  # accurate: the relative pose's only (USAC_ACCURATE)
             raise ValueError(f"opencv_method must be one of {', '.join(POSE_METHODS)}, got {self.opencv_method!r}")
-        if int(self.repeats) < 1:
-            raise ValueError(f"--repeats must be at least 1, got {self.repeats}")
+        if not 1 <= int(self.repeats) <= MAX_REPEATS:
+            raise ValueError(f"--repeats must be 1 to {MAX_REPEATS}, got {self.repeats}")
         if not 1 <= int(self.interval_seeds) <= MAX_INTERVAL_SEEDS:
             raise ValueError(f"--interval-seeds must be 1 to {MAX_INTERVAL_SEEDS}, got {self.interval_seeds}")
 

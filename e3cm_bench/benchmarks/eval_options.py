@@ -47,7 +47,7 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
                "'e3cm-bench\\[colmap]'); --eval-only may change it.", keyword="estimator"),
     EvalOption("repeats", "--repeats", "whole", 1,
                "Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their "
-               "mean, with each metric's spread (_sd)."),
+               "mean, with each metric's spread (_sd); at most 100."),
     EvalOption("interval_seeds", "--interval-seeds", "whole", None,
                "RANSAC seeds the interval holds (SEED..SEED+K-1; each resample of the pairs takes one): the "
                "numbers stay SEED's, the interval holds the estimation's spread too. 1: the pairs' only.",

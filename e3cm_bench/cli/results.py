@@ -22,9 +22,9 @@ from e3cm_bench.cli.common import (app, console, DeviceOpt, friendly_errors, Sha
 def table(
     run_dirs: Annotated[list[Path], typer.Argument(help="Run folders (each with config.yaml and summary.csv), one "
                                                         "benchmark.")],
-    out: Annotated[Path, typer.Option("--out", help="The table's file stem: STEM.csv, STEM.md (STEM.tex with --latex) "
-                                                    "and STEM_<plot>.png; an existing folder (or a path ending in /) "
-                                                    "gets table.* inside it.")],
+    out: Annotated[str, typer.Option("--out", metavar="PATH", help="The table's file stem: STEM.csv, STEM.md (STEM.tex "
+                                     "with --latex) and STEM_<plot>.png; an existing folder (or a path ending in /) "
+                                     "gets table.* inside it.")],  # text: a Path drops the trailing / (a folder)
     reference: Annotated[Optional[Path], typer.Option("--reference",
                                                       help="Paper numbers (default: the shipped "
                                                            "e3cm_bench/paper/tableN.csv).")] = None,
@@ -122,6 +122,7 @@ def sweep_command(
     """Two-view protocol sweep: the runs ranked again under each estimator x threshold, with
     Kendall's tau against the runs' own protocol and each rank flip's paired interval."""
     from e3cm_bench.pipeline import sweep as sweeping
+    from e3cm_bench.reporting.tables import sweep_markdown
     from e3cm_bench.storage import RunFolder
 
     seeds = sweeping.check_seeds(seeds)
@@ -133,11 +134,9 @@ def sweep_command(
             raise ValueError(f"--out {out}: is a run folder; the sweep writes beside runs, never into one")
     runs = sweeping.load_runs(run_dirs)
     cells = sweeping.grid(estimators, thresholds, sweeping.cell_of(runs[0].ev))
-    out.mkdir(parents=True, exist_ok=True)
-    result = sweeping.sweep(runs, cells, seeds, out, metric, tune, progress=lambda line: console.print(line,
-            markup=False))
-    written = sweeping.write_sweep(result, runs, cells, seeds, tune, out)
-    console.print(sweeping.markdown(result), markup=False, soft_wrap=True)
+    result, written = sweeping.run_sweep(runs, cells, seeds, out, metric, tune,
+                                         progress=lambda line: console.print(line, markup=False))
+    console.print(sweep_markdown(result), markup=False, soft_wrap=True)
     console.print(f"sweep: {', '.join(str(p) for p in written)}", markup=False, soft_wrap=True)
 
 

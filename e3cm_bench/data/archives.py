@@ -16,6 +16,7 @@ from rich.console import Console
 
 from e3cm_bench.data.folder import FREE_RESERVE, DownloadError, disk_full, set_aside
 from e3cm_bench.ground.files import write_atomically
+from e3cm_bench.storage.folder import fresh_folder, remove_folder
 
 # Image archives compress little (ppm about 2:1, jpg not at all); members declaring more than
 # this many times the archive's bytes are a zip bomb, not data.
@@ -30,7 +31,7 @@ def extract(archive: Path, target: Path, console: Console | None = None) -> Path
     try:
         place(temporary, target, archive)
     finally:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_folder(temporary, ignore_errors=True)
     return target
 
 
@@ -40,9 +41,7 @@ def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
     read to its end, which checks each zip member's CRC-32 and finds a tar cut short. A damaged
     or refused archive is moved aside (`owned`), so that a rerun fetches it again instead of
     reusing it, and said in one line."""
-    temporary = target.with_name(f".{target.name}.extracting")
-    shutil.rmtree(temporary, ignore_errors=True)
-    temporary.mkdir(parents=True)
+    temporary = fresh_folder(target.with_name(f".{target.name}.extracting"))  # never through a link
     limit = UNPACK_RATIO * archive.stat().st_size + UNPACK_SLACK
     try:
         if zipfile.is_zipfile(archive):
@@ -66,7 +65,7 @@ def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
         else:
             raise _Refused("damaged or cut short (neither a zip nor a tar archive)")
     except _Refused as error:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_folder(temporary, ignore_errors=True)
         raise DownloadError(
             f"{archive}: {error}; no hash was recorded and nothing was extracted; "
             f"{set_aside(archive, owned)}: rerun to download it again, or pass --from another mirror"
@@ -81,7 +80,7 @@ def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
         NotImplementedError,
         OSError,
     ) as error:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_folder(temporary, ignore_errors=True)
         if isinstance(error, OSError) and error.errno is not None:
             raise  # the disk or the folder, not the archive (a full disk is said by download)
         why = str(error).splitlines()[0] if str(error) else type(error).__name__
@@ -90,7 +89,7 @@ def unpack(archive: Path, target: Path, owned: bool = True) -> Path:
             f"{set_aside(archive, owned)}: rerun the same command to download it again"
         ) from None
     except BaseException:
-        shutil.rmtree(temporary, ignore_errors=True)
+        remove_folder(temporary, ignore_errors=True)
         raise
     return temporary
 
@@ -112,8 +111,7 @@ def place(temporary: Path, target: Path, archive: Path) -> Path:
     """The unpacked archive's single top folder, or its contents, renamed into `target`."""
     top = list(temporary.iterdir())
     content = top[0] if len(top) == 1 and top[0].is_dir() else temporary
-    if target.exists():
-        shutil.rmtree(target)
+    remove_folder(target)  # the previous copy; a link at `target` refused, never followed
     content.rename(target)
     write_atomically(target / ".complete", lambda tmp: tmp.write_text(f"{archive.name}\n"))
     return target

@@ -68,6 +68,7 @@ from e3cm_bench.data.folder import (
 from e3cm_bench.datasets.sources import Part, Source
 from e3cm_bench.data.http import WatchedHTTP, WatchedHTTPS, body_range, shut, whole_length
 from e3cm_bench.ground.files import FolderLock, refuse_link, write_atomically
+from e3cm_bench.storage.folder import remove_folder
 
 TIMEOUT_S = 60  # one read without a byte: the server is gone
 # A part's sizes in sources.py are rounded, and hosts re-pack archives: a body may exceed its
@@ -149,7 +150,7 @@ def _fetch_part(part: Part, to: Path, target: Path, console: Console) -> None:
             record_hash(to, part, digest)
             place(temporary, target, fetched)
         finally:
-            shutil.rmtree(temporary, ignore_errors=True)
+            remove_folder(temporary, ignore_errors=True)
     else:
         if not owned:  # a file downloaded by hand is copied into place, leaving the user's own
             dest.parent.mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import InitVar, dataclass
 from pathlib import Path
@@ -239,17 +240,66 @@ def _image_problems(pairs: Iterable[Pair]) -> dict[Path, str]:
     return {path: problem for path, problem in checked.items() if problem}
 
 
-def text_lines(path: Path) -> Iterator[tuple[int, str]]:
-    """(number in the file, text) of each line of a text list but blank lines and # comments:
-    a message quotes the line number an editor shows. DatasetError naming the file where it
-    cannot be read."""
+# A text list's bounds (pairs.txt, views.txt, a pair graph, a YFCC pair list): a line holds two
+# names or one view's numbers (at most a few KiB); a list of 20000 pairs is about 1 MiB.
+MAX_LINE_CHARS = 1 << 16
+MAX_LIST_BYTES = 1 << 28
+
+
+def text_lines(path: Path, comments: bool = True) -> Iterator[tuple[int, str]]:
+    """(number in the file, text) of each line of a text list but blank lines and # comments
+    (comments=False: those are lines too): a message quotes the line number an editor shows.
+    DatasetError naming the file where it cannot be read, is over MAX_LIST_BYTES (said before it
+    is read) or holds a line over MAX_LINE_CHARS."""
     try:
+        size = Path(path).stat().st_size
+        if size > MAX_LIST_BYTES:
+            raise DatasetError(f"{path}: {size} bytes, over the {MAX_LIST_BYTES} a list may hold")
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as error:
         raise DatasetError(f"{path}: not readable ({' '.join(str(error).split())})") from None
     for number, line in enumerate(text.splitlines(), 1):
-        if line.strip() and not line.lstrip().startswith("#"):
+        if len(line) > MAX_LINE_CHARS:
+            raise DatasetError(f"{path}: line {number} holds {len(line)} characters, over the {MAX_LINE_CHARS} a "
+                               "line of a list may hold")
+        if line.strip() and (not comments or not line.lstrip().startswith("#")):
             yield number, line
+
+
+# One name of a line as a POSIX shell reads it (shlex.split's rules): runs of plain characters,
+# '...' (literal), "..." (a backslash escapes " and \ only) and \x, side by side. Each
+# alternative is one pass over its characters (the double-quoted one unrolled), so a line is
+# split in time linear in its length: shlex builds each name a character at a time, which is
+# quadratic (a 4 MB line took minutes).
+_NAME_PART = re.compile(r"""[^ \t\r\n'"\\]+|'[^']*'|"[^"\\]*(?:\\.[^"\\]*)*"|\\.|([ \t\r\n]+)""", re.S)
+_ESCAPED_IN_QUOTES = re.compile(r'\\(["\\])')
+
+
+def split_names(line: str) -> list[str]:
+    """The names of a line as shlex.split (POSIX, no comments) reads them, in linear time; a
+    ValueError with shlex's words for an unclosed quote or a trailing backslash."""
+    names, current, position = [], None, 0  # current: the parts of the name being read (joined once)
+    while position < len(line):
+        part = _NAME_PART.match(line, position)
+        if part is None:
+            raise ValueError("No escaped character" if line[position] == "\\" else "No closing quotation")
+        position, text = part.end(), part.group()
+        if part.group(1) is not None:  # whitespace (shlex's: space, tab, CR, LF) ends a name
+            if current is not None:
+                names.append("".join(current))
+            current = None
+            continue
+        if text[0] == "'":
+            text = text[1:-1]
+        elif text[0] == '"':
+            text = _ESCAPED_IN_QUOTES.sub(r"\1", text[1:-1])
+        elif text[0] == "\\":
+            text = text[1]
+        current = [] if current is None else current
+        current.append(text)
+    if current is not None:
+        names.append("".join(current))
+    return names
 
 
 def name_pairs(path: Path, known, unknown: str) -> Iterator[tuple[int, str, str]]:
@@ -258,11 +308,9 @@ def name_pairs(path: Path, known, unknown: str) -> Iterator[tuple[int, str, str]
     two names, or names one not in `known`, is an error naming the file and line; `unknown`
     says what such a name is not (``which views.txt does not list``). A name holding a space
     is quoted as a POSIX shell quotes it ('a b.png'), as pair_line writes it."""
-    import shlex
-
     for number, line in text_lines(path):
         try:
-            names = shlex.split(line)
+            names = split_names(line)
         except ValueError as error:  # an unclosed quote
             raise DatasetError(f"{path}: line {number}: {error}") from None
         if len(names) != 2:

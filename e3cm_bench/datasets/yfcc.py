@@ -13,7 +13,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory, text_lines
 from e3cm_bench.datasets.truth import check_intrinsics, check_pose
 
 DEFAULT_PAIRS_FILE = "yfcc_test_pairs_with_gt.txt"
@@ -45,19 +45,17 @@ class YFCC100M(PairList):
         PairList checks (names once, images present) are the caller's."""
         if not self.pairs_file.is_file():
             raise DatasetError(f"{self.pairs_file}: pair list not found")
-        lines = self.pairs_file.read_text().splitlines()
         parsed, bad = [], []
-        for number, line in enumerate(lines, start=1):
-            if line.strip():
-                pair = self._parse_line(line, number)
-                try:
-                    check_intrinsics(pair.K0, f"{self.pairs_file}:{number}: K0")
-                    check_intrinsics(pair.K1, f"{self.pairs_file}:{number}: K1")
-                    check_pose(pair.T_0to1, f"{self.pairs_file}:{number}: T_0to1")
-                except DatasetError as error:
-                    bad.append((pair.name, str(error)))
-                    continue
-                parsed.append(pair)
+        for number, line in text_lines(self.pairs_file, comments=False):  # bounded: a line, the file
+            pair = self._parse_line(line, number)
+            try:
+                check_intrinsics(pair.K0, f"{self.pairs_file}:{number}: K0")
+                check_intrinsics(pair.K1, f"{self.pairs_file}:{number}: K1")
+                check_pose(pair.T_0to1, f"{self.pairs_file}:{number}: T_0to1")
+            except DatasetError as error:
+                bad.append((pair.name, str(error)))
+                continue
+            parsed.append(pair)
         return parsed, bad
 
     def _parse_line(self, line: str, number: int) -> Pair:

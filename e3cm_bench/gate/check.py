@@ -85,7 +85,10 @@ def find_runs(paths: list[Path]) -> list[Run]:
 
 
 def write_baseline(runs: list[Run], path: Path) -> Path:
-    """The aggregate baseline (one row per run) and, beside it, the per-pair one."""
+    """The aggregate baseline (one row per run) and, beside it, the per-pair one; never over a
+    run's own file (RUN/summary.csv as --baseline), nor its noise draws' name beside it."""
+    path = Path(path)
+    RunFolder.refuse_own_files([path, noise_gate.pairs_path(path), noise_path(path)], "check --update", "--baseline")
     seen: dict[tuple[str, str], Path] = {}
     for run in runs:
         key = (run.benchmark.name, run.label)
@@ -302,7 +305,8 @@ def markdown_summary(findings: list[Finding], problems: list[str], baseline_path
 
 
 def write_summary(text: str, path: Path) -> None:
-    """Append (GitHub's step summary file is shared by the steps of a job)."""
+    """Append (GitHub's step summary file is shared by the steps of a job); never to a run's own file."""
+    RunFolder.refuse_own_files([path], "check", "--summary")
     previous = Path(path).read_text() if Path(path).is_file() else ""
     write_atomically(path, lambda tmp: tmp.write_text(previous + text))
 

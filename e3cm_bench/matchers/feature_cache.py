@@ -34,6 +34,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from e3cm_bench.ground.files import refuse_link
+from e3cm_bench.storage.folder import fresh_folder, remove_folder
+
 # The default budget: this share of the memory available when the stage starts, at most the cap.
 AUTO_SHARE = 0.5
 AUTO_CAP_MB = 16384
@@ -112,6 +115,7 @@ class SpillStore:
         self.reads = 0
         self.refused = 0
         self.dropped = 0  # removed to make room for a pyramid needed sooner
+        self.made = None  # the folder, once the first write has made it
 
     def _path(self, key: str) -> Path:
         return self.folder / (hashlib.blake2b(key.encode(), digest_size=16).hexdigest() + ".pt")
@@ -124,7 +128,8 @@ class SpillStore:
         if self.bytes + size > self.max_bytes:
             self.refused += 1
             return False
-        self.folder.mkdir(parents=True, exist_ok=True)
+        if not self.made:  # made anew, never through a link at it or at its parent (the stage's spill folder)
+            self.made = fresh_folder(refuse_link(self.folder.parent) / self.folder.name)
         torch.save([m.cpu() for m in maps], self._path(key))
         self.sizes[key] = size
         self.bytes += size
@@ -148,7 +153,8 @@ class SpillStore:
             self._path(key).unlink(missing_ok=True)
 
     def close(self) -> None:
-        shutil.rmtree(self.folder, ignore_errors=True)
+        remove_folder(refuse_link(self.folder.parent) / self.folder.name, ignore_errors=True)  # never through a link
+        self.made = None
         self.sizes.clear()
         self.bytes = 0
 

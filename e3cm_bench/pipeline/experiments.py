@@ -246,7 +246,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
 
 def write_table(
     run_dirs: list[Path],
-    out_path: Path,
+    out_path: str | Path,
     reference: Path | None = None,
     compare: bool = True,
     console: Console | None = None,

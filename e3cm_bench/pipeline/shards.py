@@ -24,6 +24,7 @@ from rich.console import Console
 from e3cm_bench.pipeline.driver import PairRun, run_pipeline
 from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
 from e3cm_bench.storage.run_config import RunConfig
+from e3cm_bench.ground.files import refuse_link
 from e3cm_bench.storage.folder import RunFolder
 
 # The most shards one run may have: a merge lists every one of them (E3CM_SHARDS=1000000000
@@ -101,6 +102,8 @@ def rerun_commands(configs: dict[tuple[int, int], RunConfig], shards: list[tuple
 
 
 def shard_dir(out: Path, shard: tuple[int, int]) -> Path:
+    """The folder a shard's run writes: OUT/shards/K-of-N, never through a link at OUT/shards."""
+    refuse_link(RunFolder(out).shards_dir)
     return RunFolder(out).shard(shard).path
 
 class ShardedCache:

@@ -5,7 +5,6 @@ reused across the pairs that share an image). Nothing here changes a result."""
 from __future__ import annotations
 
 import concurrent.futures
-import shutil
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -24,7 +23,7 @@ from e3cm_bench.matchers.guards import StoppableWorker, can_fork
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from e3cm_bench.pipeline.address_space import check_address_space
-from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
+from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder, fresh_folder, remove_folder
 from e3cm_bench.pipeline.pair import (
     COST_ATTRS,
     PAIR_ATTRS,
@@ -203,7 +202,7 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, options: Mat
     options = options or MatchOptions()
     spill_root = RunFolder(jobs[0].cache.path.parent).spill_dir if jobs else None
     if spill_root is not None:
-        shutil.rmtree(spill_root, ignore_errors=True)  # what an interrupted stage left
+        remove_folder(spill_root)  # what an interrupted stage left; a link there refused, never followed
     shared = _build_matchers(jobs, device, options, spill_root)
     todo = sum(len(job.todo) for job in jobs)
     try:
@@ -222,7 +221,7 @@ def match_jobs(jobs: list[MatchJob], device: str, console: Console, options: Mat
         for feature_cache in shared.feature_caches:
             feature_cache.close()
         if spill_root is not None:
-            shutil.rmtree(spill_root, ignore_errors=True)
+            remove_folder(spill_root, ignore_errors=True)
     if todo:
         check_address_space("after matching", todo)
     _report_reuse(jobs, shared, console)
@@ -262,6 +261,8 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
 
             identity = matcher.feature_identity()
             if identity not in shared.groups:
+                if disk > 0 and not shared.groups:  # made here, anew: never through a link (remove_folder)
+                    fresh_folder(spill_root)
                 spill = SpillStore(spill_root / str(len(shared.groups)), disk) if disk > 0 else None
                 shared.groups[identity] = {"matcher": matcher, "labels": [], "spill": spill,
                                            "lead": len(shared.matchers), "batches": []}

@@ -20,16 +20,18 @@ a method's number is the mean over seeds of the AUC over pairs, its interval two
 seeds resampled, sfm.metrics.two_level_summary); a difference's interval resamples the pairs of
 both methods together and each method's seeds on its own (stats.compare on AUCs).
 
-Products in OUT: cells/CELL.csv (each pair's err_pose per run and seed: a sweep resumes from
-them), sweep.csv (cell, method, AUC@5/10/20 with intervals, the seeds' spread, rank), tau.csv
-(each cell's Kendall tau against the default cell, and its flips), flips.csv (each flipped pair of
-methods: B - A in the default cell and in the cell, with the cell's interval), sweep.md, ranks.png
-and sweep.yaml (the runs with their fingerprints, the cells, seeds and split).
+Products in OUT, locked while a sweep writes it (as a run folder is): cells/CELL.csv (each pair's
+err_pose per run and seed, a run's columns named by its `key`, never its label: a sweep resumes
+from them), sweep.csv (cell, method, AUC@5/10/20 with intervals, the seeds' spread, rank), tau.csv
+(each cell's Kendall tau against the default cell, and its flips), flips.csv (each flipped pair
+of methods: B - A in the default cell and in the cell, with the cell's interval), sweep.md,
+ranks.png and sweep.yaml (the runs with their keys and fingerprints, the cells, seeds and split).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import re
 from collections.abc import Callable, Sequence
@@ -43,8 +45,9 @@ import pandas as pd
 from e3cm_bench.benchmarks import EvalSettings
 from e3cm_bench.geometry import metrics
 from e3cm_bench.geometry.estimators import ESTIMATORS, POSE_METHODS
-from e3cm_bench.ground.files import save_yaml, write_csv
+from e3cm_bench.ground.files import FolderLock, save_yaml, write_atomically, write_csv
 from e3cm_bench.ground.matches import distinct
+from e3cm_bench.reporting.tables import sweep_markdown
 from e3cm_bench.stats.bootstrap import (BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, percentile_interval,
                                         resample_indices)
 
@@ -154,6 +157,14 @@ class SweepRun:
     pairs: dict
     cache: object
     fingerprint: str
+    identity: dict | None = None
+
+    @property
+    def key(self) -> str:
+        """Its name in cells/*.csv: its identity, fingerprint and folder, never its label (issue 81)."""
+        text = json.dumps([self.identity, self.fingerprint, str(Path(self.folder).resolve())], sort_keys=True,
+                          default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def score_cell(run: SweepRun, names: Sequence[str], cell: Cell, seeds: int) -> np.ndarray:
@@ -171,23 +182,24 @@ def score_cell(run: SweepRun, names: Sequence[str], cell: Cell, seeds: int) -> n
 
 def cell_errors(runs: Sequence[SweepRun], names: Sequence[str], cell: Cell, seeds: int, out: Path,
                 progress: Callable[[str], None] = print) -> dict[str, np.ndarray]:
-    """Each run's pairs x seeds errors in `cell`, read from OUT/cells/CELL.csv where a finished
-    sweep wrote them (same pairs and seeds), else computed and written there."""
+    """Each run's pairs x seeds errors in `cell`, read from OUT/cells/CELL.csv where a sweep wrote
+    them (same pairs and seeds, the run's `key`), else computed and added there (the columns of
+    the runs of other sweeps into this --out are kept: each resumes)."""
     path = out / "cells" / f"{cell.file_name}.csv"
-    columns = [f"{run.label}_s{s}" for run in runs for s in range(seeds)]
-    if path.is_file():
-        done = pd.read_csv(path)
-        if list(done["pair"]) == list(names) and all(c in done.columns for c in columns):
-            return {run.label: done[[f"{run.label}_s{s}" for s in range(seeds)]].to_numpy(np.float64) for run in runs}
-    found = {}
+    done = pd.read_csv(path) if path.is_file() else None
+    table = done if done is not None and list(done["pair"]) == list(names) else pd.DataFrame({"pair": list(names)})
+    found, added = {}, False
     for run in runs:
+        columns = [f"{run.key}_s{s}" for s in range(seeds)]
+        if all(c in table.columns for c in columns):
+            found[run.label] = table[columns].to_numpy(np.float64)
+            continue
         progress(f"sweep: {cell.name}: {run.label} ({len(names)} pairs x {seeds} seed(s))")
         found[run.label] = score_cell(run, names, cell, seeds)
-    table = pd.DataFrame({"pair": list(names)})
-    for run in runs:
-        for s in range(seeds):
-            table[f"{run.label}_s{s}"] = found[run.label][:, s]
-    write_csv(table, path)
+        table = table.assign(**{c: found[run.label][:, s] for s, c in enumerate(columns)})
+        added = True
+    if added:
+        write_csv(table, path)
     return found
 
 
@@ -316,6 +328,14 @@ def sweep(runs: Sequence[SweepRun], cells: Sequence[Cell], seeds: int, out: Path
                        default.name, metric)
 
 
+def run_sweep(runs: Sequence[SweepRun], cells: Sequence[Cell], seeds: int, out: Path, metric: str, tune: bool,
+              progress: Callable[[str], None] = print) -> tuple[SweepResult, list[Path]]:
+    """`sweep` and `write_sweep` with OUT locked as a run folder is: a second sweep into it is refused meanwhile."""
+    with FolderLock(out):
+        result = sweep(runs, cells, seeds, out, metric, tune, progress=progress)
+        return result, write_sweep(result, runs, cells, seeds, tune, out)
+
+
 def write_sweep(result: SweepResult, runs: Sequence[SweepRun], cells: Sequence[Cell], seeds: int, tune: bool,
                 out: Path) -> list[Path]:
     """sweep.csv, tau.csv, flips.csv, sweep.md, ranks.png and sweep.yaml in OUT."""
@@ -323,39 +343,19 @@ def write_sweep(result: SweepResult, runs: Sequence[SweepRun], cells: Sequence[C
 
     written = [write_csv(result.table, out / "sweep.csv"), write_csv(result.taus, out / "tau.csv"),
                write_csv(result.flips, out / "flips.csv")]
-    save_yaml({"runs": [{"label": r.label, "folder": str(r.folder), "fingerprint": r.fingerprint} for r in runs],
+    save_yaml({"runs": [{"label": r.label, "folder": str(r.folder), "fingerprint": r.fingerprint, "key": r.key}
+                        for r in runs],
                "default_cell": result.default, "cells": [c.name for c in cells], "seeds": seeds,
                "metric": result.metric, "units": UNITS,
                "split": ("tuned cells: thresholds chosen on the pairs whose name's sha256 is even, every number "
                          "reported on the others" if tune else "none: every number on every pair")},
               out / "sweep.yaml")
-    written.append(out / "sweep.yaml")
-    written.append(out / "sweep.md")
-    (out / "sweep.md").write_text(markdown(result))
+    text = sweep_markdown(result)  # written, as every file here, by a rename: never through a link
+    written += [out / "sweep.yaml", write_atomically(out / "sweep.md", lambda tmp: tmp.write_text(text))]
     figure = rank_figure(result.table, result.metric)
-    figure.savefig(out / "ranks.png", dpi=120, bbox_inches="tight")
-    written.append(out / "ranks.png")
+    written.append(write_atomically(out / "ranks.png",
+                                    lambda tmp: figure.savefig(tmp, format="png", dpi=120, bbox_inches="tight")))
     return written
-
-
-def markdown(result: SweepResult) -> str:
-    metric = result.metric
-    lines = [f"# Protocol sweep: {metric} per cell (default cell: {result.default})", "",
-             "| cell | Kendall tau vs default | flips | ranking (" + metric + " [95% interval]) |",
-             "|---|---:|---:|---|"]
-    for _, tau in result.taus.iterrows():
-        chosen = result.table[result.table["cell"] == tau["cell"]].sort_values("rank")
-        ranking = "; ".join(f"{r['rank']}. {r['run']} {r[metric]:.1f} [{r[metric + '_lo']:.1f}, "
-                            f"{r[metric + '_hi']:.1f}]"
-                            for _, r in chosen.iterrows())
-        lines.append(f"| {tau['cell']} | {tau['kendall_tau']:.2f} | {tau['flips']} | {ranking} |")
-    if len(result.flips):
-        lines += ["", "Flips (B - A in the default cell, then in the cell with its interval):", ""]
-        for _, f in result.flips.iterrows():
-            mark = "" if f["excludes_0"] else " (interval holds 0)"
-            lines.append(f"- {f['cell']}: {f['b']} - {f['a']}: {f.iloc[3]:+.1f} -> {f.iloc[4]:+.1f} "
-                         f"[{f['lo']:+.1f}, {f['hi']:+.1f}]{mark}")
-    return "\n".join(lines) + "\n"
 
 
 def load_runs(run_dirs: Sequence[Path]) -> list[SweepRun]:
@@ -385,7 +385,7 @@ def load_runs(run_dirs: Sequence[Path]) -> list[SweepRun]:
         if not pairs:
             raise ValueError(f"{RunFolder(run.dir).matches_path}: holds no matches of the run's pairs")
         runs.append(SweepRun(run.label, run.dir, run.benchmark, evaluation_of(run.run_config), pairs, cache,
-                             of_config(run.run_config)))
+                             of_config(run.run_config), run.run_config.identity))
     labels = [r.label for r in runs]
     if len(set(labels)) < len(labels):  # two runs of one method: named by their folders
         for r in runs:

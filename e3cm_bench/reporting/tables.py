@@ -371,3 +371,24 @@ def write_paper_table(df: pd.DataFrame, out_path: str | Path) -> tuple[Path, Pat
     markdown = table_to_markdown(df)
     md_path = write_atomically(out_path.with_suffix(".md"), lambda tmp: tmp.write_text(markdown))
     return csv_path, md_path
+
+
+def sweep_markdown(result) -> str:
+    """A protocol sweep's result (pipeline/sweep.py SweepResult) as sweep.md: each cell's tau, flips and ranking."""
+    metric = result.metric
+    lines = [f"# Protocol sweep: {metric} per cell (default cell: {result.default})", "",
+             "| cell | Kendall tau vs default | flips | ranking (" + metric + " [95% interval]) |",
+             "|---|---:|---:|---|"]
+    for _, tau in result.taus.iterrows():
+        chosen = result.table[result.table["cell"] == tau["cell"]].sort_values("rank")
+        ranking = "; ".join(f"{r['rank']}. {r['run']} {r[metric]:.1f} [{r[metric + '_lo']:.1f}, "
+                            f"{r[metric + '_hi']:.1f}]"
+                            for _, r in chosen.iterrows())
+        lines.append(f"| {tau['cell']} | {tau['kendall_tau']:.2f} | {tau['flips']} | {ranking} |")
+    if len(result.flips):
+        lines += ["", "Flips (B - A in the default cell, then in the cell with its interval):", ""]
+        for _, f in result.flips.iterrows():
+            mark = "" if f["excludes_0"] else " (interval holds 0)"
+            lines.append(f"- {f['cell']}: {f['b']} - {f['a']}: {f.iloc[3]:+.1f} -> {f.iloc[4]:+.1f} "
+                         f"[{f['lo']:+.1f}, {f['hi']:+.1f}]{mark}")
+    return "\n".join(lines) + "\n"

@@ -17,7 +17,6 @@ numbers).
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from e3cm_bench.sfm import metrics as sfm_metrics
+from e3cm_bench.storage.folder import fresh_folder
 from e3cm_bench.sfm.mapper import MODELS, Reconstruction, run_mapper, write_database
 
 NUMBERS = ("n_images", "registered_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")
@@ -62,12 +62,8 @@ def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protoco
     """Per-pair rows (the first seed's columns, then each seed's) and the set's numbers (the
     mean over seeds of each seed's, the tracks' numbers, the spread of the metrics over seeds,
     the protocol) of `pairs` under a resolved protocol.Protocol."""
-    where = Path(where)
-    if where.is_symlink() or where.exists() and not where.is_dir():  # never removed: it is not ours
-        raise ValueError(f"{where}: is not a folder (the reconstruction's files go there); move it away and rerun")
-    if where.exists():
-        shutil.rmtree(where)  # a rerun replaces every product of the last (bags may differ)
-    where.mkdir(parents=True)
+    # a rerun replaces every product of the last (bags may differ); a link there is refused, never followed
+    where = fresh_folder(where, "the reconstruction's files go there")
     grouped = bags(pairs)
     k = protocol.mapper_seeds
     rows = [{} for _ in pairs]

@@ -20,7 +20,6 @@ RANSACs of registration) are then deterministic, so a rerun gives the same model
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -269,14 +268,11 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     from e3cm_bench.interchange.colmap import write_colmap
     from e3cm_bench.interchange.base import ExportItem
     from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, Protocol
+    from e3cm_bench.storage.folder import fresh_folder
 
     protocol = protocol or Protocol(merge="exact").resolved(True)
-    workdir = Path(workdir)
-    if workdir.is_symlink() or workdir.exists() and not workdir.is_dir():
-        raise ValueError(f"{workdir}: is not a folder (the reconstruction's files go there); move it away and rerun")
-    if workdir.exists():
-        shutil.rmtree(workdir)  # a rerun (--eval-only) replaces the last one's products
-    workdir.mkdir(parents=True)
+    # a rerun (--eval-only) replaces the last one's products; a link there is refused, never followed
+    workdir = fresh_folder(workdir, "the reconstruction's files go there")
     items, geometries = [], []
     by_estimator = protocol.verification == "estimator"
     for pair, m in zip(pairs, matches):
@@ -329,13 +325,11 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
     """The mapper on workdir's database, its models in workdir/`models`, its log appended to
     workdir/mapper.log; the models read back, largest first."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
+    from e3cm_bench.storage.folder import fresh_folder
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)
-    models_dir = workdir / models
-    if models_dir.exists():
-        shutil.rmtree(models_dir)
-    models_dir.mkdir(parents=True)
+    models_dir = fresh_folder(workdir / models)
     pycolmap.set_random_seed(int(seed))
     run = pycolmap.global_mapping if mapper == "global" else pycolmap.incremental_mapping
     with captured_log(workdir / LOG):

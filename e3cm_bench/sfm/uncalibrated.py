@@ -20,13 +20,13 @@ first (``sparse/0``), in COLMAP's binary and text formats (``cameras``, ``images
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
+from e3cm_bench.storage.folder import fresh_folder, remove_folder
 from e3cm_bench.sfm.mapper import Reconstruction, image_size, incremental_record, mapper_options, model_of
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
@@ -78,7 +78,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     workdir = Path(workdir)
     for stale in (workdir / DATABASE, workdir / PAIRS):
         stale.unlink(missing_ok=True)
-    shutil.rmtree(workdir / SPARSE, ignore_errors=True)  # a rerun replaces the last one's products
+    remove_folder(workdir / SPARSE)  # a rerun replaces the last one's products (a link there refused)
     items, images = [], []
     for pair, m in zip(pairs, matches):
         names = pair.view0, pair.view1
@@ -96,13 +96,12 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         verify_pairs(pycolmap, workdir / DATABASE, [(item.name0, item.name1) for item in items], verification)
         verified = _verified(pycolmap, workdir / DATABASE, items)
         mapper_out = workdir / f"{SPARSE}.mapper"  # where the mapper writes its snapshots
-        shutil.rmtree(mapper_out, ignore_errors=True)
-        mapper_out.mkdir()
+        fresh_folder(mapper_out)
         found = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root), str(mapper_out),
                                              options=mapper_options(seed, calibrated=False))
     finally:
         pycolmap.logging.minloglevel = level
-    shutil.rmtree(mapper_out, ignore_errors=True)
+    remove_folder(mapper_out, ignore_errors=True)
     # sparse/0 is the largest model (the mapper's index breaks ties), as a user opens it first
     ranked = sorted(found.items(), key=lambda item: (-item[1].num_reg_images(), item[0]))
     models = []

@@ -29,13 +29,40 @@ import stat
 from pathlib import Path
 
 from e3cm_bench.storage.cache import MatchCache
-from e3cm_bench.ground.files import FolderLock, save_yaml
+from e3cm_bench.ground.files import FolderLock, refuse_link, save_yaml
 from e3cm_bench.storage.run_config import CONFIG_FILE, RunConfig
 
 # The cache attribute of a pair whose matcher failed (--on-matcher-error fail-pair): the message.
 # The pair is stored with no matches, so that it scores as a failure and a resume keeps it;
 # failures.csv lists such pairs.
 FAILED_ATTR = "matcher_error"
+
+
+def remove_folder(path: str | Path, ignore_errors: bool = False, what: str = "e3cm-bench makes it") -> None:
+    """Remove a folder the toolkit made (a spill, drawings, a reconstruction's products) with all
+    it holds, never through a link: a link at `path` is refused in one line (refuse_link), neither
+    followed nor removed, and so is a file; shutil.rmtree removes a link inside the folder, never
+    its target. Nothing at `path`: nothing done. ignore_errors: an OS error on the way is ignored
+    (a cleanup), a link still refused. what: the folder's use, said where a file is in its place.
+    (shutil.rmtree(ignore_errors=True) alone skips a link in silence, and whatever then makes
+    the folder again makes it in the link's target: issue 81.)"""
+    path = refuse_link(path)
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise ValueError(f"{path}: is not a folder ({what}); move it away and rerun")
+    shutil.rmtree(path, ignore_errors=ignore_errors)
+
+
+def fresh_folder(path: str | Path, what: str = "e3cm-bench makes it") -> Path:
+    """An empty folder made anew at `path`, never through a link: what an earlier run left there
+    is removed (remove_folder: a link or a file refused), and the folder is made without exist_ok,
+    so that a link planted between is an error rather than a folder to write into (a link above
+    `path`, in a folder the user named, is the user's)."""
+    path = Path(path)
+    remove_folder(path, what=what)
+    path.mkdir(parents=True)
+    return path
 
 
 class RunFolder:
@@ -76,13 +103,14 @@ class RunFolder:
         return own and (path.parent / cls.CONFIG).is_file()
 
     @classmethod
-    def refuse_own_files(cls, paths, command: str) -> None:
+    def refuse_own_files(cls, paths, command: str, option: str = "--out") -> None:
         """One line naming the first of `paths` that is a run folder's own file: `command` would
-        write over it (table --out RUN/summary would have replaced the run's summary.csv)."""
+        write over it (table --out RUN/summary would have replaced the run's summary.csv; check
+        --update --baseline RUN/summary.csv too). option: the option that named it."""
         for path in paths:
             if cls.own_file(path):
                 raise ValueError(f"{path}: a file of the run folder {Path(path).parent}; {command} never writes over "
-                                 "a run's own files: choose another --out")
+                                 f"a run's own files: choose another {option}")
 
     def __repr__(self) -> str:
         return f"RunFolder({str(self.path)!r})"
@@ -140,7 +168,9 @@ class RunFolder:
         return self.path / self.CALIBRATION_SET
 
     def drawing_path(self, pair_name: str) -> Path:
-        return self.viz_dir / (pair_name.replace("/", "__") + ".png")
+        """Where a pair's drawing goes; a link at viz/ is refused (refuse_link): a drawing is
+        never written through it, over a file of the same name in its target."""
+        return refuse_link(self.viz_dir) / (pair_name.replace("/", "__") + ".png")
 
     def shard(self, shard: tuple[int, int]) -> RunFolder:
         """The folder of the K-th of N shards of this run."""
@@ -212,11 +242,13 @@ class RunFolder:
         return MatchCache(self.matches_path)
 
     def clear(self) -> None:
-        """Remove a run's matches and results (--overwrite); the folder and foreign files stay."""
+        """Remove a run's matches and results (--overwrite); the folder and foreign files stay. A
+        link at viz/ is refused first, so that nothing is removed when the drawings cannot be."""
+        refuse_link(self.viz_dir)
         self.cache().clear()
         for name in self.RESULTS:
             (self.path / name).unlink(missing_ok=True)
-        shutil.rmtree(self.viz_dir, ignore_errors=True)
+        remove_folder(self.viz_dir, ignore_errors=True)
 
     def previous(self, identity: dict | None, benchmark: str, eval_only: bool = False,
                  changes=None, console=None) -> RunConfig | None:
