@@ -82,7 +82,8 @@ def record(request: RankRequest) -> dict:
 
     given = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(request).items()}
     ranking = Ranking()
-    return {"versions": package_versions(), "environment": run_environment(), "request": {**given, "matchers": list(request.matchers)},
+    return {"versions": package_versions(), "environment": run_environment(),
+            "request": {**given, "matchers": list(request.matchers)},
             "verdict": {"score": "consensus auc", "threshold_deg": SCORE_THRESHOLD,
                         "reference": "geometric median of the other matchers' relative poses (sfm/consensus.py)",
                         "resampled": "pairs", "bootstrap_samples": ranking.n_samples,
