@@ -185,3 +185,82 @@ def test_pose_confidence_out_of_range_never_reaches_the_metrics():
 
     with pytest.raises(ValueError, match="pose_confidence must be a finite number, above 0 and below 1, got 5"):
         EvalSettings(pose_confidence=5)
+
+
+# ---- item 16: a plugin's settings by its dataclass's annotations, and a refusal's true values
+PLUGIN = '''
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from e3cm_bench import Matcher, MatcherEntry, Matches
+
+
+class RatioSift(Matcher):
+    name = "r8-ratio-sift"
+
+    def __init__(self, ratio):
+        self.ratio, self.sift = ratio, cv2.SIFT_create(300)
+
+    def match(self, image0, image1):
+        grey = [cv2.cvtColor(i, cv2.COLOR_RGB2GRAY) for i in (image0, image1)]
+        (k0, d0), (k1, d1) = (self.sift.detectAndCompute(g, None) for g in grey)
+        kept = [m for m, n in cv2.BFMatcher().knnMatch(d0, d1, k=2) if m.distance < self.ratio * n.distance]
+        x0 = np.float32([k0[m.queryIdx].pt for m in kept]).reshape(-1, 2)
+        x1 = np.float32([k1[m.trainIdx].pt for m in kept]).reshape(-1, 2)
+        return Matches(x0, x1, np.float32([-m.distance for m in kept]))
+
+
+@dataclass(frozen=True)
+class Settings:
+    ratio: float = 1.0
+    keep: int = 300
+
+
+ENTRY = MatcherEntry(name="r8-plugin", description="SIFT and a ratio, round eight's plugin",
+                     build=lambda settings: RatioSift(settings.ratio), settings=Settings)
+'''
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    import dataclasses
+    import importlib
+
+    from e3cm_bench.matchers import register, unregister
+
+    (tmp_path / "mods").mkdir()
+    (tmp_path / "mods" / "r8plugin.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path / "mods"))
+    importlib.invalidate_caches()
+    # as the registry loads an installed plugin's entry point: its origin says so (load_plugins)
+    entry = importlib.import_module("r8plugin").ENTRY
+    register(dataclasses.replace(entry, origin="plugin r8plugin 1.0"), replace=True)
+    yield "r8-plugin"
+    unregister("r8-plugin")
+
+
+@pytest.mark.parametrize("setting, words", [
+    ("ratio=abc", "r8-plugin: setting ratio must be a number, got 'abc'"),
+    ("keep=2.5", "r8-plugin: setting keep must be a whole number, got 2.5"),
+])
+def test_a_plugins_setting_of_the_wrong_kind_is_refused_before_any_pair(shared_data, tmp_path, plugin, setting,
+                                                                          words):
+    out = tmp_path / "run"
+    line = one_line_error(invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--limit", 1,
+                                 "--matcher", plugin, "--set", setting, "--out", out))
+    assert words in line, line
+    assert not (out / "matches.h5").exists()
+
+
+def test_a_refusal_shows_the_default_a_setting_was_built_with(shared_data, tmp_path, plugin):
+    """The folder's run took the plugin's default ratio (config.yaml: matcher.ratio 1.0); a new
+    --set ratio=0.8 is refused naming 1.0 (default), not 'none'."""
+    args = ["hpatches", "--root", shared_data / "hpatches-sequences-release", "--limit", 1, "--matcher", plugin,
+            "--out", tmp_path / "run"]
+    made = invoke(*args)
+    assert made.exit_code == 0, made.output
+    assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["matcher"]["ratio"] == 1.0
+    line = one_line_error(invoke(*args, "--set", "ratio=0.8"))
+    assert "settings.ratio 1.0 (default) -> 0.8" in line and "none" not in line, line
