@@ -337,3 +337,33 @@ def test_a_broken_cached_kornia_file_is_one_line_not_a_download(shared_data, tmp
     line = one_line_error(hpatches_with(shared_data, tmp_path / "run", "--matcher", "loftr"))
     assert str(hub / "loftr_outdoor.ckpt") in line and "cannot be read as" in line, line
     assert not marker.exists()
+
+
+# ---- item 11: sweep reads each run's record by the same checks
+@pytest.fixture(scope="module")
+def pose_runs(shared_data, tmp_path_factory) -> list[Path]:
+    """Two small pose runs (SIFT and ORB, 3 pairs of the shared KITTI scene) for the sweep."""
+    root, folder = shared_data / "megadepth_test_1500", tmp_path_factory.mktemp("r8b-pose")
+    runs = []
+    for matcher in ("sift", "orb"):
+        made = invoke("megadepth", "--root", root, "--scene-info", root / "scene_info" / "kitti00_seq.npz", "--matcher",
+                      matcher, "--max-side", 640, "--limit", 3, "--out", folder / matcher)
+        assert made.exit_code == 0, made.output
+        runs.append(folder / matcher)
+    return runs
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("seed", 10**23, "seed must be a whole number, from 0 to 2,000,000,000"),
+    ("repeats", "two", "repeats must be a whole number, at least 1"),
+    ("pose_confidence", 5, "pose_confidence must be a finite number, above 0 and below 1"),
+])
+def test_sweep_refuses_a_records_value_in_one_line(pose_runs, tmp_path, key, value, words):
+    import shutil
+
+    edited_run = tmp_path / "orb"
+    shutil.copytree(pose_runs[1], edited_run)
+    edited(pose_runs[1], edited_run, lambda r: r["evaluation"].update({key: value}))
+    line = one_line_error(invoke("sweep", pose_runs[0], edited_run, "--out", tmp_path / "sweep", "--estimators",
+                                 "opencv-ransac", "--thresholds", "1px", "--seeds", 1))
+    assert str(edited_run / "config.yaml") in line and words in line, line
