@@ -16,7 +16,8 @@ import pandas as pd
 from e3cm_bench.geometry import metrics
 from e3cm_bench.datasets.base import Pair, PairList
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.method.options import DATASET_KINDS
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, check_settings
+from e3cm_bench.method.options import DATASET_KINDS, METHOD_OPTIONS, SEEDS, Range, check_value
 
 
 MAX_INTERVAL_SEEDS = 20  # each seed is one more evaluation of every pair
@@ -72,6 +73,7 @@ class EvalSettings:
     def __post_init__(self) -> None:
         from e3cm_bench.geometry.estimators import POSE_METHODS, check_estimator
 
+        check_settings({f.name: getattr(self, f.name) for f in fields(self)})  # kinds and ranges, first
         check_estimator(self.estimator)
         if self.homography_pixel_origin not in ("center", "corner"):
             raise ValueError(f"homography_pixel_origin must be center or corner, got {self.homography_pixel_origin!r}")
@@ -199,6 +201,7 @@ class Benchmark:
     def load_dataset(self, root: str | Path, skip_bad: bool = False, limit: int | None = None, **options) -> PairList:
         # --sample N [--sample-seed S] holds for every benchmark (datasets/base.py stratified_sample);
         # kept among the options so that dataset_load reloads the same sample (shards, export).
+        self.check_dataset_values(options)
         sample, sample_seed = options.pop("sample", None), options.pop("sample_seed", None)
         unknown = set(options) - set(self.option_names)
         if unknown:
@@ -214,6 +217,16 @@ class Benchmark:
                 raise
             raise type(error)(f"{str(error).splitlines()[0]}; {hint}") from error
         return dataset if sample is None else dataset.sampled(int(sample), int(sample_seed or 0))
+
+    def check_dataset_values(self, options: Mapping, where: str = "") -> None:
+        """Each dataset option given (not None) of its kind, --sample and --sample-seed whole numbers
+        in their ranges (a command's, a config's ``dataset:``, the Python API's and a record's
+        dataset_load for rerun all load here): one line naming the flag (after `where`) otherwise."""
+        checks = {o.name: (o.kind, None, o.flag) for o in self.command_options()}
+        checks.update(sample=("whole", Range(1, None), "--sample"), sample_seed=("whole", SEEDS, "--sample-seed"))
+        for name, (kind, bounds, flag) in checks.items():
+            if options.get(name) is not None:
+                check_value(options[name], kind, bounds, where + flag)
 
     def build_dataset(self, root: str | Path, skip_bad: bool, options: dict) -> PairList:
         """The dataset of `root` with its options (checked names, None left out; `first` where
@@ -268,6 +281,13 @@ class Benchmark:
         --repeats, --interval-seeds (None: the protocol's, else the benchmark's default)."""
         from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 
+        # every value by its flag's own check (kind and range) before any is used: a command's, a
+        # config's ``evaluation:`` and the Python API's all come through here
+        METHOD_OPTIONS["seed"].check(seed)
+        given = {"ransac_px": ransac_px, "pose_estimator": estimator, "repeats": repeats,
+                 "interval_seeds": interval_seeds}
+        for name, value in given.items():
+            EVAL_OPTIONS[name].check(value)
         chosen = get_protocol(resolve_protocol(self, protocol), self.name)
         values = chosen.eval_fields(self.name)
         if estimator:

@@ -12,9 +12,22 @@ random or resized): they are not here. This module imports nothing heavy (`--hel
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
-from e3cm_bench.method.options import KindOf
+from e3cm_bench.method.options import SEEDS, KindOf, Range, check_value
+
+# The ranges of the evaluation's values (options.Range), each declared once: the flags below and
+# the EvalSettings fields they fill (SETTING_VALUES) share them.
+# A threshold in pixels: above 0 (OpenCV takes 0 or less as its own 3 px, while the record would say
+# 0), and at most 1,000 px, past any image's diagonal this evaluates.
+PIXELS = Range(0, 1000, low_open=True)
+# A RANSAC confidence: a probability strictly between 0 and 1.
+CONFIDENCE = Range(0, 1, low_open=True, high_open=True)
+# RANSAC's iterations: at least 1, at most ten million (OpenCV's own cap is far beyond what ends).
+ITERATIONS = Range(1, 10_000_000)
+# A precision threshold (a fraction of the image's diagonal, or pixels): above 0.
+POSITIVE = Range(0, None, low_open=True)
 
 
 @dataclass(frozen=True)
@@ -22,7 +35,8 @@ class EvalOption(KindOf):
     """name: the config key and the command's parameter; flag: its spelling on the command line;
     kind: a key of options.KINDS; default: the value when none is given (None: the protocol's,
     else the benchmark's); keyword: Benchmark.resolve_eval's parameter it fills (its name where
-    not given); show_default: what --help says the default is, where the value itself says nothing."""
+    not given); show_default: what --help says the default is, where the value itself says nothing;
+    range: the values a number kind allows besides its kind (options.Range; None: any of the kind)."""
 
     name: str
     flag: str
@@ -31,6 +45,7 @@ class EvalOption(KindOf):
     help: str
     keyword: str = ""
     show_default: str | None = None
+    range: Range | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -40,7 +55,7 @@ class EvalOption(KindOf):
 
 EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
     EvalOption("ransac_px", "--ransac-px", "number", None,
-               "Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5)."),
+               "Threshold of the evaluation RANSAC in px (HPatches 3, pose 0.5).", range=PIXELS),
     EvalOption("pose_estimator", "--pose-estimator", "text", None,
                "Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), "
                "poselib (pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; "
@@ -53,6 +68,34 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
                "numbers stay SEED's, the interval holds the estimation's spread too. 1: the pairs' only.",
                show_default="3 under e3cm-bench's protocol, 1 under a reference's"),
 )}
+
+
+# What each EvalSettings field allows, kind and range (checked by check_settings, as a flag's value
+# by its EvalOption): a record's evaluation block and a protocol's table give these fields as they
+# are, so each is checked where the settings are made, whatever made them.
+SETTING_VALUES: dict[str, tuple[str, Range | None]] = {
+    "seed": ("whole", SEEDS),
+    **{f"{what}_ransac_px": ("number", PIXELS) for what in ("homography", "pose", "fundamental")},
+    **{f"{what}_confidence": ("number", CONFIDENCE) for what in ("homography", "pose", "fundamental")},
+    **{f"{what}_max_iters": ("whole", ITERATIONS) for what in ("homography", "fundamental")},
+    "correct_px": ("number", PIXELS),
+    "match_precision_px": ("numbers", PIXELS),
+    "precision_thresholds": ("numbers", POSITIVE),
+    **{name: ("text", None) for name in ("homography_pixel_origin", "pose_ransac_frame", "protocol", "estimator",
+                                         "opencv_method")},
+    "drop_failures": ("flag", None),
+    "repeats": ("whole", Range(1, None)),
+    "interval_seeds": ("whole", Range(1, None)),
+}
+
+
+def check_settings(values: Mapping) -> None:
+    """Each evaluation setting of its kind and in its range (SETTING_VALUES; an empty list of
+    thresholds is none), one line naming the first that is not."""
+    for name, (kind, bounds) in SETTING_VALUES.items():
+        value = values.get(name)
+        if name in values and value != ():
+            check_value(value, kind, bounds, name)
 
 
 def eval_keywords(given: dict) -> dict:

@@ -169,7 +169,65 @@ class MatcherEntry:
             extra = f", {', '.join(BACKBONE_SETTINGS)}" if self.needs_backbone else ""
             raise ValueError(f"{self.name}: unknown setting(s) {', '.join(unknown)}; it takes: "
                              f"{', '.join(sorted(known)) or 'none'}{extra}")
+        for name, value in given.items():  # by the dataclass's annotations, before any pair
+            wanted = setting_kind(self.settings, name, value)
+            if wanted:
+                raise ValueError(f"{self.name}: setting {name} must be {wanted}, got {value!r}")
         try:
             return self.settings(**given)
         except TypeError as exc:  # a value of the wrong kind inside the dataclass
             raise ValueError(f"{self.name}: {exc}") from None
+
+
+# What an annotation of a settings dataclass allows, in an error's words: a plugin's settings are
+# checked by their annotations when given (``--set ratio=abc`` for ``ratio: float``), not at the
+# first pair. Annotations this does not know (a Literal, a class of the plugin's) are the
+# dataclass's own to check.
+_ANNOTATED = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
+
+
+def _fits(value, annotation) -> bool | None:
+    """Whether `value` is of `annotation` (None: an annotation this cannot judge)."""
+    import types
+    import typing
+
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        verdicts = [_fits(value, a) for a in args]
+        return True if any(verdicts) else None if None in verdicts else False
+    if annotation is type(None):
+        return value is None
+    if origin in (tuple, list):
+        if not isinstance(value, (tuple, list)):
+            return False
+        inner = [a for a in args if a is not Ellipsis]
+        verdicts = [_fits(v, inner[0]) for v in value] if len(inner) == 1 else [None]
+        return None if None in verdicts else all(verdicts)
+    if annotation is bool:
+        return isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is str:
+        return isinstance(value, str)
+    return None
+
+
+def setting_kind(settings: type, name: str, value) -> str:
+    """'' where `value` may be the settings dataclass's field `name` by its annotation (or the
+    annotation is one this cannot judge), else what the annotation allows, in words."""
+    import typing
+
+    try:
+        annotation = typing.get_type_hints(settings).get(name)
+    except Exception:  # noqa: BLE001 - an annotation that does not resolve: the dataclass's own check
+        return ""
+    if annotation is None or _fits(value, annotation) is not False:
+        return ""
+    if typing.get_origin(annotation) in (tuple, list):
+        return "a list"
+    args = [a for a in typing.get_args(annotation) if a is not type(None)] or [annotation]
+    words = ["a list" if typing.get_origin(a) in (tuple, list) else _ANNOTATED.get(a) or getattr(a, "__name__", str(a))
+             for a in args]
+    return " or ".join(dict.fromkeys(words)) + (" (or null)" if type(None) in typing.get_args(annotation) else "")

@@ -28,6 +28,7 @@ This module imports nothing heavy: `e3cm-bench --help` reads it (tests/test_star
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,7 +61,8 @@ def _whole(value) -> bool:
 
 
 def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    # finite: NaN passes no comparison (a NaN threshold fails every pair) and inf none that means anything
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _numbers(value) -> bool:
@@ -75,6 +77,10 @@ def _path(value) -> bool:
     return _text(value) or isinstance(value, Path)
 
 
+def _paths(value) -> bool:
+    return _path(value) or isinstance(value, (list, tuple)) and bool(value) and all(_path(v) for v in value)
+
+
 @dataclass(frozen=True)
 class Kind:
     """test: whether a value (a config's, an API caller's) is of this kind; wanted: the words of
@@ -83,6 +89,7 @@ class Kind:
     test: Callable[[object], bool]
     wanted: str
     cli: type
+    ranged: str = ""  # what it says before a range, where that differs ("a whole number", not ">= 0")
 
 
 # YAML reads `no` and `"no"` differently; a flag takes true/false only, since a quoted "no" is truthy.
@@ -90,12 +97,12 @@ KINDS: dict[str, Kind] = {
     "flag": Kind(lambda v: isinstance(v, bool), "true or false", bool),
     "text": Kind(_text, "non-empty text", str),
     "path": Kind(_path, "non-empty text", Path),
-    "paths": Kind(_texts, "text or a list of texts", list[Path]),
+    "paths": Kind(_paths, "text or a list of texts", list[Path]),
     "names": Kind(_texts, "text or a list of texts", list[str]),
-    "whole": Kind(_whole, "a whole number >= 0", int),
-    "number": Kind(_number, "a number", float),
+    "whole": Kind(_whole, "a whole number >= 0", int, "a whole number"),
+    "number": Kind(_number, "a finite number", float),
     # comma-separated on the command line ("0.9,0.9,0.95"), a number or a list in a config
-    "numbers": Kind(_numbers, "a number or a list of numbers", str),
+    "numbers": Kind(_numbers, "a number or a list of numbers (finite)", str),
     # --set KEY=VALUE (repeatable) on the command line, a mapping in a config
     "mapping": Kind(lambda v: isinstance(v, Mapping), "a mapping of NAME: VALUE", list[str]),
 }
@@ -105,13 +112,62 @@ KINDS: dict[str, Kind] = {
 DATASET_KINDS = ("flag", "path", "paths", "names", "text")
 
 
+@dataclass(frozen=True)
+class Range:
+    """The values an option of a number kind allows besides its kind: from `low` to `high` (None:
+    no bound that side), each end included unless `low_open`/`high_open` excludes it."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def holds(self, value) -> bool:
+        """Whether `value` (a number, or each of a list) lies in the range."""
+        if isinstance(value, (list, tuple)):
+            return all(self.holds(v) for v in value)
+        return not (self.low is not None and (value < self.low or self.low_open and value == self.low)
+                    or self.high is not None and (value > self.high or self.high_open and value == self.high))
+
+    def words(self) -> str:
+        """What an error says the range is: "above 0 and at most 1,000", "1 to 1,000,000"."""
+        low = None if self.low is None else ("above " if self.low_open else "at least ") + f"{self.low:,}"
+        high = None if self.high is None else ("below " if self.high_open else "at most ") + f"{self.high:,}"
+        if low and high and not (self.low_open or self.high_open):
+            return f"from {self.low:,} to {self.high:,}"
+        return " and ".join(w for w in (low, high) if w)
+
+
+def check_value(value, kind: str, bounds: Range | None, name: str) -> None:
+    """The one check of a value given as data (a record's, a config's, the Python API's, a flag's
+    after typer read it): of `kind` (options.KINDS), then in `bounds`; a one-line ValueError
+    naming `name` (a flag, a key), what is allowed and the value otherwise."""
+    of = KINDS[kind]
+    wanted = of.wanted if bounds is None else f"{of.ranged or of.wanted}, {bounds.words()}"
+    if not KINDS[kind].test(value) or bounds is not None and not bounds.holds(value):
+        raise ValueError(f"{name} must be {wanted}, got {value!r}")
+
+
 class KindOf:
     """What its kind gives an option declared as data (a method's here, an evaluation's in
-    benchmarks/eval_options.py): the check that the kind exists, and the type typer reads."""
+    benchmarks/eval_options.py, a run's in pipeline/request.py): the check that the kind exists,
+    the one check of a value (`check`: kind and range), and the type typer reads."""
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"option {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
+
+    @property
+    def shown(self) -> str:
+        """The name an error gives the option: its (first) flag."""
+        flags = getattr(self, "flags", None)
+        return flags[0] if flags else getattr(self, "flag", self.name)
+
+    def check(self, value, name: str | None = None) -> None:
+        """`value` of the option's kind and in its range (None: not given, the default); a one-line
+        ValueError naming `name` (a config's or a record's key; default: the flag) otherwise."""
+        if value is not None:
+            check_value(value, self.kind, getattr(self, "range", None), name or self.shown)
 
     @property
     def cli_type(self):
@@ -121,6 +177,13 @@ class KindOf:
 
 
 # ---- the method options
+# A seed is handed to numpy and OpenCV, which take 32 bits (cv2.setRNGSeed: a signed int); the
+# evaluation's repeats and interval seeds count up from it (seed+1, ...), so some room is left.
+SEEDS = Range(0, 2_000_000_000)
+# A longer side in pixels (0: full resolution): a million is beyond any camera's image.
+SIDES = Range(0, 1_000_000)
+
+
 @dataclass(frozen=True)
 class MethodOption(KindOf):
     """One option of a method.
@@ -135,6 +198,7 @@ class MethodOption(KindOf):
     config: where an experiment config takes it: "method" (a ``methods:`` entry), "experiment"
     (the top level, every method's), "both" (the top level sets the methods' default), or ""
     (not in configs: the command line only, or as a matcher setting under ``settings:``).
+    range: the values a number kind allows besides its kind (None: any of the kind).
     """
 
     name: str
@@ -144,6 +208,7 @@ class MethodOption(KindOf):
     help: str
     concerns: str = "all"
     config: str = "method"
+    range: Range | None = None
 
 
 _BACKBONE_HELP = (f"One of: {', '.join(BACKBONES)} ({DEFAULT_BACKBONE}: the paper's, downloads its ImageNet weights "
@@ -163,8 +228,9 @@ METHOD_OPTIONS: dict[str, MethodOption] = {o.name: o for o in (
     MethodOption("ratio", ("--ratio",), "numbers", None,
                  "Ratio-test thresholds for levels 0..4, comma-separated.", "shorthand"),
     MethodOption("max_side", ("--max-side",), "whole", None,
-                 "Longer image side for matching (0 = full resolution).", "all", "both"),
-    MethodOption("seed", ("--seed",), "whole", 0, "Seed of every RANSAC (set before each pair).", "all", "experiment"),
+                 "Longer image side for matching (0 = full resolution).", "all", "both", SIDES),
+    MethodOption("seed", ("--seed",), "whole", 0, "Seed of every RANSAC (set before each pair).", "all", "experiment",
+                 SEEDS),
     MethodOption("label", ("--label",), "text", None,
                  "Method name in tables and plots (default: matcher[-backbone]).", "all", "method"),
     MethodOption("settings", ("--set",), "mapping", None,
@@ -202,9 +268,8 @@ def check_method_values(values: Mapping) -> None:
     """MethodSpec's validation of the options it is given: each of its kind, one line naming the
     first that is not by its command-line flag (numbers may be tuples; a path a Path)."""
     for name, value in values.items():
-        option = METHOD_OPTIONS.get(name)
-        if option is not None and value is not None and not KINDS[option.kind].test(value):
-            raise ValueError(f"{option.flags[0]} must be {KINDS[option.kind].wanted}, got {value!r}")
+        if name in METHOD_OPTIONS:
+            METHOD_OPTIONS[name].check(value)
     label = values.get("label")
     if isinstance(label, str) and not label.isprintable():
         # a label is a table's row, a plot's legend and a file's name: one line of printable text

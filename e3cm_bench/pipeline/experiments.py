@@ -22,7 +22,7 @@ from e3cm_bench.ground.files import absolute_paths, load_yaml, save_yaml
 from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, config_keys
+from e3cm_bench.method.options import METHOD_OPTIONS, check_value, config_keys
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.paper import resolve_config
@@ -51,15 +51,16 @@ def experiment_keys() -> set[str]:
     return set(experiment_types()) | {"methods"}
 
 
-def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = ()) -> None:
-    """A one-line ValueError naming the file and the first key whose value is not of its kind,
+def _check_types(path: Path, where: str, values: dict, types: dict, nullable: tuple[str, ...] = (),
+                 options: dict = METHOD_OPTIONS) -> None:
+    """A one-line ValueError naming the file and the first key whose value is not of its kind or
+    not in the range its entry of `options` declares (options.check_value, the flag's own check),
     checked before anything reads it (a label of 123 used as a folder name, a max_side of "big"
-    compared with 0); `nullable` keys may also be null: the default."""
+    compared with 0, a ransac_px of -1); `nullable` keys may also be null: the default."""
     for key, kind in types.items():
         if key not in values or values[key] is None and key in nullable:
             continue
-        if not KINDS[kind].test(values[key]):
-            raise ValueError(f"{path}: {where}{key!r} must be {KINDS[kind].wanted}, got {values[key]!r}")
+        check_value(values[key], kind, getattr(options.get(key), "range", None), f"{path}: {where}{key!r}")
 
 
 def _refuse_unknown(path: Path, where: str, values: dict, known, what: str) -> None:
@@ -108,7 +109,7 @@ def load_experiment(path: Path) -> dict:
     evaluation = config.get("evaluation") or {}
     _refuse_unknown(path, "evaluation: ", evaluation, EVAL_OPTIONS, "an evaluation option")
     _check_types(path, "evaluation: ", evaluation, {n: o.kind for n, o in EVAL_OPTIONS.items()},
-                 nullable=tuple(EVAL_OPTIONS))
+                 nullable=tuple(EVAL_OPTIONS), options=EVAL_OPTIONS)
     if config.get("benchmark") not in BENCHMARKS:
         raise ValueError(f"{path}: 'benchmark' must be one of {', '.join(BENCHMARKS)}")
     benchmark = get_benchmark(config["benchmark"])

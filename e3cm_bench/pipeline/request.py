@@ -16,8 +16,29 @@ from pathlib import Path
 from e3cm_bench.benchmarks import Benchmark, EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import PairList
 from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.method.options import KindOf, Range
 from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.shards import check_shard
 from e3cm_bench.pipeline.stage import MatchOptions
+
+
+@dataclass(frozen=True)
+class RunOption(KindOf):
+    """A count of the run's request, declared as the method's and the evaluation's options are
+    (options.KindOf): its field, its flag, its kind and range, checked by the one check whoever
+    gives it (the command, the Python API, a record's dataset.limit for rerun)."""
+
+    name: str
+    flag: str
+    kind: str
+    default: object
+    range: Range | None = None
+
+
+RUN_OPTIONS: dict[str, RunOption] = {o.name: o for o in (
+    RunOption("limit", "--limit", "whole", None, Range(1, None)),  # None: every pair
+    RunOption("viz", "--viz", "whole", 0, Range(0, None)),  # 0: no drawings
+)}
 
 
 @dataclass
@@ -56,15 +77,16 @@ class RunRequest:
             self.ev = self.bench.resolve_eval()
         self.options = self.options or MatchOptions()
         self.check_counts(self.limit, self.viz)
+        if self.shard is not None:  # the Python API's (K, N), as --shard K/N is checked
+            check_shard(self.shard)
 
     @staticmethod
     def check_counts(limit: int | None, viz: int) -> None:
-        """The run's counts, one line for the first out of range; the command calls it with its
-        flags before anything loads, the request with its fields (the Python API)."""
-        if limit is not None and limit < 1:
-            raise ValueError(f"--limit must be at least 1, got {limit}")
-        if viz < 0:
-            raise ValueError(f"--viz must be 0 (no drawings) or more, got {viz}")
+        """The run's counts, each by its RUN_OPTIONS entry (kind and range), one line for the first
+        that is not; the command calls it with its flags before anything loads, the request with
+        its fields (the Python API, rerun)."""
+        RUN_OPTIONS["limit"].check(limit)
+        RUN_OPTIONS["viz"].check(viz if viz is not None else 0)
 
     @classmethod
     def of(cls, benchmark, out=None, method=None, **given) -> RunRequest:

@@ -26,8 +26,9 @@ from rich.console import Console
 from e3cm_bench.benchmarks.base import EvalSettings
 from e3cm_bench.benchmarks.from_record import benchmark_of, dataset_source, evaluation_of, method_of
 from e3cm_bench.ground.suggest import did_you_mean
+from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.pipeline.request import RunRequest
+from e3cm_bench.pipeline.request import RUN_OPTIONS, RunRequest
 from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
 
 # Top-level keys of records older versions wrote, read by nothing a rerun uses.
@@ -56,6 +57,29 @@ def check_keys(config: RunConfig, benchmark) -> None:
                                  f"{did_you_mean(str(key), known[part])}")
 
 
+def recorded_limit(config: RunConfig) -> int | None:
+    """The run's --limit as its record gives it (dataset.limit), by --limit's own check (kind and
+    range; null: every pair). A record without the key is read as every pair only where the run
+    evaluated every pair: one that evaluated fewer had a limit, and the key was lost or misspelt."""
+    dataset = config.dataset
+    if "limit" not in dataset:
+        done, total = dataset.get("n_pairs_evaluated"), dataset.get("n_pairs")
+        if all(isinstance(v, int) and not isinstance(v, bool) for v in (done, total)) and done < total:
+            raise ValueError(f"{config.where}: dataset.limit is missing, but the run evaluated {done} of its {total} "
+                             f"pairs{did_you_mean('limit', dataset)}; write limit: {done} (or null: every pair)")
+        return None
+    RUN_OPTIONS["limit"].check(dataset["limit"], f"{config.where}: dataset.limit")
+    return dataset["limit"]
+
+
+def check_identity_values(config: RunConfig) -> None:
+    """The method options a record's identity gives as values (max_side, seed), each by its
+    flag's own check (options.METHOD_OPTIONS: kind and range; null: none), naming the key."""
+    identity = config.identity if isinstance(config.identity, dict) else {}
+    for name in ("max_side", "seed"):
+        METHOD_OPTIONS[name].check(identity.get(name), f"{config.where}: identity.{name}")
+
+
 def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False) -> RunRequest:
     """The RunRequest that makes `run` (a folder or its config.yaml) again in `out`."""
     config = RunConfig.read(run)
@@ -66,12 +90,15 @@ def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwri
                          "import them again (e3cm-bench import)")
     benchmark = benchmark_of(config)
     check_keys(config, benchmark)
+    check_identity_values(config)
+    limit = recorded_limit(config)  # before any work: a run of every pair where a few were asked is no rerun
     root, skip_bad, options = dataset_source(config, benchmark)
+    benchmark.check_dataset_values(options, f"{config.where}: dataset_load.options: ")
     out = Path(out)
     if out.resolve() == config.path.parent.resolve():  # read() always says where the record came from
         raise ValueError(f"{out}: is the run itself; give another --out")
     return RunRequest(benchmark, out, method_of(config), root=Path(root), skip_bad=skip_bad, dataset_options=options,
-                      ev=evaluation_of(config), limit=config.limit, device=device, overwrite=overwrite)
+                      ev=evaluation_of(config), limit=limit, device=device, overwrite=overwrite)
 
 
 def rerun(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False,

@@ -38,8 +38,19 @@ def parse_shard(text: str) -> tuple[int, int]:
         k, n = (int(v) for v in str(text).split("/"))
     except ValueError:
         raise ValueError(f"--shard: expected K/N (e.g. 2/8), got {text!r}") from None
+    return check_shard((k, n))
+
+
+def check_shard(shard) -> tuple[int, int]:
+    """A shard (K, N) as --shard K/N or the Python API's shard=(K, N) gives it: two whole numbers,
+    K from 1 to N, N at most MAX_SHARDS; a one-line ValueError otherwise."""
+    whole = isinstance(shard, (tuple, list)) and len(shard) == 2 and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in shard)
+    if not whole:
+        raise ValueError(f"shard must be (K, N), two whole numbers (the K-th of N shards), got {shard!r}")
+    k, n = shard
     if not 1 <= k <= n:
-        raise ValueError(f"--shard {text}: K must be between 1 and N")
+        raise ValueError(f"--shard {k}/{n}: K must be between 1 and N")
     check_shard_count((k, n))
     return k, n
 

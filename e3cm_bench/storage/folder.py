@@ -283,7 +283,7 @@ class RunFolder:
             return None
         if changed:
             differences = changed_values({"benchmark": previous.benchmark, **before},
-                                         {"benchmark": benchmark, **identity}, changed)
+                                         {"benchmark": benchmark, **identity}, changed, previous.matcher)
             raise ValueError(f"{self.config_path}: the matches in this folder were made with other settings "
                              f"({differences}); pass --overwrite to replace them or choose another --out")
         return previous
@@ -369,15 +369,21 @@ class RunFolder:
         return cache, [p for p in pairs if p.name not in done]
 
 
-def changed_values(before: dict, now: dict, keys: list[str]) -> str:
+def changed_values(before: dict, now: dict, keys: list[str], built: dict | None = None) -> str:
     """Each setting of `keys` that differs, with the folder's value and this run's:
     'settings.ratio 0.8 -> 0.9, max_side 640 -> 320' (a mapping's changed entries one by one;
-    a plugin's code hash as 'plugin code: sha256 8aa51a115606... -> b3d626dbaa42...')."""
+    a plugin's code hash as 'plugin code: sha256 8aa51a115606... -> b3d626dbaa42...'). built:
+    the folder's record of the matcher as built (config.yaml `matcher`): a setting its identity
+    lacks (not given: the default) is shown with the value it was built with, '1.0 (default)',
+    never 'none', which config.yaml contradicts."""
     parts = []
     for key in keys:
         old, new = before.get(key), now.get(key)
         if isinstance(old, dict) and isinstance(new, dict):
-            parts += [f"{LABELS.get(f'{key}.{k}', f'{key}.{k}')} {_shown(old.get(k))} -> {_shown(new.get(k))}"
+            default = built if key == "settings" and isinstance(built, dict) else {}
+            was = {k: f"{_shown(default[k])} (default)" if k not in old and k in default else _shown(old.get(k))
+                   for k in set(old) | set(new)}
+            parts += [f"{LABELS.get(f'{key}.{k}', f'{key}.{k}')} {was[k]} -> {_shown(new.get(k))}"
                       for k in sorted(set(old) | set(new), key=str) if old.get(k) != new.get(k)]
         else:
             parts.append(f"{LABELS.get(key, key)} {_shown(old)} -> {_shown(new)}")

@@ -92,7 +92,7 @@ def test_a_refused_rerun_names_each_setting_with_both_values(tmp_path, shared_da
     line = one_line_error(invoke("hpatches", *common, "--max-side", 120))
     assert "made with other settings (max_side 160 -> 120)" in line
     line = one_line_error(invoke("hpatches", *common, "--max-side", 120, "--set", "max_keypoints=500"))
-    assert "max_side 160 -> 120" in line and "settings.max_keypoints none -> 500" in line
+    assert "max_side 160 -> 120" in line and "settings.max_keypoints 8000 (default) -> 500" in line
 
 
 @pytest.mark.parametrize("benchmark, folder", [("hpatches", "hpatches-sequences-release"), ("evd", "EVD")])

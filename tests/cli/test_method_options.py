@@ -133,8 +133,8 @@ def test_the_experiment_keys_are_those_the_table_places_in_configs():
 
 
 @pytest.mark.parametrize("keyword, value, words", [
-    ("max_side", -3, "--max-side must be a whole number >= 0, got -3"),
-    ("max_side", "big", "--max-side must be a whole number >= 0, got 'big'"),
+    ("max_side", -3, "--max-side must be a whole number, from 0 to 1,000,000, got -3"),
+    ("max_side", "big", "--max-side must be a whole number, from 0 to 1,000,000, got 'big'"),
     ("backbone", 5, "--backbone must be non-empty text, got 5"),
     ("ratio", "x", "--ratio must be a number or a list of numbers"),
     ("weights", 7, "--weights must be non-empty text, got 7"),

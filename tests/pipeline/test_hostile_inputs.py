@@ -305,7 +305,7 @@ def test_text_in_n_matches_is_refused_by_report(made_run, tmp_path):
     ({"label": 123}, "'label' must be non-empty text, got 123"),
     ({"label": ["a", "b"]}, "'label' must be non-empty text"),
     ({"weights": 5}, "'weights' must be non-empty text, got 5"),
-    ({"max_side": "big"}, "'max_side' must be a whole number >= 0, got 'big'"),
+    ({"max_side": "big"}, "'max_side' must be a whole number, from 0 to 1,000,000, got 'big'"),
     ({"protocol": ["a"]}, "'protocol' must be non-empty text"),
 ])
 def test_an_experiment_value_of_the_wrong_kind_is_one_line(boat, tmp_path, method, key):

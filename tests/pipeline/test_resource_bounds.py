@@ -292,7 +292,7 @@ def test_a_pair_without_translation_is_bad_input(shared_data, tmp_path):
 def test_negative_viz_is_refused(shared_data, tmp_path):
     line = one_line_error(invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--out", tmp_path / "v",
                                  "--matcher", "sift", "--viz", -1))
-    assert "--viz must be 0 (no drawings) or more, got -1" in line
+    assert "--viz must be a whole number, at least 0, got -1" in line
 
 
 def huge_png(path: Path, side: int = 20000) -> Path:

@@ -309,7 +309,7 @@ def test_a_rejected_option_writes_nothing(hpatches_copy, tmp_path):
 
 
 @pytest.mark.parametrize("option, value, words", [
-    ("--limit", 0, "--limit must be at least 1"), ("--limit", -2, "--limit must be at least 1"),
+    ("--limit", 0, "--limit must be a whole number, at least 1"), ("--limit", -2, "--limit must be a whole number, at least 1"),
     ("--ratio", "0.9,1.5,0.9,0.9,0.9", "--ratio values must be in (0, 1]"),
 ])
 def test_silently_wrong_options_are_refused(hpatches_copy, tmp_path, option, value, words):

@@ -10,6 +10,7 @@ import torch
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers.base import Matcher
 from e3cm_bench.matchers.peers.common import grey, numpy
+from e3cm_bench.matchers.peers.weights import HubFile, checked_cache_file, load_into, load_weights
 
 # kornia puts the pretrained models' output in the reference frame, where the centre of pixel
 # (x, y) is (x + 0.5, y + 0.5) (kornia.feature.LoFTR's docstring); ours has it at (x, y).
@@ -32,11 +33,15 @@ class LoFTRMatcher(Matcher):
         self.settings = settings
         self.device = device
         source = settings.weights if pretrained and weights is None else None
+        if source in KF.loftr.loftr.urls:  # kornia's cache file checked first: a broken one is one line
+            cached = HubFile.of(KF.loftr.loftr.urls[source]).path()
+            if cached.is_file():
+                checked_cache_file(cached)
         self.model = KF.LoFTR(pretrained=source, config=config)
         if weights is not None:  # the release's .ckpt: a Lightning checkpoint holding state_dict (keys 'matcher.*')
-            state = torch.load(Path(weights), map_location="cpu", weights_only=True)
-            state = state.get("state_dict", state)
-            self.model.load_state_dict({k.removeprefix("matcher."): v for k, v in state.items()})
+            state = load_weights(weights, "LoFTR weights")
+            state = state.get("state_dict", state) if isinstance(state.get("state_dict"), dict) else state
+            load_into(self.model, weights, "LoFTR weights", {k.removeprefix("matcher."): v for k, v in state.items()})
         self.model = self.model.eval().to(device)
 
     def config(self) -> dict:

