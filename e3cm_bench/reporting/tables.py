@@ -23,6 +23,7 @@ from e3cm_bench.ground.files import read_csv, write_atomically, write_csv
 from e3cm_bench.reporting.escape import markdown_text
 from e3cm_bench.drawing.formats import fit_columns, format_interval, format_number, text_width
 from e3cm_bench.paper import PAPER_DIR
+from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.reporting.runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
                    protocol_of, run_intervals)
 
@@ -165,6 +166,8 @@ def paper_table(
     sources = {**table_metrics, **{extra: extra for extra in extras
                                    if not extra.startswith(intervals.COUNTS) and extra not in intervals.PEAKS}}
     measured_rows = [_measured_row(run, benchmark, paper_by_key, sources, extras) for run in runs]
+    if paper_rows and runs:  # said on the first paper row: what the rows above one's own were measured on
+        paper_rows[0][OTHER_PAIRS] = _paper_rows_note(runs, benchmark, len(paper_rows))
     columns = [
         "method",
         "source",
@@ -225,15 +228,31 @@ def _other_pairs(run: Run, benchmark: Benchmark) -> str:
     return f"{n} pairs; the paper: {name}"
 
 
+def _paper_rows_note(runs: Sequence[Run], benchmark: Benchmark, n_paper: int) -> str:
+    """'' where the runs are on the paper's pair set with its backbone, else what each side is:
+    12 rows of the full set on VGG19 above 15 pairs on Lite0 were put side by side without a word."""
+    counts, name = PAPER_SETS.get(benchmark.paper_table or "", ((), "the paper's data"))
+    pairs = sorted({_other_pairs(run, benchmark).split(" pairs;")[0] or "the paper's" for run in runs})
+    backbones = sorted({str((run.config.get("identity") or {}).get("backbone")) for run in runs} - {"None"})
+    if pairs == ["the paper's"] and set(backbones) <= {DEFAULT_BACKBONE}:
+        return ""
+    return (f"the {n_paper} paper rows are the paper's published numbers on {name}, its deep methods on "
+            f"{DEFAULT_BACKBONE}; the measured rows are on {' or '.join(pairs)} pairs"
+            + (f", deep methods on {', '.join(backbones)}" if backbones else "") + ": not measured alike")
+
+
 def paper_set_notes(table: pd.DataFrame) -> list[str]:
     """One line per measured row compared with a paper number measured on other pairs: which
-    pairs each side holds, and that the difference is therefore no regression (nor a gain)."""
+    pairs each side holds, and that the difference is therefore no regression (nor a gain); first,
+    where the paper's rows were measured on other pairs or backbones than the runs, that."""
     if OTHER_PAIRS not in table.columns:
         return []
     notes = []
     for record in table.to_dict("records"):
         other = record.get(OTHER_PAIRS)
-        if isinstance(other, str) and other:
+        if record.get("source") == "paper" and isinstance(other, str) and other:
+            notes.append(other[0].upper() + other[1:] + ".")
+        elif isinstance(other, str) and other:
             n, _, paper = other.partition("; the paper: ")
             notes.append(f"{record['method']} is measured on {n}, {record['vs_paper']} in the paper on {paper}: "
                          f"its d_ columns compare two different pair sets, so they show neither a regression nor "
