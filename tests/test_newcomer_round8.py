@@ -7,7 +7,10 @@ said so, `compare`'s interval printed so that it cannot read as a contradiction,
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -138,3 +141,42 @@ def test_one_quickstart_in_the_readme_and_getting_started():
     # .ci/run takes the block's lines that are neither blank nor comments: exactly two commands
     commands = [line for line in block.splitlines() if line.strip() and not line.lstrip().startswith("#")]
     assert len(commands) == 2 and commands[1].startswith("python -m pytest")
+
+
+# --------------------------------------------------------------------------- 15: reproduce runs what can run
+
+
+def _reproduce_offline(tmp_path: Path, shared_data: Path, *extra: str) -> subprocess.CompletedProcess:
+    """`reproduce table1` by name with SIFT and SuperPoint+SuperGlue, the Hugging Face hub offline
+    and its cache empty: SuperGlue's weights cannot be had, as on a machine without a network."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"),
+           "COLUMNS": "200"}
+    return subprocess.run(
+        [sys.executable, "-m", "e3cm_bench", "reproduce", "table1", "--root", str(shared_data / "hpatches-sequences-release"),
+         "--out", str(tmp_path / "t1"), "--methods", "sift,superpoint+superglue", "--sequences", "v_graffiti",
+         "--limit", "1", *extra], capture_output=True, text=True, timeout=600, cwd=tmp_path, env=env)
+
+
+def test_reproduce_offline_runs_what_can_run_and_lists_the_rest(tmp_path, shared_data):
+    """It stopped at SuperGlue's weights with nothing run; now SIFT runs, and the table and the
+    console say SuperGlue was not run, and why."""
+    done = _reproduce_offline(tmp_path, shared_data)
+    assert done.returncode == 0, done.stderr
+    said = flat(done.stdout)
+    assert "not run: superpoint+superglue: weights magic-leap-community/superglue_outdoor are not in the" in said
+    table = pd.read_csv(tmp_path / "t1" / "table.csv").set_index("method")
+    assert table.loc["sift", "source"] == "measured" and table.loc["sift", "n_pairs"] == 1
+    row = table.loc["superpoint+superglue"]
+    assert row["source"] == "not run" and pd.isna(row["h_acc@1"])
+    assert row["other_pairs"].startswith("superpoint+superglue was not run: weights magic-leap-community/superglue")
+    assert "Note: superpoint+superglue was not run: weights" in (tmp_path / "t1" / "table.md").read_text()
+
+
+def test_reproduce_strict_makes_a_row_that_cannot_run_an_error(tmp_path, shared_data):
+    done = _reproduce_offline(tmp_path, shared_data, "--strict")
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip() and "Warning" not in line]
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr  # one line, no traceback
+    error = lines[0]
+    assert "superpoint+superglue: weights magic-leap-community/superglue_outdoor" in error and "--strict" in error
+    assert not (tmp_path / "t1" / "sift").exists()  # refused before anything ran

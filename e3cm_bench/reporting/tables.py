@@ -33,6 +33,7 @@ OUTSIDE = "outside_ci"
 # paper's, which pairs each side holds (empty where the pair sets are the same, or no paper row).
 OTHER_PAIRS = "other_pairs"
 OTHER_PAIRS_MARK = "other pairs"  # beside such a row's differences, instead of "outside CI"
+NOT_RUN = "not run"  # the source of a row that could not run here (its note says why: `with_not_run`)
 
 # The pair sets the paper's tables were measured on: the pair counts that are that set, and its name.
 PAPER_SETS = {
@@ -236,22 +237,27 @@ def _paper_rows_note(runs: Sequence[Run], benchmark: Benchmark, n_paper: int) ->
     backbones = sorted({str((run.config.get("identity") or {}).get("backbone")) for run in runs} - {"None"})
     if pairs == ["the paper's"] and set(backbones) <= {DEFAULT_BACKBONE}:
         return ""
-    return (f"the {n_paper} paper rows are the paper's published numbers on {name}, its deep methods on "
+    return (f"The {n_paper} paper rows are the paper's published numbers on {name}, its deep methods on "
             f"{DEFAULT_BACKBONE}; the measured rows are on {' or '.join(pairs)} pairs"
-            + (f", deep methods on {', '.join(backbones)}" if backbones else "") + ": not measured alike")
+            + (f", deep methods on {', '.join(backbones)}" if backbones else "") + ": not measured alike.")
+
+
+def with_not_run(table: pd.DataFrame, not_run: Mapping[str, str]) -> pd.DataFrame:
+    """The table and a row of source 'not run' for each {label: why} (a peer offline), why in its note."""
+    rows = [{"method": label, "source": NOT_RUN, OTHER_PAIRS: f"{label} was not run: {why}"}
+            for label, why in not_run.items()]
+    return pd.concat([table, pd.DataFrame(rows, columns=table.columns)], ignore_index=True)
 
 
 def paper_set_notes(table: pd.DataFrame) -> list[str]:
     """One line per measured row compared with a paper number measured on other pairs: which
     pairs each side holds, and that the difference is therefore no regression (nor a gain); first,
     where the paper's rows were measured on other pairs or backbones than the runs, that."""
-    if OTHER_PAIRS not in table.columns:
-        return []
     notes = []
-    for record in table.to_dict("records"):
+    for record in table.to_dict("records") if OTHER_PAIRS in table.columns else []:
         other = record.get(OTHER_PAIRS)
-        if record.get("source") == "paper" and isinstance(other, str) and other:
-            notes.append(other[0].upper() + other[1:] + ".")
+        if record.get("source") in ("paper", NOT_RUN) and isinstance(other, str) and other:
+            notes.append(other)  # what the paper's rows were measured on; why a row was not run
         elif isinstance(other, str) and other:
             n, _, paper = other.partition("; the paper: ")
             notes.append(f"{record['method']} is measured on {n}, {record['vs_paper']} in the paper on {paper}: "
@@ -262,11 +268,13 @@ def paper_set_notes(table: pd.DataFrame) -> list[str]:
 
 @dataclass(frozen=True)
 class TableShape:
-    """What `table` shows: `metrics`, the metric and extra columns kept (empty: all), and the
-    LaTeX table's `caption` (None: one made from the benchmark and the intervals)."""
+    """What `table` shows: `metrics`, the metric and extra columns kept (empty: all), the
+    LaTeX table's `caption` (None: one made from the benchmark and the intervals), and the
+    (label, why) of methods that could not run, each a row of source 'not run' (`with_not_run`)."""
 
     metrics: tuple[str, ...] = ()
     caption: str | None = None
+    not_run: tuple[tuple[str, str], ...] = ()
 
 
 def choose_metrics(table: pd.DataFrame, benchmark: Benchmark, metrics: Sequence[str]) -> pd.DataFrame:
@@ -367,7 +375,7 @@ def print_paper_table(df: pd.DataFrame, console: Console | None = None) -> None:
     width = text_width(console)
     # The paper's rows and the measured ones apart, each with only the columns it fills: the
     # paper's rows have no interval, count or difference, and need no block of '-' for them.
-    groups = [[row for row, source in zip(body, df["source"]) if source == kind] for kind in ("paper", "measured")]
+    groups = [[row for row, kind in zip(body, df["source"]) if kind == of] for of in ("paper", "measured", NOT_RUN)]
     lines: list[str] = []
     for rows in groups:
         if not rows:
