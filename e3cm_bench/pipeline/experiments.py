@@ -299,10 +299,10 @@ def write_table(
         if reference is None:
             console.print(f"[yellow]note[/]: {escape(str(candidate))} not found; the table has no paper reference rows")
     table = report.paper_table(runs, benchmark, reference)
-    if shape.not_run:
-        table = report.with_not_run(table, dict(shape.not_run))
     if not compare:
         table = report.without_comparison(table)
+    if shape.not_run:  # after the comparison's columns are dropped: its note is in one of them
+        table = report.with_not_run(table, dict(shape.not_run))
     table = report.without_empty_columns(report.choose_metrics(table, benchmark, shape.metrics))
     csv_path, md_path = report.write_paper_table(table, out_path)
     written = [csv_path, md_path]

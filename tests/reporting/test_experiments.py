@@ -55,7 +55,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
         "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "seconds_per_pair", "peak_memory_mb",
-        "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs",
+        "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs", "cost_note",
         *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "seconds_per_pair") for b in ("lo", "hi")),
         "confidence",
     ]
