@@ -148,3 +148,14 @@ def test_the_readme_installs_the_cpu_lock_from_pytorchs_index():
     line = next(line for line in readme.splitlines() if line.startswith("# No GPU?"))
     command = line.split(": ", 1)[1]
     assert "-c configs/constraints-cpu.txt" in command and "--extra-index-url https://download.pytorch.org/whl/cpu" in command
+
+
+def test_the_readme_says_beside_the_cpu_line_what_it_needs_and_what_to_do_without_it():
+    """Round eight: the line failed after 17 s with a resolver error where PyTorch's index could not be
+    reached, and nothing said so. The comment under it names the index, the error and the way round."""
+    lines = (REPO / "README.md").read_text().splitlines()
+    k = next(k for k, line in enumerate(lines) if line.startswith("# No GPU?"))
+    beside = lines[k + 1]
+    assert beside.startswith("#") and "https://download.pytorch.org/whl/cpu" in beside
+    assert "ResolutionImpossible" in beside and "use the next line instead" in beside
+    assert not lines[k + 2].startswith("#")  # the next line is the command it names

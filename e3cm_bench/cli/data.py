@@ -53,14 +53,21 @@ def download(
 @app.command()
 @friendly_errors
 def datasets(
-    to: Annotated[Optional[Path], typer.Option("--to",
-        help="The data folder (default: $E3CM_BENCH_DATA, else ./data).")] = None,
+    to: Annotated[Optional[Path], typer.Option("--root", "--to",
+        help="The data folder that holds the benchmarks' folders (default: $E3CM_BENCH_DATA, else ./data); one "
+             "benchmark's own folder (a benchmark command's --root) is read as the folder that holds it.")] = None,
 ) -> None:
     """Where each benchmark's data is looked for, and whether it is missing, incomplete or complete."""
     from e3cm_bench.datasets.sources import SOURCES, data_dir
     from e3cm_bench.data.download import status
 
     to = to or data_dir()
+    # `datasets --root data/hpatches-sequences-release`, as a benchmark command takes it: the data
+    # folder is the one that holds it (else every line would say 'missing' of a folder that is there)
+    for source in SOURCES.values():
+        if Path(to).resolve().as_posix().endswith("/" + source.folder):
+            to = Path(to).resolve().parents[source.folder.count("/")]
+            break
     say(f"data folder: {to} (benchmark commands use it when --root is not given)")
     for source in SOURCES.values():
         say(status(source, to))

@@ -160,13 +160,13 @@ def reproduce(
     skip_bad: SkipBadOpt = False,
     compare: CompareOpt = True,
     shard: ShardOpt = None,
-    methods: Annotated[Optional[str], typer.Option("--methods",
-                                                   help="Comma-separated labels: run only these methods of the config "
-                                                        "(e.g. without the peers).")] = None,
+    methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated labels: run only these methods "
+                                                                    "of the config (e.g. without the peers).")] = None,
     launcher: LauncherOpt = "local",
     shards: ShardsOpt = 0,
     pair_timeout: PairTimeoutOpt = None,
     plot_format: PlotFormatOpt = "png",
+    strict: Annotated[bool, typer.Option("--strict", help="A method that cannot run here is an error.")] = False,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
     from e3cm_bench.data.download import find_root
@@ -188,7 +188,8 @@ def reproduce(
     request = RunRequest(load_experiment(config)["benchmark"], out, root=root, dataset_options=overrides,
                          skip_bad=skip_bad, limit=limit, device=device, shard=parse_shard(shard) if shard else None,
                          options=MatchOptions(pair_timeout=pair_timeout))
-    choices = dict(backbone=backbone, max_side=max_side, compare=compare, only=methods.split(",") if methods else None)
+    choices = dict(backbone=backbone, max_side=max_side, compare=compare, strict=strict,
+                   only=methods.split(",") if methods else None)
     with plots_as(plot_format):
         if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
             if shard or not shards:

@@ -5,16 +5,29 @@ writing 5 to /proc/self/clear_refs, so that one pair's peak is not the run's hig
 it counts everything resident (interpreter, libraries, weights, caches), which is what a user
 sizing a machine needs. Where the mark cannot be reset (another OS, a kernel that refuses),
 the process's lifetime peak (getrusage) stands in and `PEAK_KIND` says so. On a CUDA device
-the allocator's peak of the pair is recorded beside it."""
+the allocator's peak of the pair is recorded beside it.
+
+Where several methods are matched in one process (demo, reproduce), a pair's peak counts every
+method's weights and maps: it is the process's, not the method's, and is recorded as shared
+(pipeline/stage.py), never as one method's own.
+
+A time is only as good as the machine was idle: a small network under another process's load
+ran 0.4 to 1.7 s per image instead of 0.03 s (OpenMP threads oversubscribed). `machine_load`
+records the load beside a stage's time; `under_load` says when it was too high to trust."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import resource
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
+# Set on a pair matched in a process that held other methods too (pipeline/stage.py): its peaks
+# are the process's, shared by the methods, not this method's own (evaluate.pair_cost: blank).
+SHARED_PEAK = "match_peak_shared"
 _CLEAR_REFS = "/proc/self/clear_refs"
 _STATUS = "/proc/self/status"
 
@@ -90,3 +103,61 @@ def measured():
             import torch
 
             cost.gpu_peak_mb = torch.cuda.max_memory_allocated() / (1024.0 * 1024.0)
+
+
+# A cost taken with more than this share of the usable cores busy before the stage began, or more
+# runnable threads than cores at its end (its own included), is flagged as taken under load.
+BUSY_AT_START = 0.5
+
+
+def usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def _load_average() -> float | None:
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        return None
+
+
+@contextlib.contextmanager
+def machine_load():
+    """`with machine_load() as load:` the machine's load around the block, in the dict `load`
+    after it: the 1-minute load average at its start and its end, the usable cores, and this
+    process's CPU seconds (all its threads) beside the block's wall seconds."""
+    load: dict = {}
+    start, cpu, wall = _load_average(), time.process_time(), time.perf_counter()
+    try:
+        yield load
+    finally:
+        load.update(load_start=start, load_end=_load_average(), cpus=usable_cpus(),
+                    cpu_seconds=round(time.process_time() - cpu, 3), wall_seconds=round(time.perf_counter() - wall, 3))
+
+
+def worse_load(before: Mapping | None, now: Mapping) -> dict:
+    """A resumed run's load: the higher load averages of its stages, their CPU and wall seconds added."""
+    if not before:
+        return dict(now)
+    out = dict(now)
+    for key in ("load_start", "load_end"):
+        values = [v for v in (before.get(key), now.get(key)) if v is not None]
+        out[key] = max(values) if values else None
+    for key in ("cpu_seconds", "wall_seconds"):
+        out[key] = round(float(before.get(key) or 0) + float(now.get(key) or 0), 3)
+    return out
+
+
+def under_load(load: Mapping | None) -> str:
+    """'' for a cost measured on a machine idle enough (or with no load recorded: a run made
+    before it was), else a line saying how loaded the machine was (`BUSY_AT_START`)."""
+    if not isinstance(load, Mapping):
+        return ""
+    start, end, cpus = load.get("load_start"), load.get("load_end"), load.get("cpus") or 1
+    if not ((start is not None and start > BUSY_AT_START * cpus) or (end is not None and end > cpus)):
+        return ""
+    return (f"cost measured under load: load average {start} at the start, {end} at the end, on {cpus} cores; "
+            f"CPU {float(load.get('cpu_seconds') or 0):.0f} s in {float(load.get('wall_seconds') or 0):.0f} s")

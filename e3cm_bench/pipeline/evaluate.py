@@ -17,6 +17,7 @@ from e3cm_bench.benchmarks import Benchmark, EvalSettings
 from e3cm_bench.benchmarks.base import DUPLICATES, with_duplicates
 from e3cm_bench.storage.cache import MatchCache, check_free_space
 from e3cm_bench.datasets.base import Pair
+from e3cm_bench.ground.cost import SHARED_PEAK
 from e3cm_bench.ground.files import CSV_FLOAT_FORMAT, write_csv
 from e3cm_bench.ground.images import header_size, load_image
 from e3cm_bench.benchmarks.intervals import INTERVAL_SEEDS, metric_keys, summary_intervals
@@ -75,18 +76,25 @@ def cost_table(pairs: list[Pair], cache: MatchCache) -> pd.DataFrame:
 
 
 # A pair's cost as cost.csv holds it: the matcher's wall time and the matching process's peak
-# resident memory during the pair (ground/cost.py); NaN for matches imported or failed.
-COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb")
+# resident memory during the pair (ground/cost.py); NaN for matches imported or failed. A pair
+# matched in a process that held other methods too (demo, reproduce: ground/cost.py SHARED_PEAK) has no
+# peak of its own: its peak_memory_mb is blank, and the process's peak, marked shared, is in
+# shared_peak_memory_mb (in demo and reproduce every method showed the same peak).
+COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
 # The run's cost in summary.csv: the mean seconds per pair (with its bootstrap interval over the
-# pairs, as every number), the highest per-pair peak, and on CUDA the allocator's highest peak.
-COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb")
+# pairs, as every number), the highest per-pair peak, on CUDA the allocator's highest peak, and
+# the highest shared peak.
+COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
 
 
 def pair_cost(matches: Matches) -> dict:
     info = matches.info
+    peak, gpu_peak = float(info.get("match_peak_mb", np.nan)), float(info.get("match_gpu_peak_mb", np.nan))
+    shared = bool(info.get(SHARED_PEAK, False))
     return {"match_seconds": float(info.get("match_seconds", np.nan)),
-            "peak_memory_mb": float(info.get("match_peak_mb", np.nan)),
-            "gpu_peak_memory_mb": float(info.get("match_gpu_peak_mb", np.nan))}
+            "peak_memory_mb": np.nan if shared else peak,
+            "gpu_peak_memory_mb": np.nan if shared else gpu_peak,
+            "shared_peak_memory_mb": peak if shared else np.nan}
 
 
 def cost_summary(costs: list[dict]) -> dict:
@@ -98,8 +106,8 @@ def cost_summary(costs: list[dict]) -> dict:
     out = {"seconds_per_pair": float(timed.mean())}
     bounds = stats.bootstrap_interval(list(timed), lambda picked: {"s": float(np.mean(picked))}, keys=["s"])
     out["seconds_per_pair_lo"], out["seconds_per_pair_hi"] = (float(v) for v in bounds["s"])
-    for key, column in (("peak_memory_mb", "peak_memory_mb"), ("gpu_peak_memory_mb", "gpu_peak_memory_mb")):
-        values = np.array([c[column] for c in costs], float)
+    for key in COST_KEYS[1:]:
+        values = np.array([c.get(key, np.nan) for c in costs], float)
         if np.isfinite(values).any():
             out[key] = float(np.nanmax(values))
     return out

@@ -32,6 +32,7 @@ from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.runner import run_benchmark, run_methods
 
 EXPERIMENT_COPY = "experiment.yaml"  # what reproduce ran, kept in its --out (merge reads it)
+NOT_RUN = "not_run"  # its key of {label: why} of the methods that could not run here
 # The keys of a config and the kind of each value (options.KINDS), made from the declarations: the
 # method options' (options.METHOD_OPTIONS says where a config takes each), the evaluation options'
 # (eval_options.EVAL_OPTIONS: an ``evaluation:`` section, as a run's config.yaml has one), the
@@ -155,6 +156,7 @@ def reproduce(
     only: list[str] | None = None,
     compare: bool = True,
     console: Console | None = None,
+    strict: bool = False,
 ) -> tuple[Path, Path] | None:
     """Run every method of an experiment config (or those labelled in `only`), then write its
     table and plots. config_path: a YAML file, or a shipped config's name (``table1``; paper.config_names).
@@ -165,6 +167,9 @@ def reproduce(
     the labels then say so. max_side: replaces every method's resize. request.shard=(K, N):
     every method runs its K-th shard; the table is written once every method's shards are
     merged. Returns the table's CSV and Markdown paths (None while shards are missing).
+    A method that cannot run here (a peer without its extra or weights, offline) is left out, said
+    on the console and listed in the table with the reason (source "not run"); strict=True (--strict)
+    makes it an error instead, before anything runs.
     """
     console = console or Console()
     config_path = resolve_config(config_path)
@@ -177,8 +182,8 @@ def reproduce(
     ev = benchmark.resolve_eval(protocol.name, seed=int(experiment.get("seed", 0)),
                                 **eval_keywords(experiment.get("evaluation") or {}))
     out = Path(request.out)
-    methods = _methods(config_path, experiment, benchmark, backbone, max_side, only)
-    save_yaml({**experiment, "runs": [m.folder for m in methods]}, out / EXPERIMENT_COPY)
+    methods, not_run = _methods(config_path, experiment, benchmark, (backbone, max_side), only, strict, console)
+    save_yaml({**experiment, "runs": [m.folder for m in methods], NOT_RUN: not_run}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(request.root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": request.skip_bad}
     run = request.but(benchmark=benchmark, dataset=dataset, dataset_options=options, dataset_load=load, ev=ev)
@@ -198,12 +203,16 @@ def reproduce(
         console.print(f"shard {shard[0]}-of-{shard[1]} done; the table is written when every method's shards are "
                       f"(or: e3cm-bench merge {out})", markup=False)
         return None
-    return _table_and_report(run_dirs, out, compare, console)
+    return _table_and_report(run_dirs, out, compare, console, not_run)
 
 
-def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, backbone: str | None,
-             max_side: int | None, only: list[str] | None) -> list[MethodSpec]:
-    """The methods reproduce runs: every one of the config's, or those labelled in `only`."""
+def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, forced: tuple[str | None, int | None],
+             only: list[str] | None, strict: bool = True, console: Console | None = None,
+             ) -> tuple[list[MethodSpec], dict]:
+    """The methods reproduce runs: every one of the config's, or those labelled in `only`, with the
+    (backbone, max_side) `forced` on them; and {label: why} of those that cannot run here, each
+    said on the console (an error instead where `strict`, or where none can run)."""
+    backbone, max_side = forced
     entries = experiment["methods"]
     if only:
         # the config's own labels (a backbone forced on the deep methods adds to them later)
@@ -214,22 +223,30 @@ def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, backbone
                 f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}"
             )
         entries = [e for e, label in zip(entries, labels) if label in only]
-    methods = []
+    methods, not_run = [], {}
     for entry in entries:
         try:
             methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
-        except ValueError as exc:  # a peer without its extra or weights: say which, and the way round it
-            raise ValueError(
-                f"{config_path}: {entry.get('label', entry['matcher'])}: {exc} (--methods runs a subset)"
-            ) from None
-    return methods
+        except ValueError as exc:  # a peer without its extra or weights (load_experiment checked the rest)
+            label = entry.get("label", entry["matcher"])
+            if strict:
+                raise ValueError(f"{config_path}: {label}: {exc} (--strict; without it the rows that can run "
+                                 "do, and this one is listed as not run; --methods runs a subset)") from None
+            not_run[label] = str(exc)
+            (console or Console()).print(f"not run: {label}: {exc}", markup=False, soft_wrap=True)  # one line
+    if not methods:
+        raise ValueError(f"{config_path}: none of its methods can run here ({', '.join(not_run)}); see above")
+    return methods, not_run
 
 
-def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None) -> tuple[Path, Path]:
-    """OUT/table.{csv,md} with its plots, and the report site OUT/report/ for the same runs."""
+def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None,
+                      not_run: dict | None = None) -> tuple[Path, Path]:
+    """OUT/table.{csv,md} with its plots (and the rows that could not run, with why), and the
+    report site OUT/report/ for the same runs."""
     from e3cm_bench.reporting.site import write_report
 
-    written = write_table(run_dirs, Path(out) / "table", compare=compare, console=console)
+    written = write_table(run_dirs, Path(out) / "table", compare=compare, console=console,
+                          shape=report.TableShape(not_run=tuple((not_run or {}).items())))
     write_report(run_dirs, Path(out) / "report", console=console, compare=compare)
     return written
 
@@ -242,7 +259,7 @@ def merge_experiment(out: Path, compare: bool = True, console: Console | None = 
     run_dirs = [Path(out) / folder for folder in experiment["runs"]]
     for run_dir in run_dirs:
         merge_run(run_dir, console=console)
-    return _table_and_report(run_dirs, Path(out), compare, console)
+    return _table_and_report(run_dirs, Path(out), compare, console, experiment.get(NOT_RUN))
 
 
 def write_table(
@@ -265,8 +282,8 @@ def write_table(
     paper_rows=False leaves the paper's reported rows out (data that is not the paper's).
     latex=True also writes ``<out_path>.tex``, a booktabs table for a paper (reporting/latex.py).
     out_path is the table's file stem; an existing folder (or one written with a trailing /) takes
-    ``table`` inside it. shape: the metrics kept and the LaTeX caption (tables.TableShape). Columns
-    no row fills are left out.
+    ``table`` inside it. shape: the metrics kept, the LaTeX caption and the methods that could not
+    run (tables.TableShape). Columns no row fills are left out.
     """
     shape = shape or report.TableShape()
     if Path(out_path).is_dir() or str(out_path).endswith(("/", "\\")):
@@ -285,6 +302,8 @@ def write_table(
     table = report.paper_table(runs, benchmark, reference)
     if not compare:
         table = report.without_comparison(table)
+    if shape.not_run:  # after the comparison's columns are dropped: its note is in one of them
+        table = report.with_not_run(table, dict(shape.not_run))
     table = report.without_empty_columns(report.choose_metrics(table, benchmark, shape.metrics))
     csv_path, md_path = report.write_paper_table(table, out_path)
     written = [csv_path, md_path]

@@ -18,6 +18,7 @@ from rich.markup import escape
 
 from e3cm_bench.benchmarks import Benchmark
 from e3cm_bench.datasets.base import Pair, PairList
+from e3cm_bench.ground.cost import machine_load, worse_load
 from e3cm_bench.ground.devices import check_device, keep_freed_memory
 from e3cm_bench.matchers import built_settings
 from e3cm_bench.matchers.base import Matcher
@@ -201,9 +202,10 @@ class BenchmarkRun(PairRun):
         if matching:
             jobs = [run.job() for run in matching]
             request = matching[0].request
-            match_jobs(jobs, request.device, console, request.options)
+            with machine_load() as load:  # beside the time: how busy the machine was (ground/cost.py)
+                match_jobs(jobs, request.device, console, request.options)
             for run, job in zip(matching, jobs):
-                run.add_stats(job.stats)
+                run.add_stats({**job.stats, "load": load})
 
     def title(self, summary: dict) -> str:
         return f"{self.benchmark.name} - {self.config.method} ({self.evaluated} pairs) -> {self.folder.path}"
@@ -224,6 +226,9 @@ class BenchmarkRun(PairRun):
     def add_stats(self, spent: dict) -> None:
         """A match stage's time and feature reuse, added to those of earlier (resumed) stages."""
         config, spent = self.config, dict(spent)
+        load = spent.pop("load", None)
+        if load is not None:  # a resumed run: its most loaded stage's load averages, all stages' seconds
+            config.timing["load"] = worse_load(config.timing.get("load"), load)
         reuse = spent.pop("feature_reuse", None)
         if reuse is not None:  # how often an image's maps served several pairs (no effect on results)
             before, reuse = config.feature_reuse or {}, dict(reuse)

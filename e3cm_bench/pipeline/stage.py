@@ -16,6 +16,7 @@ from rich.console import Console
 
 from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
+from e3cm_bench.ground.cost import SHARED_PEAK
 from e3cm_bench.ground.devices import is_out_of_memory
 from e3cm_bench.ground.images import ImageError, load_image
 from e3cm_bench.matchers.base import Matcher
@@ -40,17 +41,18 @@ from e3cm_bench.pipeline.progress import progress_bar
 def match_cached_pair(
     matcher: Matcher, pair: Pair, method: MethodSpec, cache: MatchCache,
     images: tuple[np.ndarray, np.ndarray] | None = None, time_limit: float | None = None,
-    worker: StoppableWorker | None = None,
+    worker: StoppableWorker | None = None, shared: bool = False,
 ) -> None:
     """Match one pair of a benchmark and store it (the step an interrupted run repeats).
 
     images: the pair's images already decoded (the match stage decodes ahead), else read here.
     worker: the matcher's stoppable child process (pipeline/pair.py match_worker), where
-    --pair-timeout runs it."""
+    --pair-timeout runs it. shared: the process holds other methods too (its peak is theirs too)."""
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
                          pair_rotations(pair, method), method.resize, TimeLimit(time_limit, worker))
-    cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS + COST_ATTRS if k in matches.info})
+    attrs = {k: matches.info[k] for k in PAIR_ATTRS + COST_ATTRS if k in matches.info}
+    cache.write(pair.name, matches, {**attrs, SHARED_PEAK: True} if shared else attrs)
 
 
 def decoded_ahead(pairs: list[Pair], executor: ThreadPoolExecutor, ahead: int = 1):
@@ -316,7 +318,7 @@ def _pass_over_pairs(jobs: list[MatchJob], shared: _Shared, console: Console, op
                     shared.workers[i].start()
             for i in wanted[pair.name]:
                 _match_one(jobs[i], shared.matchers[i], pair, images, options,
-                           shared.workers[i] if shared.workers else None)
+                           shared.workers[i] if shared.workers else None, len(jobs) > 1)
                 progress.advance(task)
             for file in dict.fromkeys(files):
                 if last_use[file] == k:  # no pair left: its maps are not needed again
@@ -341,12 +343,13 @@ def _report_reuse(jobs: list[MatchJob], shared: _Shared, console: Console) -> No
 
 
 def _match_one(job: MatchJob, matcher: Matcher, pair: Pair, images, options: MatchOptions | None = None,
-               worker: StoppableWorker | None = None) -> None:
-    """One method's match of one pair, into its cache; errors in one line naming the pair."""
+               worker: StoppableWorker | None = None, shared: bool = False) -> None:
+    """One method's match of one pair, into its cache (shared: among others in this process);
+    errors in one line naming the pair."""
     t = time.perf_counter()
     try:
         options = options or MatchOptions()
-        match_cached_pair(matcher, pair, job.method, job.cache, images.result(), options.pair_timeout, worker)
+        match_cached_pair(matcher, pair, job.method, job.cache, images.result(), options.pair_timeout, worker, shared)
         job.stats["pairs_matched"] += 1
     except (RuntimeError, MemoryError) as error:
         if not (isinstance(error, MemoryError) or is_out_of_memory(error)):

@@ -146,7 +146,17 @@ def _difference(row: dict) -> str:
     for fractions, whose differences are small; two for pixels and degrees)."""
     fraction = all(abs(v) < 1.5 for v in (row["a"], row["b"]) if np.isfinite(v))
     places = 3 if fraction else 2
-    return format_interval(row["d"], row["d_lo"], row["d_hi"], "d_", decimals=places)
+    text = format_interval(row["d"], row["d_lo"], row["d_hi"], "d_", decimals=places)
+    bounds = [float(row[k]) for k in ("d_lo", "d_hi")]
+    if not text.endswith("]") or all(not np.isfinite(v) or round(v, places) != 0 for v in bounds):
+        return text
+    # A bound that rounds to 0 decides the verdict: "+0.200 [+0.000, +0.400] no difference
+    # detectable" read as a contradiction. A bound of exactly 0 is written 0 and said to touch
+    # it; one merely near 0 gets the digits that show its sign.
+    shown = [("0" if v == 0 else f"{v:+.2g}") if np.isfinite(v) and round(v, places) == 0 else f"{v:+.{places}f}"
+             for v in bounds]
+    text = f"{text.split(' [')[0]} [{shown[0]}, {shown[1]}]"
+    return text + (" touches 0" if 0.0 in bounds else "")
 
 
 def _p_value(p: float, n_samples: int) -> str:

@@ -51,7 +51,7 @@ def _page(title: str, body: str, script: str = "") -> str:
 
 # Short headers where the summary's name is long (the full name in the header's tooltip): the
 # table must fit a 1400 px window (tests/reporting/test_report_site.py).
-HEADERS = {"seconds_per_pair": "s/pair", "peak_memory_mb": "peak MiB"}
+HEADERS = {"seconds_per_pair": "s/pair", "peak_memory_mb": "peak MiB", "shared_peak_memory_mb": "shared peak MiB"}
 
 
 def _header(column: str, text: bool) -> str:

@@ -23,25 +23,16 @@ from e3cm_bench.ground.files import read_csv, write_atomically, write_csv
 from e3cm_bench.reporting.escape import markdown_text
 from e3cm_bench.drawing.formats import fit_columns, format_interval, format_number, text_width
 from e3cm_bench.paper import PAPER_DIR
+from e3cm_bench.reporting.notes import (COST_NOTE, NOT_RUN, OTHER_PAIRS, OTHER_PAIRS_MARK, PAPER_SETS,  # noqa: F401
+                                        UNDER_LOAD_MARK, cost_note, other_pairs, paper_rows_note, paper_set_notes,
+                                        with_not_run)
 from e3cm_bench.reporting.runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of, load_run, paper_row_of,  # noqa: F401 - their old home
                    protocol_of, run_intervals)
 
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
-# A table's column saying, for a measured row compared with a paper row on other pairs than the
-# paper's, which pairs each side holds (empty where the pair sets are the same, or no paper row).
-OTHER_PAIRS = "other_pairs"
-OTHER_PAIRS_MARK = "other pairs"  # beside such a row's differences, instead of "outside CI"
-
-# The pair sets the paper's tables were measured on: the pair counts that are that set, and its name.
-PAPER_SETS = {
-    "table1.csv": ((540, 580), "the full HPatches sequences (540 or 580 pairs; the paper does not say which)"),
-    "table2.csv": ((1500,), "MegaDepth-1500 (1500 pairs)"),
-    "table3.csv": ((4000,), "the YFCC100M test list (4000 pairs)"),
-}
-
 # A run's cost in the tables, after the benchmark's own columns (summary.csv's names).
-COST_COLUMNS = ("seconds_per_pair", "peak_memory_mb")
+COST_COLUMNS = ("seconds_per_pair", "peak_memory_mb", "shared_peak_memory_mb")
 
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}
@@ -165,6 +156,8 @@ def paper_table(
     sources = {**table_metrics, **{extra: extra for extra in extras
                                    if not extra.startswith(intervals.COUNTS) and extra not in intervals.PEAKS}}
     measured_rows = [_measured_row(run, benchmark, paper_by_key, sources, extras) for run in runs]
+    if paper_rows and runs:  # said on the first paper row: what the rows above one's own were measured on
+        paper_rows[0][OTHER_PAIRS] = paper_rows_note(runs, benchmark, len(paper_rows))
     columns = [
         "method",
         "source",
@@ -175,6 +168,7 @@ def paper_table(
         *(f"d_{m}" for m in table_metrics),
         OUTSIDE,
         OTHER_PAIRS,
+        COST_NOTE,
         *(key for c in sources for key in (intervals.lo_key(c), intervals.hi_key(c))),
         "confidence",
     ]
@@ -196,15 +190,15 @@ def _measured_row(run: Run, benchmark: Benchmark, paper_by_key: dict, sources: d
     row["protocol"] = protocol
     for metric in table_metrics:
         row[f"d_{metric}"] = row[metric] - reference_row[metric] if reference_row is not None else np.nan
-    other_pairs = _other_pairs(run, benchmark) if reference_row is not None else ""
-    row[OTHER_PAIRS] = other_pairs
+    elsewhere = other_pairs(run, benchmark) if reference_row is not None else ""
+    row[OTHER_PAIRS], row[COST_NOTE] = elsewhere, cost_note(run)
     bounds = run_intervals(run)
     outside = []
     for column, summary_column in sources.items():
         interval = intervals.interval_of(bounds, summary_column)
         row[intervals.lo_key(column)], row[intervals.hi_key(column)] = interval or (np.nan, np.nan)
         paper_value = reference_row.get(column) if reference_row is not None else None
-        if (interval is not None and paper_value is not None and not other_pairs
+        if (interval is not None and paper_value is not None and not elsewhere
                 and not interval[0] <= paper_value <= interval[1]):
             outside.append(column)
     row[OUTSIDE] = ", ".join(outside)
@@ -212,42 +206,15 @@ def _measured_row(run: Run, benchmark: Benchmark, paper_by_key: dict, sources: d
     return row
 
 
-def _other_pairs(run: Run, benchmark: Benchmark) -> str:
-    """'15 pairs; the paper: <its set>' where the run's pairs are not the paper's set, else ''."""
-    counts, name = PAPER_SETS.get(benchmark.paper_table or "", ((), ""))
-    n = run.summary.get("n_pairs")
-    try:
-        n = int(n) if n is not None and n == n else len(run.per_pair)
-    except (TypeError, ValueError):
-        n = len(run.per_pair)
-    if not counts or n in counts:
-        return ""
-    return f"{n} pairs; the paper: {name}"
-
-
-def paper_set_notes(table: pd.DataFrame) -> list[str]:
-    """One line per measured row compared with a paper number measured on other pairs: which
-    pairs each side holds, and that the difference is therefore no regression (nor a gain)."""
-    if OTHER_PAIRS not in table.columns:
-        return []
-    notes = []
-    for record in table.to_dict("records"):
-        other = record.get(OTHER_PAIRS)
-        if isinstance(other, str) and other:
-            n, _, paper = other.partition("; the paper: ")
-            notes.append(f"{record['method']} is measured on {n}, {record['vs_paper']} in the paper on {paper}: "
-                         f"its d_ columns compare two different pair sets, so they show neither a regression nor "
-                         f"an improvement (its interval, over its own pairs, says nothing about them).")
-    return notes
-
-
 @dataclass(frozen=True)
 class TableShape:
-    """What `table` shows: `metrics`, the metric and extra columns kept (empty: all), and the
-    LaTeX table's `caption` (None: one made from the benchmark and the intervals)."""
+    """What `table` shows: `metrics`, the metric and extra columns kept (empty: all), the
+    LaTeX table's `caption` (None: one made from the benchmark and the intervals), and the
+    (label, why) of methods that could not run, each a row of source 'not run' (`with_not_run`)."""
 
     metrics: tuple[str, ...] = ()
     caption: str | None = None
+    not_run: tuple[tuple[str, str], ...] = ()
 
 
 def choose_metrics(table: pd.DataFrame, benchmark: Benchmark, metrics: Sequence[str]) -> pd.DataFrame:
@@ -288,7 +255,7 @@ def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list
     columns = [str(c) for c in table.columns]
     folded = {c for c in columns if intervals.lo_key(c) in columns and intervals.hi_key(c) in columns}
     hidden = {key for c in folded for key in (intervals.lo_key(c), intervals.hi_key(c))}
-    hidden |= {c for c in (OUTSIDE, OTHER_PAIRS, "confidence") if c in columns}
+    hidden |= {c for c in (OUTSIDE, OTHER_PAIRS, COST_NOTE, "confidence") if c in columns}
     shown = [c for c in columns if c not in hidden]
     body = []
     for record in table.to_dict("records"):
@@ -302,6 +269,8 @@ def display_cells(table: pd.DataFrame) -> tuple[list[str], list[list[str]], list
                 text = format_interval(value, record[intervals.lo_key(c)], record[intervals.hi_key(c)], c)
             else:
                 text = format_number(value, c)
+            if c == "seconds_per_pair" and isinstance(record.get(COST_NOTE), str) and record[COST_NOTE]:
+                text += f" ({UNDER_LOAD_MARK})"  # the note below says how loaded
             if c.startswith("d_") and other_pairs and text != "-":
                 text += f" ({OTHER_PAIRS_MARK})"
             elif c.startswith("d_") and c[2:] in outside:
@@ -348,7 +317,7 @@ def print_paper_table(df: pd.DataFrame, console: Console | None = None) -> None:
     width = text_width(console)
     # The paper's rows and the measured ones apart, each with only the columns it fills: the
     # paper's rows have no interval, count or difference, and need no block of '-' for them.
-    groups = [[row for row, source in zip(body, df["source"]) if source == kind] for kind in ("paper", "measured")]
+    groups = [[row for row, kind in zip(body, df["source"]) if kind == of] for of in ("paper", "measured", NOT_RUN)]
     lines: list[str] = []
     for rows in groups:
         if not rows:

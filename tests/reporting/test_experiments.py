@@ -55,7 +55,7 @@ def test_table_collects_runs_in_the_paper_layout(two_runs, tmp_path):
     table = pd.read_csv(tmp_path / "t1.csv")
     assert list(table.columns) == [
         "method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3", "seconds_per_pair", "peak_memory_mb",
-        "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs",
+        "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs", "cost_note",
         *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3", "seconds_per_pair") for b in ("lo", "hi")),
         "confidence",
     ]
@@ -133,7 +133,8 @@ def test_default_labels_follow_backbone_and_estimator(tmp_path):
 
 
 def test_reproduce_names_a_method_it_cannot_run_and_the_way_round(tmp_path, shared_data):
-    """Offline, the peers' weights cannot be fetched: one line naming the method and --methods."""
+    """Offline, the peers' weights cannot be fetched: with --strict, one line naming the method and
+    --methods (without it the others run: tests/test_newcomer_round8.py)."""
     import os
 
     env = {"TORCH_HOME": str(tmp_path / "torch"), "HF_HUB_OFFLINE": "1", "HF_HUB_CACHE": str(tmp_path / "hf"),
@@ -143,11 +144,12 @@ def test_reproduce_names_a_method_it_cannot_run_and_the_way_round(tmp_path, shar
 
     result = subprocess.run([sys.executable, "-m", "e3cm_bench.cli", "reproduce", str(CONFIGS / "table1_hpatches.yaml"),
                              "--root", str(shared_data / "hpatches-sequences-release"), "--out", str(tmp_path / "o"),
-                             "--limit", "1"], env={**os.environ, **env}, capture_output=True, text=True, timeout=600)
+                             "--limit", "1", "--strict"], env={**os.environ, **env}, capture_output=True, text=True,
+                            timeout=600)
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert result.returncode == 2 and len(errors) == 1, result.stderr
     assert "table1_hpatches.yaml: loftr: weights loftr_outdoor.ckpt are not in" in errors[0]
-    assert errors[0].endswith("(--methods runs a subset)")
+    assert "(--strict; without it" in errors[0] and errors[0].endswith("--methods runs a subset)")
     line = one_line_error(invoke("reproduce", CONFIGS / "table1_hpatches.yaml", "--root", shared_data / "hpatches-sequences-release",
                                  "--out", tmp_path / "p", "--methods", "sift,nope"))
     assert "--methods nope: no such method" in line

@@ -131,7 +131,7 @@ def test_load_run_rejects_broken_folders_naming_the_file(tmp_path, breakage, fil
 def test_pose_paper_table_rows_columns_and_differences(pose_runs):
     table = report.paper_table(pose_runs, "megadepth", PAPER_DIR / "table2.csv")
     assert list(table.columns) == ["method", "source", "auc@5", "auc@10", "auc@20", "P", "n_pairs", "vs_paper",
-                                   "protocol", "d_auc@5", "d_auc@10", "d_auc@20", "d_P", "outside_ci", "other_pairs",
+                                   "protocol", "d_auc@5", "d_auc@10", "d_auc@20", "d_P", "outside_ci", "other_pairs", "cost_note",
                                    *(f"{m}_{b}" for m in ("auc@5", "auc@10", "auc@20", "P") for b in ("lo", "hi")),
                                    "confidence"]
     assert list(table["source"]) == ["paper"] * 12 + ["measured"] * 2
@@ -154,7 +154,7 @@ def test_pose_paper_table_rows_columns_and_differences(pose_runs):
 def test_hpatches_paper_table(hpatches_run):
     table = report.paper_table([hpatches_run], "hpatches", PAPER_DIR / "table1.csv")
     assert list(table.columns) == ["method", "source", "h_acc@1", "h_acc@3", "h_acc@5", "n_pairs", "mma@3",
-                                   "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs",
+                                   "vs_paper", "protocol", "d_h_acc@1", "d_h_acc@3", "d_h_acc@5", "outside_ci", "other_pairs", "cost_note",
                                    *(f"{m}_{b}" for m in ("h_acc@1", "h_acc@3", "h_acc@5", "mma@3") for b in ("lo", "hi")),
                                    "confidence"]
     measured = table[table["source"] == "measured"].iloc[0]
@@ -217,7 +217,7 @@ def test_markdown_has_header_rule_and_formatted_rows(pose_runs):
     assert "Note: e3cm-release is measured on 4 pairs, E3CM in the paper on MegaDepth-1500" in markdown
     # The interval columns are folded into their numbers' cells, not shown on their own.
     shown = [c for c in table.columns if not c.endswith(("_lo", "_hi"))
-             and c not in ("outside_ci", "other_pairs", "confidence")]
+             and c not in ("outside_ci", "other_pairs", "cost_note", "confidence")]
     assert [cell.strip() for cell in lines[0].strip("|").split("|")] == shown
     assert set(lines[1]) <= {"|", "-", ":", " "}
     e3cm_paper = next(line for line in lines if line.startswith("| E3CM ") and "paper" in line)
