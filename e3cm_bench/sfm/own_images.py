@@ -8,8 +8,10 @@ hloc's pairs_from_exhaustive), each image with the next K (``window``: a video o
 file of ``name0 name1`` lines (``pairs``: from retrieval, or by hand). `RECONSTRUCT` is the
 "benchmark" that scores them: it has no ground truth, so it scores nothing; its per-pair rows
 say how many matches COLMAP's verification kept and where each image went, and its summary is
-the reconstruction's numbers. It is not in the benchmark registry (it is no benchmark: no
-paper table, no ground truth), so `table` and `report` do not read its folders.
+the reconstruction's numbers and its cost (matching and mapping). It is not in the benchmark
+registry (it is no benchmark: no paper table, no ground truth, no command of its own), but the
+registry finds it by name (benchmarks.UNLISTED): `table` lists its runs and `report` builds their
+page; `compare` says in one line that they hold no per-pair score.
 """
 
 from __future__ import annotations
