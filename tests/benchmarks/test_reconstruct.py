@@ -342,3 +342,18 @@ def test_a_fragmented_reconstruction_says_so_in_one_line(six_frames, tmp_path):
     line = fragments({"n_images": 20, "largest_model_images": 3, "n_models": 4})
     assert line is not None and "3 of 20 images (15%)" in line and "\n" not in line
     assert fragments({"n_images": 20, "largest_model_images": 20, "n_models": 1}) is None
+
+
+def test_a_record_made_before_mapper_was_an_option_still_reruns(room_run, tmp_path):
+    """A config.yaml from before --mapper and --mapper-seeds (no such keys in dataset_load) loads and
+    reruns: the folder is mapped with the default mapper, one seed."""
+    out, _ = room_run
+    record = yaml.safe_load((out / "config.yaml").read_text())
+    for key in ("mapper", "mapper_seeds"):
+        record["dataset_load"]["options"].pop(key, None)
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump(record))
+    result = invoke("rerun", old, "--out", tmp_path / "again")
+    assert result.exit_code == 0, result.output
+    summary = pd.read_csv(tmp_path / "again" / "summary.csv").iloc[0]
+    assert summary["mapper"] == "global" and summary["mapper_seeds"] == 1 and summary["registered_images"] == 5
