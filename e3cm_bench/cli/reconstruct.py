@@ -9,7 +9,7 @@ import typer
 
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
 from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt,
-                                   DeviceOpt,
+                                   DeviceOpt, LabelOpt,
                      FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
                      ShardsOpt, WorkersOpt)
@@ -64,6 +64,7 @@ def reconstruct(
     weights: WeightsOpt = None,
     max_side: ReconMaxSideOpt = None,
     settings: SetOpt = None,
+    label: LabelOpt = None,
     precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb",
     seed: SeedOpt = 0,
@@ -90,8 +91,9 @@ def reconstruct(
 
     scale = Scale(shard, workers, devices, launcher, shards)
     scale.check(device=device)  # the flags first: building the method may download weights
-    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
-                 channel_order=channel_order, seed=seed, max_side=resolve_max_side(RECONSTRUCT, max_side))
+    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, label=label,
+                 precision=precision, channel_order=channel_order, seed=seed,
+                 max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
