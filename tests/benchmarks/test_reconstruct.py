@@ -361,3 +361,19 @@ def test_a_record_made_before_mapper_was_an_option_still_reruns(room_run, tmp_pa
     assert result.exit_code == 0, result.output
     summary = pd.read_csv(tmp_path / "again" / "summary.csv").iloc[0]
     assert summary["mapper"] == "global" and summary["mapper_seeds"] == 1 and summary["registered_images"] == 5
+
+
+def test_colmaps_log_goes_to_the_run_folder_not_the_terminal(six_frames, tmp_path):
+    """Keypoints merged within 8 px make COLMAP warn "Duplicate correspondence" (1699 lines here;
+    26,917 with e3cm-plus on 20 frames), which scrolled the summary out of sight: now in OUT/mapper.log."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    # a process of its own: COLMAP writes to file descriptor 2, which the command runner does not see
+    result = subprocess.run([sys.executable, "-m", "e3cm_bench", "reconstruct", str(six_frames), "--out", str(out),
+                             "--matcher", "sift", "--window", "2", "--merge-px", "8"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "Duplicate correspondence" in (out / "mapper.log").read_text()
+    terminal = result.stdout + result.stderr
+    assert "Duplicate correspondence" not in terminal and "6 of 6 images registered" in terminal
