@@ -9,7 +9,7 @@ import typer
 
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
 from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt,
-                                   DeviceOpt,
+                                   DeviceOpt, LabelOpt,
                      FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
                      ShardsOpt, WorkersOpt)
@@ -31,6 +31,13 @@ MaxPairsOpt = Annotated[Optional[int], typer.Option("--max-pairs", help="The mos
                                                     "more is refused before any is made.")]
 AllowDisconnectedOpt = Annotated[bool, typer.Option("--allow-disconnected", help="Accept a pair graph in several "
                                                     "components (each gives models of its own).")]
+MapperOpt = Annotated[Optional[str], typer.Option("--mapper", show_default="global", help="global "
+                                                 "(pycolmap.global_mapping, GLOMAP) or incremental "
+                                                 "(pycolmap.incremental_mapping, COLMAP's): sfm's --mapper.")]
+MapperSeedsOpt = Annotated[Optional[int], typer.Option("--mapper-seeds", show_default="1", help="Reconstructions "
+                                                       "from the same matches, seeds SEED..SEED+K-1, each verified "
+                                                       "and mapped again (sfm's --mapper-seeds): OUT/sparse is the "
+                                                       "first's, seed-K/ the others', per_seed.csv their numbers.")]
 CameraModelOpt = Annotated[str, typer.Option("--camera-model", help="SIMPLE_RADIAL (COLMAP's default) or PINHOLE; "
                                                                     "intrinsics unknown, refined by the mapper.")]
 CameraPerImageOpt = Annotated[bool, typer.Option("--camera-per-image", help="One camera per image (default: images "
@@ -49,12 +56,15 @@ def reconstruct(
     merge_px: MergePxOpt = None,
     max_pairs: MaxPairsOpt = None,
     allow_disconnected: AllowDisconnectedOpt = False,
+    mapper: MapperOpt = None,
+    mapper_seeds: MapperSeedsOpt = None,
     camera_model: CameraModelOpt = "SIMPLE_RADIAL",
     camera_per_image: CameraPerImageOpt = False,
     backbone: BackboneOpt = None,
     weights: WeightsOpt = None,
     max_side: ReconMaxSideOpt = None,
     settings: SetOpt = None,
+    label: LabelOpt = None,
     precision: PrecisionOpt = "fp32",
     channel_order: ChannelOrderOpt = "rgb",
     seed: SeedOpt = 0,
@@ -81,13 +91,15 @@ def reconstruct(
 
     scale = Scale(shard, workers, devices, launcher, shards)
     scale.check(device=device)  # the flags first: building the method may download weights
-    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, precision=precision,
-                 channel_order=channel_order, seed=seed, max_side=resolve_max_side(RECONSTRUCT, max_side))
+    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, label=label,
+                 precision=precision, channel_order=channel_order, seed=seed,
+                 max_side=resolve_max_side(RECONSTRUCT, max_side))
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
                                               camera_per_image=camera_per_image, max_pairs=max_pairs,
-                                              allow_disconnected=allow_disconnected),
+                                              allow_disconnected=allow_disconnected, mapper=mapper,
+                                              mapper_seeds=mapper_seeds),
                          ev=RECONSTRUCT.resolve_eval(seed=seed),
                          options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
                                               pair_timeout=pair_timeout),
@@ -101,6 +113,7 @@ def _say_model(out: Path, scale) -> None:
     import pandas as pd
 
     from e3cm_bench.pipeline.shards import all_shards_complete
+    from e3cm_bench.sfm.own_images import fragments
     from e3cm_bench.sfm.uncalibrated import SPARSE
     from e3cm_bench.storage.folder import RunFolder
 
@@ -122,6 +135,9 @@ def _say_model(out: Path, scale) -> None:
                   + (f" and {int(points)} points" if points is not None and pd.notna(points) else "")
                   + " (COLMAP binary and text: colmap gui --import_path, pycolmap.Reconstruction)",
                   markup=False, soft_wrap=True)
+    note = fragments(row)
+    if note:
+        warn(note)
 
 
 MatchersOpt = Annotated[str, typer.Option("--matchers", help="The matchers to rank, comma-separated: names (e3cm-bench "

@@ -83,8 +83,10 @@ def cost_table(pairs: list[Pair], cache: MatchCache) -> pd.DataFrame:
 COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
 # The run's cost in summary.csv: the mean seconds per pair (with its bootstrap interval over the
 # pairs, as every number), the highest per-pair peak, on CUDA the allocator's highest peak, and
-# the highest shared peak.
-COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
+# the highest shared peak. A benchmark that maps the set (reconstruct) adds its mapping's seconds and
+# the whole run's per image.
+COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb", "mapping_seconds",
+             "seconds_per_image")
 
 
 def pair_cost(matches: Matches) -> dict:

@@ -239,7 +239,10 @@ def paired_metrics(benchmark: Benchmark, mma: Sequence[int] = HOMOGRAPHY_MMA_DEF
                 for metric, (column, threshold) in benchmark.count_metrics.items()]
     if generic:
         return generic
-    raise ValueError(f"compare: no per-pair metrics are defined for the {benchmark.name} benchmark")
+    # reconstruct's runs: no ground truth, so no pair holds a score; a count of their own (verified
+    # matches, images registered) is no verdict, since wrong matches are counted and registered too
+    raise ValueError(f"compare: {benchmark.name} runs have no ground truth, so no pair has a score to compare; "
+                     f"e3cm-bench table RUN... --out FILE sets their reconstructions and costs side by side")
 
 
 def _pairs(run: Run) -> pd.DataFrame:

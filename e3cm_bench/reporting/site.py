@@ -106,7 +106,9 @@ def _build(runs: list[Run], benchmark, out: Path, index: Path, reference: Path |
     plots = [p.relative_to(out).as_posix() for p in
              benchmark.plot_comparison({r.label: (r.summary, r.per_pair) for r in runs}, out / "img" / "comparison")]
     timed = {r.label: r.summary for r in runs if "seconds_per_pair" in r.summary}
-    if timed:  # accuracy against cost: the benchmark's middle threshold (h_acc@3, AUC@10) or its one metric
+    # accuracy against cost: the benchmark's middle threshold (h_acc@3, AUC@10) or its one metric;
+    # none for reconstruct's runs, which have no metric (no ground truth)
+    if timed and benchmark.table_metrics:
         metrics = list(benchmark.table_metrics.values())
         metric = metrics[1] if len(metrics) > 1 else metrics[0]
         plots.append(plot_cost_accuracy(timed, metric, out / "img" / "cost_accuracy.png").relative_to(out).as_posix())

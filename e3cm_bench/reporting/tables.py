@@ -32,7 +32,8 @@ from e3cm_bench.reporting.runs import (TEXT_PAIR_COLUMNS, Run, eval_settings_of,
 # A table's column naming the metrics whose paper number lies outside the measured interval.
 OUTSIDE = "outside_ci"
 # A run's cost in the tables, after the benchmark's own columns (summary.csv's names).
-COST_COLUMNS = ("seconds_per_pair", "peak_memory_mb", "shared_peak_memory_mb")
+# seconds_per_image: matching and mapping together, where a run maps its set (reconstruct).
+COST_COLUMNS = ("seconds_per_pair", "seconds_per_image", "peak_memory_mb", "shared_peak_memory_mb")
 
 # Our short run labels -> the paper's method names, after lower-casing and removing spaces.
 METHOD_ALIASES = {"sift": "sift+nn", "r2d2": "r2d2+nn", "superpoint+sg": "superpoint+superglue"}

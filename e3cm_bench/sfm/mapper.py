@@ -71,6 +71,19 @@ GLOBAL_SUB_OPTIONS = {"mapper": {"num_threads": 1},
                                                    "refine_extra_params": False},
                       "mapper.bundle_adjustment.ceres": {"use_gpu": False},
                       "mapper.global_positioning": {"use_gpu": False}}
+UNCALIBRATED_GLOBAL = "mapper.bundle_adjustment"  # the group whose intrinsics reconstruct refines (pycolmap's default)
+
+
+def global_groups(calibrated: bool = True) -> dict:
+    """The global mapper's {group: options}; uncalibrated (reconstruct): its bundle adjustment
+    refines the intrinsics as pycolmap's defaults do (the focal from EXIF or 1.2 x the longer side
+    is a guess), the rest as for a calibrated set."""
+    groups = {k: dict(v) for k, v in GLOBAL_SUB_OPTIONS.items()}
+    if not calibrated:
+        groups.pop(UNCALIBRATED_GLOBAL)
+    return groups
+
+
 GLOBAL_SEEDED = ("", "mapper", "mapper.rotation_averaging", "mapper.global_positioning", "mapper.retriangulation")
 # COLMAP's verification as hloc runs it (hloc/reconstruction.py: at most 20000 RANSAC trials,
 # inlier ratio down to 0.1); the rest is pycolmap's TwoViewGeometryOptions (4 px, 15 inliers)
@@ -97,17 +110,23 @@ def mapper_settings() -> dict:
             "method": "pycolmap.incremental_mapping",
             **incremental_record(),
         },
-        "global": {
-            "method": "pycolmap.global_mapping",
-            "options": dict(GLOBAL_OPTIONS),
-            **{k: dict(v) for k, v in GLOBAL_SUB_OPTIONS.items()},
-        },
+        "global": global_record(),
         "verification": {
             "estimator": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
-            "colmap": {"method": "pycolmap.verify_matches", "options": dict(VERIFY_OPTIONS), "seed": "evaluation.seed"},
+            "colmap": verification_record(),
         },
         "keypoints": "merged per image (interchange.tracks.merge_keypoints) as dataset.protocol.merge says",
     }
+
+
+def verification_record() -> dict:
+    """COLMAP's verification as config.yaml records it, for sfm's ``colmap`` and for reconstruct."""
+    return {"method": "pycolmap.verify_matches", "options": dict(VERIFY_OPTIONS), "seed": "evaluation.seed"}
+
+
+def global_record(calibrated: bool = True) -> dict:
+    """The global mapper's table as config.yaml records it."""
+    return {"method": "pycolmap.global_mapping", "options": dict(GLOBAL_OPTIONS), **global_groups(calibrated)}
 
 
 def _set(options, values: dict, group: str = "") -> None:
@@ -126,16 +145,14 @@ def _set(options, values: dict, group: str = "") -> None:
 def mapper_options(seed: int, mapper: str = "incremental", override: dict | None = None, calibrated: bool = True):
     """pycolmap's options of `mapper` as the benchmark sets them, seeded; `override`: more
     {dotted group: {option: value}} (a caller that refines the intrinsics, say), set last.
-    calibrated=False: `reconstruct`'s (the incremental mapper, its intrinsics refined)."""
+    calibrated=False: `reconstruct`'s (its intrinsics refined)."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
 
     pycolmap = pycolmap_module()
     if mapper == "global":
-        if not calibrated:
-            raise ValueError("the global mapper runs on calibrated sets only (reconstruct runs the incremental one)")
         options = pycolmap.GlobalPipelineOptions()
         _set(options, GLOBAL_OPTIONS)
-        for group, values in GLOBAL_SUB_OPTIONS.items():
+        for group, values in global_groups(calibrated).items():
             _set(options, values, group)
         for group in GLOBAL_SEEDED:
             _set(options, {"random_seed": int(seed)}, group)
@@ -288,7 +305,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     write_colmap(workdir, items, merged=merged)
     inliers = [int(np.count_nonzero(g["inliers"])) if g else 0 for g in geometries]
     if not by_estimator:
-        inliers = _colmap_verification(workdir, items, ev.seed)
+        inliers = colmap_verification(workdir, items, ev.seed)
     keypoints, indices = merged
     lengths = tracks.track_lengths(
         {n: len(k) for n, k in keypoints.items()}, [(a, b) for a, b, _, _ in listed], indices
@@ -300,7 +317,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     return [{"n_inliers": n, "geometry": g} for n, g in zip(inliers, geometries)], numbers
 
 
-def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
+def colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
     """pycolmap.verify_matches over the database's pairs (log in mapper.log); each pair's
     number of verified matches."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
@@ -320,10 +337,10 @@ def _colmap_verification(workdir: Path, items: list, seed: int) -> list[int]:
     return counts
 
 
-def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incremental", models: str = MODELS,
-               root: Path | None = None, options: dict | None = None) -> Reconstruction:
-    """The mapper on workdir's database, its models in workdir/`models`, its log appended to
-    workdir/mapper.log; the models read back, largest first."""
+def map_models(workdir: Path, seed: int, mapper: str = "incremental", models: str = MODELS,
+               root: Path | None = None, calibrated: bool = True) -> dict:
+    """The mapper on workdir's database (sfm's and reconstruct's one call), its models in
+    workdir/`models`, its log appended to workdir/mapper.log; pycolmap's {index: Reconstruction}."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
     from e3cm_bench.storage.folder import fresh_folder
 
@@ -333,14 +350,18 @@ def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incre
     pycolmap.set_random_seed(int(seed))
     run = pycolmap.global_mapping if mapper == "global" else pycolmap.incremental_mapping
     with captured_log(workdir / LOG):
-        found_models = run(str(workdir / DATABASE), str(root or workdir), str(models_dir),
-                           options=mapper_options(seed, mapper, options))
-    found = []
-    for index, model in sorted(found_models.items()):
-        found.append(model_of(int(index), model))
+        return run(str(workdir / DATABASE), str(root or workdir), str(models_dir),
+                   options=mapper_options(seed, mapper, calibrated=calibrated))
+
+
+def run_mapper(workdir: Path, images: list[str], seed: int, mapper: str = "incremental", models: str = MODELS,
+               root: Path | None = None) -> Reconstruction:
+    """map_models' models read back, largest first."""
+    found = [model_of(int(index), model) for index, model in sorted(map_models(workdir, seed, mapper, models,
+                                                                                 root).items())]
     # largest first (as IMC picks its model); the mapper's own index breaks ties
     found.sort(key=lambda m: (-len(m.poses), m.index))
-    return Reconstruction(list(images), found, workdir / DATABASE)
+    return Reconstruction(list(images), found, Path(workdir) / DATABASE)
 
 
 def model_of(index: int, model) -> Model:

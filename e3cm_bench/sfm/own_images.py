@@ -8,8 +8,10 @@ hloc's pairs_from_exhaustive), each image with the next K (``window``: a video o
 file of ``name0 name1`` lines (``pairs``: from retrieval, or by hand). `RECONSTRUCT` is the
 "benchmark" that scores them: it has no ground truth, so it scores nothing; its per-pair rows
 say how many matches COLMAP's verification kept and where each image went, and its summary is
-the reconstruction's numbers. It is not in the benchmark registry (it is no benchmark: no
-paper table, no ground truth), so `table` and `report` do not read its folders.
+the reconstruction's numbers and its cost (matching and mapping). It is not in the benchmark
+registry (it is no benchmark: no paper table, no ground truth, no command of its own), but the
+registry finds it by name (benchmarks.UNLISTED): `table` lists its runs and `report` builds their
+page; `compare` says in one line that they hold no per-pair score.
 """
 
 from __future__ import annotations
@@ -18,17 +20,24 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import time
+
 import numpy as np
 import pandas as pd
 
 from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicates
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
+from e3cm_bench.ground.files import write_csv
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
-from e3cm_bench.sfm.protocol import BY_COLMAP, Protocol, _radius, keypoints_are_detections
+from e3cm_bench.sfm.protocol import BY_COLMAP, Protocol, _radius, keypoints_are_detections, parse_protocol
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
+# Under this share of the images in its largest model, a run says its models fragment (one line):
+# the 20 KITTI frames with xfeat gave 9 registered in 4 models, the largest of 3 (issue 80).
+FRAGMENTED = 0.8
+DEFAULT_MAPPER = "global"
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp")
 CAMERA_MODELS = ("SIMPLE_RADIAL", "PINHOLE")
 
@@ -58,14 +67,16 @@ class FolderOptions:
     camera_per_image: bool = False
     max_pairs: str | int | None = None
     allow_disconnected: bool = False
+    mapper: str | None = None
+    mapper_seeds: str | int | None = None
 
 
 @dataclass(frozen=True)
 class FolderSetup:
     """How a folder's pairs are reconstructed, the same object on every pair (views.ViewPair.setup):
-    the folder the images' names are relative to, the protocol (COLMAP's verification, the
-    incremental mapper once; the merge as given, ``auto`` until the run's matcher settles it by
-    the rule sfm applies: protocol.Protocol.resolved) and the cameras."""
+    the folder the images' names are relative to, the protocol (COLMAP's verification, sfm's
+    preset; the mapper and its seeds; the merge as given, ``auto`` until the run's matcher settles
+    it by the rule sfm applies: protocol.Protocol.resolved) and the cameras."""
 
     root: Path
     protocol: Protocol
@@ -80,7 +91,7 @@ class ImageFolder(PairList):
 
     def __init__(self, root: str | Path, skip_bad: bool = False, **options) -> None:
         """options: FolderOptions' fields (window, pairs, merge_px, camera_model, camera_per_image,
-        max_pairs, allow_disconnected), as the command's flags give them."""
+        max_pairs, allow_disconnected, mapper, mapper_seeds), as the command's flags give them."""
         if "single_camera" in options:  # records written before the option took its flag's name
             options["camera_per_image"] = not options.pop("single_camera")
         o = FolderOptions(**options)
@@ -88,6 +99,8 @@ class ImageFolder(PairList):
         camera_per_image, max_pairs, allow_disconnected = o.camera_per_image, o.max_pairs, o.allow_disconnected
         self.root = require_directory(root, "image")
         self.window, self.merge_px = _window(window), _radius(merge_px)  # None: the matcher's kind decides
+        # sfm's parser and defaults' kinds; a folder's own default is one seed (one model to open)
+        self.protocol = parse_protocol(o.mapper or DEFAULT_MAPPER, o.mapper_seeds or 1, "auto", merge_px, BY_COLMAP)
         self.pairs_file = Path(pairs) if pairs is not None else None
         if self.window is not None and self.pairs_file is not None:
             raise DatasetError(f"{self.pairs_file}: --window and --pairs are two pair graphs; give one")
@@ -128,9 +141,7 @@ class ImageFolder(PairList):
     def reconstruction(self) -> FolderSetup:
         """How the set is reconstructed: it travels with each pair (ViewPair.setup), as the sfm
         set's protocol does, to the evaluation that maps them."""
-        protocol = Protocol(mapper="incremental", mapper_seeds=1, merge="auto", merge_px=self.merge_px,
-                            verification=BY_COLMAP)
-        return FolderSetup(self.root, protocol, self.camera_model, self.camera_per_image)
+        return FolderSetup(self.root, self.protocol, self.camera_model, self.camera_per_image)
 
     def settings(self) -> dict:
         graph = (f"file {self.pairs_file}" if self.pairs_file is not None
@@ -138,7 +149,39 @@ class ImageFolder(PairList):
         return {"dataset": self.name, "root": str(self.root), "pair_graph": graph, "window": self.window,
                 "pairs": str(self.pairs_file) if self.pairs_file is not None else None, "n_images": len(self.views),
                 "max_pairs": self.max_pairs, "allow_disconnected": self.allow_disconnected,
-                "reconstruction": mapper_settings(self.camera_model, self.camera_per_image, self.merge_px)}
+                "reconstruction": mapper_settings(self.camera_model, self.camera_per_image, self.merge_px,
+                                                  self.protocol)}
+
+
+def model_facts(found) -> dict:
+    """A reconstruction's numbers with its largest model's (sparse/0, the model a user opens
+    first): several models may share images, and their points then count the same scene twice
+    (136 + 97 = 233 in one run), so the model's own points are said beside the sum over models."""
+    largest = found.models[0] if found.models else None
+    return {**found.numbers(), "largest_model_images": len(largest.poses) if largest else 0,
+            "largest_model_points": largest.points if largest else 0}
+
+
+def run_cost(matches: Sequence[Matches], mapping_seconds: float, n_images: int) -> dict:
+    """The cost of the whole run, not only its matching (evaluate_stage's seconds_per_pair):
+    COLMAP's verification, calibration and mapper (every seed's) in seconds, and the matching and
+    the mapping together per image. Measurements: in summary.csv, never in per_pair.csv (cost
+    columns: pipeline/evaluate.COST_KEYS)."""
+    matched = float(np.nansum([float(m.info.get("match_seconds", np.nan)) for m in matches]))
+    return {"mapping_seconds": mapping_seconds,
+            "seconds_per_image": (matched + mapping_seconds) / n_images if n_images else float("nan")}
+
+
+def fragments(summary: Mapping) -> str | None:
+    """One line where the models fragment: the largest holds under FRAGMENTED of the images
+    (None otherwise)."""
+    n, largest = int(summary.get("n_images", 0)), int(summary.get("largest_model_images", 0))
+    if not n or largest >= FRAGMENTED * n:
+        return None
+    share = largest / n
+    return (f"the models fragment: the largest holds {largest} of {n} images ({share:.0%}), "
+            f"{int(summary.get('n_models', 0))} model(s) in all; the matches of this folder do not join its "
+            f"images into one scene (try --mapper, a wider --window, or another matcher)")
 
 
 @dataclass(frozen=True)
@@ -166,9 +209,12 @@ class ReconstructBenchmark(Benchmark):
         if not isinstance(how, FolderSetup):
             raise ValueError("reconstruct maps an ImageFolder's pairs (views.ViewPair with a FolderSetup)")
         protocol = how.protocol.resolved(keypoints_are_detections(matcher))
-        found, verified = reconstruct_images(pairs, [k for k, _ in kept], workdir, how.root, seed=ev.seed,
-                                             merge_px=protocol.merge_px, camera_model=how.camera_model,
-                                             camera_per_image=how.camera_per_image)
+        started = time.perf_counter()
+        seeds, verified, calibrated = reconstruct_images(
+            pairs, [k for k, _ in kept], workdir, how.root, seed=ev.seed, protocol=protocol,
+            camera_model=how.camera_model, camera_per_image=how.camera_per_image)
+        mapping_seconds = time.perf_counter() - started
+        found = seeds[0]  # the model in OUT/sparse: the first seed's; the others' under seed-K/
         rows = []
         for pair, (k, repeats), n_verified in zip(pairs, kept, verified):
             (placed0, placed1) = found.placed(pair.view0, pair.view1)
@@ -176,13 +222,13 @@ class ReconstructBenchmark(Benchmark):
             rows.append({"pair": pair.name, "n_matches": len(k), "n_verified": n_verified,
                          "registered0": int(placed0 is not None), "registered1": int(placed1 is not None),
                          "model": placed0[0] if same else -1, DUPLICATES: repeats})
-        # the model a user opens first (sparse/0): several models may share images, and their
-        # points then count the same scene twice (136 + 97 = 233 in one run), so the model's own
-        # points are said beside the sum over models
-        largest = found.models[0] if found.models else None
-        return rows, {**found.numbers(), "merge_px": protocol.merge_px,
-                      "largest_model_images": len(largest.poses) if largest else 0,
-                      "largest_model_points": largest.points if largest else 0}
+        if len(seeds) > 1:
+            write_csv(pd.DataFrame([{"seed": ev.seed + s, "focals_calibrated": int(c), **model_facts(r)}
+                                    for s, (r, c) in enumerate(zip(seeds, calibrated))]),
+                      workdir / "per_seed.csv")
+        return rows, {**model_facts(found), "merge_px": protocol.merge_px, "mapper": protocol.mapper,
+                      "mapper_seeds": protocol.mapper_seeds, "focals_calibrated": int(calibrated[0]),
+                      **run_cost(matches, mapping_seconds, len(found.images))}
 
     def summarize(self, rows: Sequence[Mapping], ev: EvalSettings) -> dict:
         rows = list(rows)
@@ -192,8 +238,8 @@ class ReconstructBenchmark(Benchmark):
     def required_summary_columns(self) -> list[str]:
         return ["n_pairs", "n_matches", "registered_images", "n_models"]
 
-    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> np.ndarray:
-        raise ValueError("reconstruct has no ground truth to call a match correct")
+    def correct_mask(self, pair: Pair, matches: Matches, ev: EvalSettings) -> None:
+        return None  # no ground truth to call a match correct: drawings colour matches by height alone
 
     def plot_run(self, label: str, summary: dict, per_pair: pd.DataFrame, out: Path) -> None:
         return None  # its picture is the model: open OUT/sparse/0 in COLMAP's GUI
@@ -213,6 +259,8 @@ RECONSTRUCT = ReconstructBenchmark(
         "camera_per_image",
         "max_pairs",
         "allow_disconnected",
+        "mapper",
+        "mapper_seeds",
     ),
     summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
     default_max_side=1200,

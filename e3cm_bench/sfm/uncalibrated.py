@@ -1,21 +1,24 @@
 """Matches of one's own images (no ground truth) -> a COLMAP database -> COLMAP's verification
--> pycolmap's incremental mapper -> the model, written where COLMAP's GUI and hloc open it.
+-> pycolmap's mapper -> the model, written where COLMAP's GUI and hloc open it.
 
 Where the sfm benchmark knows each image's K and keeps it fixed (sfm/mapper.py), here the
 intrinsics are unknown, as for a user's photos: each image's camera as COLMAP's image reader
 makes it (the focal length from EXIF where the file has it, else 1.2 x the longer side; the
 principal point at the centre), shared by the images whose cameras come out the same (COLMAP's
-single_camera, per size and EXIF focal), and refined by the mapper's bundle adjustment. Without K there is no essential
-matrix to check the
-matches with, so COLMAP verifies them itself (pycolmap.verify_matches: its fundamental /
-essential / homography RANSAC, seeded), as hloc's pipelines do, and the mapper runs on its
-inliers.
+single_camera, per size and EXIF focal), calibrated from the verified pairs' fundamental matrices
+(COLMAP's view-graph calibration, as COLMAP advises before its global mapper without reliable
+intrinsics) and refined by the mapper's bundle adjustment. The
+rest is sfm's protocol, from the same tables: COLMAP's verification with sfm's preset
+(sfm/mapper.py VERIFY_OPTIONS: pycolmap's default max_H_inlier_ratio lost a forward-moving
+camera's pairs to homographies), the mapper (global or incremental) and its seeds. COLMAP's log
+goes to mapper.log beside the database, not to the terminal.
 
 The products, in the run folder: ``database.db`` (keypoints, matches, verified geometries),
-``pairs.txt`` (the pair graph, ``name0 name1`` per line) and ``sparse/N/`` per model, largest
-first (``sparse/0``), in COLMAP's binary and text formats (``cameras``, ``images``, ``points3D``): ``colmap gui
---import_path``,
-``pycolmap.Reconstruction(path)`` and hloc read them. A rerun (resume, --overwrite) replaces them.
+``pairs.txt`` (the pair graph, ``name0 name1`` per line), ``mapper.log`` and ``sparse/N/`` per
+model, largest first (``sparse/0``), in COLMAP's binary and text formats (``cameras``,
+``images``, ``points3D``): ``colmap gui --import_path``, ``pycolmap.Reconstruction(path)`` and
+hloc read them; with --mapper-seeds K, the same for seed + K under ``seed-K/``. A rerun
+(resume, --overwrite) replaces them.
 """
 
 from __future__ import annotations
@@ -26,21 +29,28 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
-from e3cm_bench.storage.folder import fresh_folder, remove_folder
-from e3cm_bench.sfm.mapper import Reconstruction, image_size, incremental_record, mapper_options, model_of
+from e3cm_bench.storage.folder import remove_folder
+from e3cm_bench.sfm.mapper import (LOG, Reconstruction, captured_log, colmap_verification, global_record,
+                                        image_size, incremental_record, map_models, model_of, verification_record)
 
 DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
 
 
-def settings(camera_model: str, camera_per_image: bool, merge_px: float | None) -> dict:
-    """What config.yaml records of the reconstruction (with the dataset; the seed is the run's)."""
+def settings(camera_model: str, camera_per_image: bool, merge_px: float | None, protocol=None) -> dict:
+    """What config.yaml records of the reconstruction (with the dataset; the seed is the run's):
+    COLMAP's verification and the mapper's table, sfm's own (sfm/mapper.py), the intrinsics
+    refined."""
     from e3cm_bench.ground.pycolmap import pycolmap_version
 
-    return {"method": "pycolmap.verify_matches + pycolmap.incremental_mapping", "pycolmap": pycolmap_version(),
-            **incremental_record(calibrated=False),
-            "seed": "evaluation.seed", "camera_model": camera_model,
+    mapper = protocol.mapper if protocol is not None else "incremental"
+    table = global_record(calibrated=False) if mapper == "global" else {
+        "method": "pycolmap.incremental_mapping", **incremental_record(calibrated=False)}
+    return {"pycolmap": pycolmap_version(), "verification": verification_record(), "mapper": mapper,
+            "mapper_seeds": protocol.mapper_seeds if protocol is not None else 1, mapper: table,
+            "seed": "evaluation.seed + 0..mapper_seeds-1", "camera_model": camera_model,
             "cameras": "one per image" if camera_per_image else "shared by the images of one size and EXIF focal",
-            "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side",
+            "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side; then "
+                          "pycolmap.calibrate_view_graph (seeded) from the verified pairs",
             "intrinsics": "refined by the mapper",
             "merge_px": merge_px}
 
@@ -65,61 +75,74 @@ def cameras_for(root: Path, names: Sequence[str], camera_model: str, camera_per_
 
 
 def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: Path, seed: int = 0,
-                       merge_px: float = 0.0, camera_model: str = "SIMPLE_RADIAL",
-                       camera_per_image: bool = False) -> tuple[Reconstruction, list[int]]:
+                       protocol=None, camera_model: str = "SIMPLE_RADIAL",
+                       camera_per_image: bool = False) -> tuple[list[Reconstruction], list[int], list[bool]]:
     """The database of `pairs` (views.ViewPair: view0/view1 name the images under `root`) and their
-    `matches` (each correspondence once), verified by COLMAP, mapped, and written under workdir;
-    returns the reconstruction and each pair's number of verified matches."""
-    from e3cm_bench.ground.pycolmap import pycolmap_module
-    from e3cm_bench.interchange.colmap import verify_pairs, write_colmap
+    `matches` (each correspondence once), verified by COLMAP as sfm's ``colmap`` verification is
+    (sfm/mapper.py: one preset), mapped by the resolved protocol's mapper (protocol.Protocol;
+    None: the incremental mapper once, keypoints merged exactly), and written under workdir; with
+    several seeds, each verifies and maps again (seed + K) under workdir/seed-K/. Returns each seed's
+    reconstruction, each pair's number of verified matches (the first seed's) and whether each
+    seed's view-graph calibration held (calibrate_focals)."""
     from e3cm_bench.interchange.base import ExportItem
+    from e3cm_bench.interchange.colmap import write_colmap
 
-    pycolmap = pycolmap_module()
+    from e3cm_bench.sfm.protocol import Protocol
+
+    protocol = protocol or Protocol(mapper="incremental", mapper_seeds=1, merge="exact").resolved(True)
     workdir = Path(workdir)
-    for stale in (workdir / DATABASE, workdir / PAIRS):
+    for stale in (workdir / DATABASE, workdir / PAIRS, workdir / LOG):
         stale.unlink(missing_ok=True)
-    remove_folder(workdir / SPARSE)  # a rerun replaces the last one's products (a link there refused)
+    for stale in (workdir / SPARSE, *workdir.glob("seed-*")):
+        remove_folder(stale)  # a rerun replaces the last one's products (a link there refused)
     items, images = [], []
     for pair, m in zip(pairs, matches):
         names = pair.view0, pair.view1
         images += [name for name in names if name not in images]
         items.append(ExportItem(pair.name, pair, names[0], names[1], image_size(pair, m, 0), image_size(pair, m, 1), m))
-    write_colmap(workdir, items, merge_px=merge_px, cameras=cameras_for(root, images, camera_model, camera_per_image))
+    cameras = cameras_for(root, images, camera_model, camera_per_image)
     # the pair graph for the user (reconstruct --pairs reads it back); COLMAP is handed no text list
     (workdir / PAIRS).write_text("".join(pair_line(item.name0, item.name1) for item in items))
-    pycolmap.set_random_seed(int(seed))
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # its progress log is thousands of lines; warnings and errors still show
-    try:
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.ransac.random_seed = int(seed)
-        verify_pairs(pycolmap, workdir / DATABASE, [(item.name0, item.name1) for item in items], verification)
-        verified = _verified(pycolmap, workdir / DATABASE, items)
-        mapper_out = workdir / f"{SPARSE}.mapper"  # where the mapper writes its snapshots
-        fresh_folder(mapper_out)
-        found = pycolmap.incremental_mapping(str(workdir / DATABASE), str(root), str(mapper_out),
-                                             options=mapper_options(seed, calibrated=False))
-    finally:
-        pycolmap.logging.minloglevel = level
-    remove_folder(mapper_out, ignore_errors=True)
-    # sparse/0 is the largest model (the mapper's index breaks ties), as a user opens it first
-    ranked = sorted(found.items(), key=lambda item: (-item[1].num_reg_images(), item[0]))
+    found, first, calibrated = [], [], []
+    for s in range(protocol.mapper_seeds):
+        folder = workdir if s == 0 else workdir / f"seed-{s}"
+        folder.mkdir(exist_ok=True)
+        write_colmap(folder, items, merge_px=protocol.merge_px, cameras=cameras)
+        verified = colmap_verification(folder, items, seed + s)  # COLMAP's log: folder/mapper.log
+        first = first or verified
+        calibrated.append(calibrate_focals(folder, seed + s))
+        found.append(_mapped(folder, images, root, seed + s, protocol.mapper))
+    return found, first, calibrated
+
+
+def calibrate_focals(folder: Path, seed: int) -> bool:
+    """COLMAP's view-graph calibration (pycolmap.calibrate_view_graph) on folder's verified
+    database: each camera's focal length from the pairs' fundamental matrices, and the pairs'
+    geometries upgraded to calibrated ones, before the mapper runs; False where too few pairs
+    agree (the guess then stays). Without it the guess (1.2 x the longer side: 1489 px for the
+    KITTI frames, whose focal is 718) lost most of a forward-moving camera's frames: xfeat, window
+    2, registered 8 of 20 in 3 models under the incremental mapper and none under the global one;
+    with it, 20 of 20 in one model under either (focal 663-675 px, refined by the mapper)."""
+    from e3cm_bench.ground.pycolmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    options = pycolmap.ViewGraphCalibrationOptions()
+    options.random_seed = int(seed)
+    with captured_log(folder / LOG):
+        return bool(pycolmap.calibrate_view_graph(str(folder / DATABASE), options))
+
+
+def _mapped(folder: Path, images: list[str], root: Path, seed: int, mapper: str) -> Reconstruction:
+    """The mapper on folder's database; its models in folder/sparse/N, largest first (sparse/0, as
+    a user opens it first; the mapper's index breaks ties), in COLMAP's binary and text formats."""
+    mapped = map_models(folder, seed, mapper, f"{SPARSE}.mapper", root=root, calibrated=False)
+    remove_folder(folder / f"{SPARSE}.mapper", ignore_errors=True)  # the mapper's snapshots
+    ranked = sorted(mapped.items(), key=lambda item: (-item[1].num_reg_images(), item[0]))
     models = []
     for rank, (_, model) in enumerate(ranked):
-        folder = workdir / SPARSE / str(rank)
-        folder.mkdir(parents=True)
-        model.write_binary(str(folder))
-        model.write_text(str(folder))
+        out = folder / SPARSE / str(rank)
+        out.mkdir(parents=True)
+        model.write_binary(str(out))
+        model.write_text(str(out))
         models.append(model_of(rank, model))
-    return Reconstruction(images, models, workdir / DATABASE), verified
-
-
-def _verified(pycolmap, database: Path, items) -> list[int]:
-    """Each pair's number of matches COLMAP's verification kept (0: none, or no geometry)."""
-    db = pycolmap.Database.open(str(database))
-    try:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
-        return [len(db.read_two_view_geometry(ids[i.name0], ids[i.name1]).inlier_matches)
-                if db.exists_two_view_geometry(ids[i.name0], ids[i.name1]) else 0 for i in items]
-    finally:
-        db.close()
+    return Reconstruction(images, models, folder / DATABASE)

@@ -214,5 +214,7 @@ def test_one_mapper_table_for_sfm_and_reconstruct():
     assert not calibrated.ba_refine_focal_length and not calibrated.mapper.abs_pose_refine_focal_length
     assert not calibrated.extract_colors
     assert own.ba_refine_focal_length and own.ba_refine_extra_params and own.extract_colors
-    with pytest.raises(ValueError, match="global mapper runs on calibrated sets only"):
-        mapper_options(7, "global", calibrated=False)
+    # the global mapper too: sfm's choices, but reconstruct's unknown intrinsics refined (pycolmap's default)
+    fixed, free = mapper_options(7, "global"), mapper_options(7, "global", calibrated=False)
+    assert not fixed.mapper.bundle_adjustment.refine_focal_length and free.mapper.bundle_adjustment.refine_focal_length
+    assert free.num_threads == free.mapper.num_threads == 1 and free.mapper.random_seed == 7
