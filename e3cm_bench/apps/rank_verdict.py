@@ -21,26 +21,19 @@ VERDICT = "verdict.csv"
 # The reconstruction's facts each row repeats from its run's summary.csv.
 FACTS = ("n_images", "registered_images", "n_models", "largest_model_images", "points", "mean_track_length",
          "mean_reprojection_error")
+COST = ("seconds_per_image", "seconds_per_pair", "mapping_seconds", "peak_memory_mb")
 COLUMNS = ("rank", "method", "score", "score_lo", "score_hi", "vs_next", "diff_next", "diff_next_lo", "diff_next_hi",
-           "n_pairs_scored", "seconds_per_image", "seconds_per_pair", "mapping_seconds", "peak_memory_mb", *FACTS,
+           "n_pairs_scored", *COST, *FACTS,
            "run", "failed")
 
 
-def run_cost(run: Path, n_images: int) -> dict:
-    """Seconds per image and per pair (matching: the sum of the pairs' match_seconds, over images and
-    over pairs), the mapping's seconds where the run recorded them, and the run's peak memory."""
+def run_cost(run: Path) -> dict:
+    """The run's cost as its summary.csv holds it: seconds per image (matching and mapping,
+    sfm/own_images.run_cost), per pair (matching), the mapping's seconds, the peak memory."""
     from e3cm_bench.storage.folder import RunFolder
 
-    folder = RunFolder(run)
-    cost = pd.read_csv(folder.cost_path) if folder.cost_path.is_file() else pd.DataFrame()
-    summary = pd.read_csv(folder.summary_path).iloc[0] if folder.summary_path.is_file() else pd.Series(dtype=float)
-    matching = float(cost["match_seconds"].sum()) if "match_seconds" in cost else float("nan")
-    mapping = float(summary.get("mapping_seconds", np.nan))
-    total = matching + (mapping if np.isfinite(mapping) else 0.0)
-    return {"seconds_per_image": total / n_images if n_images else float("nan"),
-            "seconds_per_pair": total / len(cost) if len(cost) else float("nan"),
-            "mapping_seconds": mapping,
-            "peak_memory_mb": float(cost["peak_memory_mb"].max()) if "peak_memory_mb" in cost else float("nan")}
+    summary = pd.read_csv(RunFolder(run).summary_path).iloc[0]
+    return {key: float(summary.get(key, np.nan)) for key in COST}
 
 
 def run_facts(run: Path) -> dict:
@@ -67,7 +60,7 @@ def verdict_table(runs: Mapping[str, Path], failed: Mapping[str, str] | None = N
         label = row["method"]
         facts = run_facts(runs[label])
         rows.append({**row, "n_pairs_scored": int(np.count_nonzero(~np.isnan(errors[label]))),
-                     **run_cost(runs[label], int(facts["n_images"])), **facts, "run": str(runs[label]), "failed": ""})
+                     **run_cost(runs[label]), **facts, "run": str(runs[label]), "failed": ""})
     for label, reason in failed.items():
         rows.append({"method": label, "failed": reason, "run": str(runs.get(label, ""))})
     return pd.DataFrame(rows).reindex(columns=list(COLUMNS))

@@ -155,6 +155,8 @@ def rank(
     pairs: PairsOpt = None,
     max_pairs: MaxPairsOpt = None,
     allow_disconnected: AllowDisconnectedOpt = False,
+    mapper: MapperOpt = None,
+    mapper_seeds: MapperSeedsOpt = None,
     camera_model: CameraModelOpt = "SIMPLE_RADIAL",
     camera_per_image: CameraPerImageOpt = False,
     backbone: BackboneOpt = None,
@@ -172,6 +174,7 @@ def rank(
                           method=dict(backbone=backbone, max_side=max_side, precision=precision, seed=seed),
                           dataset_options=dict(window=window, pairs=pairs, camera_model=camera_model,
                                                camera_per_image=camera_per_image, max_pairs=max_pairs,
-                                               allow_disconnected=allow_disconnected),
+                                               allow_disconnected=allow_disconnected, mapper=mapper,
+                                               mapper_seeds=mapper_seeds),
                           seed=seed, device=device)
     print_verdict(rank_folder(request, console), Path(out), console)
