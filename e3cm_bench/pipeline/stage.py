@@ -126,7 +126,11 @@ class MatchOptions:
     seconds a matcher may take on one pair before it fails on it (None: no limit). With a
     limit, each matcher runs in a child process of its own that is killed, with every process
     it started, when a pair takes longer (`isolates`); the feature cache is then off (each
-    child computes its own maps), which changes no result.
+    child computes its own maps), which changes no result. feature_reuse: False runs every
+    matcher pair by pair, as `match(image0, image1)`, each pair extracting both its images (the
+    path before two-stage matchers; deep matchers keep their pyramid cache, which
+    feature_cache_mb 0 turns off); True, the default, extracts a two-stage matcher's features
+    (matchers/base.py `splits`) once per image, in the same cache. The same matches either way.
     """
 
     feature_cache_mb: float | None = None
@@ -134,6 +138,7 @@ class MatchOptions:
     backbone_batch: int | None = None
     on_matcher_error: str = "stop"
     pair_timeout: float | None = None
+    feature_reuse: bool = True
 
     def __post_init__(self) -> None:
         if self.on_matcher_error not in ON_MATCHER_ERROR:
@@ -245,14 +250,20 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
     isolated = isolates(options)
     if isolated:  # a child's feature maps stay in the child: no cache shared through this process
         options = replace(options, feature_cache_mb=0, backbone_batch=options.backbone_batch or 1)
+    if options.feature_reuse and not isolated:
+        from e3cm_bench.matchers.two_stage import reusing
+
+        built = reusing(built)
     budget, batch, disk = 0.0, int(options.backbone_batch or 1), 0.0
     if any(getattr(matcher, "uses_feature_cache", False) for matcher in built):
-        # torch: imported only for a matcher on a backbone (a classical run's address space stays small)
-        from e3cm_bench.matchers.deep import auto_backbone_batch
         from e3cm_bench.matchers.feature_cache import auto_cache_mb, auto_spill_mb
 
         budget = auto_cache_mb(device) if options.feature_cache_mb is None else float(options.feature_cache_mb)
-        batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
+        if any(hasattr(matcher, "backbone") for matcher in built):
+            # torch: imported only for a matcher on a backbone (a classical run's address space stays small)
+            from e3cm_bench.matchers.deep import auto_backbone_batch
+
+            batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
         if budget and spill_root is not None:
             disk = auto_spill_mb(spill_root) if options.spill_mb is None else float(options.spill_mb)
     shared = _Shared([], {}, budget, disk, batch)
@@ -269,7 +280,7 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
             matcher.share_features_of(group["matcher"], budget, group["spill"])
             group["labels"].append(job.method.label)
         if job.on_matcher is not None:
-            job.on_matcher(matcher)
+            job.on_matcher(getattr(matcher, "matcher", matcher))  # a two-stage matcher recorded as it is
         shared.matchers.append(matcher)
         job.stats.update(match_seconds=0.0, pairs_matched=0)
     if isolated:
@@ -334,7 +345,8 @@ def _report_reuse(jobs: list[MatchJob], shared: _Shared, console: Console) -> No
         for job, matcher in zip(jobs, shared.matchers):
             if getattr(matcher, "feature_cache", None) is reuse:
                 job.stats["feature_reuse"] = stats
-        console.print(f"feature maps ({', '.join(group['labels'])}): {stats['backbone_passes']} backbone passes for "
+        what = "backbone passes" if hasattr(group["matcher"], "backbone") else "extractions"
+        console.print(f"features ({', '.join(group['labels'])}): {stats['extractions']} {what} for "
                       f"{stats['distinct_images']} images ({stats['passes_per_image']:.2f} per image), "
                       f"{stats.get('read_from_disk', 0)} read back from disk", markup=False)  # labels are the user's
 
