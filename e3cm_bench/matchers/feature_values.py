@@ -68,7 +68,7 @@ def portable(value):
     """value as torch.save writes it and torch.load(weights_only=True) reads it back: a
     pyramid's tensors on the CPU; Features as [name, kind, value] rows (numpy arrays as
     tensors, kind "numpy", to come back as arrays). None where a value of Features is neither
-    an array nor plain (it cannot wait on disk)."""
+    an array nor plain (a number, a string, None or a tuple of them): it cannot wait on disk."""
     import torch
 
     if not isinstance(value, Features):
@@ -79,7 +79,7 @@ def portable(value):
             rows.append([name, "numpy", torch.from_numpy(np.ascontiguousarray(item))])
         elif isinstance(item, torch.Tensor):
             rows.append([name, "torch", item.cpu()])
-        elif isinstance(item, PLAIN):
+        elif isinstance(item, PLAIN) or (isinstance(item, tuple) and all(isinstance(v, PLAIN) for v in item)):
             rows.append([name, "plain", item])
         else:
             return None
