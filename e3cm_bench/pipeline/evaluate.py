@@ -75,18 +75,20 @@ def cost_table(pairs: list[Pair], cache: MatchCache) -> pd.DataFrame:
 
 
 # A pair's cost as cost.csv holds it: the matcher's wall time and the matching process's peak
-# resident memory during the pair (ground/cost.py); NaN for matches imported or failed.
-COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb")
+# resident memory during the pair (ground/cost.py), and how much of that the feature cache held
+# (features and pyramids of images with pairs left); NaN for matches imported or failed.
+COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb", "cache_memory_mb")
 # The run's cost in summary.csv: the mean seconds per pair (with its bootstrap interval over the
 # pairs, as every number), the highest per-pair peak, and on CUDA the allocator's highest peak.
-COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb")
+COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "cache_memory_mb")
 
 
 def pair_cost(matches: Matches) -> dict:
     info = matches.info
     return {"match_seconds": float(info.get("match_seconds", np.nan)),
             "peak_memory_mb": float(info.get("match_peak_mb", np.nan)),
-            "gpu_peak_memory_mb": float(info.get("match_gpu_peak_mb", np.nan))}
+            "gpu_peak_memory_mb": float(info.get("match_gpu_peak_mb", np.nan)),
+            "cache_memory_mb": float(info.get("match_cache_mb", np.nan))}
 
 
 def cost_summary(costs: list[dict]) -> dict:
@@ -98,8 +100,8 @@ def cost_summary(costs: list[dict]) -> dict:
     out = {"seconds_per_pair": float(timed.mean())}
     bounds = stats.bootstrap_interval(list(timed), lambda picked: {"s": float(np.mean(picked))}, keys=["s"])
     out["seconds_per_pair_lo"], out["seconds_per_pair_hi"] = (float(v) for v in bounds["s"])
-    for key, column in (("peak_memory_mb", "peak_memory_mb"), ("gpu_peak_memory_mb", "gpu_peak_memory_mb")):
-        values = np.array([c[column] for c in costs], float)
+    for key in ("peak_memory_mb", "gpu_peak_memory_mb", "cache_memory_mb"):
+        values = np.array([c.get(key, np.nan) for c in costs], float)
         if np.isfinite(values).any():
             out[key] = float(np.nanmax(values))
     return out

@@ -51,6 +51,8 @@ def match_cached_pair(
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
                          pair_rotations(pair, method), method.resize, TimeLimit(time_limit, worker))
+    if getattr(matcher, "feature_cache", None) is not None:  # the cache's share of the pair's peak
+        matches.info["match_cache_mb"] = matcher.feature_cache.bytes / 2**20
     cache.write(pair.name, matches, {k: matches.info[k] for k in PAIR_ATTRS + COST_ATTRS if k in matches.info})
 
 
@@ -126,11 +128,9 @@ class MatchOptions:
     seconds a matcher may take on one pair before it fails on it (None: no limit). With a
     limit, each matcher runs in a child process of its own that is killed, with every process
     it started, when a pair takes longer (`isolates`); the feature cache is then off (each
-    child computes its own maps), which changes no result. feature_reuse: False runs every
-    matcher pair by pair, as `match(image0, image1)`, each pair extracting both its images (the
-    path before two-stage matchers; deep matchers keep their pyramid cache, which
-    feature_cache_mb 0 turns off); True, the default, extracts a two-stage matcher's features
-    (matchers/base.py `splits`) once per image, in the same cache. The same matches either way.
+    child computes its own maps), which changes no result. feature_reuse (default True): a
+    two-stage matcher's features (matchers/base.py `splits`) extracted once per image, in the same
+    cache; False: pair by pair, as before (deep matchers keep their cache). The same matches.
     """
 
     feature_cache_mb: float | None = None

@@ -36,6 +36,7 @@ from rich.console import Console
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.storage import RunFolder
 from e3cm_bench.storage.cache import MatchCache
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
@@ -83,7 +84,7 @@ def same_matches(a: Path, b: Path) -> bool:
 def stage(method: MethodSpec, pairs: list, folder: Path, device: str, reuse: bool, count: dict) -> dict:
     count["n"] = 0
     t = time.perf_counter()
-    stats = match_stage(method, pairs, MatchCache(folder / "matches.h5"), device, Console(quiet=True),
+    stats = match_stage(method, pairs, MatchCache(RunFolder(folder).matches_path), device, Console(quiet=True),
                         options=MatchOptions(feature_reuse=reuse))
     return {"wall_s": time.perf_counter() - t, "match_s": stats["match_seconds"], "extractions": count["n"],
             "recorded": stats.get("feature_reuse", {}).get("extractions")}
@@ -98,8 +99,8 @@ def measure(set_name: str, pairs: list, matcher: str, side: int | None, device: 
     return {"set": set_name, "matcher": matcher, "pairs": len(pairs), "images": len(images), "side": side,
             "plain": plain, "reuse": reuse, "ratio_match": plain["match_s"] / reuse["match_s"],
             "ratio_wall": plain["wall_s"] / reuse["wall_s"],
-            "same_matches": same_matches(work / f"{set_name}-{matcher}-plain" / "matches.h5",
-                                         work / f"{set_name}-{matcher}-reuse" / "matches.h5")}
+            "same_matches": same_matches(RunFolder(work / f"{set_name}-{matcher}-plain").matches_path,
+                                         RunFolder(work / f"{set_name}-{matcher}-reuse").matches_path)}
 
 
 def write_csv(path: Path, rows: list[dict], before: tuple, after: tuple) -> None:
