@@ -111,7 +111,7 @@ def write_csv(path: Path, rows: list[dict], before: tuple, after: tuple) -> None
         out = csv.writer(f)
         out.writerow(["set", "matcher", "pairs", "images", "side", "extractions pair by pair", "extractions reused",
                       "pair by pair s", "reused s", "speed-up", "wall speed-up", "same matches", "load before",
-                      "load after"])
+                      "load after row"])
         for r in rows:
             out.writerow([r["set"], r["matcher"], r["pairs"], r["images"], r["side"], r["plain"]["extractions"],
                           r["reuse"]["extractions"], round(r["plain"]["match_s"], 1), round(r["reuse"]["match_s"], 1),
@@ -144,10 +144,9 @@ def main() -> None:
                       f"{row['reuse']['recorded']})  match s {row['plain']['match_s']:7.1f} -> "
                       f"{row['reuse']['match_s']:7.1f}  x{row['ratio_match']:.2f}  wall x{row['ratio_wall']:.2f}  "
                       f"same matches: {row['same_matches']}", flush=True)
-    after = os.getloadavg()
-    print(f"load average after: {after}")
-    if args.csv:
-        write_csv(args.csv, rows, before, after)
+                if args.csv:  # after each row: a run stopped part way keeps what it measured
+                    write_csv(args.csv, rows, before, os.getloadavg())
+    print(f"load average after: {os.getloadavg()}")
     if args.json:
         print(json.dumps({"rows": rows, "python": sys.version.split()[0]}))
 
