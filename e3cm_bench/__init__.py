@@ -35,7 +35,8 @@ if _FINDER not in _sys.meta_path:
 _EXPORTS = {
     "BENCHMARKS": ".benchmarks", "Benchmark": ".benchmarks", "EvalSettings": ".benchmarks",
     "get_benchmark": ".benchmarks", "register": ".benchmarks",
-    "Matcher": ".matchers", "MatcherEntry": ".matchers", "build_matcher": ".matchers", "get_matcher": ".matchers",
+    "Features": ".matchers", "Matcher": ".matchers", "MatcherEntry": ".matchers", "build_matcher": ".matchers",
+    "get_matcher": ".matchers",
     "matcher_names": ".matchers", "register_matcher": ".matchers",
     "Matches": ".ground.matches", "MethodSpec": ".method.spec", "match_pair": ".pipeline.runner",
     "run_benchmark": ".pipeline.runner",
@@ -43,7 +44,7 @@ _EXPORTS = {
 _RENAMED = {"register_matcher": "register"}
 
 __all__ = [
-    "BENCHMARKS", "Benchmark", "EvalSettings", "Matcher", "MatcherEntry", "Matches", "MethodSpec",
+    "BENCHMARKS", "Benchmark", "EvalSettings", "Features", "Matcher", "MatcherEntry", "Matches", "MethodSpec",
     "build_matcher", "get_benchmark", "get_matcher", "match_pair", "matcher_names", "register", "register_matcher",
     "run_benchmark",
 ]
@@ -64,7 +65,7 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # what type checkers and the documentation's static reader see
     from e3cm_bench.benchmarks import BENCHMARKS, Benchmark, EvalSettings, get_benchmark, register
-    from e3cm_bench.matchers import Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
+    from e3cm_bench.matchers import Features, Matcher, MatcherEntry, build_matcher, get_matcher, matcher_names
     from e3cm_bench.matchers import register as register_matcher
     from e3cm_bench.ground.matches import Matches
     from e3cm_bench.method.spec import MethodSpec

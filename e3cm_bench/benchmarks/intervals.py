@@ -26,7 +26,7 @@ INTERVAL_SEEDS = "interval_seeds"  # the RANSAC seeds the interval holds (EvalSe
 COUNTS = ("n_pairs", "n_failures", "n_skipped")  # prefixes: n_pairs_i, n_pairs_v too
 # The run's highest per-pair memory peaks (pipeline/evaluate.py cost_summary): facts of this run
 # on this machine, not an estimate over pairs, so no interval either.
-PEAKS = ("peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
+PEAKS = ("peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb", "cache_memory_mb")
 
 
 def lo_key(key: str) -> str:

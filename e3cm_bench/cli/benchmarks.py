@@ -25,6 +25,7 @@ from e3cm_bench.cli.common import (
     DeviceOpt,
     BackboneBatchOpt,
     FeatureCacheOpt,
+    FeatureReuseOpt,
     friendly_errors,
     ShardOpt,
     WorkersOpt,
@@ -121,7 +122,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
     ev = bench.resolve_eval(protocol, method_given["seed"], **eval_keywords(eval_given))
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
-                           pair_timeout=o.pair_timeout)
+                           pair_timeout=o.pair_timeout, feature_reuse=o.feature_reuse)
     root = find_root(bench.name, o.root)
     method = build_method(values, bench, o.device, warn=warn)
     if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
@@ -213,6 +214,7 @@ def common_before() -> tuple:
         *_other_method_options(),
         ("feature_cache_mb", FeatureCacheOpt, None),
         ("backbone_batch", BackboneBatchOpt, None),
+        ("feature_reuse", FeatureReuseOpt, True),
     )
 
 

@@ -111,6 +111,14 @@ FeatureCacheOpt = Annotated[
              "folder, up to half the free disk, at most 64 GiB); 0 = no reuse. Never changes a result.",
     ),
 ]
+FeatureReuseOpt = Annotated[
+    bool,
+    typer.Option(
+        "--feature-reuse/--no-feature-reuse",
+        help="Extract a two-stage matcher's features once per image and match every pair from them (in the feature "
+             "cache); --no-feature-reuse: pair by pair, each pair extracting both its images. Never changes a result.",
+    ),
+]
 
 
 def method_values(given: dict) -> dict:

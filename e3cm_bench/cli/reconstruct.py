@@ -10,7 +10,8 @@ import typer
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
 from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt,
                                    DeviceOpt, LabelOpt,
-                     FeatureCacheOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt, PairTimeoutOpt, PrecisionOpt,
+                     FeatureCacheOpt, FeatureReuseOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt,
+                     PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
                      ShardsOpt, WorkersOpt)
 
@@ -71,6 +72,7 @@ def reconstruct(
     device: DeviceOpt = "cpu",
     overwrite: OverwriteOpt = False,
     feature_cache_mb: FeatureCacheOpt = None,
+    feature_reuse: FeatureReuseOpt = True,
     skip_bad: SkipBadOpt = False,
     on_matcher_error: OnMatcherErrorOpt = "stop",
     pair_timeout: PairTimeoutOpt = None,
@@ -102,7 +104,7 @@ def reconstruct(
                                               mapper_seeds=mapper_seeds),
                          ev=RECONSTRUCT.resolve_eval(seed=seed),
                          options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
-                                              pair_timeout=pair_timeout),
+                                              pair_timeout=pair_timeout, feature_reuse=feature_reuse),
                          shard=parse_shard(shard) if shard else None)
     run_scaled(scale, request)
     _say_model(Path(out), scale)

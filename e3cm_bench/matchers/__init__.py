@@ -13,6 +13,7 @@ from e3cm_bench.matchers.base import (
     CHANNEL_ORDERS,
     PRECISIONS,
     BackboneSettings,
+    Features,
     Matcher,
     MatcherEntry,
 )
@@ -31,7 +32,7 @@ from e3cm_bench.matchers.registry import (
 )
 
 __all__ = [
-    "BACKBONE_SETTINGS", "CHANNEL_ORDERS", "ENTRY_POINT_GROUP", "PRECISIONS", "BackboneSettings", "Matcher",
+    "BACKBONE_SETTINGS", "CHANNEL_ORDERS", "ENTRY_POINT_GROUP", "PRECISIONS", "BackboneSettings", "Features", "Matcher",
     "MatcherEntry", "broken_plugins", "build_matcher", "built_settings", "check_settings", "entries", "get_matcher",
     "matcher_names", "register", "resolve", "unregister",
 ]

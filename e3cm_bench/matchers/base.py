@@ -17,8 +17,17 @@ from e3cm_bench.ground.matches import Matches
 from e3cm_bench.backbones.names import CHANNEL_ORDERS, MEMORY_FORMATS, PRECISIONS
 
 
+class Features(dict):
+    """One image's features, as a two-stage matcher's ``features`` returns them: named values
+    (numpy arrays or torch tensors, and plain numbers or strings) that its ``match_features``
+    reads. The match stage keeps them for the image's later pairs (matchers/feature_cache.py),
+    so match_features must not change them in place. Only arrays and plain values can wait on
+    disk: features holding another kind of object stay in memory or are computed again."""
+
+
 class Matcher:
-    """Base class. A matcher is one class with one method, ``match``.
+    """Base class. A matcher is one class with one method, ``match``, or two: ``features``
+    per image and ``match_features`` per pair (a two-stage matcher, `splits`).
 
     ``image0``/``image1`` are H x W x 3 uint8 RGB arrays. A matcher never reads files.
     ``config()`` returns every setting its result depends on (written to config.yaml).
@@ -26,16 +35,38 @@ class Matcher:
     checks it: a point outside is a broken matcher). The two releases are reproduced with
     their slips, and the DFM release's final filter tests y against the padded width, so
     their points may lie in the padding: they set it False.
+
+    A two-stage matcher's ``features(image)`` may depend on that image alone (and on the
+    matcher's settings): the match stage computes it once per image of a run and matches
+    each pair from what it keeps (``--no-feature-reuse``: from two fresh extractions, as
+    ``match`` does), so ``match_features(features(a), features(b))`` must be ``match(a, b)``.
     """
 
     name = "base"
     keypoints_in_image = True
 
-    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:  # pragma: no cover
+    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
+        if not splits(self):  # pragma: no cover - a matcher defines match or both stages
+            raise NotImplementedError(f"{self.name} defines neither match() nor features() and match_features()")
+        return self.match_features(self.features(image0), self.features(image1))
+
+    def features(self, image: np.ndarray) -> Features:  # pragma: no cover - optional
+        raise NotImplementedError
+
+    def match_features(self, features0: Features, features1: Features) -> Matches:  # pragma: no cover - optional
         raise NotImplementedError
 
     def config(self) -> dict:
         return {"matcher": self.name}
+
+
+def splits(matcher: object) -> bool:
+    """Whether a matcher (a Matcher or any object with ``match``) is two-stage: its class
+    defines both ``features`` and ``match_features``."""
+    cls = type(matcher)
+    return (callable(getattr(cls, "features", None)) and callable(getattr(cls, "match_features", None))
+            and getattr(cls, "features") is not Matcher.features
+            and getattr(cls, "match_features") is not Matcher.match_features)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from e3cm_bench.matchers.base import Matcher, Matches
+from e3cm_bench.matchers.base import Features, Matcher, Matches
 
 KEEP_IMAGES = 8  # extractions kept: a pair graph visits each image in several pairs
 # COLMAP's first pixel's centre (its corner convention, interchange/pixels.py); ours is at 0
@@ -76,27 +76,37 @@ class ColmapSiftMatcher(Matcher):
                 "max_distance": self.settings.max_distance, "cross_check": self.settings.cross_check,
                 "pycolmap": self.pycolmap.__version__}
 
-    def _features(self, image: np.ndarray):
+    def features(self, image: np.ndarray) -> Features:
+        """COLMAP's SIFT of the grey image: keypoints in our convention and the uint8
+        descriptors (COLMAP's matcher reads keypoints only for guided matching, which is off)."""
         import cv2
 
         gray = np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image, np.uint8)
-        key = (gray.shape, hashlib.sha1(gray.tobytes()).hexdigest())
+        keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
+        points = np.asarray([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2)
+        return Features(points=(points - COLMAP_FIRST_CENTRE).astype(np.float32),
+                        descriptors=np.asarray(descriptors.data, np.uint8).reshape(len(points), -1))
+
+    def _remembered(self, image: np.ndarray) -> Features:
+        # match() pair by pair (--no-feature-reuse, the API): the last few images' features kept
+        key = (image.shape, hashlib.sha1(np.ascontiguousarray(image).tobytes()).hexdigest())
         if key not in self._seen:
-            keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
-            points = np.asarray([[k.x, k.y] for k in keypoints], np.float64).reshape(-1, 2)
-            self._seen[key] = ((points - COLMAP_FIRST_CENTRE).astype(np.float32), keypoints, descriptors)
+            self._seen[key] = self.features(image)
             while len(self._seen) > KEEP_IMAGES:
                 self._seen.popitem(last=False)
         return self._seen[key]
 
     def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        points0, keypoints0, descriptors0 = self._features(image0)
-        points1, keypoints1, descriptors1 = self._features(image1)
+        return self.match_features(self._remembered(image0), self._remembered(image1))
+
+    def match_features(self, features0: Features, features1: Features) -> Matches:
+        points0, points1 = features0["points"], features1["points"]
         info = {"n_keypoints0": len(points0), "n_keypoints1": len(points1)}
         if len(points0) == 0 or len(points1) == 0:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info=info)
-        index = np.asarray(self._matcher.match(keypoints0, descriptors0, keypoints1, descriptors1), np.int64).reshape(
-            -1, 2
-        )
+        sift, none = self.pycolmap.FeatureExtractorType.SIFT, self.pycolmap.FeatureKeypoints()
+        descriptors0 = self.pycolmap.FeatureDescriptors(sift, features0["descriptors"])
+        descriptors1 = self.pycolmap.FeatureDescriptors(sift, features1["descriptors"])
+        index = np.asarray(self._matcher.match(none, descriptors0, none, descriptors1), np.int64).reshape(-1, 2)
         # COLMAP's matcher gives no score: every match 1 (its ratio test has passed them all)
         return Matches(points0[index[:, 0]], points1[index[:, 1]], np.ones(len(index)), info=info)

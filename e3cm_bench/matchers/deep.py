@@ -37,7 +37,7 @@ class DeepMatcher(Matcher):
         self._keys: dict[int, str] = {}  # the cache key of each image of the pair being matched
         self._rows: dict[int, torch.Tensor] = {}  # level-0 pixel rows of the pair's images, from their passes
 
-    # Whether match() takes its pyramids from features() (and so from the cache).
+    # Whether match() takes its pyramids from pyramid() (and so from the cache).
     uses_feature_cache = True
     # Whether match() reads level 0 by pixels (image_product "pixel_rows:0"): the backbone's
     # own channels-last rows are then kept with the maps (Backbone.forward_with_rows).
@@ -73,7 +73,7 @@ class DeepMatcher(Matcher):
             image = image[..., ::-1]
         return image_to_tensor(image, self.device)
 
-    def features(self, image: np.ndarray, which: int | None = None) -> list[torch.Tensor]:
+    def pyramid(self, image: np.ndarray, which: int | None = None) -> list[torch.Tensor]:
         """The image's pyramid: level l is C_l x H_l x W_l at stride 2^l. which: 0 or 1, the
         image's place in the pair the match stage is matching (the cache learns which file
         the maps belong to, and drops them once that file has no pair left)."""
@@ -184,7 +184,7 @@ class DeepMatcher(Matcher):
         self.check_memory(image0, image1)
         t = time.perf_counter()
         self._keys.clear()
-        feats0, feats1 = self.features(image0, 0), self.features(image1, 1)
+        feats0, feats1 = self.pyramid(image0, 0), self.pyramid(image1, 1)
         return feats0, feats1, time.perf_counter() - t
 
     def settings_dict(self) -> dict:  # pragma: no cover - each subclass says what it depends on

@@ -90,7 +90,7 @@ class DFMMatcher(DeepMatcher):
         """Timings: backbone (all passes, warped B included), stage0, warp, stage1 (seconds)."""
         if self.variant == "bench":
             feats0, feats1, t_backbone = self.pyramids(image0, image1)
-            out = match_two_stage(image0, image1, feats0, feats1, self.features, self.settings)
+            out = match_two_stage(image0, image1, feats0, feats1, self.pyramid, self.settings)
             timings = out.pop("timings")
             timings = {"backbone": t_backbone + timings.pop("backbone_warped"), **timings}
             info = {k: v for k, v in out.items() if k not in ("keypoints0", "keypoints1", "scores")}

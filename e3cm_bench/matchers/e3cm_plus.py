@@ -155,12 +155,12 @@ class E3CMPlusMatcher(DeepMatcher):
             H_BA, info = prewarp_decision(feats0, feats1, size0, size1, s)
             timings["stage0"] = time.perf_counter() - t
         pipeline = s.pipelines["warped" if H_BA is not None else "direct"]
-        out = match_through_warp(image0, image1, feats0, feats1, H_BA, self.features, pipeline)
+        out = match_through_warp(image0, image1, feats0, feats1, H_BA, self.pyramid, pipeline)
         if H_BA is not None and s.realign:
             H = estimate_homography(out["keypoints1"], out["keypoints0"], REALIGN_PX)
             if H is not None and abs(np.linalg.det(H)) > 1e-12:
                 first = out["timings"]
-                out = match_through_warp(image0, image1, feats0, feats1, H, self.features, pipeline)
+                out = match_through_warp(image0, image1, feats0, feats1, H, self.pyramid, pipeline)
                 out["timings"] = {k: first.get(k, 0.0) + v for k, v in out["timings"].items()}
                 info["realigned"] = True
         steps = out.pop("timings")

@@ -20,6 +20,10 @@ cache that order (`plan`) and, after each pair, which images have no pair left
 
 Keyed by the image's content and channel order, and what is handed back is bit for bit what
 the network computed, so the cache changes no result.
+
+The same cache holds a two-stage matcher's `Features` (matchers/two_stage.py), keyed by the
+image's content and the matcher's identity: one extraction per image of a run. torch is
+imported where a pyramid or a file needs it, so a classical matcher's run goes without it.
 """
 
 from __future__ import annotations
@@ -30,9 +34,14 @@ import shutil
 from bisect import bisect_left
 from collections import OrderedDict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+from e3cm_bench.matchers.feature_values import compact, from_portable, nbytes as _nbytes, portable, widen
+
+if TYPE_CHECKING:
+    import torch
 
 from e3cm_bench.ground.files import refuse_link
 from e3cm_bench.storage.folder import fresh_folder, remove_folder
@@ -48,9 +57,10 @@ SPILL_CAP_MB = 65536
 def auto_cache_mb(device: torch.device | str = "cpu") -> float:
     """Half of the memory available now (the GPU's free memory for a CUDA device, the host's
     MemAvailable otherwise), at most 16 GiB; 2048 where nothing tells."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        free = torch.cuda.mem_get_info(device)[0]
+    if str(device).startswith("cuda"):
+        import torch
+
+        free = torch.cuda.mem_get_info(torch.device(device))[0]
     else:
         from e3cm_bench.ground.devices import available_host_memory
 
@@ -66,38 +76,6 @@ def auto_spill_mb(folder: Path) -> float:
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
     return float(min(SPILL_CAP_MB, SPILL_SHARE * shutil.disk_usage(folder).free / 2**20))
-
-
-def _nbytes(maps: list[torch.Tensor] | torch.Tensor) -> int:
-    if isinstance(maps, torch.Tensor):
-        maps = [maps]
-    return sum(m.numel() * m.element_size() for m in maps)
-
-
-def compact(
-    maps: list[torch.Tensor], dtype: torch.dtype | None, exact: dict[int, bool] | None = None
-) -> list[torch.Tensor]:
-    """Each float32 map in `dtype` where that holds it exactly (maps a reduced-precision
-    network computed, then widened), else as it is. exact: level -> whether that level's maps
-    are exact in dtype, filled by checking the first map of each level: a level's maps come
-    out of the same layer in the same precision for every image, so one check tells."""
-    if dtype is None:
-        return maps
-    exact = {} if exact is None else exact
-    out = []
-    for level, m in enumerate(maps):
-        if m.dtype == torch.float32 and exact.get(level, True):
-            narrow = m.to(dtype)
-            if level not in exact:
-                exact[level] = torch.equal(narrow.to(torch.float32), m)
-            if exact[level]:
-                m = narrow
-        out.append(m)
-    return out
-
-
-def widen(maps: list[torch.Tensor]) -> list[torch.Tensor]:
-    return [m if m.dtype == torch.float32 or not m.is_floating_point() else m.to(torch.float32) for m in maps]
 
 
 class SpillStore:
@@ -124,13 +102,15 @@ class SpillStore:
         return key in self.sizes
 
     def write(self, key: str, maps: list[torch.Tensor]) -> bool:
-        size = _nbytes(maps)
-        if self.bytes + size > self.max_bytes:
+        import torch
+
+        size, packed = _nbytes(maps), portable(maps)
+        if self.bytes + size > self.max_bytes or packed is None:  # None: features that cannot go to disk
             self.refused += 1
             return False
         if not self.made:  # made anew, never through a link at it or at its parent (the stage's spill folder)
             self.made = fresh_folder(refuse_link(self.folder.parent) / self.folder.name)
-        torch.save([m.cpu() for m in maps], self._path(key))
+        torch.save(packed, self._path(key))
         self.sizes[key] = size
         self.bytes += size
         self.peak_bytes = max(self.peak_bytes, self.bytes)
@@ -139,8 +119,10 @@ class SpillStore:
 
     def read(self, key: str, device: torch.device | str, keep: bool = False) -> list[torch.Tensor]:
         """The maps written under key; the file is removed (they go back to memory) unless keep."""
+        import torch
+
         path = self._path(key)
-        maps = torch.load(path, map_location=device, weights_only=True)
+        maps = from_portable(torch.load(path, map_location=device, weights_only=True))
         if not keep:
             self.remove(key)
         self.reads += 1
@@ -216,6 +198,10 @@ class FeatureCache:
 
     def _wide(self, key: str, maps: list[torch.Tensor]) -> list[torch.Tensor]:
         """The maps as float32: those held narrow are widened once and the copy kept (derived)."""
+        if not isinstance(maps, list):  # a two-stage matcher's Features: held as computed
+            return maps
+        import torch  # a pyramid: its maps are tensors
+
         if all(m.dtype == torch.float32 or not m.is_floating_point() for m in maps):
             return maps
         return self.derived(key, "float32", lambda: widen(maps))
@@ -381,7 +367,9 @@ class FeatureCache:
     def stats(self) -> dict:
         """The counts `config.yaml: feature_reuse` records (passes per distinct image, etc.)."""
         distinct = len(self.seen)
-        out = {"distinct_images": distinct, "backbone_passes": self.misses, "reused": self.hits,
+        # extractions: backbone passes, or a two-stage matcher's features() calls
+        out = {"distinct_images": distinct, "backbone_passes": self.misses, "extractions": self.misses,
+               "reused": self.hits,
                "passes_per_image": round(self.misses / distinct, 4) if distinct else 0.0,
                "peak_memory_mb": round(self.peak_bytes / 2**20, 1), "products_reused": self.products_reused}
         if self.spill is not None:

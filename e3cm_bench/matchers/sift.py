@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from e3cm_bench.matchers.base import Matcher, Matches
+from e3cm_bench.matchers.base import Features, Matcher, Matches
 
 
 # OpenCV SIFT doubles the image first with a half-pixel-aligned bilinear resize (original
@@ -43,7 +43,8 @@ class SiftMatcher(Matcher):
     A match i -> j is kept when the nearest descriptor distance is below ``ratio`` times
     the second nearest (Lowe's ratio test). With ``cross_check`` (off by default) it must
     also be mutual: i is in turn the nearest neighbour of j. Scores are ``1 - d1/d2``,
-    so higher is more distinctive. Keypoints are in the pixel-centre convention.
+    so higher is more distinctive. Keypoints are in the pixel-centre convention. Two-stage:
+    an image's keypoints and descriptors (features), then a pair's matching (match_features).
     """
 
     name = "sift"
@@ -67,9 +68,13 @@ class SiftMatcher(Matcher):
             "cross_check": self.cross_check,
         }
 
-    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        points0, descriptors0 = self._detect(image0)
-        points1, descriptors1 = self._detect(image1)
+    def features(self, image: np.ndarray) -> Features:
+        points, descriptors = self._detect(image)
+        return Features(points=points, descriptors=descriptors)
+
+    def match_features(self, features0: Features, features1: Features) -> Matches:
+        points0, descriptors0 = features0["points"], features0["descriptors"]
+        points1, descriptors1 = features1["points"], features1["descriptors"]
         info = {"n_keypoints0": len(points0), "n_keypoints1": len(points1)}
         # The ratio test needs a second neighbour in image 1; cross-checking needs one in image 0.
         if len(points0) < 2 or len(points1) < 2:

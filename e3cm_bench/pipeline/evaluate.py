@@ -79,14 +79,15 @@ def cost_table(pairs: list[Pair], cache: MatchCache) -> pd.DataFrame:
 # resident memory during the pair (ground/cost.py); NaN for matches imported or failed. A pair
 # matched in a process that held other methods too (demo, reproduce: ground/cost.py SHARED_PEAK) has no
 # peak of its own: its peak_memory_mb is blank, and the process's peak, marked shared, is in
-# shared_peak_memory_mb (in demo and reproduce every method showed the same peak).
-COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb")
+# shared_peak_memory_mb (in demo and reproduce every method showed the same peak). cache_memory_mb: how
+# much of the pair's peak the feature cache held (features and pyramids of images with pairs left).
+COST_COLUMNS = ("match_seconds", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb", "cache_memory_mb")
 # The run's cost in summary.csv: the mean seconds per pair (with its bootstrap interval over the
 # pairs, as every number), the highest per-pair peak, on CUDA the allocator's highest peak, and
-# the highest shared peak. A benchmark that maps the set (reconstruct) adds its mapping's seconds and
-# the whole run's per image.
-COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb", "mapping_seconds",
-             "seconds_per_image")
+# the highest shared peak, the cache's highest share. A benchmark that maps the set (reconstruct) adds
+# its mapping's seconds and the whole run's per image.
+COST_KEYS = ("seconds_per_pair", "peak_memory_mb", "gpu_peak_memory_mb", "shared_peak_memory_mb", "cache_memory_mb",
+             "mapping_seconds", "seconds_per_image")
 
 
 def pair_cost(matches: Matches) -> dict:
@@ -96,7 +97,8 @@ def pair_cost(matches: Matches) -> dict:
     return {"match_seconds": float(info.get("match_seconds", np.nan)),
             "peak_memory_mb": np.nan if shared else peak,
             "gpu_peak_memory_mb": np.nan if shared else gpu_peak,
-            "shared_peak_memory_mb": peak if shared else np.nan}
+            "shared_peak_memory_mb": peak if shared else np.nan,
+            "cache_memory_mb": float(info.get("match_cache_mb", np.nan))}
 
 
 def cost_summary(costs: list[dict]) -> dict:

@@ -22,8 +22,9 @@ from e3cm_bench.method.spec import MethodSpec
 # What match_pair adds to a result's info and the cache keeps next to each pair's matches.
 PAIR_ATTRS = ("size0", "size1", "match_size0", "match_size1", "match_seconds")
 # The cost of the pair beside its time (ground/cost.py): the matching process's peak resident
-# memory during the pair, whether that peak was the pair's own, and on CUDA the allocator's peak.
-COST_ATTRS = ("match_peak_mb", "match_peak_own", "match_gpu_peak_mb")
+# memory during the pair, whether that peak was the pair's own, and on CUDA the allocator's peak;
+# and the part of it the run's feature cache held when the pair was matched (pipeline/stage.py).
+COST_ATTRS = ("match_peak_mb", "match_peak_own", "match_gpu_peak_mb", "match_cache_mb")
 
 
 @dataclass(frozen=True)

@@ -234,6 +234,7 @@ class BenchmarkRun(PairRun):
             before, reuse = config.feature_reuse or {}, dict(reuse)
             for key in (
                 "backbone_passes",
+                "extractions",
                 "reused",
                 "distinct_images",
                 "read_from_disk",

@@ -51,6 +51,8 @@ def match_cached_pair(
     image0, image1 = images if images is not None else (pair.image0, pair.image1)
     matches = match_pair(matcher, image0, image1, method.max_side, method.seed_for_matching,
                          pair_rotations(pair, method), method.resize, TimeLimit(time_limit, worker))
+    if getattr(matcher, "feature_cache", None) is not None:  # the cache's share of the pair's peak
+        matches.info["match_cache_mb"] = matcher.feature_cache.bytes / 2**20
     attrs = {k: matches.info[k] for k in PAIR_ATTRS + COST_ATTRS if k in matches.info}
     cache.write(pair.name, matches, {**attrs, SHARED_PEAK: True} if shared else attrs)
 
@@ -127,7 +129,9 @@ class MatchOptions:
     seconds a matcher may take on one pair before it fails on it (None: no limit). With a
     limit, each matcher runs in a child process of its own that is killed, with every process
     it started, when a pair takes longer (`isolates`); the feature cache is then off (each
-    child computes its own maps), which changes no result.
+    child computes its own maps), which changes no result. feature_reuse (default True): a
+    two-stage matcher's features (matchers/base.py `splits`) extracted once per image, in the same
+    cache; False: pair by pair, as before (deep matchers keep their cache). The same matches.
     """
 
     feature_cache_mb: float | None = None
@@ -135,6 +139,7 @@ class MatchOptions:
     backbone_batch: int | None = None
     on_matcher_error: str = "stop"
     pair_timeout: float | None = None
+    feature_reuse: bool = True
 
     def __post_init__(self) -> None:
         if self.on_matcher_error not in ON_MATCHER_ERROR:
@@ -246,14 +251,20 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
     isolated = isolates(options)
     if isolated:  # a child's feature maps stay in the child: no cache shared through this process
         options = replace(options, feature_cache_mb=0, backbone_batch=options.backbone_batch or 1)
+    if options.feature_reuse and not isolated:
+        from e3cm_bench.matchers.two_stage import reusing
+
+        built = reusing(built)
     budget, batch, disk = 0.0, int(options.backbone_batch or 1), 0.0
     if any(getattr(matcher, "uses_feature_cache", False) for matcher in built):
-        # torch: imported only for a matcher on a backbone (a classical run's address space stays small)
-        from e3cm_bench.matchers.deep import auto_backbone_batch
         from e3cm_bench.matchers.feature_cache import auto_cache_mb, auto_spill_mb
 
         budget = auto_cache_mb(device) if options.feature_cache_mb is None else float(options.feature_cache_mb)
-        batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
+        if any(hasattr(matcher, "backbone") for matcher in built):
+            # torch: imported only for a matcher on a backbone (a classical run's address space stays small)
+            from e3cm_bench.matchers.deep import auto_backbone_batch
+
+            batch = auto_backbone_batch(device) if options.backbone_batch is None else int(options.backbone_batch)
         if budget and spill_root is not None:
             disk = auto_spill_mb(spill_root) if options.spill_mb is None else float(options.spill_mb)
     shared = _Shared([], {}, budget, disk, batch)
@@ -272,7 +283,7 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
             matcher.share_features_of(group["matcher"], budget, group["spill"])
             group["labels"].append(job.method.label)
         if job.on_matcher is not None:
-            job.on_matcher(matcher)
+            job.on_matcher(getattr(matcher, "matcher", matcher))  # a two-stage matcher recorded as it is
         shared.matchers.append(matcher)
         job.stats.update(match_seconds=0.0, pairs_matched=0)
     if isolated:
@@ -337,7 +348,8 @@ def _report_reuse(jobs: list[MatchJob], shared: _Shared, console: Console) -> No
         for job, matcher in zip(jobs, shared.matchers):
             if getattr(matcher, "feature_cache", None) is reuse:
                 job.stats["feature_reuse"] = stats
-        console.print(f"feature maps ({', '.join(group['labels'])}): {stats['backbone_passes']} backbone passes for "
+        what = "backbone passes" if hasattr(group["matcher"], "backbone") else "extractions"
+        console.print(f"features ({', '.join(group['labels'])}): {stats['extractions']} {what} for "
                       f"{stats['distinct_images']} images ({stats['passes_per_image']:.2f} per image), "
                       f"{stats.get('read_from_disk', 0)} read back from disk", markup=False)  # labels are the user's
 

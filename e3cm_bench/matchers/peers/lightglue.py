@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.base import Features, Matcher
 from e3cm_bench.matchers.peers.common import SUPERPOINT_REPO, grey, numpy, rgb, superpoint_keypoints
 from e3cm_bench.matchers.peers.weights import holding
 
@@ -151,16 +151,21 @@ class LightGlueMatcher(Matcher):
         return {"matcher": self.name, **self.settings.__dict__}
 
     @torch.inference_mode()
-    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        (k0, d0), (k1, d1) = self.extractor(image0), self.extractor(image1)
+    def features(self, image: np.ndarray) -> Features:
+        keypoints, descriptors = self.extractor(image)
+        return Features(keypoints=keypoints, descriptors=descriptors, size=(int(image.shape[1]), int(image.shape[0])))
+
+    @torch.inference_mode()
+    def match_features(self, features0: Features, features1: Features) -> Matches:
+        k0, k1 = features0["keypoints"], features1["keypoints"]
         info = {"n_keypoints0": len(k0), "n_keypoints1": len(k1)}
         if len(k0) == 0 or len(k1) == 0:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
 
-        def view(k, d, image):
-            return {"keypoints": k[None], "descriptors": d[None],
-                    "image_size": torch.tensor([[image.shape[1], image.shape[0]]], device=k.device)}
+        def view(f):
+            return {"keypoints": f["keypoints"][None], "descriptors": f["descriptors"][None],
+                    "image_size": torch.tensor([list(f["size"])], device=f["keypoints"].device)}
 
-        out = self.model({"image0": view(k0, d0, image0), "image1": view(k1, d1, image1)})
+        out = self.model({"image0": view(features0), "image1": view(features1)})
         pairs, scores = out["matches"][0], out["scores"][0]
         return Matches(numpy(k0[pairs[:, 0]]), numpy(k1[pairs[:, 1]]), numpy(scores), info)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.matchers.base import Matcher
+from e3cm_bench.matchers.base import Features, Matcher
 from e3cm_bench.matchers.peers.common import numpy, rgb
 from e3cm_bench.matchers.peers.weights import HubFile, holding, load_into
 
@@ -76,13 +76,23 @@ class XFeatMatcher(Matcher):
         return {"matcher": self.name, **self.settings.__dict__}
 
     @torch.inference_mode()
-    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        x0, x1 = rgb(image0, self.device), rgb(image1, self.device)
+    def features(self, image: np.ndarray) -> Features:
+        """XFeat*'s dense cells (keypoints, descriptors, scales) or the sparse keypoints and
+        descriptors of one image; each image passes through the network alone in either mode."""
+        x = rgb(image, self.device)
         if self.mode == "star":
-            k0, k1 = self.model.match_xfeat_star(x0, x1, top_k=self.settings.top_k)
-            return Matches(numpy(k0), numpy(k1), np.ones(len(k0), np.float32), {})
-        f0 = self.model.detectAndCompute(x0, top_k=self.settings.top_k)[0]
-        f1 = self.model.detectAndCompute(x1, top_k=self.settings.top_k)[0]
+            dense = self.model.detectAndComputeDense(x, top_k=self.settings.top_k)
+            return Features(keypoints=dense["keypoints"], descriptors=dense["descriptors"], scales=dense["scales"])
+        f = self.model.detectAndCompute(x, top_k=self.settings.top_k)[0]
+        return Features(keypoints=f["keypoints"], descriptors=f["descriptors"],
+                        size=(int(image.shape[1]), int(image.shape[0])))
+
+    @torch.inference_mode()
+    def match_features(self, f0: Features, f1: Features) -> Matches:
+        if self.mode == "star":  # match_xfeat_star's matching and refinement, after its two extractions
+            pairs = self.model._batch_match(f0["descriptors"], f1["descriptors"])
+            refined = self.model._refine_matches(f0, f1, matches=pairs, batch_idx=0)
+            return Matches(numpy(refined[:, :2]), numpy(refined[:, 2:]), np.ones(len(refined), np.float32), {})
         info = {"n_keypoints0": len(f0["keypoints"]), "n_keypoints1": len(f1["keypoints"])}
         if len(f0["keypoints"]) == 0 or len(f1["keypoints"]) == 0:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)
@@ -91,10 +101,10 @@ class XFeatMatcher(Matcher):
             scores = (f0["descriptors"][i0] * f1["descriptors"][i1]).sum(-1)  # the cosine of each mutual pair
             return Matches(numpy(f0["keypoints"][i0]), numpy(f1["keypoints"][i1]), numpy(scores), info)
 
-        def view(f, image):
+        def view(f):
             return {"keypoints": f["keypoints"][None], "descriptors": f["descriptors"][None],
-                    "image_size": torch.tensor([[image.shape[1], image.shape[0]]], device=f["keypoints"].device)}
+                    "image_size": torch.tensor([list(f["size"])], device=f["keypoints"].device)}
 
-        out = self.glue({"image0": view(f0, image0), "image1": view(f1, image1)})
+        out = self.glue({"image0": view(f0), "image1": view(f1)})
         pairs, scores = out["matches"][0], out["scores"][0]
         return Matches(numpy(f0["keypoints"][pairs[:, 0]]), numpy(f1["keypoints"][pairs[:, 1]]), numpy(scores), info)

@@ -2,10 +2,13 @@
 
 A plugin is a `MatcherEntry`: a name, one line of description, a settings dataclass (its
 defaults are what `e3cm-bench matchers` lists; a bad value raises a one-line ValueError),
-and a function building the matcher from the settings. The matcher has one method,
-``match(image0, image1) -> Matches``: H x W x 3 uint8 RGB arrays in, keypoints in those
-images' pixels out (pixel-centre convention: the top-left pixel's centre is (0, 0)).
-The benchmark resizes the images first and maps the keypoints back itself.
+and a function building the matcher from the settings. The matcher is written in two stages:
+``features(image) -> Features`` per image and ``match_features(features0, features1) ->
+Matches`` per pair (a matcher may instead define one method, ``match(image0, image1)``).
+Images are H x W x 3 uint8 RGB arrays; keypoints come out in those images' pixels
+(pixel-centre convention: the top-left pixel's centre is (0, 0)). The benchmark resizes the
+images first and maps the keypoints back itself; it extracts each image once per run and
+matches every pair of it from the kept features (``--no-feature-reuse``: pair by pair).
 
 A run records the plugin by its code (the sha256 of this package's .py files: an edit, even
 in an editable install, is a new identity) and its settings by ``OrbMatcher.settings()``.
@@ -18,7 +21,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from e3cm_bench import Matcher, MatcherEntry, Matches
+from e3cm_bench import Features, Matcher, MatcherEntry, Matches
 
 
 @dataclass(frozen=True)
@@ -57,9 +60,16 @@ class OrbMatcher(Matcher):
         records under `matcher` (without it, e3cm-bench records the settings dataclass)."""
         return asdict(self.options)
 
-    def match(self, image0: np.ndarray, image1: np.ndarray) -> Matches:
-        points0, descriptors0 = self._detect(image0)
-        points1, descriptors1 = self._detect(image1)
+    def features(self, image: np.ndarray) -> Features:
+        """One image's corners and descriptors: the benchmark computes them once per image of a
+        run and keeps them for the image's other pairs."""
+        points, descriptors = self._detect(image)
+        return Features(points=points, descriptors=descriptors)
+
+    def match_features(self, features0: Features, features1: Features) -> Matches:
+        """One pair's matches from its images' features (read, never changed: they are reused)."""
+        points0, descriptors0 = features0["points"], features0["descriptors"]
+        points1, descriptors1 = features1["points"], features1["descriptors"]
         info = {"n_keypoints0": len(points0), "n_keypoints1": len(points1)}
         if descriptors0 is None or descriptors1 is None:
             return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), info)

@@ -1,0 +1,155 @@
+"""Feature reuse against the pair-by-pair path, side by side in one process: wall time of the
+match stage, extractions, and whether the matches agree.
+
+    nice python scripts/measure/feature_reuse.py [--sets kitti,hpatches] \
+        [--matchers sift,xfeat,xfeat+lighterglue,aliked+lightglue,disk+lightglue] [--device cpu] [--json]
+
+Sets (the shared data, ../shared/data):
+  kitti:    the 20 KITTI 00 frames of megadepth_test_1500/scene_info/kitti00_seq.npz, pair graph
+            `sfm --window 2` (37 pairs), at sfm's default side (1200);
+  hpatches: the shared HPatches sequences (3 x 5 pairs over 3 x 6 images), at --hpatches-side
+            (default 640: full size, about 1 MP, takes minutes a matcher on a shared CPU).
+
+For each set and matcher: pipeline.stage.match_stage over the set's pairs twice, with
+MatchOptions(feature_reuse=False) (each pair extracts both its images: the path before
+two-stage matchers) and then with reuse (each image's features extracted once, kept in the
+feature cache at the default budgets); the matcher is built in each stage, and the ratio is of
+the seconds spent matching (the stage's match_seconds, build excluded) and of the stage's wall
+time. Extractions are counted by wrapping the matcher class's `features`. The two runs'
+matches are compared array for array. Prints measured figures only, with the load average
+before and after (the machine may be shared: say so beside the figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.storage import RunFolder
+from e3cm_bench.storage.cache import MatchCache
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+MATCHERS = "sift,xfeat,xfeat+lighterglue,aliked+lightglue,disk+lightglue"
+
+
+def set_pairs(name: str, data: Path) -> list:
+    if name == "kitti":
+        root = data / "megadepth_test_1500"
+        return get_benchmark("sfm").load_dataset(root, scene_info=root / "scene_info" / "kitti00_seq.npz",
+                                                 window=2).pairs
+    if name == "hpatches":
+        return get_benchmark("hpatches").load_dataset(data / "hpatches-sequences-release").pairs
+    raise SystemExit(f"--sets: unknown set {name!r} (kitti, hpatches)")
+
+
+def counted(cls) -> dict:
+    """Wrap cls.features to count its calls (once per class)."""
+    count = {"n": 0}
+    if getattr(cls.features, "_counted", None) is None:
+        original = cls.features
+
+        def features(self, image):
+            features._counted["n"] += 1
+            return original(self, image)
+
+        features._counted = count
+        cls.features = features
+    return cls.features._counted
+
+
+def same_matches(a: Path, b: Path) -> bool:
+    one, two = MatchCache(a), MatchCache(b)
+    names = one.names()
+    if names != two.names():
+        return False
+    for name in names:
+        x, y = one.read(name), two.read(name)
+        if not all(np.array_equal(p, q) for p, q in ((x.keypoints0, y.keypoints0), (x.keypoints1, y.keypoints1),
+                                                     (x.scores, y.scores))):
+            return False
+    return True
+
+
+def stage(method: MethodSpec, pairs: list, folder: Path, device: str, reuse: bool, count: dict) -> dict:
+    count["n"] = 0
+    t = time.perf_counter()
+    stats = match_stage(method, pairs, MatchCache(RunFolder(folder).matches_path), device, Console(quiet=True),
+                        options=MatchOptions(feature_reuse=reuse))
+    return {"wall_s": time.perf_counter() - t, "match_s": stats["match_seconds"], "extractions": count["n"],
+            "recorded": stats.get("feature_reuse", {}).get("extractions")}
+
+
+def measure(set_name: str, pairs: list, matcher: str, side: int | None, device: str, work: Path) -> dict:
+    method = MethodSpec.create(matcher, max_side=side)
+    count = counted(type(method.build(device)))
+    images = {str(p.image0) for p in pairs} | {str(p.image1) for p in pairs}
+    plain = stage(method, pairs, work / f"{set_name}-{matcher}-plain", device, False, count)
+    reuse = stage(method, pairs, work / f"{set_name}-{matcher}-reuse", device, True, count)
+    return {"set": set_name, "matcher": matcher, "pairs": len(pairs), "images": len(images), "side": side,
+            "plain": plain, "reuse": reuse, "ratio_match": plain["match_s"] / reuse["match_s"],
+            "ratio_wall": plain["wall_s"] / reuse["wall_s"],
+            "same_matches": same_matches(RunFolder(work / f"{set_name}-{matcher}-plain").matches_path,
+                                         RunFolder(work / f"{set_name}-{matcher}-reuse").matches_path)}
+
+
+def write_csv(path: Path, rows: list[dict], before: tuple, after: tuple) -> None:
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(["set", "matcher", "pairs", "images", "side", "extractions pair by pair", "extractions reused",
+                      "pair by pair s", "reused s", "speed-up", "wall speed-up", "same matches", "load before",
+                      "load after row"])
+        for r in rows:
+            out.writerow([r["set"], r["matcher"], r["pairs"], r["images"], r["side"], r["plain"]["extractions"],
+                          r["reuse"]["extractions"], round(r["plain"]["match_s"], 1), round(r["reuse"]["match_s"], 1),
+                          round(r["ratio_match"], 2), round(r["ratio_wall"], 2), r["same_matches"],
+                          round(before[0], 1), round(after[0], 1)])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sets", default="kitti,hpatches")
+    parser.add_argument("--matchers", default=MATCHERS)
+    parser.add_argument("--hpatches-side", type=int, default=640)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--data", type=Path, default=SHARED)
+    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--csv", type=Path, help="also write the rows here (docs/speed.md reads results/perf/)")
+    args = parser.parse_args()
+    sides = {"kitti": get_benchmark("sfm").default_max_side, "hpatches": args.hpatches_side or None}
+    rows = []
+    before = os.getloadavg()
+    print(f"load average before: {before}", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for set_name in args.sets.split(","):
+            pairs = set_pairs(set_name, args.data)
+            for matcher in args.matchers.split(","):
+                row = measure(set_name, pairs, matcher, sides[set_name], args.device, Path(tmp))
+                rows.append(row)
+                print(f"{set_name:9} {matcher:20} pairs {row['pairs']:3} images {row['images']:3}  extractions "
+                      f"{row['plain']['extractions']:3} -> {row['reuse']['extractions']:3} (recorded "
+                      f"{row['reuse']['recorded']})  match s {row['plain']['match_s']:7.1f} -> "
+                      f"{row['reuse']['match_s']:7.1f}  x{row['ratio_match']:.2f}  wall x{row['ratio_wall']:.2f}  "
+                      f"same matches: {row['same_matches']}", flush=True)
+                if args.csv:  # after each row: a run stopped part way keeps what it measured
+                    write_csv(args.csv, rows, before, os.getloadavg())
+    print(f"load average after: {os.getloadavg()}")
+    if args.json:
+        print(json.dumps({"rows": rows, "python": sys.version.split()[0]}))
+
+
+if __name__ == "__main__":
+    main()
