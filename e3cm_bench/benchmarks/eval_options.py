@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from e3cm_bench.method.options import SEEDS, KindOf, Range, check_value
+from e3cm_bench.method.options import KindOf, Range, check_value
 
 # The ranges of the evaluation's values (options.Range), each declared once: the flags below and
 # the EvalSettings fields they fill (SETTING_VALUES) share them.
@@ -74,7 +74,9 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
 # by its EvalOption): a record's evaluation block and a protocol's table give these fields as they
 # are, so each is checked where the settings are made, whatever made them.
 SETTING_VALUES: dict[str, tuple[str, Range | None]] = {
-    "seed": ("whole", SEEDS),
+    # the field holds the flag's seed (SEEDS) plus a repeat's, an interval seed's or a mapper seed's
+    # offset (seed + r): OpenCV's 32-bit limit, which SEEDS leaves room below
+    "seed": ("whole", Range(0, 2**31 - 1)),
     **{f"{what}_ransac_px": ("number", PIXELS) for what in ("homography", "pose", "fundamental")},
     **{f"{what}_confidence": ("number", CONFIDENCE) for what in ("homography", "pose", "fundamental")},
     **{f"{what}_max_iters": ("whole", ITERATIONS) for what in ("homography", "fundamental")},

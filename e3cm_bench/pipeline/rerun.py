@@ -73,11 +73,14 @@ def recorded_limit(config: RunConfig) -> int | None:
 
 
 def check_identity_values(config: RunConfig) -> None:
-    """The method options a record's identity gives as values (max_side, seed), each by its
-    flag's own check (options.METHOD_OPTIONS: kind and range; null: none), naming the key."""
+    """The method options a record gives as values (the identity's max_side and seed, the
+    evaluation's seed: --seed's), each by its flag's own check (options.METHOD_OPTIONS: kind and
+    range; null: none), naming the key."""
     identity = config.identity if isinstance(config.identity, dict) else {}
     for name in ("max_side", "seed"):
         METHOD_OPTIONS[name].check(identity.get(name), f"{config.where}: identity.{name}")
+    evaluation = config.evaluation if isinstance(config.evaluation, dict) else {}
+    METHOD_OPTIONS["seed"].check(evaluation.get("seed"), f"{config.where}: evaluation.seed")
 
 
 def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False) -> RunRequest:

@@ -67,7 +67,7 @@ def test_sampled_pair_list_records_its_sample(wxbs_root):
     assert sample.describe()["sample"] == {"n": 6, "seed": 3, "from": len(full), "strata": 6}
     assert "sample" not in full.describe()  # an unsampled run's record is unchanged
     assert [p.name for p in bench.load_dataset(wxbs_root, sample=6, sample_seed=3)] == [p.name for p in sample]
-    with pytest.raises(ValueError, match="--sample must be at least 1"):
+    with pytest.raises(ValueError, match="--sample must be a whole number, at least 1"):
         bench.load_dataset(wxbs_root, sample=0)
 
 
@@ -96,7 +96,7 @@ def test_wxbs_command_samples_and_uses_the_reference_protocol_by_default(wxbs_ro
 def test_sample_option_errors_are_one_line(tmp_path, shared_data):
     line = one_line_error(invoke("hpatches", "--root", shared_data / "hpatches-sequences-release", "--matcher", "sift",
                                  "--sample", "0", "--out", tmp_path / "r"))
-    assert "--sample must be at least 1" in line
+    assert "--sample must be a whole number, at least 1" in line
 
 
 def test_hpatches_sample_holds_both_kinds(shared_data):
