@@ -99,9 +99,8 @@ def reconstruct(
     method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
     request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
                          dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
-                                              camera_per_image=camera_per_image, max_pairs=max_pairs,
-                                              allow_disconnected=allow_disconnected, mapper=mapper,
-                                              mapper_seeds=mapper_seeds),
+                                              camera_per_image=camera_per_image, max_pairs=max_pairs, mapper=mapper,
+                                              allow_disconnected=allow_disconnected, mapper_seeds=mapper_seeds),
                          ev=RECONSTRUCT.resolve_eval(seed=seed),
                          options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
                                               pair_timeout=pair_timeout, feature_reuse=feature_reuse),

@@ -16,7 +16,7 @@ from rich.console import Console
 
 from e3cm_bench.data.folder import FREE_RESERVE, DownloadError, disk_full, set_aside
 from e3cm_bench.ground.files import write_atomically
-from e3cm_bench.storage.folder import fresh_folder, remove_folder
+from e3cm_bench.ground.folders import fresh_folder, remove_folder
 
 # Image archives compress little (ppm about 2:1, jpg not at all); members declaring more than
 # this many times the archive's bytes are a zip bomb, not data.

@@ -68,7 +68,7 @@ from e3cm_bench.data.folder import (
 from e3cm_bench.datasets.sources import Part, Source
 from e3cm_bench.data.http import WatchedHTTP, WatchedHTTPS, body_range, shut, whole_length
 from e3cm_bench.ground.files import FolderLock, refuse_link, write_atomically
-from e3cm_bench.storage.folder import remove_folder
+from e3cm_bench.ground.folders import remove_folder
 
 TIMEOUT_S = 60  # one read without a byte: the server is gone
 # A part's sizes in sources.py are rounded, and hosts re-pack archives: a body may exceed its

@@ -44,7 +44,7 @@ if TYPE_CHECKING:
     import torch
 
 from e3cm_bench.ground.files import refuse_link
-from e3cm_bench.storage.folder import fresh_folder, remove_folder
+from e3cm_bench.ground.folders import fresh_folder, remove_folder
 
 # The default budget: this share of the memory available when the stage starts, at most the cap.
 AUTO_SHARE = 0.5

@@ -24,17 +24,10 @@ from e3cm_bench.matchers.guards import StoppableWorker, can_fork
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from e3cm_bench.pipeline.address_space import check_address_space
-from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder, fresh_folder, remove_folder
-from e3cm_bench.pipeline.pair import (
-    COST_ATTRS,
-    PAIR_ATTRS,
-    MatcherError,
-    TimeLimit,
-    match_pair,
-    match_worker,
-    matcher_input,
-    pair_rotations,
-)
+from e3cm_bench.ground.folders import fresh_folder, remove_folder
+from e3cm_bench.storage.folder import FAILED_ATTR, RunFolder
+from e3cm_bench.pipeline.pair import (COST_ATTRS, PAIR_ATTRS, MatcherError, TimeLimit, match_pair, match_worker,
+                                      matcher_input, pair_rotations)
 from e3cm_bench.pipeline.progress import progress_bar
 
 

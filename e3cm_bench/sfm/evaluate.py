@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from e3cm_bench.sfm import metrics as sfm_metrics
-from e3cm_bench.storage.folder import fresh_folder
+from e3cm_bench.ground.folders import fresh_folder
 from e3cm_bench.sfm.mapper import MODELS, Reconstruction, run_mapper, write_database
 
 NUMBERS = ("n_images", "registered_images", "n_models", "points", "mean_track_length", "mean_reprojection_error")

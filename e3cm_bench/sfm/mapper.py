@@ -285,7 +285,7 @@ def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protoc
     from e3cm_bench.interchange.colmap import write_colmap
     from e3cm_bench.interchange.base import ExportItem
     from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, Protocol
-    from e3cm_bench.storage.folder import fresh_folder
+    from e3cm_bench.ground.folders import fresh_folder
 
     protocol = protocol or Protocol(merge="exact").resolved(True)
     # a rerun (--eval-only) replaces the last one's products; a link there is refused, never followed
@@ -342,7 +342,7 @@ def map_models(workdir: Path, seed: int, mapper: str = "incremental", models: st
     """The mapper on workdir's database (sfm's and reconstruct's one call), its models in
     workdir/`models`, its log appended to workdir/mapper.log; pycolmap's {index: Reconstruction}."""
     from e3cm_bench.ground.pycolmap import pycolmap_module
-    from e3cm_bench.storage.folder import fresh_folder
+    from e3cm_bench.ground.folders import fresh_folder
 
     pycolmap = pycolmap_module()
     workdir = Path(workdir)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from e3cm_bench.datasets.base import pair_line
-from e3cm_bench.storage.folder import remove_folder
+from e3cm_bench.ground.folders import remove_folder
 from e3cm_bench.sfm.mapper import (LOG, Reconstruction, captured_log, colmap_verification, global_record,
                                         image_size, incremental_record, map_models, model_of, verification_record)
 

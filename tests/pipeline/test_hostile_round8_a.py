@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from e3cm_bench.storage.folder import RunFolder, fresh_folder, remove_folder
+from e3cm_bench.ground.folders import fresh_folder, remove_folder
+from e3cm_bench.storage.folder import RunFolder
 from helpers import invoke, one_line_error
 
 HPATCHES = "hpatches-sequences-release"
