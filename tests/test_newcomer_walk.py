@@ -39,7 +39,8 @@ IMAGES = {"a.jpg": "hpatches-sequences-release/v_boat/1.ppm", "b.jpg": "hpatches
           "photos/": "megadepth_test_1500/Undistorted_SfM/kitti00/images"}  # 20 frames, no ground truth given
 ROOTS = {"hpatches": "hpatches-sequences-release", "wxbs": "WxBS", "evd": "EVD", "table1": "hpatches-sequences-release"}
 SMALL = {"hpatches": ["--sequences", "v_boat", "--limit", "2", "--max-side", "320"],
-         "wxbs": ["--limit", "2", "--max-side", "320"], "evd": ["--limit", "2", "--max-side", "320"]}
+         "wxbs": ["--limit", "2", "--max-side", "320"], "evd": ["--limit", "2", "--max-side", "320"],
+         "rank": ["--max-side", "640"]}  # three matchers on the 20 frames: minutes at full size on 2 cores
 
 
 def blocks(path: Path, sections: tuple[str, ...] | None = None) -> list[str]:
@@ -241,6 +242,22 @@ def test_reconstruct_makes_a_model_of_the_kitti_frames_without_ground_truth(walk
     assert summary["n_images"] == 20 and summary["largest_model_images"] >= 15, summary.to_dict()
     model = pycolmap.Reconstruction(str(out / "sparse" / "0"))  # what COLMAP's GUI and hloc read
     assert model.num_reg_images() == summary["largest_model_images"]
+
+
+@pytest.mark.slow  # the walk runs every step once
+def test_rank_ranks_the_tours_matchers_on_the_kitti_frames_without_ground_truth(walk):
+    """The tour's `rank photos/ --matchers sift,xfeat,e3cm-plus ...` on the 20 shared KITTI frames:
+    every matcher ranked, each with its interval and its cost, and the page written."""
+    import pandas as pd
+
+    step = next(s for s in walk if s.words[0] == "rank")
+    assert step.code == 0 and "verdict.csv" in step.stdout, step.stdout + step.stderr
+    out = step.cwd / step.words[step.words.index("--out") + 1]
+    table = pd.read_csv(out / "verdict.csv")
+    assert sorted(table["method"]) == ["e3cm-plus", "sift", "xfeat"] and table["failed"].isna().all(), table
+    assert list(table["rank"]) == [1, 2, 3] and (table["score_lo"] <= table["score_hi"]).all()
+    assert (table["registered_images"] >= 15).all() and (table["seconds_per_image"] > 0).all()
+    assert (out / "index.html").is_file()
 
 
 @pytest.mark.slow  # three commands, each with its start-up: about 40 s on 2 cores
