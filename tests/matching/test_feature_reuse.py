@@ -64,7 +64,12 @@ def test_a_classical_two_stage_matcher_extracts_each_image_once_and_matches_as_p
 @pytest.mark.parametrize("matcher", PEERS)
 def test_a_peer_extracts_each_image_once_and_matches_as_pair_by_pair(matcher, shared_data, tmp_path):
     pytest.importorskip("kornia")
-    reuse = two_runs(shared_data, tmp_path, matcher)
+    try:
+        reuse = two_runs(shared_data, tmp_path, matcher)
+    except ValueError as error:  # offline without the weights (SuperPoint's come from the Hugging Face hub)
+        if "could not be downloaded" not in str(error):
+            raise
+        pytest.skip(str(error))
     assert reuse["extractions"] == reuse["distinct_images"] == 12
 
 
