@@ -272,3 +272,12 @@ def test_table_and_report_flag_a_cost_taken_under_load(tmp_path):
     idle = _loaded_copy(tmp_path, {"load_start": 0.2, "load_end": 1.1, "cpus": 2, "cpu_seconds": 50.0,
                                    "wall_seconds": 60.0})
     assert "under load" not in invoke("table", idle, "--out", tmp_path / "t2", "--no-paper").output
+
+
+def test_the_readmes_feature_reuse_ratios_are_the_committed_measurements():
+    """The README's one-pass speed-ups are results/perf/feature_reuse.csv's, matcher by matcher."""
+    text = " ".join((REPO / "README.md").read_text().split())
+    table = pd.read_csv(REPO / "results" / "perf" / "feature_reuse.csv")
+    names = {"sift": "SIFT", "xfeat": "XFeat", "xfeat+lighterglue": "XFeat+LighterGlue"}
+    for row in table[table["set"] == "kitti"].itertuples():
+        assert f"{row[table.columns.get_loc('speed-up') + 1]:.2f}x ({names[row.matcher]})" in text, row
