@@ -24,6 +24,7 @@ RUNS, RECORD, LOG, PAGE = "runs", "rank.yaml", "rank.log", "index.html"
 # Method options that only a matcher on a backbone takes: given once for the rank, each passes to
 # the matchers that take it (sift has no backbone to set).
 BACKBONE_ONLY = ("backbone", "weights", "precision", "channel_order")
+MIN_MATCHERS = 3
 
 
 @dataclass(frozen=True)
@@ -40,9 +41,9 @@ class RankRequest:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        if len(self.matchers) < 2:
-            raise ValueError(f"--matchers: a rank needs at least 2 matchers (each is judged by the others), "
-                             f"got {len(self.matchers)}")
+        if len(self.matchers) < MIN_MATCHERS:  # with two, each is only the other's distance from it
+            raise ValueError(f"--matchers: a rank needs at least {MIN_MATCHERS} matchers (each is judged by the "
+                             f"others), got {len(self.matchers)}")
         labels = [label_of(m) for m in self.matchers]
         twice = sorted({label for label in labels if labels.count(label) > 1})
         if twice:
@@ -110,6 +111,10 @@ def rank_folder(request: RankRequest, console: Console | None = None) -> pd.Data
                 failed[label] = " ".join(f"{type(error).__name__}: {error}".split())
                 console.print(f"    {label} failed: {failed[label]}", markup=False, highlight=False)
         table = verdict_table(runs, failed)
+        if len(runs) < MIN_MATCHERS:
+            console.print(f"warning: only {len(runs)} of the matchers made a reconstruction: each is judged by the "
+                          "other's alone, which says nothing of which is right (docs/own-images.md)", markup=False,
+                          highlight=False)
         write_verdict(table, out)
         write_page(table, out)
     return table

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[2]
 LADDER = REPO / "scripts" / "validate"
 KITTI = "megadepth_test_1500/Undistorted_SfM/kitti00/images"
-MATCHERS = "sift,ladder:noise_4px,broken:factory"
+MATCHERS = "sift,ladder:noise_1px,ladder:noise_4px,broken:factory"
 # What a rank's verdict holds that does not depend on the machine (the cost columns do).
 STABLE = ["rank", "method", "score", "score_lo", "score_hi", "vs_next", "registered_images", "points", "failed"]
 BROKEN = '''
@@ -73,10 +73,10 @@ def test_a_folder_is_ranked_and_a_failing_matcher_recorded(ranked):
     out, result = ranked
     assert result.exit_code == 0, result.output
     table = pd.read_csv(out / "verdict.csv")
-    assert list(table["method"]) == ["sift", "ladder-noise_4px", "broken-factory"]  # the degraded one below
-    assert list(table["rank"].iloc[:2]) == [1, 2] and pd.isna(table["rank"].iloc[2])
-    assert "this matcher always fails" in table["failed"].iloc[2] and "broken-factory failed" in result.output
-    ok = table.iloc[:2]
+    assert list(table["method"])[2:] == ["ladder-noise_4px", "broken-factory"]  # the most degraded last
+    assert list(table["rank"].iloc[:3]) == [1, 2, 3] and pd.isna(table["rank"].iloc[3])
+    assert "this matcher always fails" in table["failed"].iloc[3] and "broken-factory failed" in result.output
+    ok = table.iloc[:3]
     assert (ok["score_lo"] <= ok["score"]).all() and (ok["score"] <= ok["score_hi"]).all()
     assert (ok["seconds_per_image"] > 0).all() and (ok["n_pairs_scored"] > 0).all()
     assert table["vs_next"].iloc[0] in ("better than the next", "no difference detectable")
@@ -110,7 +110,7 @@ def test_an_interrupted_rank_resumes_to_the_same_verdict(ranked, frames, modules
 
 def test_its_runs_read_as_reconstruct_runs(ranked, tmp_path):
     out, _ = ranked
-    runs = [out / "runs" / "sift", out / "runs" / "ladder-noise_4px"]
+    runs = [out / "runs" / "sift", out / "runs" / "ladder-noise_1px"]
     table = invoke("table", *runs, "--out", tmp_path / "t", "--no-paper")
     assert table.exit_code == 0, table.output
     report = invoke("report", *runs, "--out", tmp_path / "report")
