@@ -32,6 +32,10 @@ from e3cm_bench.stats.bootstrap import percentile_interval, resample_indices  # 
 from e3cm_bench.storage.folder import RunFolder  # noqa: E402
 
 
+# The ladder (ladder.py's noise rungs beside SIFT), best first: it must come out in this order.
+LADDER = ("sift", "ladder-noise_1px", "ladder-noise_2px", "ladder-noise_4px")
+
+
 def posed(run: Path) -> tuple[list[str], list, np.ndarray]:
     found = run_poses(run)
     truth = pd.read_csv(RunFolder(run).per_pair_path).set_index("pair").loc[found.names, "err_pose"]
@@ -67,6 +71,7 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--csv", type=Path)
     parser.add_argument("--planar", action="store_true", help="homography runs (hpatches)")
+    parser.add_argument("--set", default="", help="the set's name, for the CSV")
     args = parser.parse_args()
     read = planar if args.planar else posed
     judge = consensus.Planar() if args.planar else None
@@ -95,14 +100,20 @@ def main() -> None:
             if (t_lo > 0 and c_hi < 0) or (t_hi < 0 and c_lo > 0):
                 contradictions.append(f"{a} vs {b}: truth [{t_lo:+.1f}, {t_hi:+.1f}], "
                                       f"consensus [{c_lo:+.1f}, {c_hi:+.1f}]")
+    ladder = [m for m in LADDER if m in methods]
+    in_order = {column: all(table.set_index("method").loc[a, column] > table.set_index("method").loc[b, column]
+                            for a, b in zip(ladder, ladder[1:])) for column in ("truth", "consensus")}
     print(table.sort_values("truth", ascending=False).to_string(index=False, float_format="%.1f"))
+    print(f"ladder {' > '.join(ladder)}: in order by the truth {in_order['truth']}, by the consensus "
+          f"{in_order['consensus']}")
     print(f"{len(names)} pairs; Kendall tau {tau:.3f}; Spearman rho per pair {rho:.3f} ({len(both)} run-pairs); "
           f"contradictions: {len(contradictions)}")
     for line in contradictions:
         print("  " + line)
     if args.csv:
-        table.assign(n_pairs=len(names), tau=tau, rho=rho, contradictions=len(contradictions)).to_csv(args.csv,
-                                                                                                    index=False)
+        table.insert(0, "set", args.set)
+        table.assign(n_pairs=len(names), tau=tau, rho=rho, contradictions=len(contradictions),
+                     ladder_in_order=in_order["consensus"]).to_csv(args.csv, index=False)
 
 
 if __name__ == "__main__":
