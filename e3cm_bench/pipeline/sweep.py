@@ -45,7 +45,7 @@ import pandas as pd
 from e3cm_bench.benchmarks import EvalSettings
 from e3cm_bench.geometry import metrics
 from e3cm_bench.geometry.estimators import ESTIMATORS, POSE_METHODS
-from e3cm_bench.ground.files import FolderLock, save_yaml, write_atomically, write_csv
+from e3cm_bench.ground.files import FolderLock, refuse_link, save_yaml, write_atomically, write_csv
 from e3cm_bench.ground.matches import distinct
 from e3cm_bench.reporting.tables import sweep_markdown
 from e3cm_bench.stats.bootstrap import (BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, percentile_interval,
@@ -185,7 +185,7 @@ def cell_errors(runs: Sequence[SweepRun], names: Sequence[str], cell: Cell, seed
     """Each run's pairs x seeds errors in `cell`, read from OUT/cells/CELL.csv where a sweep wrote
     them (same pairs and seeds, the run's `key`), else computed and added there (the columns of
     the runs of other sweeps into this --out are kept: each resumes)."""
-    path = out / "cells" / f"{cell.file_name}.csv"
+    path = refuse_link(out / "cells") / f"{cell.file_name}.csv"  # a cell is never written through a link
     done = pd.read_csv(path) if path.is_file() else None
     table = done if done is not None and list(done["pair"]) == list(names) else pd.DataFrame({"pair": list(names)})
     found, added = {}, False

@@ -321,3 +321,18 @@ def test_a_sweep_folder_in_use_is_refused_in_one_line(kitti_runs, tmp_path):
         line = one_line_error(invoke("sweep", kitti_runs["sift"], kitti_runs["weak"], "--out", out,
                                      "--estimators", "opencv-ransac", "--thresholds", "0.5px", "--seeds", 1))
     assert f"{out}: another run is using this folder" in line and not (out / "sweep.csv").exists()
+
+
+def test_a_link_at_the_sweeps_cells_folder_is_refused_and_its_target_kept(kitti_runs, tmp_path):
+    """Item 1 for the sweep: OUT/cells as a link to a user's folder is refused in one line, and
+    nothing is written into the folder it points at."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep.txt").write_text("mine")
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "cells").symlink_to(victim, target_is_directory=True)
+    line = one_line_error(invoke("sweep", kitti_runs["sift"], kitti_runs["weak"], "--out", out,
+                                 "--estimators", "opencv-ransac", "--thresholds", "0.5px", "--seeds", 1))
+    assert "cells" in line and "link" in line
+    assert sorted(p.name for p in victim.iterdir()) == ["keep.txt"]
