@@ -86,8 +86,9 @@ SETTING_VALUES: dict[str, tuple[str, Range | None]] = {
     **{name: ("text", None) for name in ("homography_pixel_origin", "pose_ransac_frame", "protocol", "estimator",
                                          "opencv_method")},
     "drop_failures": ("flag", None),
-    "repeats": ("whole", Range(1, None)),
-    "interval_seeds": ("whole", Range(1, None)),
+    # their ranges are EvalSettings' own bounds (MAX_REPEATS, MAX_INTERVAL_SEEDS), which name the flag
+    "repeats": ("whole", None),
+    "interval_seeds": ("whole", None),
 }
 
 

