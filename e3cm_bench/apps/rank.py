@@ -95,8 +95,14 @@ def rank_folder(request: RankRequest, console: Console | None = None) -> pd.Data
     """Every matcher's run (a failing one recorded), then the verdict; returns verdict.csv's table."""
     from e3cm_bench.ground.files import FolderLock, save_yaml
 
+    from e3cm_bench.sfm.own_images import RECONSTRUCT
+
     console = console or Console()
     out = Path(request.out)
+    # the folder and the pair options checked once, before a matcher starts: a folder of no images
+    # is one line and exit 1, not three failed rows
+    RECONSTRUCT.build_dataset(request.images, False, {k: v for k, v in request.dataset_options.items()
+                                                      if v is not None})
     with FolderLock(out), (out / LOG).open("a") as log:
         save_yaml(record(request), out / RECORD)
         quiet = Console(file=log, width=100, soft_wrap=True)
@@ -111,10 +117,11 @@ def rank_folder(request: RankRequest, console: Console | None = None) -> pd.Data
                 failed[label] = " ".join(f"{type(error).__name__}: {error}".split())
                 console.print(f"    {label} failed: {failed[label]}", markup=False, highlight=False)
         table = verdict_table(runs, failed)
-        if len(runs) < MIN_MATCHERS:
-            console.print(f"warning: only {len(runs)} of the matchers made a reconstruction: each is judged by the "
-                          "other's alone, which says nothing of which is right (docs/own-images.md)", markup=False,
-                          highlight=False)
+        modelled = int((table.get("registered_images", pd.Series(dtype=float)).fillna(0) > 0).sum())
+        if modelled < MIN_MATCHERS:
+            console.print(f"warning: only {modelled} of the {len(request.matchers)} matchers made a reconstruction: "
+                          "each is judged by fewer than two others, which says little of which is right "
+                          "(docs/own-images.md)", markup=False, highlight=False)
         write_verdict(table, out)
         write_page(table, out)
     return table
