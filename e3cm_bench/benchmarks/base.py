@@ -189,6 +189,9 @@ class Benchmark:
     # Whether its dataset takes the run's --limit (`first`) and builds no pair beyond it (sfm: a
     # set's exhaustive graph grows with the square of its images).
     builds_to_limit: bool = False
+    # Evaluation options it refuses, by name: (the values it still takes, why) (sfm: its mapper's seeds
+    # are its repeats and its interval).
+    refused_eval: Mapping[str, tuple[tuple, str]] = field(default_factory=dict)
 
     @property
     def option_names(self) -> tuple[str, ...]:
@@ -274,30 +277,26 @@ class Benchmark:
 
         return build_method({"matcher": matcher, "protocol": protocol, **options}, benchmark=self, available=available)
 
-    def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
-                     estimator: str | None = None, repeats: int = 1,
-                     interval_seeds: int | None = None) -> EvalSettings:
-        """The evaluation settings of a run: the protocol's, then --ransac-px, --pose-estimator,
-        --repeats, --interval-seeds (None: the protocol's, else the benchmark's default)."""
+    def resolve_eval(self, protocol: str | None = None, seed: int = 0, given: Mapping | None = None,
+                     **named) -> EvalSettings:
+        """The evaluation settings of a run: the protocol's, then the evaluation options given, by their
+        names (EVAL_OPTIONS: ransac_px, pose_estimator, repeats, interval_seeds; None: the protocol's,
+        else the benchmark's) in `given` (a command's flags, a config's ``evaluation:``, a record's) or
+        as keywords (the Python API). A name this benchmark refuses (`refused_eval`) is one line."""
+        from e3cm_bench.benchmarks.eval_options import check_eval_given
         from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 
         # every value by its flag's own check (kind and range) before any is used: a command's, a
-        # config's ``evaluation:`` and the Python API's all come through here
+        # config's ``evaluation:``, a record's and the Python API's all come through here
         METHOD_OPTIONS["seed"].check(seed)
-        given = {"ransac_px": ransac_px, "pose_estimator": estimator, "repeats": repeats,
-                 "interval_seeds": interval_seeds}
-        for name, value in given.items():
-            EVAL_OPTIONS[name].check(value)
+        values = check_eval_given({**(given or {}), **named}, self.refused_eval)
         chosen = get_protocol(resolve_protocol(self, protocol), self.name)
-        values = chosen.eval_fields(self.name)
-        if estimator:
-            values["estimator"] = estimator
-        if repeats != 1:
-            values["repeats"] = repeats
-        if interval_seeds is None:
-            interval_seeds = chosen.interval_seeds if chosen.interval_seeds is not None else self.default_interval_seeds
-        values["interval_seeds"] = interval_seeds
-        return self.eval_settings(seed=seed, ransac_px=ransac_px, **values)
+        settings = chosen.eval_fields(self.name)
+        settings.update({EVAL_OPTIONS[name].field: value for name, value in values.items() if value != ""})
+        if settings.get("interval_seeds") is None:
+            settings["interval_seeds"] = (chosen.interval_seeds if chosen.interval_seeds is not None
+                                          else self.default_interval_seeds)
+        return self.eval_settings(seed=seed, **settings)
 
     # ---- scoring: subclasses
     def pair_columns(self, ev: EvalSettings) -> list[str]:  # pragma: no cover - abstract

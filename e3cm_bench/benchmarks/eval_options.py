@@ -3,8 +3,9 @@
 Each `EvalOption` is the one declaration of an option that changes only how a run is scored:
 the benchmark commands' flag and help come from it (cli/benchmarks.py), an experiment config's
 ``evaluation:`` section takes its name as a key, checked against its kind (pipeline/experiments.py),
-and both hand the values to `Benchmark.resolve_eval` under its `keyword`. A new evaluation flag
-is one entry here and the code that reads its EvalSettings field.
+and both hand the values to `Benchmark.resolve_eval` as one mapping by these names; each option
+names the EvalSettings field it fills. A new evaluation flag is one entry here and the code that
+reads its field.
 
 The seed and the protocol are method options (they also decide the matches where a matcher is
 random or resized): they are not here. This module imports nothing heavy (`--help` reads it).
@@ -34,8 +35,8 @@ POSITIVE = Range(0, None, low_open=True)
 class EvalOption(KindOf):
     """name: the config key and the command's parameter; flag: its spelling on the command line;
     kind: a key of options.KINDS; default: the value when none is given (None: the protocol's,
-    else the benchmark's); keyword: Benchmark.resolve_eval's parameter it fills (its name where
-    not given); show_default: what --help says the default is, where the value itself says nothing;
+    else the benchmark's); field: the EvalSettings field it fills (its name where not given;
+    `ransac_px` is the benchmark's own threshold field, Benchmark.ransac_field); show_default: what --help says the default is, where the value itself says nothing;
     range: the values a number kind allows besides its kind (options.Range; None: any of the kind)."""
 
     name: str
@@ -43,14 +44,14 @@ class EvalOption(KindOf):
     kind: str
     default: object
     help: str
-    keyword: str = ""
+    field: str = ""
     show_default: str | None = None
     range: Range | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not self.keyword:
-            object.__setattr__(self, "keyword", self.name)
+        if not self.field:
+            object.__setattr__(self, "field", self.name)
 
 
 EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
@@ -59,7 +60,7 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
     EvalOption("pose_estimator", "--pose-estimator", "text", None,
                "Robust estimator of the evaluation (relative pose; HPatches: the homography): opencv (default), "
                "poselib (pip install 'e3cm-bench\\[poselib]') or pycolmap (COLMAP's LO-RANSAC; "
-               "'e3cm-bench\\[colmap]'); --eval-only may change it.", keyword="estimator"),
+               "'e3cm-bench\\[colmap]'); --eval-only may change it.", field="estimator"),
     EvalOption("repeats", "--repeats", "whole", 1,
                "Run the evaluation's RANSAC K times (seeds SEED..SEED+K-1, no rematching): the summary is their "
                "mean, with each metric's spread (_sd); at most 100."),
@@ -101,7 +102,19 @@ def check_settings(values: Mapping) -> None:
             check_value(value, kind, bounds, name)
 
 
-def eval_keywords(given: dict) -> dict:
-    """Evaluation options by name (a command's, a config's ``evaluation:``) -> Benchmark.resolve_eval's
-    keywords; a value not given (None) is left out, so the protocol's or the benchmark's holds."""
-    return {EVAL_OPTIONS[name].keyword: value for name, value in given.items() if value is not None}
+def check_eval_given(given: Mapping, refused: Mapping[str, tuple[tuple, str]], where: str = "") -> dict:
+    """Evaluation options by name (a command's flags, a config's ``evaluation:``, a record's given, the
+    Python API's keywords) -> the ones given (None: not given), each checked: an unknown name is one
+    line with the nearest, a value by its flag's kind and range, a name the benchmark refuses
+    (`refused`: name -> (the values it still takes, why)) by its reason."""
+    from e3cm_bench.ground.suggest import did_you_mean
+
+    for name in given:
+        if name not in EVAL_OPTIONS:
+            raise ValueError(f"{where}{name!r} is not an evaluation option{did_you_mean(name, EVAL_OPTIONS)}; "
+                             f"they are {', '.join(EVAL_OPTIONS)}")
+    for name, value in given.items():
+        EVAL_OPTIONS[name].check(value, f"{where}{name}" if where else None)
+        if name in refused and value not in refused[name][0]:
+            raise ValueError(refused[name][1])
+    return {name: value for name, value in given.items() if value is not None}

@@ -13,7 +13,7 @@ import typer
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
 from e3cm_bench.method.protocols import get_protocol, resolve_protocol
 from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.cli.common import (
     OnceEach,
     app,
@@ -120,7 +120,7 @@ def run_command(bench: Benchmark, given: dict) -> None:
     # A busy folder is refused before torch and the method load (seconds; the lock itself is
     # taken where the run opens the folder, pipeline/driver.open_run).
     RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
-    ev = bench.resolve_eval(protocol, method_given["seed"], **eval_keywords(eval_given))
+    ev = bench.resolve_eval(protocol, method_given["seed"], eval_given)
     options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
                            pair_timeout=o.pair_timeout, feature_reuse=o.feature_reuse)
     root = find_root(bench.name, o.root)

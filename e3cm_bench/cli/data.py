@@ -10,7 +10,7 @@ import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.cli.benchmarks import eval_options, keyword_parameters, option_parameter
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.interchange.registry import formats, origin_help
 from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors,
                                    RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, PlotFormatOpt)
@@ -114,7 +114,7 @@ def import_matches(
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
     options = {k: _as_declared(bench, k, v) for k, v in dataset_options.items() if k in mine}
     dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
-    ev = bench.resolve_eval(protocol, seed, **eval_keywords(eval_given))
+    ev = bench.resolve_eval(protocol, seed, eval_given)
     (name, paths), = given.items()
     source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
                                 origin=pixel_origin)

@@ -23,7 +23,7 @@ from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.method.options import METHOD_OPTIONS, check_value, config_keys
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, eval_keywords
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.paper import resolve_config
 from e3cm_bench.storage.fingerprint import protocol_items, protocol_notes
@@ -179,8 +179,7 @@ def reproduce(
     dataset = benchmark.load_dataset(request.root, skip_bad=request.skip_bad, **options)
     # No `protocol:`: the benchmark's default, as its command has it (WxBS, EVD: wxbs)
     protocol = get_protocol(resolve_protocol(benchmark, experiment.get("protocol")), benchmark.name)
-    ev = benchmark.resolve_eval(protocol.name, seed=int(experiment.get("seed", 0)),
-                                **eval_keywords(experiment.get("evaluation") or {}))
+    ev = benchmark.resolve_eval(protocol.name, int(experiment.get("seed", 0)), experiment.get("evaluation") or {})
     out = Path(request.out)
     methods, not_run = _methods(config_path, experiment, benchmark, (backbone, max_side), only, strict, console)
     save_yaml({**experiment, "runs": [m.folder for m in methods], NOT_RUN: not_run}, out / EXPERIMENT_COPY)

@@ -56,22 +56,18 @@ class SfMBenchmark(Benchmark):
     evaluates_set = True
     default_interval_seeds: int = 1  # its interval holds the mapper's seeds (--mapper-seeds), and their verification
     builds_to_limit: bool = True
+    # said before matching (evaluate_set says --repeats again for the Python API's own settings)
+    refused_eval: Mapping[str, tuple[tuple, str]] = field(default_factory=lambda: {
+        "repeats": ((None, 1), "--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model"),
+        # its interval holds the mapper's seeds and their verification draws
+        "interval_seeds": ((None, 1), "--interval-seeds does not apply to sfm: --mapper-seeds K reruns the "
+                                      "verification and the mapper, and its interval holds them")})
 
     def build_dataset(self, root: str | Path, skip_bad: bool, options: dict) -> MultiViewSet:
         """The set with its dataset options grouped (SetOptions); `first`: the run's --limit."""
         given = dict(options)
         first = given.pop("first", None)
         return MultiViewSet(root, SetOptions(**given), skip_bad=skip_bad, first=first)
-
-    def resolve_eval(self, protocol: str | None = None, seed: int = 0, ransac_px: float | None = None,
-                     estimator: str | None = None, repeats: int = 1,
-                     interval_seeds: int | None = None) -> EvalSettings:
-        if repeats != 1:  # said before matching (evaluate_set says it again for the Python API)
-            raise ValueError("--repeats does not apply to sfm: its mapper is seeded, a rerun gives the same model")
-        if interval_seeds not in (None, 1):  # its interval holds the mapper's seeds and their verification draws
-            raise ValueError("--interval-seeds does not apply to sfm: --mapper-seeds K reruns the verification and "
-                             "the mapper, and its interval holds them")
-        return super().resolve_eval(protocol, seed, ransac_px, estimator, repeats, interval_seeds)
 
     def pair_columns(self, ev: EvalSettings) -> list[str]:
         return with_duplicates(["pair", "bag", "n_matches", "n_inliers", "registered0", "registered1", "model",

@@ -89,9 +89,24 @@ def test_an_evaluation_option_has_its_declared_flag_and_help(name):
     assert flat(option.help.replace("\\[", "["))[:40] in flat(result.output)
 
 
-def test_the_evaluation_keywords_are_those_resolve_eval_takes():
-    taken = set(inspect.signature(Benchmark.resolve_eval).parameters)
-    assert {o.keyword for o in EVAL_OPTIONS.values()} <= taken
+def test_each_evaluation_option_names_a_field_of_the_settings_and_resolve_eval_fills_it():
+    from dataclasses import fields as dataclass_fields
+
+    from e3cm_bench.benchmarks import EvalSettings
+
+    known = {f.name for f in dataclass_fields(EvalSettings)} | {"ransac_px"}  # ransac_px: Benchmark.ransac_field
+    assert {o.field for o in EVAL_OPTIONS.values()} <= known
+    ev = get_benchmark("megadepth").resolve_eval(given={"pose_estimator": "poselib", "ransac_px": 2.0,
+                                                        "repeats": 2, "interval_seeds": 4})
+    assert (ev.estimator, ev.pose_ransac_px, ev.repeats, ev.interval_seeds) == ("poselib", 2.0, 2, 4)
+
+
+def test_an_unknown_evaluation_name_is_one_line_with_the_nearest_and_sfm_declares_what_it_refuses():
+    with pytest.raises(ValueError, match=r"'ransac_pix' is not an evaluation option \(did you mean 'ransac_px'\?\)"):
+        get_benchmark("hpatches").resolve_eval(given={"ransac_pix": 2})
+    with pytest.raises(ValueError, match="--repeats does not apply to sfm"):
+        get_benchmark("sfm").resolve_eval(given={"repeats": 3})
+    assert get_benchmark("sfm").resolve_eval(given={"repeats": 1, "interval_seeds": None}).interval_seeds == 1
 
 
 def typer_app_of(bench: Benchmark) -> typer.Typer:
@@ -115,8 +130,7 @@ class Reached(Exception):
 def toys(monkeypatch):
     """One toy method option and one toy evaluation option, declared in their tables only."""
     method = MethodOption("toy_px", ("--toy-px",), "whole", None, "A toy method option (tests only).")
-    evaluation = EvalOption("toy_seeds", "--toy-seeds", "whole", None, "A toy evaluation option (tests only).",
-                            keyword="toy_seeds")
+    evaluation = EvalOption("toy_seeds", "--toy-seeds", "whole", None, "A toy evaluation option (tests only).")
     monkeypatch.setitem(METHOD_OPTIONS, method.name, method)
     monkeypatch.setitem(EVAL_OPTIONS, evaluation.name, evaluation)
     return method, evaluation
@@ -125,9 +139,9 @@ def toys(monkeypatch):
 def test_a_toy_option_declared_in_its_table_is_on_the_command_and_reaches_its_reader(tmp_path, toys, monkeypatch):
     seen = {}
 
-    def resolve_eval(self, protocol=None, seed=0, **keywords):
-        seen["evaluation"] = keywords
-        return original(self, protocol, seed, **{k: v for k, v in keywords.items() if k != "toy_seeds"})
+    def resolve_eval(self, protocol=None, seed=0, given=None):
+        seen["evaluation"] = dict(given)
+        return original(self, protocol, seed, {k: v for k, v in given.items() if k != "toy_seeds"})
 
     def build_method(given, *args, **kwargs):
         seen["method"] = dict(given)
