@@ -36,7 +36,8 @@ class EvalOption(KindOf):
     """name: the config key and the command's parameter; flag: its spelling on the command line;
     kind: a key of options.KINDS; default: the value when none is given (None: the protocol's,
     else the benchmark's); field: the EvalSettings field it fills (its name where not given;
-    `ransac_px` is the benchmark's own threshold field, Benchmark.ransac_field); show_default: what --help says the default is, where the value itself says nothing;
+    `ransac_px` is the benchmark's own threshold field, Benchmark.ransac_field); show_default:
+    what --help says the default is, where the value itself says nothing;
     range: the values a number kind allows besides its kind (options.Range; None: any of the kind)."""
 
     name: str
