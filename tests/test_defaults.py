@@ -21,7 +21,8 @@ RESOLVERS = {
                  ("e3cm_bench/method/spec.py", "e3cm_bench/benchmarks/base.py", "e3cm_bench/cli/benchmarks.py",
                   "e3cm_bench/pipeline/experiments.py")),
     "max_side": ("e3cm_bench/method/protocols.py", "resolve_max_side",
-                 ("e3cm_bench/method/spec.py", "e3cm_bench/benchmarks/base.py", "e3cm_bench/cli/reconstruct.py")),
+                 # reconstruct's side: build_method's, through the run resolver (pipeline/resolve.py)
+                 ("e3cm_bench/method/spec.py", "e3cm_bench/benchmarks/base.py")),
     "pair_timeout": ("e3cm_bench/pipeline/stage.py", "resolve_pair_timeout", ("e3cm_bench/pipeline/stage.py",)),
     "pixel_origin": ("e3cm_bench/interchange/pixels.py", "resolve_origin",
                      ("e3cm_bench/pipeline/export.py", "e3cm_bench/interchange/colmap.py",

@@ -65,15 +65,17 @@ def method_given(request: RankRequest, matcher: str) -> dict:
 
 
 def run_one(request: RankRequest, matcher: str, console: Console) -> Path:
-    """The matcher's reconstruct run of the folder, into OUT/runs/LABEL (resumed where it stopped)."""
-    from e3cm_bench.method.spec import build_method
+    """The matcher's reconstruct run of the folder, into OUT/runs/LABEL (resumed where it stopped),
+    resolved from its options by section as `reconstruct`'s are (pipeline/resolve.py)."""
+    from e3cm_bench.pipeline.resolve import resolve_request
     from e3cm_bench.pipeline.runner import run_benchmark
     from e3cm_bench.sfm.own_images import RECONSTRUCT
 
-    method = build_method(method_given(request, matcher), RECONSTRUCT, request.device)
     folder = Path(request.out) / RUNS / label_of(matcher)
-    run_benchmark(RECONSTRUCT, folder, method, root=request.images, dataset_options=dict(request.dataset_options),
-                  ev=RECONSTRUCT.resolve_eval(seed=request.seed), device=request.device, console=console)
+    given = {"method": method_given(request, matcher),
+             "dataset": {k: v for k, v in request.dataset_options.items() if v is not None},
+             "run": {"out": folder, "root": request.images, "device": request.device}}
+    run_benchmark(resolve_request(RECONSTRUCT, given), console=console)
     return folder
 
 

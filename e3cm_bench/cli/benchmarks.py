@@ -12,7 +12,7 @@ import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
 from e3cm_bench.method.protocols import get_protocol, resolve_protocol
-from e3cm_bench.method.options import KINDS, METHOD_OPTIONS, check_method_values, with_defaults
+from e3cm_bench.method.options import KINDS, METHOD_OPTIONS
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.cli.common import (
     OnceEach,
@@ -20,7 +20,6 @@ from e3cm_bench.cli.common import (
     console,
     eval_option,
     method_option,
-    method_values,
     warn,
     DeviceOpt,
     BackboneBatchOpt,
@@ -98,40 +97,31 @@ class Scale:
 
 def run_command(bench: Benchmark, given: dict) -> None:
     """What every benchmark command does with its options (the commands are made by
-    benchmark_command): `given` holds the method options (options.METHOD_OPTIONS), the
-    benchmark's dataset options and the run's options (common_before, common_after)."""
+    benchmark_command): the flags that say how the shards run checked first (Scale), then the others,
+    by section in their tables' names, resolved into the run's request (pipeline/resolve.py), which
+    keeps what was typed (the flags not at their defaults) for the record."""
     from e3cm_bench.data.download import find_root
-    from e3cm_bench.method.spec import build_method
-    from e3cm_bench.storage.folder import RunFolder
-    from e3cm_bench.pipeline.shards import parse_shard, shard_dir
-    from e3cm_bench.pipeline.stage import MatchOptions
-    from e3cm_bench.pipeline.request import RunRequest
+    from e3cm_bench.pipeline.resolve import resolve_request
 
-    dataset_options = {o.name: given.pop(o.name) for o in bench.command_options()}
-    method_given = {name: given.pop(name) for name in METHOD_OPTIONS if name in given}
-    eval_given = {name: given.pop(name) for name in EVAL_OPTIONS if name in given}
     o = SimpleNamespace(**given)
-    protocol = resolve_protocol(bench, method_given["protocol"])  # WxBS and EVD: their reference's (wxbs)
     scale = Scale(o.shard, o.workers, o.devices, o.launcher, o.shards)
     scale.check(o.eval_only, o.device)  # the flags first: building the method may download weights
-    RunRequest.check_counts(o.limit, o.viz)
-    values = method_values(method_given)
-    check_method_values(with_defaults(values))  # the names too (a mistyped --matcher), before torch loads
-    # A busy folder is refused before torch and the method load (seconds; the lock itself is
-    # taken where the run opens the folder, pipeline/driver.open_run).
-    RunFolder(shard_dir(o.out, parse_shard(o.shard)) if o.shard else o.out).check_free()
-    ev = bench.resolve_eval(protocol, method_given["seed"], eval_given)
-    options = MatchOptions(o.feature_cache_mb, backbone_batch=o.backbone_batch, on_matcher_error=o.on_matcher_error,
-                           pair_timeout=o.pair_timeout, feature_reuse=o.feature_reuse)
-    root = find_root(bench.name, o.root)
-    method = build_method(values, bench, o.device, warn=warn)
-    if o.sample is not None:  # a dataset option for every benchmark (Benchmark.load_dataset)
-        dataset_options = {**dataset_options, "sample": o.sample, "sample_seed": o.sample_seed}
+    request = resolve_request(bench.name, typed_sections(bench, given), locate=find_root, warn=warn)
+    protocol = resolve_protocol(bench, given["protocol"])  # WxBS and EVD: their reference's (wxbs)
     console.print(get_protocol(protocol, bench.name).line(bench.name), markup=False)
-    request = RunRequest(bench.name, o.out, method, root=root, dataset_options=dataset_options, skip_bad=o.skip_bad,
-                         ev=ev, limit=o.limit, overwrite=o.overwrite, viz=o.viz, options=options, device=o.device,
-                         eval_only=o.eval_only, shard=parse_shard(o.shard) if o.shard else None)
     run_scaled(scale, request)
+
+
+def typed_sections(bench: Benchmark, given: dict) -> dict:
+    """A benchmark command's options by section (pipeline/resolve.py), those at their flag's default
+    left out (the matcher kept: the run is a method's): what the user typed, as the record keeps it."""
+    from e3cm_bench.pipeline.resolve import section_keys
+
+    defaults = {name: default for name, _, default in common_before() + common_after()}
+    defaults.update((o.name, False if o.kind == "flag" else None) for o in bench.command_options())
+    typed = {name: value for name, value in given.items() if name == "matcher" or value != defaults.get(name)}
+    return {section: {name: typed[name] for name in names if name in typed}
+            for section, names in section_keys(bench).items()}
 
 
 def run_scaled(scale: Scale, request):

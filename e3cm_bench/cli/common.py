@@ -30,6 +30,7 @@ from e3cm_bench.matching import ESTIMATORS
 from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.drawing.formats import LogConsole
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
+from e3cm_bench.method.spec import method_values, parse_settings  # noqa: F401 - the commands' names for them
 
 
 def app_help() -> str:
@@ -121,18 +122,15 @@ FeatureReuseOpt = Annotated[
 ]
 
 
-def method_values(given: dict) -> dict:
-    """A command's method options as typed -> as method.build_method takes them: the
-    comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; the others as given."""
-    from e3cm_bench.method.spec import parse_numbers
+def typed_only(command, given: dict) -> dict:
+    """A command's options by section (pipeline/resolve.py), those at the command's own default left
+    out: what the user typed, as a run's record keeps it (`given`); the matcher always, as the one
+    that makes the run a method's."""
+    import inspect
 
-    values = dict(given)
-    for name in ("sampson_px", "ratio"):
-        if isinstance(values.get(name), str):
-            values[name] = parse_numbers(values[name], METHOD_OPTIONS[name].flags[0])
-    if "settings" in values and not isinstance(values["settings"], dict):
-        values["settings"] = parse_settings(values["settings"])
-    return values
+    defaults = {name: p.default for name, p in inspect.signature(command).parameters.items()}
+    return {section: {k: v for k, v in values.items() if k == "matcher" or k not in defaults or v != defaults[k]}
+            for section, values in given.items()}
 
 
 def say(line: str, hang: int = 4) -> None:
@@ -168,20 +166,6 @@ def tell(message: str, label: str = "error", style: str = "bold red") -> None:
                               break_long_words=False, break_on_hyphens=False) or [head]
     text = "\n".join([f"[{style}]{label}:[/] {escape(lines[0][len(head):])}", *map(escape, lines[1:])])
     err_console.print(text, highlight=False, soft_wrap=True)  # escape: a path may hold [/]
-
-
-def parse_settings(pairs: list[str] | None) -> dict:
-    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML
-    values). --precision and --channel-order join them in method.build_method (deep_settings)."""
-    from e3cm_bench.ground.files import load_yaml_text
-
-    settings = {}
-    for item in pairs or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
-        settings[key.strip()] = load_yaml_text(value)
-    return settings
 
 
 # The commands that write run folders (with every benchmark's own): only their rerun resumes at

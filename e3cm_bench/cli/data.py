@@ -12,7 +12,7 @@ from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.cli.benchmarks import eval_options, keyword_parameters, option_parameter
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.interchange.registry import formats, origin_help
-from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors,
+from e3cm_bench.cli.common import (OnceEach, app, console, say, LabelOpt, ProtocolOpt, friendly_errors, typed_only,
                                    RootOpt, OutOpt, SeedOpt, OverwriteOpt, VizOpt, SkipBadOpt, PlotFormatOpt)
 
 # The interchange formats' help, made from their registry (interchange/registry.py).
@@ -93,19 +93,18 @@ def import_matches(
 ) -> None:
     """Evaluate another tool's matches: a normal run folder (matches.h5, config.yaml with the sources' sha256, CSVs)."""
     from e3cm_bench.pipeline.imported import import_run
-    from e3cm_bench.pipeline.request import RunRequest
+    from e3cm_bench.pipeline.resolve import resolve_request
     from e3cm_bench.data.download import find_root
     from e3cm_bench.storage import RunConfig
 
     known = formats()
     eval_given = {name: options.pop(name) for name in EVAL_OPTIONS if name in options}
-    given = {name: options.pop(name) for name in known if options.get(name) is not None}
-    if len(given) != 1:
+    given_sources = {name: options.pop(name) for name in known if options.get(name) is not None}
+    if len(given_sources) != 1:
         each = [f"--{fmt.name} {' '.join(fmt.reads)}" for fmt in known.values()]
         raise ValueError(f"give one source: {', '.join(each[:-1])} or {each[-1]} "
-                         f"(given: {', '.join(f'--{name}' for name in given) or 'none'})")
+                         f"(given: {', '.join(f'--{name}' for name in given_sources) or 'none'})")
     bench = get_benchmark(benchmark)
-    root = find_root(bench.name, root)
     mine = {o.name for o in bench.command_options()}
     dataset_options = {k: v for k, v in options.items() if k not in known}
     foreign = sorted(OPTION_FLAGS[k] for k, v in dataset_options.items() if k not in mine and v not in (None, False,
@@ -113,17 +112,19 @@ def import_matches(
     if foreign:
         raise ValueError(f"{', '.join(foreign)} do(es) not apply to {bench.name}")
     options = {k: _as_declared(bench, k, v) for k, v in dataset_options.items() if k in mine}
-    dataset = bench.load_dataset(root, skip_bad=skip_bad, **options)
-    ev = bench.resolve_eval(protocol, seed, eval_given)
-    (name, paths), = given.items()
+    # resolved as a benchmark command's options are; no matcher: the matches come from the files
+    given = {"method": {"protocol": protocol, "seed": seed}, "evaluation": eval_given, "dataset": options,
+             "run": {"out": out, "root": root, "limit": limit, "skip_bad": skip_bad, "overwrite": overwrite,
+                     "viz": viz}}
+    request = resolve_request(bench, typed_only(import_matches, given), locate=find_root)
+    dataset = bench.load_dataset(request.root, skip_bad=skip_bad, **options)
+    (name, paths), = given_sources.items()
     source = known[name].source(tuple(paths) if isinstance(paths, (tuple, list)) else (paths,), bench.name,
                                 origin=pixel_origin)
     from e3cm_bench.drawing.formats import plots_as
 
     with plots_as(plot_format):
-        request = RunRequest(bench, out, root=root, dataset=dataset, skip_bad=skip_bad, ev=ev, limit=limit,
-                             overwrite=overwrite, viz=viz, dataset_load=RunConfig.dataset_load_of(root, skip_bad,
-                                     options))
+        request = request.but(dataset=dataset, dataset_load=RunConfig.dataset_load_of(request.root, skip_bad, options))
         import_run(request, source, label=label, console=console)
 
 

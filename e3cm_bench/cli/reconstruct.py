@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
-from e3cm_bench.cli.common import (app, console, method_option, method_values, warn, BackboneOpt, ChannelOrderOpt,
+from e3cm_bench.cli.common import (app, console, method_option, typed_only, warn, BackboneOpt, ChannelOrderOpt,
                                    DeviceOpt, LabelOpt,
                      FeatureCacheOpt, FeatureReuseOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt,
                      PairTimeoutOpt, PrecisionOpt,
@@ -84,27 +84,20 @@ def reconstruct(
 ) -> None:
     """Your own images, no ground truth: pairs -> matches (cached in OUT, resumable) -> COLMAP's verification and
     pycolmap's mapper -> the model in OUT/sparse/N (COLMAP binary and text)."""
+    from e3cm_bench.pipeline.resolve import resolve_request
     from e3cm_bench.sfm.own_images import RECONSTRUCT  # a benchmark that is no command (benchmarks.UNLISTED)
-    from e3cm_bench.method.protocols import resolve_max_side
-    from e3cm_bench.method.spec import build_method
-    from e3cm_bench.pipeline.request import RunRequest
-    from e3cm_bench.pipeline.shards import parse_shard
-    from e3cm_bench.pipeline.stage import MatchOptions
 
     scale = Scale(shard, workers, devices, launcher, shards)
     scale.check(device=device)  # the flags first: building the method may download weights
-    given = dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, label=label,
-                 precision=precision, channel_order=channel_order, seed=seed,
-                 max_side=resolve_max_side(RECONSTRUCT, max_side))
-    method = build_method(method_values({k: v for k, v in given.items() if v is not None}), None, device, warn=warn)
-    request = RunRequest(RECONSTRUCT, out, method, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device,
-                         dataset_options=dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
-                                              camera_per_image=camera_per_image, max_pairs=max_pairs, mapper=mapper,
-                                              allow_disconnected=allow_disconnected, mapper_seeds=mapper_seeds),
-                         ev=RECONSTRUCT.resolve_eval(seed=seed),
-                         options=MatchOptions(feature_cache_mb, on_matcher_error=on_matcher_error,
-                                              pair_timeout=pair_timeout, feature_reuse=feature_reuse),
-                         shard=parse_shard(shard) if shard else None)
+    given = {"method": dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, label=label,
+                            precision=precision, channel_order=channel_order, seed=seed, max_side=max_side),
+             "dataset": dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
+                             camera_per_image=camera_per_image, max_pairs=max_pairs, mapper=mapper,
+                             allow_disconnected=allow_disconnected, mapper_seeds=mapper_seeds),
+             "run": dict(out=out, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device, shard=shard),
+             "match": dict(feature_cache_mb=feature_cache_mb, on_matcher_error=on_matcher_error,
+                           pair_timeout=pair_timeout, feature_reuse=feature_reuse)}
+    request = resolve_request(RECONSTRUCT, typed_only(reconstruct, given), warn=warn)
     run_scaled(scale, request)
     _say_model(Path(out), scale)
 

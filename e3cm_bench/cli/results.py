@@ -14,7 +14,7 @@ from e3cm_bench.paper import config_names, resolve_config
 from e3cm_bench.stats.noise import CHECK_ALPHA
 from e3cm_bench.cli.common import (app, console, DeviceOpt, friendly_errors, ShardOpt, LauncherOpt, ShardsOpt, RootOpt,
                                    OutOpt, MaxSideOpt, LimitOpt, VizOpt, SkipBadOpt, CompareOpt, PlotFormatOpt,
-                                   PairTimeoutOpt, OverwriteOpt)
+                                   PairTimeoutOpt, OverwriteOpt, typed_only)
 
 
 @app.command()
@@ -169,32 +169,25 @@ def reproduce(
     strict: Annotated[bool, typer.Option("--strict", help="A method that cannot run here is an error.")] = False,
 ) -> None:
     """Run every method of a paper experiment (reusing cached matches) and write its table."""
+    from e3cm_bench.cli.benchmarks import Scale
     from e3cm_bench.data.download import find_root
     from e3cm_bench.pipeline.experiments import load_experiment, reproduce as reproduce_experiment
-    from e3cm_bench.pipeline.request import RunRequest
-    from e3cm_bench.pipeline.stage import MatchOptions
+    from e3cm_bench.pipeline.resolve import resolve_request
     from e3cm_bench.drawing.formats import check_plot_format, plots_as
-    from e3cm_bench.pipeline.shards import parse_shard
-    from e3cm_bench.pipeline.launch import check_launcher, check_slurm, run_experiment_shards
+    from e3cm_bench.pipeline.launch import run_experiment_shards
 
     check_plot_format(plot_format)
-    check_launcher(launcher)
-    if shards and launcher != "slurm":
-        raise ValueError(f"--shards {shards} applies to --launcher slurm")
+    Scale(shard, 0, None, launcher, shards).check(device=device)  # the launcher's and the shards' one set of rules
     config = resolve_config(config)
-    overrides = {"scene_info": scene_info, "pairs": pairs, "sequences": sequences}
-    if root is None:
-        root = find_root(load_experiment(config)["benchmark"], None)
-    request = RunRequest(load_experiment(config)["benchmark"], out, root=root, dataset_options=overrides,
-                         skip_bad=skip_bad, limit=limit, device=device, shard=parse_shard(shard) if shard else None,
-                         options=MatchOptions(pair_timeout=pair_timeout))
+    # the run's own choices; each method's come from the config (pipeline/experiments.py)
+    given = {"dataset": {"scene_info": scene_info, "pairs": pairs, "sequences": sequences},
+             "run": {"out": out, "root": root, "skip_bad": skip_bad, "limit": limit, "device": device, "shard": shard},
+             "match": {"pair_timeout": pair_timeout}}
+    request = resolve_request(load_experiment(config)["benchmark"], typed_only(reproduce, given), locate=find_root)
     choices = dict(backbone=backbone, max_side=max_side, compare=compare, strict=strict,
                    only=methods.split(",") if methods else None)
     with plots_as(plot_format):
         if launcher == "slurm":  # a SLURM array: task K runs shard K/N of every method
-            if shard or not shards:
-                raise ValueError("--launcher slurm needs --shards N (and no --shard)")
-            check_slurm(shards)
             run_experiment_shards(config, request, choices, shards, console=console)
         else:
             reproduce_experiment(config, request, console=console, **choices)

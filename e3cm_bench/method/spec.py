@@ -311,3 +311,29 @@ def parse_numbers(text: str | None, option: str) -> tuple[float, ...] | None:
         return tuple(float(v) for v in text.split(","))
     except ValueError:
         raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
+
+
+def method_values(given: dict) -> dict:
+    """A command's method options as typed -> as method.build_method takes them: the
+    comma-separated numbers as tuples, --set's KEY=VALUE items as a mapping; the others as given."""
+    values = dict(given)
+    for name in ("sampson_px", "ratio"):
+        if isinstance(values.get(name), str):
+            values[name] = parse_numbers(values[name], METHOD_OPTIONS[name].flags[0])
+    if "settings" in values and not isinstance(values["settings"], dict):
+        values["settings"] = parse_settings(values["settings"])
+    return values
+
+
+def parse_settings(pairs: list[str] | None) -> dict:
+    """['variant=corrected', 'num_levels=4'] -> {'variant': 'corrected', 'num_levels': 4} (YAML
+    values). --precision and --channel-order join them in method.build_method (deep_settings)."""
+    from e3cm_bench.ground.files import load_yaml_text
+
+    settings = {}
+    for item in pairs or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
+        settings[key.strip()] = load_yaml_text(value)
+    return settings

@@ -4,7 +4,8 @@ The command line builds one (cli/benchmarks.py, cli/reconstruct.py), `reproduce`
 method from its own (pipeline/experiments.py), the Python API builds one from keywords
 (runner.run_benchmark), and a launched shard receives one (pipeline/launch.py). It travels
 unchanged to the stage that reads each field: `options` (pair_timeout among them) to the match
-stage, `ev` to the evaluate stage, the rest to the pipeline's open step. A new run option is
+stage, `ev` to the evaluate stage, the rest to the pipeline's open step. `resolve_request`
+(pipeline/resolve.py) makes one from what the user gave, by section, and keeps that in `given`. A new run option is
 one field here (or in MatchOptions), one row of the option table and its one consumer.
 """
 
@@ -68,6 +69,8 @@ class RunRequest:
     device: str = "cpu"
     shard: tuple[int, int] | None = None
     options: MatchOptions = field(default_factory=MatchOptions)
+    # what the user gave, by section, in the tables' names (pipeline/resolve.py): config.yaml keeps it
+    given: dict | None = None
 
     def __post_init__(self) -> None:
         # None from a caller means "the default", as every field's own default does

@@ -11,6 +11,13 @@ dataset from dataset_load, the evaluation from its block. What only decides how 
 ran (the feature cache, the device, shards) is not part of the result and takes this machine's
 defaults.
 
+A record made by this version also holds `given`: the options as the user gave them, by section,
+in the flags' names (pipeline/resolve.py), with its digest. A rerun resolves `given` again (the run's
+where and how much are the rerun's, the dataset dataset_load's: absolute paths). Where `given` was
+edited (its digest differs) the edit is the new run, in the names the user types; where it was not
+and its resolution differs from the record's identity or evaluation blocks (a block edited, or a
+default that moved since), the blocks hold, as they do for an older record without `given`.
+
 A record may be edited into another run (another seed, RANSAC threshold or dataset option):
 the readers skip keys they do not know, which suits an older record but would let a misspelt
 edit pass unnoticed, so a rerun checks every key of the parts it reads first, and refuses an
@@ -100,8 +107,37 @@ def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwri
     out = Path(out)
     if out.resolve() == config.path.parent.resolve():  # read() always says where the record came from
         raise ValueError(f"{out}: is the run itself; give another --out")
+    if config.given is not None:
+        request = from_given(config, benchmark, {"out": out, "root": Path(root), "skip_bad": skip_bad,
+                                                 "limit": limit, "device": device, "overwrite": overwrite}, options)
+        if request is not None:
+            return request
     return RunRequest(benchmark, out, method_of(config), root=Path(root), skip_bad=skip_bad, dataset_options=options,
                       ev=evaluation_of(config), limit=limit, device=device, overwrite=overwrite)
+
+
+def from_given(config: RunConfig, benchmark, run: dict, options: dict) -> RunRequest | None:
+    """The request the record's `given` resolves to (`run` and `options` in place of its own where and
+    how much and its dataset); None where `given` is as written and the identity or evaluation
+    block says otherwise (module docstring): then the blocks make the run."""
+    from dataclasses import asdict
+
+    from e3cm_bench.pipeline.resolve import resolve_request
+    from e3cm_bench.storage.run_config import given_digest
+
+    if not isinstance(config.given, dict):
+        raise ValueError(f"{config.where}: given must map sections (method, evaluation, ...) to options")
+    # the run's where and how much are this rerun's, its dataset dataset_load's; a section no run has is refused
+    given = {s: v for s, v in config.given.items() if s not in ("run", "dataset")}
+    request = resolve_request(benchmark, {**given, "run": run, "dataset": options}, where=f"{config.where}: given: ")
+    if request.method is None:
+        raise ValueError(f"{config.where}: given names no method to rerun")
+    if given_digest(config.given) != config.given_digest:  # edited: the user's words are the new run
+        return request
+    # both read as their readers read them (lists and tuples alike)
+    same = (method_of(config).identity() == request.method.identity()
+            and asdict(evaluation_of(config)) == asdict(request.ev))
+    return request if same else None
 
 
 def rerun(run: str | Path, out: str | Path, device: str = "cpu", overwrite: bool = False,

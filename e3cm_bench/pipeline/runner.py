@@ -187,6 +187,7 @@ class BenchmarkRun(PairRun):
             environment=RunConfig.environment_now(),
             timing=previous.timing,
             feature_reuse=previous.feature_reuse or None,  # earlier stages' counts; add_stats adds this one's
+            given=request.given if request.given is not None else previous.given,
             dataset_load=request.dataset_load or previous.dataset_load,
             shard=None if shard is None else {"index": shard[0], "count": shard[1], "n_pairs": len(self.pairs),
                                               "complete": False, "command": shard_command(shard)},

@@ -40,6 +40,10 @@ class RunConfig:
     environment: dict = field(default_factory=dict)
     timing: dict = field(default_factory=dict)
     feature_reuse: dict | None = None
+    # what the user gave, by section, in the flags' and the YAML's names (pipeline/resolve.py), and its
+    # digest as written: rerun resolves `given`, and tells an edited one by the digest
+    given: dict | None = None
+    given_digest: str | None = None
     dataset_load: dict | None = None
     shard: dict | None = None
     shards: dict | None = None
@@ -54,9 +58,13 @@ class RunConfig:
     path: Path | None = field(default=None, repr=False, compare=False)
     record: dict | None = field(default=None, repr=False, compare=False)
 
-    OPTIONAL = ("feature_reuse", "dataset_load", "shard", "shards", "imported_files", "pixel_origin_check", "command",
-                "sequence", "calibration")
+    OPTIONAL = ("feature_reuse", "given", "given_digest", "dataset_load", "shard", "shards", "imported_files",
+                "pixel_origin_check", "command", "sequence", "calibration")
     UNWRITTEN = ("path", "record")
+
+    def __post_init__(self) -> None:
+        if self.given is not None and self.given_digest is None:  # a new record's; a read one keeps its own
+            self.given_digest = given_digest(self.given)
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.UNWRITTEN
@@ -152,6 +160,15 @@ class RunConfig:
         from e3cm_bench.ground.devices import allocator
 
         return {**run_environment(), "allocator": allocator()}
+
+
+def given_digest(given: dict) -> str:
+    """A record's `given` as a short sha256 of its YAML (keys sorted): an edit changes it."""
+    import hashlib
+
+    import yaml
+
+    return hashlib.sha256(yaml.safe_dump(given, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _config_file(path: str | Path) -> Path:

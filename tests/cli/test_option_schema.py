@@ -42,6 +42,7 @@ API_ONLY = {
     "dataset": "a PairList object, from Python",
     "dataset_options": "built from the dataset options",
     "dataset_load": "how a given dataset loads again, from Python (reproduce, merge)",
+    "given": "what the user gave, kept by the run resolver (pipeline/resolve.py) for the record",
     "spill_mb": "the disk for the feature maps, from Python (the command takes half the free disk)",
 }
 # Command options that are no key of the run: they change how its files look, not what it holds.

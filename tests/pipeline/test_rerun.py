@@ -91,11 +91,22 @@ def test_an_edited_record_is_a_new_run_and_a_misspelt_key_is_refused(shared_data
     run = tmp_path / "run"
     assert invoke("hpatches", "--root", root, "--matcher", "sift", "--limit", 2, "--out", run).exit_code == 0
     record = yaml.safe_load((run / "config.yaml").read_text())
-    record["evaluation"]["homography_ransac_px"] = 1.0
+    record["given"]["evaluation"] = {"ransac_px": 1.0}  # the flag's name, as it was typed
     edited = tmp_path / "edited.yaml"
     edited.write_text(yaml.safe_dump(record))
     assert invoke("rerun", edited, "--out", tmp_path / "one-px").exit_code == 0
     assert yaml.safe_load((tmp_path / "one-px" / "config.yaml").read_text())["evaluation"]["homography_ransac_px"] == 1.0
+    # a resolved block edited, its given as written: the block's edit holds, as in a record without given
+    record = yaml.safe_load((run / "config.yaml").read_text())
+    record["evaluation"]["homography_ransac_px"] = 1.5
+    edited.write_text(yaml.safe_dump(record))
+    assert invoke("rerun", edited, "--out", tmp_path / "block").exit_code == 0
+    assert yaml.safe_load((tmp_path / "block" / "config.yaml").read_text())["evaluation"]["homography_ransac_px"] == 1.5
+    record = yaml.safe_load((run / "config.yaml").read_text())
+    record["given"]["evaluation"] = {"ransac_pix": 1.0}
+    edited.write_text(yaml.safe_dump(record))
+    line = one_line_error(invoke("rerun", edited, "--out", tmp_path / "misspelt"))
+    assert "given: evaluation: 'ransac_pix' is not a evaluation option of hpatches (did you mean 'ransac_px'?)" in line
     for part, key, nearest in (("evaluation", "homography_ransac_pix", "homography_ransac_px"),
                                ("identity", "matchr", "matcher"), (None, "evalution", "evaluation")):
         bad = yaml.safe_load((run / "config.yaml").read_text())
