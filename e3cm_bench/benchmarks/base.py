@@ -17,7 +17,8 @@ from e3cm_bench.geometry import metrics
 from e3cm_bench.datasets.base import Pair, PairList
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, check_settings
-from e3cm_bench.method.options import DATASET_KINDS, METHOD_OPTIONS, SEEDS, Range, check_value
+from e3cm_bench.ground.values import DATASET_KINDS, Range, check_value
+from e3cm_bench.method.options import METHOD_OPTIONS, SEEDS
 
 
 MAX_INTERVAL_SEEDS = 20  # each seed is one more evaluation of every pair

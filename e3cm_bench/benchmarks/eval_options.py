@@ -16,7 +16,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from e3cm_bench.method.options import KindOf, Range, check_value
+from e3cm_bench.ground.values import KindOf, Range, check_value
 
 # The ranges of the evaluation's values (options.Range), each declared once: the flags below and
 # the EvalSettings fields they fill (SETTING_VALUES) share them.

@@ -12,7 +12,8 @@ import typer
 
 from e3cm_bench.benchmarks import BENCHMARKS, Benchmark
 from e3cm_bench.method.protocols import get_protocol, resolve_protocol
-from e3cm_bench.method.options import KINDS, METHOD_OPTIONS
+from e3cm_bench.ground.values import KINDS
+from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.cli.common import (
     OnceEach,

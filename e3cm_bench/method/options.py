@@ -6,7 +6,7 @@ Each `MethodOption` below is the one declaration of an option a user gives to ch
 - the command line: cli/common.py turns an entry into the typer option of every command that
   takes it (`option_annotation`); the benchmark commands list theirs by name (cli/benchmarks.py);
 - experiment configs: the keys a ``methods:`` entry and an experiment's top level accept, and
-  the kind each value must be (`config_keys`, KINDS; experiments.py);
+  the kind each value must be (`config_keys`, KINDS in ground/values.py; experiments.py);
 - MethodSpec's validation: `check_method_values` on every option MethodSpec.create is given;
 - the one path from options to a MethodSpec, method.build_method, starts from `with_defaults`
   (Benchmark.resolve_method is it for a benchmark; `match` and `calibrate`, which have none,
@@ -28,13 +28,12 @@ This module imports nothing heavy: `e3cm-bench --help` reads it (tests/test_star
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Optional
 
 from e3cm_bench.backbones.names import BACKBONES, DEFAULT_BACKBONE, OFFLINE_BACKBONE
+# the value kinds every section's options share (ground/values.py); named here for the method options
+from e3cm_bench.ground.values import DATASET_KINDS, KINDS, Kind, KindOf, Range, check_value  # noqa: F401
 
 FULL_RESOLUTION = 0  # a longer side of 0: the images as stored
 
@@ -42,138 +41,11 @@ FULL_RESOLUTION = 0  # a longer side of 0: the images as stored
 def resolved_side(value, what: str = "max_side") -> int | None:
     """A side as a user wrote it -> the side a MethodSpec records: None (full resolution) for 0
     or None, else the positive number; anything else is a one-line ValueError."""
-    if not (value is None or _whole(value)):
+    if not (value is None or KINDS["whole"].test(value)):
         raise ValueError(
             f"{what} must be {FULL_RESOLUTION} (full resolution) or a positive whole number, got {value!r}"
         )
     return None if value in (None, FULL_RESOLUTION) else int(value)
-
-
-# ---- the kinds of value an option (a method's or a dataset's) takes, each: its test in a config
-# or an API call, the words an error uses, and its type on the command line. One table for both
-# the method options below and the benchmarks' DatasetOption (benchmarks/base.py).
-def _text(value) -> bool:
-    return isinstance(value, str) and value.strip() != ""
-
-
-def _whole(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
-def _number(value) -> bool:
-    # finite: NaN passes no comparison (a NaN threshold fails every pair) and inf none that means anything
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _numbers(value) -> bool:
-    return _number(value) or isinstance(value, (list, tuple)) and bool(value) and all(_number(v) for v in value)
-
-
-def _texts(value) -> bool:
-    return _text(value) or isinstance(value, (list, tuple)) and bool(value) and all(_text(v) for v in value)
-
-
-def _path(value) -> bool:
-    return _text(value) or isinstance(value, Path)
-
-
-def _paths(value) -> bool:
-    return _path(value) or isinstance(value, (list, tuple)) and bool(value) and all(_path(v) for v in value)
-
-
-@dataclass(frozen=True)
-class Kind:
-    """test: whether a value (a config's, an API caller's) is of this kind; wanted: the words of
-    its error; cli: the type typer reads (a list: the option repeated)."""
-
-    test: Callable[[object], bool]
-    wanted: str
-    cli: type
-    ranged: str = ""  # what it says before a range, where that differs ("a whole number", not ">= 0")
-
-
-# YAML reads `no` and `"no"` differently; a flag takes true/false only, since a quoted "no" is truthy.
-KINDS: dict[str, Kind] = {
-    "flag": Kind(lambda v: isinstance(v, bool), "true or false", bool),
-    "text": Kind(_text, "non-empty text", str),
-    "path": Kind(_path, "non-empty text", Path),
-    "paths": Kind(_paths, "text or a list of texts", list[Path]),
-    "names": Kind(_texts, "text or a list of texts", list[str]),
-    "whole": Kind(_whole, "a whole number >= 0", int, "a whole number"),
-    "number": Kind(_number, "a finite number", float),
-    # comma-separated on the command line ("0.9,0.9,0.95"), a number or a list in a config
-    "numbers": Kind(_numbers, "a number or a list of numbers (finite)", str),
-    # --set KEY=VALUE (repeatable) on the command line, a mapping in a config
-    "mapping": Kind(lambda v: isinstance(v, Mapping), "a mapping of NAME: VALUE", list[str]),
-}
-
-
-# The kinds a benchmark's dataset option may be (benchmarks/base.py DatasetOption).
-DATASET_KINDS = ("flag", "path", "paths", "names", "text")
-
-
-@dataclass(frozen=True)
-class Range:
-    """The values an option of a number kind allows besides its kind: from `low` to `high` (None:
-    no bound that side), each end included unless `low_open`/`high_open` excludes it."""
-
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-
-    def holds(self, value) -> bool:
-        """Whether `value` (a number, or each of a list) lies in the range."""
-        if isinstance(value, (list, tuple)):
-            return all(self.holds(v) for v in value)
-        return not (self.low is not None and (value < self.low or self.low_open and value == self.low)
-                    or self.high is not None and (value > self.high or self.high_open and value == self.high))
-
-    def words(self) -> str:
-        """What an error says the range is: "above 0 and at most 1,000", "1 to 1,000,000"."""
-        low = None if self.low is None else ("above " if self.low_open else "at least ") + f"{self.low:,}"
-        high = None if self.high is None else ("below " if self.high_open else "at most ") + f"{self.high:,}"
-        if low and high and not (self.low_open or self.high_open):
-            return f"from {self.low:,} to {self.high:,}"
-        return " and ".join(w for w in (low, high) if w)
-
-
-def check_value(value, kind: str, bounds: Range | None, name: str) -> None:
-    """The one check of a value given as data (a record's, a config's, the Python API's, a flag's
-    after typer read it): of `kind` (options.KINDS), then in `bounds`; a one-line ValueError
-    naming `name` (a flag, a key), what is allowed and the value otherwise."""
-    of = KINDS[kind]
-    wanted = of.wanted if bounds is None else f"{of.ranged or of.wanted}, {bounds.words()}"
-    if not KINDS[kind].test(value) or bounds is not None and not bounds.holds(value):
-        raise ValueError(f"{name} must be {wanted}, got {value!r}")
-
-
-class KindOf:
-    """What its kind gives an option declared as data (a method's here, an evaluation's in
-    benchmarks/eval_options.py, a run's in pipeline/request.py): the check that the kind exists,
-    the one check of a value (`check`: kind and range), and the type typer reads."""
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"option {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
-
-    @property
-    def shown(self) -> str:
-        """The name an error gives the option: its (first) flag."""
-        flags = getattr(self, "flags", None)
-        return flags[0] if flags else getattr(self, "flag", self.name)
-
-    def check(self, value, name: str | None = None) -> None:
-        """`value` of the option's kind and in its range (None: not given, the default); a one-line
-        ValueError naming `name` (a config's or a record's key; default: the flag) otherwise."""
-        if value is not None:
-            check_value(value, self.kind, getattr(self, "range", None), name or self.shown)
-
-    @property
-    def cli_type(self):
-        """The annotation typer reads: the kind's type, Optional where the default is None."""
-        base = KINDS[self.kind].cli
-        return Optional[base] if self.default is None else base
 
 
 # ---- the method options

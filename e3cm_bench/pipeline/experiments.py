@@ -22,7 +22,8 @@ from e3cm_bench.ground.files import absolute_paths, load_yaml, save_yaml
 from e3cm_bench.backbones.names import DEFAULT_BACKBONE
 from e3cm_bench.matchers import get_matcher
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.method.options import METHOD_OPTIONS, check_value, config_keys
+from e3cm_bench.ground.values import check_value
+from e3cm_bench.method.options import METHOD_OPTIONS, config_keys
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.paper import resolve_config

@@ -17,7 +17,7 @@ from pathlib import Path
 from e3cm_bench.benchmarks import Benchmark, EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import PairList
 from e3cm_bench.ground.suggest import did_you_mean
-from e3cm_bench.method.options import KindOf, Range
+from e3cm_bench.ground.values import KindOf, Range
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.shards import check_shard
 from e3cm_bench.pipeline.stage import MatchOptions
