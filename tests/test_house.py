@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from e3cm_bench.sfm.protocol import Protocol, keypoints_are_detections
+from e3cm_bench.sfm.protocol import ReconstructionProtocol, keypoints_are_detections
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "e3cm_bench"
@@ -56,7 +56,7 @@ def test_reconstruct_merges_as_sfm_does(tmp_path, matcher, radius):
     folder = ImageFolder(tmp_path)
     detections = keypoints_are_detections(matcher)
     own = folder.reconstruction().protocol.resolved(detections)
-    assert own.merge_px == Protocol().resolved(detections).merge_px == radius
+    assert own.merge_px == ReconstructionProtocol().resolved(detections).merge_px == radius
     given = ImageFolder(tmp_path, merge_px=1.5).reconstruction().protocol.resolved(detections)
     assert given.merge_px == 1.5  # a radius given is kept, for either kind
 

@@ -185,7 +185,7 @@ class Benchmark:
     # How many RANSAC seeds a run's interval holds when neither the user nor the protocol says
     # (EvalSettings.interval_seeds): measured beside the pairs' spread, RANSAC's is not negligible
     # on any shared two-view set (docs/sweep.md). A reference's protocol keeps its one evaluation
-    # (Protocol.interval_seeds); sfm and reconstruct hold their mapper's seeds instead (1).
+    # (ReferenceProtocol.interval_seeds); sfm and reconstruct hold their mapper's seeds instead (1).
     default_interval_seeds: int = 3
     # Whether its dataset takes the run's --limit (`first`) and builds no pair beyond it (sfm: a
     # set's exhaustive graph grows with the square of its images).

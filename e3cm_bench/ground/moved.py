@@ -94,6 +94,7 @@ PUBLIC = {"e3cm_bench.matches": "from e3cm_bench import Matches"}
 # module's own `__getattr__` calls `renamed` for a name it lacks.
 RENAMED = {
     ("e3cm_bench.method.protocols", "Protocol"): "ReferenceProtocol",
+    ("e3cm_bench.sfm.protocol", "Protocol"): "ReconstructionProtocol",
 }
 
 

@@ -61,7 +61,7 @@ def image_root(pairs: Sequence) -> Path | None:
 def reconstruct_set(pairs: Sequence, matches: Sequence, ev, where: Path, protocol) -> tuple[list[dict], dict]:
     """Per-pair rows (the first seed's columns, then each seed's) and the set's numbers (the
     mean over seeds of each seed's, the tracks' numbers, the spread of the metrics over seeds,
-    the protocol) of `pairs` under a resolved protocol.Protocol."""
+    the protocol) of `pairs` under a resolved protocol.ReconstructionProtocol."""
     # a rerun replaces every product of the last (bags may differ); a link there is refused, never followed
     where = fresh_folder(where, "the reconstruction's files go there")
     grouped = bags(pairs)

@@ -278,16 +278,16 @@ def image_size(pair, matches, side: int) -> tuple[int, int]:
 def write_database(pairs: Sequence, matches: Sequence, ev, workdir: Path, protocol=None) -> tuple[list, dict]:
     """The database of `pairs` (each a ViewPair: view0/view1) and their `matches` (each
     correspondence once) in a fresh workdir, verified as the protocol says (a resolved
-    protocol.Protocol; None: exact merge, the estimator's verification). Returns each pair's
+    protocol.ReconstructionProtocol; None: exact merge, the estimator's verification). Returns each pair's
     {"n_inliers", and the estimator's geometry where it ran} and the tracks' numbers
     (repeat_share, track_length_database, merge_displacement_px)."""
     from e3cm_bench.interchange import tracks
     from e3cm_bench.interchange.colmap import write_colmap
     from e3cm_bench.interchange.base import ExportItem
-    from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, Protocol
+    from e3cm_bench.sfm.protocol import QUANTIZE_MAX_ERROR, ReconstructionProtocol
     from e3cm_bench.ground.folders import fresh_folder
 
-    protocol = protocol or Protocol(merge="exact").resolved(True)
+    protocol = protocol or ReconstructionProtocol(merge="exact").resolved(True)
     # a rerun (--eval-only) replaces the last one's products; a link there is refused, never followed
     workdir = fresh_folder(workdir, "the reconstruction's files go there")
     items, geometries = [], []

@@ -31,7 +31,7 @@ from e3cm_bench.ground.files import write_csv
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
-from e3cm_bench.sfm.protocol import BY_COLMAP, Protocol, _radius, keypoints_are_detections, parse_protocol
+from e3cm_bench.sfm.protocol import BY_COLMAP, ReconstructionProtocol, _radius, keypoints_are_detections, parse_protocol
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
 # Under this share of the images in its largest model, a run says its models fragment (one line):
@@ -76,10 +76,10 @@ class FolderSetup:
     """How a folder's pairs are reconstructed, the same object on every pair (views.ViewPair.setup):
     the folder the images' names are relative to, the protocol (COLMAP's verification, sfm's
     preset; the mapper and its seeds; the merge as given, ``auto`` until the run's matcher settles
-    it by the rule sfm applies: protocol.Protocol.resolved) and the cameras."""
+    it by the rule sfm applies: protocol.ReconstructionProtocol.resolved) and the cameras."""
 
     root: Path
-    protocol: Protocol
+    protocol: ReconstructionProtocol
     camera_model: str = "SIMPLE_RADIAL"
     camera_per_image: bool = False
 

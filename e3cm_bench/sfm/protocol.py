@@ -39,7 +39,7 @@ DEFAULT_SEEDS = 3
 
 
 @dataclass(frozen=True)
-class Protocol:
+class ReconstructionProtocol:
     """The protocol as the user set it (merge may still be ``auto``: `resolved` settles it)."""
 
     mapper: str = "global"
@@ -49,7 +49,7 @@ class Protocol:
     verification: str = "estimator"
     score_model: str = "any"
 
-    def resolved(self, detections: bool | None) -> "Protocol":
+    def resolved(self, detections: bool | None) -> "ReconstructionProtocol":
         """``auto`` made concrete for a matcher whose keypoints are detections (True), are not
         (False) or of unknown kind (None: treated as not, the safer error: a merge of 2 px
         costs detections little, exact merging costs dense matches their tracks)."""
@@ -67,7 +67,8 @@ class Protocol:
             radius = 0.0
         elif merge == "quantize":
             radius = QUANTIZE_CELL
-        return Protocol(self.mapper, self.mapper_seeds, merge, float(radius), self.verification, self.score_model)
+        return ReconstructionProtocol(self.mapper, self.mapper_seeds, merge, float(radius), self.verification,
+                                      self.score_model)
 
     def merge_label(self) -> str:
         if self.merge == "radius":
@@ -90,11 +91,11 @@ MAX_MERGE_PX = 50.0
 
 
 def parse_protocol(mapper=None, mapper_seeds=None, merge=None, merge_px=None, verification=None,
-                   score_model=None) -> Protocol:
-    """The dataset options' text as a Protocol; bad values in one line (DatasetError)."""
-    default = Protocol()
+                   score_model=None) -> ReconstructionProtocol:
+    """The dataset options' text as a ReconstructionProtocol; bad values in one line (DatasetError)."""
+    default = ReconstructionProtocol()
     seeds = default.mapper_seeds if mapper_seeds is None else _whole(mapper_seeds, "--mapper-seeds", MAX_MAPPER_SEEDS)
-    return Protocol(_choice(mapper, MAPPERS, "--mapper", default.mapper), seeds,
+    return ReconstructionProtocol(_choice(mapper, MAPPERS, "--mapper", default.mapper), seeds,
                     _choice(merge, MERGES, "--merge", default.merge), _radius(merge_px),
                     _choice(verification, VERIFICATIONS, "--verification", default.verification),
                     _choice(score_model, SCORE_MODELS, "--score-model", default.score_model))
@@ -148,12 +149,18 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
     return bool(entry.keypoints_are_detections)
 
 
-def set_protocol(pairs) -> Protocol:
+def set_protocol(pairs) -> ReconstructionProtocol:
     """The protocol a set's pairs carry (views.ViewPair.setup, as the set's options gave it; the
     same for every pair). Pairs without one (built by hand, for the Python API) are mapped as the
     toolkit's first sfm benchmark did: the incremental mapper once, keypoints merged exactly."""
     for pair in pairs:
         setup = getattr(pair, "setup", None)
-        if isinstance(setup, Protocol):
+        if isinstance(setup, ReconstructionProtocol):
             return setup
-    return Protocol(mapper="incremental", mapper_seeds=1, merge="exact")
+    return ReconstructionProtocol(mapper="incremental", mapper_seeds=1, merge="exact")
+
+
+def __getattr__(name: str):
+    from e3cm_bench.ground.moved import renamed
+
+    return renamed(__name__, name)  # a name renamed here (ground/moved.py RENAMED), else AttributeError

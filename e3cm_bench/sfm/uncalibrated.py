@@ -79,7 +79,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
                        camera_per_image: bool = False) -> tuple[list[Reconstruction], list[int], list[bool]]:
     """The database of `pairs` (views.ViewPair: view0/view1 name the images under `root`) and their
     `matches` (each correspondence once), verified by COLMAP as sfm's ``colmap`` verification is
-    (sfm/mapper.py: one preset), mapped by the resolved protocol's mapper (protocol.Protocol;
+    (sfm/mapper.py: one preset), mapped by the resolved protocol's mapper (protocol.ReconstructionProtocol;
     None: the incremental mapper once, keypoints merged exactly), and written under workdir; with
     several seeds, each verifies and maps again (seed + K) under workdir/seed-K/. Returns each seed's
     reconstruction, each pair's number of verified matches (the first seed's) and whether each
@@ -87,9 +87,9 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
     from e3cm_bench.interchange.base import ExportItem
     from e3cm_bench.interchange.colmap import write_colmap
 
-    from e3cm_bench.sfm.protocol import Protocol
+    from e3cm_bench.sfm.protocol import ReconstructionProtocol
 
-    protocol = protocol or Protocol(mapper="incremental", mapper_seeds=1, merge="exact").resolved(True)
+    protocol = protocol or ReconstructionProtocol(mapper="incremental", mapper_seeds=1, merge="exact").resolved(True)
     workdir = Path(workdir)
     for stale in (workdir / DATABASE, workdir / PAIRS, workdir / LOG):
         stale.unlink(missing_ok=True)

@@ -58,7 +58,7 @@ class ViewPair(Pair):
     """A pair of a multi-view set, as the evaluation that maps the set needs it: the names of its
     two images in the set (the reconstruction's image names), the bag (the pair graph's connected
     component, 0 the largest) it belongs to, and how the set is reconstructed (`setup`: the sfm
-    set's protocol.Protocol, or own_images.FolderSetup), the same object for every pair of a set."""
+    set's protocol.ReconstructionProtocol, or own_images.FolderSetup), the same object for every pair of a set."""
 
     view0: str = ""
     view1: str = ""

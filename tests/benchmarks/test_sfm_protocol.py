@@ -18,7 +18,7 @@ from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.interchange import tracks
 from e3cm_bench.sfm import metrics as sfm_metrics
-from e3cm_bench.sfm.protocol import DENSE_MERGE_PX, Protocol, keypoints_are_detections, parse_protocol
+from e3cm_bench.sfm.protocol import DENSE_MERGE_PX, ReconstructionProtocol, keypoints_are_detections, parse_protocol
 from e3cm_bench.stats import compare_paired
 from helpers import invoke
 
@@ -33,7 +33,7 @@ def test_merge_default_follows_the_matchers_kind():
     for dense in ("e3cm", "e3cm-ransac", "e3cm-plus", "e3cm-release", "direct", "dfm"):
         assert keypoints_are_detections(dense) is False, dense
     assert keypoints_are_detections("no-such-matcher") is None
-    auto = Protocol()
+    auto = ReconstructionProtocol()
     assert auto.resolved(True).merge == "exact" and auto.resolved(True).merge_px == 0
     assert auto.resolved(False).merge == "radius" and auto.resolved(False).merge_px == DENSE_MERGE_PX
     assert auto.resolved(None).merge_px == DENSE_MERGE_PX  # unknown kind: the dense default
