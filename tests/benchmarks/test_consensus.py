@@ -86,5 +86,29 @@ def test_a_planar_sets_homographies_are_judged_by_their_corners():
         given[name] = [Planar.corners(H, 640, 480) + rng.normal(0, sd, (4, 2)) for H in truths]
     planar = Planar()
     errors = consensus_errors(given, planar.reference, planar.distance)
-    assert planar.score(errors["off"]) < 20 < planar.score(errors["fine"]) <= 100
-    assert planar.score(np.array([1.0, 4.0, np.inf, np.nan])) == pytest.approx(100 / 3)
+    # about 6 px off: some credit under the AUC up to 10 px, below the two within 1 px (two
+    # matchers: half of each one's reference is the one 6 px off, so theirs are some 3 px)
+    assert planar.score(errors["off"]) < 50 < planar.score(errors["fine"]) <= 100
+    # the AUC up to 10 px: the recall 1/3 from 1 px, 2/3 from 4 px (linear between), the inf a miss
+    assert planar.score(np.array([1.0, 4.0, np.inf, np.nan])) == pytest.approx(100 * (1 / 6 + 1.5 + 4) / 10)
+
+
+def test_the_planar_score_orders_homographies_a_share_within_3_px_tied():
+    """Two matchers 4 and 7 px off beside three close ones: the share within 3 px gives both 0 (the
+    HPatches ladder's tie between its 2 and 4 px rungs), the AUC up to 10 px orders them, and a
+    matcher 12 px off, past the threshold, scores 0."""
+    from e3cm_bench.sfm.consensus import Planar
+
+    rng = np.random.default_rng(5)
+    truths = [np.array([[1, 0.05 * rng.normal(), 20 * rng.normal()], [0.05 * rng.normal(), 1, 10], [0, 0, 1]])
+              for _ in range(20)]
+    # every corner moved by `offset` (px), each off matcher in its own direction, so that the
+    # three close ones hold every reference (a median, whatever the off ones say)
+    offsets = {"good": (0, 0), "fine": (0, 0), "close": (0, 0), "four": (4, 0), "seven": (0, 7), "twelve": (-12, 0)}
+    given = {name: [Planar.corners(H, 640, 480) + np.array(offset) + rng.normal(0, 0.1, (4, 2)) for H in truths]
+             for name, offset in offsets.items()}
+    planar = Planar()
+    errors = consensus_errors(given, planar.reference, planar.distance)
+    assert all((errors[name] > 3).all() for name in ("four", "seven"))  # the old score's 0 for both
+    assert planar.score(errors["fine"]) > planar.score(errors["four"]) > planar.score(errors["seven"]) + 20
+    assert planar.score(errors["seven"]) > 0 == planar.score(errors["twelve"])
