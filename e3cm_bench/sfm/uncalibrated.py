@@ -14,7 +14,9 @@ camera's pairs to homographies), the mapper (global or incremental) and its seed
 goes to mapper.log beside the database, not to the terminal.
 
 The products, in the run folder: ``database.db`` (keypoints, matches, verified geometries),
-``pairs.txt`` (the pair graph, ``name0 name1`` per line), ``mapper.log`` and ``sparse/N/`` per
+``pairs.txt`` (the pair graph, ``name0 name1`` per line), ``cameras.csv`` (per image: whether its
+focal length started from EXIF or from the 1.2 x guess, that start and the mapper's refined
+value), ``mapper.log`` and ``sparse/N/`` per
 model, largest first (``sparse/0``), in COLMAP's binary and text formats (``cameras``,
 ``images``, ``points3D``): ``colmap gui --import_path``, ``pycolmap.Reconstruction(path)`` and
 hloc read them; with --mapper-seeds K, the same for seed + K under ``seed-K/``. A rerun
@@ -33,7 +35,7 @@ from e3cm_bench.ground.folders import remove_folder
 from e3cm_bench.sfm.mapper import (LOG, Reconstruction, captured_log, colmap_verification, global_record,
                                         image_size, incremental_record, map_models, model_of, verification_record)
 
-DATABASE, PAIRS, SPARSE = "database.db", "pairs.txt", "sparse"
+DATABASE, PAIRS, SPARSE, CAMERAS = "database.db", "pairs.txt", "sparse", "cameras.csv"
 
 
 def settings(camera_model: str, camera_per_image: bool, merge_px: float | None, protocol=None) -> dict:
@@ -91,7 +93,7 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
 
     protocol = protocol or ReconstructionProtocol(mapper="incremental", mapper_seeds=1, merge="exact").resolved(True)
     workdir = Path(workdir)
-    for stale in (workdir / DATABASE, workdir / PAIRS, workdir / LOG):
+    for stale in (workdir / DATABASE, workdir / PAIRS, workdir / LOG, workdir / CAMERAS):
         stale.unlink(missing_ok=True)
     for stale in (workdir / SPARSE, *workdir.glob("seed-*")):
         remove_folder(stale)  # a rerun replaces the last one's products (a link there refused)
@@ -112,7 +114,35 @@ def reconstruct_images(pairs: Sequence, matches: Sequence, workdir: Path, root: 
         first = first or verified
         calibrated.append(calibrate_focals(folder, seed + s))
         found.append(_mapped(folder, images, root, seed + s, protocol.mapper))
+    write_cameras(workdir / CAMERAS, cameras, refined_focals(workdir / SPARSE))
     return found, first, calibrated
+
+
+def refined_focals(sparse: Path) -> dict[str, float]:
+    """Each registered image's focal length (pixels, the mean of fx and fy) as the mapper refined
+    it, from the largest model that holds it (sparse/0 first)."""
+    from e3cm_bench.ground.pycolmap import pycolmap_module
+
+    pycolmap = pycolmap_module()
+    focals = {}
+    numbered = [p for p in sparse.iterdir() if p.name.isdigit()] if sparse.is_dir() else []
+    for path in sorted(numbered, key=lambda p: int(p.name)):
+        model = pycolmap.Reconstruction(str(path))
+        for image in model.images.values():
+            focals.setdefault(image.name, model.cameras[image.camera_id].mean_focal_length())
+    return focals
+
+
+def write_cameras(path: Path, cameras: dict, refined: dict[str, float]) -> None:
+    """cameras.csv: where each image's intrinsics came from (issue 80: EXIF where the file has a
+    focal length, else the reconstruction, from a 1.2 x longer-side start), the start and the
+    refined focal length (empty for an image no model registered)."""
+    import pandas as pd
+
+    pd.DataFrame([{"image": name, "focal_source": "exif" if camera.has_prior_focal_length else "reconstruction",
+                   "focal_init_px": round(camera.mean_focal_length(), 3),
+                   "focal_px": round(refined[name], 3) if name in refined else None}
+                  for name, camera in cameras.items()]).to_csv(path, index=False)
 
 
 def calibrate_focals(folder: Path, seed: int) -> bool:
