@@ -232,10 +232,12 @@ def _run_taken(stage: nn.Module, held: list[torch.Tensor]) -> torch.Tensor:
     through the stage beside its map's copy and the ReLU's output, it set the pass's peak
     (scripts/measure/e3cm_memory.py, docs/speed.md "e3cm-plus's memory per pair")."""
     x = held.pop()
-    if not isinstance(stage, nn.Sequential) or stage._forward_hooks or stage._forward_pre_hooks:
-        return stage(x)
-    for k, module in enumerate(stage):
-        x = torch.relu_(x) if k == 0 and type(module) is nn.ReLU else module(x)
+    if not isinstance(stage, nn.Sequential) or type(stage[0]) is not nn.ReLU or stage._forward_hooks \
+            or stage._forward_pre_hooks:
+        return stage(x)  # no ReLU to run in place (Lite0): letting go earlier alone grew the kept heap
+    x = torch.relu_(x)
+    for module in stage[1:]:
+        x = module(x)
     return x
 
 
