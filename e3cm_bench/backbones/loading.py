@@ -161,6 +161,10 @@ class Backbone(nn.Module):
                         x = module(x)
                         if j == tap:
                             extra = _maps(x)
+                elif i and not (i == 1 and rows) and not _aliased(x, features[-1]):
+                    held = [x]  # x's values live on in the maps (a copy): the stage may take x over
+                    del x
+                    x = _run_taken(stage, held)
                 else:
                     x = stage(x)
                 x = perturb_map(x)  # the identity outside a noise-ensemble draw (perturb.py)
@@ -212,6 +216,29 @@ def pixel_rows(x: torch.Tensor) -> list[torch.Tensor | None]:
         return [None] * n
     rows = [x[i].permute(1, 2, 0).reshape(-1, c) for i in range(n)]
     return rows if n == 1 else [r.clone() for r in rows]
+
+
+def _aliased(x: torch.Tensor, maps: list[torch.Tensor]) -> bool:
+    """Whether any of the maps shares memory with x (an NCHW float32 stage output is its own map)."""
+    base = x.untyped_storage().data_ptr()
+    return any(m.untyped_storage().data_ptr() == base for m in maps)
+
+
+def _run_taken(stage: nn.Module, held: list[torch.Tensor]) -> torch.Tensor:
+    """stage(x) for the x in `held`, which nothing else holds: a leading ReLU overwrites x in
+    place (the same values as a new tensor: max(x, 0) either way) and each module's input is let
+    go once the next one has it. The previous stage's output is the largest tensor of a pass
+    (VGG19's level 0: 64 channels at full resolution, 380 MB at 1.5 MP in float32); kept whole
+    through the stage beside its map's copy and the ReLU's output, it set the pass's peak
+    (scripts/measure/e3cm_memory.py, docs/speed.md "e3cm-plus's memory per pair")."""
+    x = held.pop()
+    if not isinstance(stage, nn.Sequential) or type(stage[0]) is not nn.ReLU or stage._forward_hooks \
+            or stage._forward_pre_hooks:
+        return stage(x)  # no ReLU to run in place (Lite0): letting go earlier alone grew the kept heap
+    x = torch.relu_(x)
+    for module in stage[1:]:
+        x = module(x)
+    return x
 
 
 def _maps(x: torch.Tensor) -> list[torch.Tensor]:

@@ -8,14 +8,20 @@ images), with their homographies rescaled, and run through `e3cm-bench hpatches`
 would. Each variant runs in a fresh process, one after the other.
 
     python scripts/measure/e3cm_memory.py [--scale 1.6] [--data ../shared/data] [--variant NAME=ARGS ...]
+        [--backbone efficientnet_lite0] [--random-weights]
 
 A variant is a name and extra CLI arguments (e.g. 'nocache=--feature-cache-mb 0'), or an
 environment setting after '@' ('system=@E3CM_BENCH_ALLOCATOR=system'). Prints each pair's peak
-(MiB) and each variant's highest peak, h_acc@3 and n_matches (which must not change)."""
+(MiB), the part of it the feature cache held (cost.csv's cache_memory_mb) and the rest, the pair's
+working memory, and each variant's highest peak, h_acc@3 and n_matches (which must not change).
+--random-weights builds the backbone from a file of random weights (memory does not depend on
+their values): how VGG19, the default backbone, is measured where its ImageNet weights cannot be
+downloaded; the matches then mean nothing, but stay comparable between variants."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shlex
 import subprocess
@@ -43,18 +49,34 @@ def scaled_copy(source: Path, target: Path, scale: float, sequences: list[str] |
     return target
 
 
+def random_weights(backbone: str, folder: Path) -> Path:
+    """A state-dict file of the backbone's whole torchvision model with random weights (seed 0)."""
+    import torch
+
+    from e3cm_bench.backbones.specs import SPECS
+
+    torch.manual_seed(0)
+    path = folder / f"{backbone}-random.pt"
+    torch.save(SPECS[backbone].build().state_dict(), path)
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=1.6)
     parser.add_argument("--data", type=Path, default=Path("../shared/data"))
     parser.add_argument("--variant", action="append", default=None)
     parser.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all)")
+    parser.add_argument("--backbone", default="efficientnet_lite0")
+    parser.add_argument("--random-weights", action="store_true")
     args = parser.parse_args()
     variants = args.variant or ["default="]
     with tempfile.TemporaryDirectory() as folder:
         root = scaled_copy(args.data / "hpatches-sequences-release", Path(folder) / "hpatches", args.scale,
                            args.sequences.split(",") if args.sequences else None)
-        results = []
+        results, backbone = [], ["--backbone", args.backbone]
+        if args.random_weights:
+            backbone += ["--weights", str(random_weights(args.backbone, Path(folder)))]
         for variant in variants:
             name, _, extra = variant.partition("=")
             env = dict(os.environ)
@@ -64,16 +86,20 @@ def main() -> None:
                 env[key] = value
             out = Path(folder) / name
             command = ["e3cm-bench", "hpatches", "--root", str(root), "--out", str(out), "--matcher", "e3cm-plus",
-                       "--backbone", "efficientnet_lite0", *shlex.split(extra)]
+                       *backbone, *shlex.split(extra)]
             subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
             folder = RunFolder(out)
             cost, summary = pd.read_csv(folder.cost_path), pd.read_csv(folder.summary_path).iloc[0]
             print(f"== {name} ({extra or 'default'}): per-pair peak MiB")
-            print("   " + " ".join(f"{v:.0f}" for v in cost["peak_memory_mb"]))
-            results.append((name, cost["peak_memory_mb"].max(), summary["h_acc@3"], summary["n_matches"],
-                            summary["seconds_per_pair"]))
-        for name, peak, h3, n, seconds in results:
-            print(f"{name}: highest peak {peak:.0f} MiB, h_acc@3 {h3:.4f}, n_matches {n:.1f}, {seconds:.2f} s/pair")
+            working = cost["peak_memory_mb"] - cost["cache_memory_mb"].fillna(0)
+            print("   " + json.dumps({"peak": [round(v) for v in cost["peak_memory_mb"]],
+                                      "cache": [round(v) for v in cost["cache_memory_mb"].fillna(0)],
+                                      "working": [round(v) for v in working]}))
+            results.append((name, cost["peak_memory_mb"].max(), working.max(), summary["h_acc@3"],
+                            summary["n_matches"], summary["seconds_per_pair"]))
+        for name, peak, work, h3, n, seconds in results:
+            print(f"{name}: highest peak {peak:.0f} MiB, highest working (peak - cache) {work:.0f} MiB, "
+                  f"h_acc@3 {h3:.4f}, n_matches {n:.1f}, {seconds:.2f} s/pair")
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ def set_pairs(name: str, data: Path) -> list:
     if name == "kitti":
         root = data / "megadepth_test_1500"
         return get_benchmark("sfm").load_dataset(root, scene_info=root / "scene_info" / "kitti00_seq.npz",
-                                                 window=2).pairs
+                                                 window="2").pairs  # as the CLI passes it: sfm's --window is text
     if name == "hpatches":
         return get_benchmark("hpatches").load_dataset(data / "hpatches-sequences-release").pairs
     raise SystemExit(f"--sets: unknown set {name!r} (kitti, hpatches)")

@@ -345,3 +345,33 @@ def test_level0_rows_are_the_pass_own_channels_last_pixels(name, precision):
     nchw = load_backbone(name, pretrained=False, precision="fp32", memory_format="nchw")
     maps_of, rows_of = nchw.forward_with_rows(images[:1])
     assert rows_of == [None] and len(maps_of[0]) == 5
+
+
+@pytest.mark.parametrize("name,precision,memory_format", [("vgg19", "fp32", "auto"), ("vgg19", "fp32", "nchw"),
+                                                         ("vgg19", "bf16", "auto"), ("efficientnet_lite0", "fp32", "auto")])
+def test_a_stage_taking_over_its_input_gives_the_same_maps_bit_for_bit(name, precision, memory_format, image,
+                                                                       monkeypatch):
+    """_run_taken (the leading ReLU in place, each input let go) against the stage called whole."""
+    torch.manual_seed(0)
+    bb = load_backbone(name, pretrained=False, precision=precision, memory_format=memory_format)
+    taken = bb(image)
+    monkeypatch.setattr(backbones, "_run_taken", lambda stage, held: stage(held.pop()))
+    whole = bb(image)
+    assert all(torch.equal(a, b) for a, b in zip(taken, whole, strict=True))
+
+
+def test_level0_output_is_let_go_before_the_next_stage_ends(image):
+    """VGG19's level-0 output (the pass's largest tensor) is freed inside stage 1 once its map is
+    copied (channels_last), not held through the stage: what lowers the pass's peak."""
+    import weakref
+
+    torch.manual_seed(0)
+    bb = load_backbone("vgg19", pretrained=False)
+    assert bb.memory_format == "channels_last"
+    outputs, alive = [], []
+    bb.stages[0].register_forward_hook(lambda module, args, out: outputs.append(weakref.ref(out)))
+    bb.stages[1][-1].register_forward_hook(lambda module, args, out: alive.append(outputs[-1]() is not None))
+    maps = bb(image)
+    assert alive == [False] and len(maps) == 5
+    rows_maps, rows = bb.forward_with_rows(image)  # level-0 rows are views of that output: it is kept
+    assert alive == [False, True] and rows[0] is not None
