@@ -278,6 +278,7 @@ def test_the_readmes_feature_reuse_ratios_are_the_committed_measurements():
     """The README's one-pass speed-ups are results/perf/feature_reuse.csv's, matcher by matcher."""
     text = " ".join((REPO / "README.md").read_text().split())
     table = pd.read_csv(REPO / "results" / "perf" / "feature_reuse.csv")
-    names = {"sift": "SIFT", "xfeat": "XFeat", "xfeat+lighterglue": "XFeat+LighterGlue"}
+    names = {"sift": "SIFT", "xfeat": "XFeat", "xfeat+lighterglue": "XFeat+LighterGlue",
+             "aliked+lightglue": "ALIKED+LightGlue", "disk+lightglue": "DISK+LightGlue"}
     for row in table[table["set"] == "kitti"].itertuples():
         assert f"{row[table.columns.get_loc('speed-up') + 1]:.2f}x ({names[row.matcher]})" in text, row
