@@ -102,7 +102,7 @@ def rank_folder(request: RankRequest, console: Console | None = None) -> pd.Data
     console = console or Console()
     out = Path(request.out)
     # the folder and the pair options checked once, before a matcher starts: a folder of no images
-    # is one line and exit 1, not three failed rows
+    # is one line and a non-zero exit, not three failed rows
     RECONSTRUCT.build_dataset(request.images, False, {k: v for k, v in request.dataset_options.items()
                                                       if v is not None})
     with FolderLock(out), (out / LOG).open("a") as log:

@@ -18,6 +18,7 @@ from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.cli.common import (
     OnceEach,
     app,
+    leave_defaults,
     console,
     eval_option,
     method_option,
@@ -120,9 +121,8 @@ def typed_sections(bench: Benchmark, given: dict) -> dict:
 
     defaults = {name: default for name, _, default in common_before() + common_after()}
     defaults.update((o.name, False if o.kind == "flag" else None) for o in bench.command_options())
-    typed = {name: value for name, value in given.items() if name == "matcher" or value != defaults.get(name)}
-    return {section: {name: typed[name] for name in names if name in typed}
-            for section, names in section_keys(bench).items()}
+    return leave_defaults({section: {name: given[name] for name in names if name in given}
+                           for section, names in section_keys(bench).items()}, defaults)
 
 
 def run_scaled(scale: Scale, request):

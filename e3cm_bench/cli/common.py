@@ -128,7 +128,11 @@ def typed_only(command, given: dict) -> dict:
     that makes the run a method's."""
     import inspect
 
-    defaults = {name: p.default for name, p in inspect.signature(command).parameters.items()}
+    return leave_defaults(given, {name: p.default for name, p in inspect.signature(command).parameters.items()})
+
+
+def leave_defaults(given: dict, defaults: dict) -> dict:
+    """`given` by section without the options whose value is their default (the matcher kept)."""
     return {section: {k: v for k, v in values.items() if k == "matcher" or k not in defaults or v != defaults[k]}
             for section, values in given.items()}
 
