@@ -24,6 +24,7 @@ from pathlib import Path
 
 from e3cm_bench.benchmarks import Benchmark, get_benchmark
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
+from e3cm_bench.ground.files import yaml_plain
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.options import METHOD_OPTIONS, check_method_values, with_defaults
 from e3cm_bench.method.protocols import resolve_protocol
@@ -68,14 +69,9 @@ def check_given(bench: Benchmark, given: Mapping, where: str = "") -> dict[str, 
 
 
 def as_record(given: Mapping) -> dict:
-    """`given` as config.yaml keeps it: the sections given, each value given (None left out), paths
-    as text, tuples as lists."""
-    def plain(value):
-        if isinstance(value, Path):
-            return str(value)
-        return [plain(v) for v in value] if isinstance(value, (tuple, list)) else value
-
-    record = {section: {k: plain(v) for k, v in (values or {}).items() if v is not None}
+    """`given` as config.yaml keeps it: the sections given, each value given (None left out), as
+    YAML's plain values (paths as text, tuples as lists: files.yaml_plain)."""
+    record = {section: {k: yaml_plain(v) for k, v in (values or {}).items() if v is not None}
               for section, values in given.items()}
     return {section: values for section, values in record.items() if values}
 
