@@ -426,7 +426,8 @@ def test_every_method_is_made_through_the_one_path():
 # The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol;
 # COLMAP's own geometric verification, an sfm protocol setting (--verification colmap).
 OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "method/protocols.py"},
-                  "colmap": {"sfm/protocol.py", "sfm/mapper.py", "matchers/base.py"}}  # base: the extra
+                  "colmap": {"sfm/protocol.py", "sfm/mapper.py", "matchers/base.py",  # base: the extra
+                             "benchmarks/eval_options.py"}}  # --verification colmap
 
 
 def _declared_formats() -> dict[str, str]:

@@ -49,15 +49,13 @@ def test_reconstruct_merges_as_sfm_does(tmp_path, matcher, radius):
     """One rule for the merge default: reconstruct's folder resolves it as sfm's `--merge auto`
     does, from the matcher's keypoints_are_detections (reconstruct once merged by needs_backbone,
     which left xfeat-star's and LoFTR's semi-dense keypoints unmerged)."""
-    from e3cm_bench.sfm.own_images import ImageFolder
+    from e3cm_bench.sfm.own_images import RECONSTRUCT
+    from e3cm_bench.sfm.protocol import protocol_of
 
-    for k in range(3):
-        cv2.imwrite(str(tmp_path / f"view{k}.png"), np.full((16, 16, 3), 40 * k, np.uint8))
-    folder = ImageFolder(tmp_path)
     detections = keypoints_are_detections(matcher)
-    own = folder.reconstruction().protocol.resolved(detections)
+    own = protocol_of(RECONSTRUCT.resolve_eval(None, 0, {})).resolved(detections)
     assert own.merge_px == ReconstructionProtocol().resolved(detections).merge_px == radius
-    given = ImageFolder(tmp_path, merge_px=1.5).reconstruction().protocol.resolved(detections)
+    given = protocol_of(RECONSTRUCT.resolve_eval(None, 0, {"merge_px": 1.5})).resolved(detections)
     assert given.merge_px == 1.5  # a radius given is kept, for either kind
 
 

@@ -30,13 +30,15 @@ MIN_MATCHERS = 3
 @dataclass(frozen=True)
 class RankRequest:
     """One rank: the folder, where it goes, the matchers (names or module:factory), the method
-    options they share (build_method's names), reconstruct's dataset options, the seed, the device."""
+    options they share (build_method's names), reconstruct's dataset and evaluation options (the
+    mapper, its seeds), the seed, the device."""
 
     images: Path
     out: Path
     matchers: tuple[str, ...]
     method: dict = field(default_factory=dict)
     dataset_options: dict = field(default_factory=dict)
+    evaluation: dict = field(default_factory=dict)
     seed: int = 0
     device: str = "cpu"
 
@@ -74,6 +76,7 @@ def run_one(request: RankRequest, matcher: str, console: Console) -> Path:
     folder = Path(request.out) / RUNS / label_of(matcher)
     given = {"method": method_given(request, matcher),
              "dataset": {k: v for k, v in request.dataset_options.items() if v is not None},
+             "evaluation": {k: v for k, v in request.evaluation.items() if v is not None},
              "run": {"out": folder, "root": request.images, "device": request.device}}
     run_benchmark(resolve_request(RECONSTRUCT, given), console=console)
     return folder

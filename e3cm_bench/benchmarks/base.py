@@ -7,7 +7,7 @@ runner and the reports ask it, never a benchmark name, what to do.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ from e3cm_bench.geometry import metrics
 from e3cm_bench.datasets.base import Pair, PairList
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, check_settings
+from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS
 from e3cm_bench.ground.values import DATASET_KINDS, Range, check_value
 from e3cm_bench.method.options import METHOD_OPTIONS, SEEDS
 
@@ -70,6 +71,14 @@ class EvalSettings:
     # run's numbers stay its own seed's (a one-evaluation interval where 1). The commands'
     # default is the benchmark's default_interval_seeds under e3cm-bench's protocol.
     interval_seeds: int = 1
+    # A reconstruction's protocol (sfm, reconstruct: sfm/protocol.py, each an evaluation option of
+    # theirs); None where the benchmark reconstructs nothing, left out of its record (`record`).
+    mapper: str | None = None
+    mapper_seeds: int | None = None
+    merge: str | None = None
+    merge_px: float | None = None
+    verification: str | None = None
+    score_model: str | None = None
 
     def __post_init__(self) -> None:
         from e3cm_bench.geometry.estimators import POSE_METHODS, check_estimator
@@ -93,6 +102,10 @@ class EvalSettings:
         names = cls.record_keys()
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in dict(record or {}).items() if k in names}
         return cls(**{**values, **changes})
+
+    def record(self) -> dict:
+        """The `evaluation` block of config.yaml: every field, a reconstruction's only where there is one."""
+        return {k: v for k, v in asdict(self).items() if self.mapper is not None or k not in RECONSTRUCTION_FIELDS}
 
     @classmethod
     def record_keys(cls) -> set[str]:
@@ -193,6 +206,14 @@ class Benchmark:
     # Evaluation options it refuses, by name: (the values it still takes, why) (sfm: its mapper's seeds
     # are its repeats and its interval).
     refused_eval: Mapping[str, tuple[tuple, str]] = field(default_factory=dict)
+    # The defaults of its own evaluation options (EvalOption.benchmarks: a reconstruction's protocol),
+    # by EvalSettings field: filled where the user gives none, so that the record holds them.
+    eval_defaults: Mapping[str, object] = field(default_factory=dict)
+
+    @property
+    def eval_option_names(self) -> tuple[str, ...]:
+        """The evaluation options it takes (EVAL_OPTIONS': every benchmark's and its own)."""
+        return tuple(name for name, option in EVAL_OPTIONS.items() if option.applies_to(self.name))
 
     @property
     def option_names(self) -> tuple[str, ...]:
@@ -290,9 +311,9 @@ class Benchmark:
         # every value by its flag's own check (kind and range) before any is used: a command's, a
         # config's ``evaluation:``, a record's and the Python API's all come through here
         METHOD_OPTIONS["seed"].check(seed)
-        values = check_eval_given({**(given or {}), **named}, self.refused_eval)
+        values = check_eval_given({**(given or {}), **named}, self.refused_eval, benchmark=self.name)
         chosen = get_protocol(resolve_protocol(self, protocol), self.name)
-        settings = chosen.eval_fields(self.name)
+        settings = {**self.eval_defaults, **chosen.eval_fields(self.name)}
         settings.update({EVAL_OPTIONS[name].field: value for name, value in values.items() if value != ""})
         if settings.get("interval_seeds") is None:
             settings["interval_seeds"] = (chosen.interval_seeds if chosen.interval_seeds is not None

@@ -31,6 +31,15 @@ ITERATIONS = Range(1, 10_000_000)
 POSITIVE = Range(0, None, low_open=True)
 
 
+# Each mapper seed is a whole reconstruction (and its verification): 10^9 of them were accepted and
+# the kernel killed the run at 21.7 GB after matching; 100 is hours on a large set already. A merge
+# radius is a keypoint's localisation error; beyond 50 px it merges distinct points of one image into
+# one (10^9 merged every keypoint and still reported every image registered).
+RECONSTRUCTION_BOUNDS = {"mapper_seeds": Range(1, 100), "merge_px": Range(0, 50)}
+# The benchmarks that reconstruct (sfm, and reconstruct's own images: sfm/own_images.py)
+RECONSTRUCTING = ("sfm", "reconstruct")
+
+
 @dataclass(frozen=True)
 class EvalOption(KindOf):
     """name: the config key and the command's parameter; flag: its spelling on the command line;
@@ -38,7 +47,9 @@ class EvalOption(KindOf):
     else the benchmark's); field: the EvalSettings field it fills (its name where not given;
     `ransac_px` is the benchmark's own threshold field, Benchmark.ransac_field); show_default:
     what --help says the default is, where the value itself says nothing;
-    range: the values a number kind allows besides its kind (options.Range; None: any of the kind)."""
+    range: the values a number kind allows besides its kind (options.Range; None: any of the kind);
+    choices: the words a text kind allows (none: any); benchmarks: the benchmarks that take it (none:
+    every one), so that a reconstruction's options are on sfm's command and refused elsewhere."""
 
     name: str
     flag: str
@@ -48,11 +59,21 @@ class EvalOption(KindOf):
     field: str = ""
     show_default: str | None = None
     range: Range | None = None
+    choices: tuple[str, ...] = ()
+    benchmarks: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not self.field:
             object.__setattr__(self, "field", self.name)
+
+    def check(self, value, name: str | None = None) -> None:
+        super().check(value, name)
+        if value is not None and self.choices and value not in self.choices:
+            raise ValueError(f"{name or self.flag} must be one of {', '.join(self.choices)}, got {value!r}")
+
+    def applies_to(self, benchmark: str) -> bool:
+        return not self.benchmarks or benchmark in self.benchmarks
 
 
 EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
@@ -69,6 +90,33 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
                "RANSAC seeds the interval holds (SEED..SEED+K-1; each resample of the pairs takes one): the "
                "numbers stay SEED's, the interval holds the estimation's spread too. 1: the pairs' only.",
                show_default="3 under e3cm-bench's protocol, 1 under a reference's"),
+    # A reconstruction's protocol (sfm/protocol.py says what each does; its ReconstructionProtocol
+    # holds the defaults, which each benchmark that reconstructs names in Benchmark.eval_defaults):
+    # the evaluation of the same matches, so --eval-only may change them.
+    EvalOption("mapper", "--mapper", "text", None,
+               "global (pycolmap.global_mapping, GLOMAP) or incremental (pycolmap.incremental_mapping, COLMAP's).",
+               show_default="global", choices=("global", "incremental"), benchmarks=RECONSTRUCTING),
+    EvalOption("mapper_seeds", "--mapper-seeds", "whole", None,
+               "Reconstructions from the same matches, seeds SEED..SEED+K-1, each verified and mapped again: every "
+               "number is their mean, its interval over pairs and seeds (at most 100).",
+               show_default="sfm 3, reconstruct 1", range=RECONSTRUCTION_BOUNDS["mapper_seeds"],
+               benchmarks=RECONSTRUCTING),
+    EvalOption("merge", "--merge", "text", None,
+               "Keypoint merge: auto (exact for a matcher whose keypoints are detections, 2 px for the others), "
+               "exact, radius (--merge-px, 2 by default) or quantize (hloc's dense quantization: cell 4 px, max "
+               "error 4 px).", show_default="auto", choices=("auto", "exact", "radius", "quantize"),
+               benchmarks=("sfm",)),
+    EvalOption("merge_px", "--merge-px", "number", None,
+               "Keypoints of an image within this radius (pixels) become one, so that tracks form from dense and "
+               "semi-dense matches (at most 50).", show_default="0 for a matcher whose keypoints are detections, "
+               "2 for the others (--merge auto)", range=RECONSTRUCTION_BOUNDS["merge_px"], benchmarks=RECONSTRUCTING),
+    EvalOption("verification", "--verification", "text", None,
+               "Two-view geometries: estimator (the benchmark's essential-matrix RANSAC inliers) or colmap "
+               "(COLMAP's own verification, pycolmap.verify_matches).", show_default="sfm estimator, reconstruct "
+               "colmap", choices=("estimator", "colmap"), benchmarks=("sfm",)),
+    EvalOption("score_model", "--score-model", "text", None,
+               "any (a pair from whichever model holds both images) or largest (IMC's: the largest model only).",
+               show_default="any", choices=("any", "largest"), benchmarks=("sfm",)),
 )}
 
 
@@ -101,13 +149,18 @@ def check_settings(values: Mapping) -> None:
         value = values.get(name)
         if name in values and value != ():
             check_value(value, kind, bounds, name)
+    for name, option in EVAL_OPTIONS.items():  # a reconstruction's (None where nothing is reconstructed)
+        if option.benchmarks:
+            option.check(values.get(option.field), option.field)
 
 
-def check_eval_given(given: Mapping, refused: Mapping[str, tuple[tuple, str]], where: str = "") -> dict:
+def check_eval_given(given: Mapping, refused: Mapping[str, tuple[tuple, str]], where: str = "",
+                     benchmark: str = "") -> dict:
     """Evaluation options by name (a command's flags, a config's ``evaluation:``, a record's given, the
     Python API's keywords) -> the ones given (None: not given), each checked: an unknown name is one
-    line with the nearest, a value by its flag's kind and range, a name the benchmark refuses
-    (`refused`: name -> (the values it still takes, why)) by its reason."""
+    line with the nearest, a value by its flag's kind and range, an option of other benchmarks
+    (EvalOption.benchmarks) or one `benchmark` refuses (`refused`: name -> (the values it still
+    takes, why)) by its reason."""
     from e3cm_bench.ground.suggest import did_you_mean
 
     for name in given:
@@ -115,7 +168,11 @@ def check_eval_given(given: Mapping, refused: Mapping[str, tuple[tuple, str]], w
             raise ValueError(f"{where}{name!r} is not an evaluation option{did_you_mean(name, EVAL_OPTIONS)}; "
                              f"they are {', '.join(EVAL_OPTIONS)}")
     for name, value in given.items():
-        EVAL_OPTIONS[name].check(value, f"{where}{name}" if where else None)
+        option = EVAL_OPTIONS[name]
+        option.check(value, f"{where}{name}" if where else None)
+        if value is not None and benchmark and not option.applies_to(benchmark):
+            raise ValueError(f"{where}{option.flag} is an evaluation option of {' and '.join(option.benchmarks)}, "
+                             f"not of {benchmark}")
         if name in refused and value not in refused[name][0]:
             raise ValueError(refused[name][1])
     return {name: value for name, value in given.items() if value is not None}

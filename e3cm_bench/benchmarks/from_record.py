@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, SAMPLE_OPTIONS, RunConfig
 
 
 def benchmark_of(config: RunConfig):
@@ -25,10 +25,33 @@ def evaluation_of(config: RunConfig, seed: int | None = None) -> EvalSettings:
     """The EvalSettings the run was evaluated with (its `evaluation` block; defaults for fields
     an older record lacks), with another RANSAC seed if given; ValueError naming the file when
     the block cannot be read as settings."""
+    evaluation = config.evaluation
+    if isinstance(evaluation, dict) and "mapper" not in evaluation:
+        evaluation = {**evaluation, **older_protocol(config)}
     try:
-        return EvalSettings.from_record(config.evaluation, **({} if seed is None else {"seed": int(seed)}))
+        return EvalSettings.from_record(evaluation, **({} if seed is None else {"seed": int(seed)}))
     except (TypeError, ValueError) as error:
         raise ValueError(f"{config.where}: its evaluation settings cannot be read ({error})") from None
+
+
+def older_protocol(config: RunConfig) -> dict:
+    """The reconstruction protocol of a record made before it was the evaluation's (an sfm run's
+    dataset.protocol; a reconstruct run's mapper, mapper_seeds and merge_px among its dataset
+    options, as typed), over its benchmark's defaults (Benchmark.eval_defaults); {} for a
+    benchmark that reconstructs nothing."""
+    try:
+        defaults = dict(get_benchmark(str(config.benchmark)).eval_defaults)
+    except ValueError:
+        return {}
+    if not defaults:
+        return {}
+    dataset = config.dataset if isinstance(config.dataset, dict) else {}
+    load = config.dataset_load if isinstance(config.dataset_load, dict) else {}
+    options = load.get("options") if isinstance(load.get("options"), dict) else {}
+    given = dataset.get("protocol") if isinstance(dataset.get("protocol"), dict) else options
+    kinds = {"mapper_seeds": int, "merge_px": float}
+    given = {k: kinds.get(k, str)(v) for k, v in given.items() if k in RECONSTRUCTION_FIELDS and v is not None}
+    return {**defaults, **given}
 
 
 def method_of(config: RunConfig) -> MethodSpec:

@@ -119,7 +119,7 @@ def typed_sections(bench: Benchmark, given: dict) -> dict:
     left out (the matcher kept: the run is a method's): what the user typed, as the record keeps it."""
     from e3cm_bench.pipeline.resolve import section_keys
 
-    defaults = {name: default for name, _, default in common_before() + common_after()}
+    defaults = {name: default for name, _, default in common_before() + common_after(bench)}
     defaults.update((o.name, False if o.kind == "flag" else None) for o in bench.command_options())
     return leave_defaults({section: {name: given[name] for name in names if name in given}
                            for section, names in section_keys(bench).items()}, defaults)
@@ -171,9 +171,11 @@ def _other_method_options() -> tuple:
     return _method(*(name for name in METHOD_OPTIONS if name not in placed))
 
 
-def eval_options() -> tuple:
-    """Every evaluation option as a command's option tuple, from its table (also `import`'s)."""
-    return tuple((name, eval_option(name), option.default) for name, option in EVAL_OPTIONS.items())
+def eval_options(bench: Benchmark | None = None) -> tuple:
+    """The evaluation options `bench` takes (Benchmark.eval_option_names; None: every one, `import`'s)
+    as a command's option tuples, from their table."""
+    names = bench.eval_option_names if bench is not None else tuple(EVAL_OPTIONS)
+    return tuple((name, eval_option(name), EVAL_OPTIONS[name].default) for name in names)
 
 
 def keyword_parameters(group: tuple) -> list[inspect.Parameter]:
@@ -209,11 +211,11 @@ def common_before() -> tuple:
     )
 
 
-def common_after() -> tuple:
-    """The options --help lists after the benchmark's dataset options."""
+def common_after(bench: Benchmark | None = None) -> tuple:
+    """The options --help lists after the benchmark's dataset options (its evaluation options among them)."""
     return (
         ("skip_bad", SkipBadOpt, False),
-        *eval_options(),
+        *eval_options(bench),
         ("on_matcher_error", OnMatcherErrorOpt, "stop"),
         ("pair_timeout", PairTimeoutOpt, None),
         ("shard", ShardOpt, None),
@@ -250,7 +252,7 @@ def benchmark_command(bench: Benchmark):
         with plots_as(given.pop("plot_format")):
             run_command(bench, given)
 
-    params = keyword_parameters(common_before()) + dataset_parameters(bench) + keyword_parameters(common_after())
+    params = keyword_parameters(common_before()) + dataset_parameters(bench) + keyword_parameters(common_after(bench))
     command.__signature__ = inspect.Signature(params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     command.__name__ = command.__qualname__ = bench.name.replace("-", "_")

@@ -8,8 +8,8 @@ from typing import Annotated, Optional
 import typer
 
 from e3cm_bench.cli.benchmarks import Scale, run_scaled
-from e3cm_bench.cli.common import (app, console, method_option, typed_only, warn, BackboneOpt, ChannelOrderOpt,
-                                   DeviceOpt, LabelOpt,
+from e3cm_bench.cli.common import (app, console, eval_option, method_option, typed_only, warn, BackboneOpt,
+                                   ChannelOrderOpt, DeviceOpt, LabelOpt,
                      FeatureCacheOpt, FeatureReuseOpt, MatcherOpt, OnMatcherErrorOpt, OutOpt, OverwriteOpt,
                      PairTimeoutOpt, PrecisionOpt,
                      SeedOpt, SetOpt, SkipBadOpt, WeightsOpt, friendly_errors, DevicesOpt, LauncherOpt, ShardOpt,
@@ -24,21 +24,12 @@ WindowOpt = Annotated[Optional[int], typer.Option("--window", help="Pairs: each 
                                                                    "(default: every pair).")]
 PairsOpt = Annotated[Optional[Path], typer.Option("--pairs", help="Pairs: a file of 'name0 name1' lines, names "
                                                                   "relative to IMAGES.")]
-MergePxOpt = Annotated[Optional[float], typer.Option("--merge-px", show_default="0 for a matcher whose keypoints are "
-                                                     "detections, 2 for the others (sfm's --merge auto)",
-                                                     help="Keypoints of an image within this radius (pixels) become "
-                                                          "one, so that tracks form from dense matches.")]
 MaxPairsOpt = Annotated[Optional[int], typer.Option("--max-pairs", help="The most pairs a run builds (default 20000): "
                                                     "more is refused before any is made.")]
 AllowDisconnectedOpt = Annotated[bool, typer.Option("--allow-disconnected", help="Accept a pair graph in several "
                                                     "components (each gives models of its own).")]
-MapperOpt = Annotated[Optional[str], typer.Option("--mapper", show_default="global", help="global "
-                                                 "(pycolmap.global_mapping, GLOMAP) or incremental "
-                                                 "(pycolmap.incremental_mapping, COLMAP's): sfm's --mapper.")]
-MapperSeedsOpt = Annotated[Optional[int], typer.Option("--mapper-seeds", show_default="1", help="Reconstructions "
-                                                       "from the same matches, seeds SEED..SEED+K-1, each verified "
-                                                       "and mapped again (sfm's --mapper-seeds): OUT/sparse is the "
-                                                       "first's, seed-K/ the others', per_seed.csv their numbers.")]
+# the reconstruction's protocol: evaluation options, declared once (benchmarks/eval_options.py)
+MapperOpt, MapperSeedsOpt, MergePxOpt = (eval_option(name) for name in ("mapper", "mapper_seeds", "merge_px"))
 CameraModelOpt = Annotated[str, typer.Option("--camera-model", help="SIMPLE_RADIAL (COLMAP's default) or PINHOLE; "
                                                                     "intrinsics unknown, refined by the mapper.")]
 CameraPerImageOpt = Annotated[bool, typer.Option("--camera-per-image", help="One camera per image (default: images "
@@ -91,9 +82,9 @@ def reconstruct(
     scale.check(device=device)  # the flags first: building the method may download weights
     given = {"method": dict(matcher=matcher, backbone=backbone, weights=weights, settings=settings, label=label,
                             precision=precision, channel_order=channel_order, seed=seed, max_side=max_side),
-             "dataset": dict(window=window, pairs=pairs, merge_px=merge_px, camera_model=camera_model,
-                             camera_per_image=camera_per_image, max_pairs=max_pairs, mapper=mapper,
-                             allow_disconnected=allow_disconnected, mapper_seeds=mapper_seeds),
+             "evaluation": dict(mapper=mapper, mapper_seeds=mapper_seeds, merge_px=merge_px),
+             "dataset": dict(window=window, pairs=pairs, camera_model=camera_model, camera_per_image=camera_per_image,
+                             max_pairs=max_pairs, allow_disconnected=allow_disconnected),
              "run": dict(out=out, root=images, skip_bad=skip_bad, overwrite=overwrite, device=device, shard=shard),
              "match": dict(feature_cache_mb=feature_cache_mb, on_matcher_error=on_matcher_error,
                            pair_timeout=pair_timeout, feature_reuse=feature_reuse)}
@@ -168,7 +159,7 @@ def rank(
                           method=dict(backbone=backbone, max_side=max_side, precision=precision, seed=seed),
                           dataset_options=dict(window=window, pairs=pairs, camera_model=camera_model,
                                                camera_per_image=camera_per_image, max_pairs=max_pairs,
-                                               allow_disconnected=allow_disconnected, mapper=mapper,
-                                               mapper_seeds=mapper_seeds),
+                                               allow_disconnected=allow_disconnected),
+                          evaluation=dict(mapper=mapper, mapper_seeds=mapper_seeds),
                           seed=seed, device=device)
     print_verdict(rank_folder(request, console), Path(out), console)

@@ -16,7 +16,7 @@ warning when half a pixel fits the ground truth clearly better.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from rich.console import Console
@@ -88,7 +88,7 @@ class ImportRun(PairRun):
             benchmark=self.benchmark.name, method=self.label, identity=identity,
             matcher={"imported": source.format, **source.location()}, device=None,
             dataset={**dataset.describe(), "limit": limit, "n_pairs_evaluated": len(self.pairs)},
-            evaluation=asdict(self.ev), environment=RunConfig.environment_now(), dataset_load=request.dataset_load,
+            evaluation=self.ev.record(), environment=RunConfig.environment_now(), dataset_load=request.dataset_load,
             # each pair's file, so that a resume can tell what changed
             imported_files=files if source.per_pair else None,
         )

@@ -36,7 +36,7 @@ from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.request import RUN_OPTIONS, RunRequest
-from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, SAMPLE_OPTIONS, RunConfig
 
 # Top-level keys of records older versions wrote, read by nothing a rerun uses.
 LEGACY_KEYS = ("match_options",)
@@ -51,7 +51,9 @@ def check_keys(config: RunConfig, benchmark) -> None:
         "identity": MethodSpec.identity_keys(),
         "evaluation": EvalSettings.record_keys(),
         "dataset_load": {"root", "skip_bad", "options"},
-        "dataset_load.options": set(benchmark.option_names) | set(SAMPLE_OPTIONS),
+        # an older sfm or reconstruct record's reconstruction protocol (evaluation options now: evaluation_of)
+        "dataset_load.options": set(benchmark.option_names) | set(SAMPLE_OPTIONS)
+        | (set(RECONSTRUCTION_FIELDS) if benchmark.eval_defaults else set()),
     }
     load = record.get("dataset_load") if isinstance(record.get("dataset_load"), dict) else {}
     parts = {"": record, "identity": record.get("identity"), "evaluation": record.get("evaluation"),
@@ -107,13 +109,16 @@ def rerun_request(run: str | Path, out: str | Path, device: str = "cpu", overwri
     out = Path(out)
     if out.resolve() == config.path.parent.resolve():  # read() always says where the record came from
         raise ValueError(f"{out}: is the run itself; give another --out")
+    run = {"out": out, "root": Path(root), "skip_bad": skip_bad, "limit": limit, "device": device,
+           "overwrite": overwrite}
     if config.given is not None:
-        request = from_given(config, benchmark, {"out": out, "root": Path(root), "skip_bad": skip_bad,
-                                                 "limit": limit, "device": device, "overwrite": overwrite}, options)
+        request = from_given(config, benchmark, run, options)
         if request is not None:
             return request
-    return RunRequest(benchmark, out, method_of(config), root=Path(root), skip_bad=skip_bad, dataset_options=options,
-                      ev=evaluation_of(config), limit=limit, device=device, overwrite=overwrite)
+    from e3cm_bench.pipeline.resolve import resolve_request  # the one builder of a request
+
+    return resolve_request(benchmark, {"run": run, "dataset": options}, where=f"{config.where}: ",
+                           recorded=(method_of(config), evaluation_of(config)))
 
 
 def from_given(config: RunConfig, benchmark, run: dict, options: dict) -> RunRequest | None:

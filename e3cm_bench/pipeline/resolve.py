@@ -3,7 +3,8 @@
 `given` is a mapping by section, each section keyed by the names of its one table:
 - ``method``: the method options (method/options.py METHOD_OPTIONS: matcher, backbone, max_side,
   seed, protocol, ...), as a command's flags, an experiment's ``methods:`` entry and MethodSpec take them;
-- ``evaluation``: the evaluation options (benchmarks/eval_options.py EVAL_OPTIONS);
+- ``evaluation``: the evaluation options the benchmark takes (benchmarks/eval_options.py EVAL_OPTIONS:
+  every benchmark's, and its own, such as sfm's mapper and mapper_seeds: Benchmark.eval_option_names);
 - ``dataset``: the benchmark's own dataset options (Benchmark.command_options) and --sample's draw;
 - ``run``: where and how much (RUN_KEYS: out, root, limit, viz, overwrite, eval_only, skip_bad,
   device, shard);
@@ -23,7 +24,6 @@ from dataclasses import fields
 from pathlib import Path
 
 from e3cm_bench.benchmarks import Benchmark, get_benchmark
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.ground.files import yaml_plain
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.options import METHOD_OPTIONS, check_method_values, with_defaults
@@ -41,7 +41,7 @@ RUN_KEYS = ("out", "root", "limit", "viz", "overwrite", "eval_only", "skip_bad",
 
 def section_keys(bench: Benchmark) -> dict[str, tuple[str, ...]]:
     """Each section's names on `bench` (its dataset options are its own)."""
-    return {"method": tuple(METHOD_OPTIONS), "evaluation": tuple(EVAL_OPTIONS),
+    return {"method": tuple(METHOD_OPTIONS), "evaluation": bench.eval_option_names,
             "dataset": bench.option_names + SAMPLE_OPTIONS,
             "run": RUN_KEYS, "match": tuple(f.name for f in fields(MatchOptions))}
 
@@ -63,8 +63,9 @@ def check_given(bench: Benchmark, given: Mapping, where: str = "") -> dict[str, 
             if name in keys[section]:
                 continue
             home = next((s for s, k in keys.items() if name in k), None)
-            hint = f"; it is a {home} option" if home else did_you_mean(name, keys[section])
-            raise ValueError(f"{where}{section}: {name!r} is not a {section} option of {bench.name}{hint}")
+            hint = f"; it is an option of the {home} section" if home else did_you_mean(name, keys[section])
+            a = "an" if section[0] in "aeiou" else "a"
+            raise ValueError(f"{where}{section}: {name!r} is not {a} {section} option of {bench.name}{hint}")
     return {section: dict(given.get(section) or {}) for section in SECTIONS}
 
 
@@ -78,11 +79,15 @@ def as_record(given: Mapping) -> dict:
 
 def resolve_request(benchmark: str | Benchmark, given: Mapping,
                     locate: Callable[[str, Path | None], Path] | None = None,
-                    warn: Callable[[str], None] | None = None, where: str = "") -> RunRequest:
+                    warn: Callable[[str], None] | None = None, where: str = "", *,
+                    recorded: tuple | None = None) -> RunRequest:
     """The RunRequest of `given` (module docstring) on `benchmark`. Every value is checked before
     anything loads, then a busy --out is refused, and only then the method is built (it may load
     torch or download weights). locate(benchmark, root): the data folder where run.root is not
-    given (the commands' data/ lookup); without it run.root is the folder as given."""
+    given (the commands' data/ lookup); without it run.root is the folder as given. recorded: the
+    (MethodSpec, EvalSettings) a record already resolved (rerun of a record without `given`, or
+    whose blocks hold: pipeline/rerun.py), taken as they are in place of the method and evaluation
+    sections."""
     bench = get_benchmark(benchmark)
     method, evaluation, dataset, run, match = (check_given(bench, given, where)[s] for s in SECTIONS)
     RunRequest.check_counts(run.get("limit"), run.get("viz") or 0)
@@ -92,7 +97,8 @@ def resolve_request(benchmark: str | Benchmark, given: Mapping,
     shard = parse_shard(run["shard"]) if isinstance(run.get("shard"), str) else run.get("shard")
     if run.get("out") is not None:  # a busy folder before torch and the method load
         RunFolder(shard_dir(Path(run["out"]), shard) if shard else run["out"]).check_free()
-    ev = bench.resolve_eval(resolve_protocol(bench, values.get("protocol")), values.get("seed") or 0, evaluation)
+    ev = (recorded[1] if recorded is not None
+          else bench.resolve_eval(resolve_protocol(bench, values.get("protocol")), values.get("seed") or 0, evaluation))
     options = MatchOptions(**{k: v for k, v in match.items() if v is not None})
     # each command option the user left out at its default (a switch off, else none), as its flag has it
     dataset = {**{o.name: False if o.kind == "flag" else None for o in bench.command_options()}, **dataset}
@@ -102,8 +108,9 @@ def resolve_request(benchmark: str | Benchmark, given: Mapping,
     device = run.get("device") or "cpu"
     # no matcher named: no method (import's matches come from files, reproduce's methods from its
     # config, --eval-only scores the folder's own)
-    spec = method_spec.build_method(values, bench, device, warn=warn) if values.get("matcher") else None
+    spec = (recorded[0] if recorded is not None
+            else method_spec.build_method(values, bench, device, warn=warn) if values.get("matcher") else None)
     flags = {k: bool(run.get(k)) for k in ("overwrite", "eval_only", "skip_bad")}
     return RunRequest(benchmark, run.get("out"), spec, root=None if root is None else Path(root),
                       dataset_options=dataset, ev=ev, limit=run.get("limit"), viz=run.get("viz") or 0, device=device,
-                      shard=shard, options=options, given=as_record(given), **flags)
+                      shard=shard, options=options, given=None if recorded is not None else as_record(given), **flags)

@@ -24,6 +24,7 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import metrics as sfm_metrics
 from e3cm_bench.sfm.dataset import MultiViewSet, SetOptions
+from e3cm_bench.sfm.protocol import ReconstructionProtocol
 from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 
@@ -89,13 +90,13 @@ class SfMBenchmark(Benchmark):
     def evaluate_set(self, pairs: Sequence[Pair], matches: Sequence[Matches], ev: EvalSettings,
                      workdir: Path | None, matcher: str | None = None) -> tuple[list[dict], dict]:
         from e3cm_bench.sfm.evaluate import reconstruct_set
-        from e3cm_bench.sfm.protocol import keypoints_are_detections, set_protocol
+        from e3cm_bench.sfm.protocol import keypoints_are_detections, protocol_of
 
         if ev.repeats > 1:
             raise ValueError("--repeats does not apply to sfm: its mapper is seeded (--mapper-seeds reruns it)")
         kept = [distinct(m) for m in matches]
         folder = Path(workdir) if workdir is not None else None
-        protocol = set_protocol(pairs).resolved(keypoints_are_detections(matcher))
+        protocol = protocol_of(ev).resolved(keypoints_are_detections(matcher))
         with tempfile.TemporaryDirectory(prefix="e3cm-sfm-") as tmp:
             where = (folder if folder is not None else Path(tmp)) / WORKDIR
             rows, numbers = reconstruct_set(pairs, [k for k, _ in kept], ev, where, protocol)
@@ -164,22 +165,11 @@ SFM = SfMBenchmark(
                       "absolute path; without it every image must be under ROOT."),
         DatasetOption("max_pairs", "text", "The most pairs the graph may hold (default 20000); the count is "
                       "checked before a pair is made."),
-        DatasetOption("merge_px", "text", "Keypoints of an image within this radius (pixels) become one, so that "
-                      "tracks form from dense and semi-dense matches (default: --merge's)."),
-        DatasetOption("merge", "text", "Keypoint merge: auto (exact for a matcher whose keypoints are detections, "
-                      "2 px for the others; default), exact, radius (--merge-px, 2 by default) or quantize "
-                      "(hloc's dense quantization: cell 4 px, max error 4 px)."),
-        DatasetOption("mapper", "text", "global (pycolmap.global_mapping, GLOMAP; default) or incremental "
-                      "(pycolmap.incremental_mapping, COLMAP's)."),
-        DatasetOption("mapper_seeds", "text", "Reconstructions from the same database, seeds evaluation seed + "
-                      "0..K-1; every number is their mean, its interval over pairs and seeds (default 3)."),
-        DatasetOption("verification", "text", "Two-view geometries: estimator (the benchmark's essential-matrix "
-                      "RANSAC inliers; default) or colmap (COLMAP's own verification, pycolmap.verify_matches)."),
-        DatasetOption("score_model", "text", "any (a pair from whichever model holds both images; default) or "
-                      "largest (IMC's: the largest model only)."),
     ),
     summary="Multi-view: the matches of a set's pair graph reconstructed by pycolmap's mapper; pose "
             "AUC@5/10/20 and IMC mAA of the pairs from the models, images registered, models, points.",
     default_max_side=1200,
+    # the reconstruction's protocol, evaluation options of sfm's (eval_options.py), defaults in one place
+    eval_defaults=ReconstructionProtocol().record(),
 )
 BENCHMARKS = (SFM,)

@@ -2,9 +2,9 @@
 
 Each pair is an ordinary pose pair (K0, K1, T_0to1), so the match stage, its cache, shards and
 feature reuse treat it as any other; as a views.ViewPair it also carries the two views' names,
-which the reconstruction keys its images by, its bag and the set's protocol. Pairs are named ``SET/<stem0>--<stem1>``,
-SET being the
-scene_info file's or the model folder's name (the pair list's own names otherwise).
+which the reconstruction keys its images by, and its bag; how the set is reconstructed is the
+evaluation's (sfm/protocol.py), not the pairs'. Pairs are named ``SET/<stem0>--<stem1>``, SET being
+the scene_info file's or the model folder's name (the pair list's own names otherwise).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from e3cm_bench.datasets.base import DatasetError, PairList, require_directory
 from e3cm_bench.sfm import views as V
-from e3cm_bench.sfm.protocol import _whole, parse_protocol
+from e3cm_bench.sfm.protocol import _whole
 from e3cm_bench.sfm.mapper import mapper_settings
 
 
@@ -22,21 +22,14 @@ from e3cm_bench.sfm.mapper import mapper_settings
 class SetOptions:
     """The sfm benchmark's dataset options as given (text from the command line or a config,
     checked by MultiViewSet): where the views come from (scene_info, colmap_model or pairs),
-    the pair graph (window, graph, max_pairs, allow_disconnected, absolute_paths) and the
-    reconstruction's protocol (mapper, mapper_seeds, merge, merge_px, verification,
-    score_model: sfm/protocol.py parse_protocol)."""
+    and the pair graph (window, graph, max_pairs, allow_disconnected, absolute_paths). The
+    reconstruction's protocol is the evaluation's (sfm/protocol.py protocol_of)."""
 
     scene_info: str | Path | None = None
     colmap_model: str | Path | None = None
     pairs: str | Path | None = None
     window: str | int | None = None
     graph: str | Path | None = None
-    merge_px: str | float | None = None
-    mapper: str | None = None
-    mapper_seeds: str | int | None = None
-    merge: str | None = None
-    verification: str | None = None
-    score_model: str | None = None
     allow_disconnected: bool = False
     absolute_paths: bool = False
     max_pairs: str | int | None = None
@@ -70,8 +63,6 @@ class MultiViewSet(PairList):
             raise DatasetError(f"{self.root}: give exactly one of --scene-info, --colmap-model and --pairs "
                                f"(given: {', '.join(given) or 'none'})")
         self.window = _window(o.window)
-        self.protocol = parse_protocol(o.mapper, o.mapper_seeds, o.merge, o.merge_px, o.verification, o.score_model)
-        self.merge_px = self.protocol.merge_px
         self.graph = Path(o.graph) if o.graph is not None else None
         self.allow_disconnected, self.absolute_paths = bool(o.allow_disconnected), bool(o.absolute_paths)
         if self.window is not None and self.graph is not None:
@@ -131,8 +122,7 @@ class MultiViewSet(PairList):
                 bad.append((name, str(error)))
                 continue
             built.append(V.ViewPair(name=name, image0=view0.path, image1=view1.path, K0=view0.K, K1=view1.K, T_0to1=T,
-                                    scene=set_name, view0=item.view0, view1=item.view1,
-                                    setup=self.protocol))
+                                    scene=set_name, view0=item.view0, view1=item.view1))
         return built, bad
 
     def _bags(self) -> list[list[str]]:
@@ -170,8 +160,7 @@ class MultiViewSet(PairList):
                 "graph": str(self.graph) if self.graph is not None else None, "pair_graph": graph,
                 "components": {"count": len(self.components), "sizes": [len(c) for c in self.components]},
                 "allow_disconnected": self.allow_disconnected, "absolute_paths": self.absolute_paths,
-                "max_pairs": self.max_pairs, "merge_px": self.merge_px, "n_views": len(self.views),
-                "protocol": self.protocol.record(), "reconstruction": mapper_settings()}
+                "max_pairs": self.max_pairs, "n_views": len(self.views), "reconstruction": mapper_settings()}
 
 
 # The pairs a set's graph may hold unless --max-pairs says more: an exhaustive graph grows with

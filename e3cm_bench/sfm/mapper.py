@@ -100,7 +100,7 @@ DATABASE, MODELS, LOG = "database.db", "models", "mapper.log"
 
 def mapper_settings() -> dict:
     """What config.yaml records of the reconstruction (the seed is the evaluation's; which
-    mapper, merge and verification ran: dataset.protocol)."""
+    mapper, merge and verification ran: the evaluation block)."""
     from e3cm_bench.ground.pycolmap import pycolmap_version
 
     return {
@@ -115,7 +115,7 @@ def mapper_settings() -> dict:
             "estimator": "the evaluation's essential-matrix RANSAC inliers (evaluation.pose_ransac_px)",
             "colmap": verification_record(),
         },
-        "keypoints": "merged per image (interchange.tracks.merge_keypoints) as dataset.protocol.merge says",
+        "keypoints": "merged per image (interchange.tracks.merge_keypoints) as evaluation.merge says",
     }
 
 

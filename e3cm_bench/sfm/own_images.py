@@ -31,7 +31,7 @@ from e3cm_bench.ground.files import write_csv
 from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import views as V
 from e3cm_bench.sfm.dataset import DEFAULT_MAX_PAIRS, _count, _window, check_graph_size, graph_components
-from e3cm_bench.sfm.protocol import BY_COLMAP, ReconstructionProtocol, _radius, keypoints_are_detections, parse_protocol
+from e3cm_bench.sfm.protocol import BY_COLMAP, ReconstructionProtocol, keypoints_are_detections, protocol_of
 from e3cm_bench.sfm.uncalibrated import reconstruct_images, settings as mapper_settings
 
 # Under this share of the images in its largest model, a run says its models fragment (one line):
@@ -62,24 +62,19 @@ class FolderOptions:
 
     window: str | int | None = None
     pairs: str | Path | None = None
-    merge_px: str | float | None = None
     camera_model: str = "SIMPLE_RADIAL"
     camera_per_image: bool = False
     max_pairs: str | int | None = None
     allow_disconnected: bool = False
-    mapper: str | None = None
-    mapper_seeds: str | int | None = None
 
 
 @dataclass(frozen=True)
 class FolderSetup:
-    """How a folder's pairs are reconstructed, the same object on every pair (views.ViewPair.setup):
-    the folder the images' names are relative to, the protocol (COLMAP's verification, sfm's
-    preset; the mapper and its seeds; the merge as given, ``auto`` until the run's matcher settles
-    it by the rule sfm applies: protocol.ReconstructionProtocol.resolved) and the cameras."""
+    """Where a folder's images lie and how their cameras are modelled, the same object on every pair
+    (views.ViewPair.setup). The protocol (COLMAP's verification, sfm's preset; the mapper, its seeds,
+    the merge radius) is the evaluation's: RECONSTRUCT's eval_defaults under the user's options."""
 
     root: Path
-    protocol: ReconstructionProtocol
     camera_model: str = "SIMPLE_RADIAL"
     camera_per_image: bool = False
 
@@ -90,17 +85,15 @@ class ImageFolder(PairList):
     name = "images"
 
     def __init__(self, root: str | Path, skip_bad: bool = False, **options) -> None:
-        """options: FolderOptions' fields (window, pairs, merge_px, camera_model, camera_per_image,
-        max_pairs, allow_disconnected, mapper, mapper_seeds), as the command's flags give them."""
+        """options: FolderOptions' fields (window, pairs, camera_model, camera_per_image, max_pairs,
+        allow_disconnected), as the command's flags give them."""
         if "single_camera" in options:  # records written before the option took its flag's name
             options["camera_per_image"] = not options.pop("single_camera")
         o = FolderOptions(**options)
-        window, pairs, merge_px, camera_model = o.window, o.pairs, o.merge_px, o.camera_model
+        window, pairs, camera_model = o.window, o.pairs, o.camera_model
         camera_per_image, max_pairs, allow_disconnected = o.camera_per_image, o.max_pairs, o.allow_disconnected
         self.root = require_directory(root, "image")
-        self.window, self.merge_px = _window(window), _radius(merge_px)  # None: the matcher's kind decides
-        # sfm's parser and defaults' kinds; a folder's own default is one seed (one model to open)
-        self.protocol = parse_protocol(o.mapper or DEFAULT_MAPPER, o.mapper_seeds or 1, "auto", merge_px, BY_COLMAP)
+        self.window = _window(window)
         self.pairs_file = Path(pairs) if pairs is not None else None
         if self.window is not None and self.pairs_file is not None:
             raise DatasetError(f"{self.pairs_file}: --window and --pairs are two pair graphs; give one")
@@ -139,9 +132,9 @@ class ImageFolder(PairList):
         return f"pair graph: {len(sizes)} components of {', '.join(map(str, sizes))} images (--allow-disconnected)"
 
     def reconstruction(self) -> FolderSetup:
-        """How the set is reconstructed: it travels with each pair (ViewPair.setup), as the sfm
-        set's protocol does, to the evaluation that maps them."""
-        return FolderSetup(self.root, self.protocol, self.camera_model, self.camera_per_image)
+        """Where the images lie and how their cameras are modelled: it travels with each pair
+        (ViewPair.setup) to the evaluation that maps them."""
+        return FolderSetup(self.root, self.camera_model, self.camera_per_image)
 
     def settings(self) -> dict:
         graph = (f"file {self.pairs_file}" if self.pairs_file is not None
@@ -149,8 +142,7 @@ class ImageFolder(PairList):
         return {"dataset": self.name, "root": str(self.root), "pair_graph": graph, "window": self.window,
                 "pairs": str(self.pairs_file) if self.pairs_file is not None else None, "n_images": len(self.views),
                 "max_pairs": self.max_pairs, "allow_disconnected": self.allow_disconnected,
-                "reconstruction": mapper_settings(self.camera_model, self.camera_per_image, self.merge_px,
-                                                  self.protocol)}
+                "reconstruction": mapper_settings(self.camera_model, self.camera_per_image)}
 
 
 def model_facts(found) -> dict:
@@ -208,7 +200,7 @@ class ReconstructBenchmark(Benchmark):
         how = pairs[0].setup
         if not isinstance(how, FolderSetup):
             raise ValueError("reconstruct maps an ImageFolder's pairs (views.ViewPair with a FolderSetup)")
-        protocol = how.protocol.resolved(keypoints_are_detections(matcher))
+        protocol = protocol_of(ev).resolved(keypoints_are_detections(matcher))
         started = time.perf_counter()
         seeds, verified, calibrated = reconstruct_images(
             pairs, [k for k, _ in kept], workdir, how.root, seed=ev.seed, protocol=protocol,
@@ -254,14 +246,13 @@ RECONSTRUCT = ReconstructBenchmark(
     dataset_options=(
         "window",
         "pairs",
-        "merge_px",
         "camera_model",
         "camera_per_image",
         "max_pairs",
         "allow_disconnected",
-        "mapper",
-        "mapper_seeds",
     ),
     summary="A folder of images (no ground truth) -> pairs -> matches -> a COLMAP model with unknown intrinsics.",
     default_max_side=1200,
+    # sfm's protocol, a folder's own defaults: COLMAP's verification, one seed (one model to open)
+    eval_defaults=ReconstructionProtocol(mapper=DEFAULT_MAPPER, mapper_seeds=1, verification=BY_COLMAP).record(),
 )

@@ -1,8 +1,9 @@
 """The multi-view protocol: what is made of a run's matches before a pair is scored.
 
 Measured on the same cached matches (docs/sfm.md, "The protocol"), the multi-view verdict
-moves more with these choices than with the matcher, so each is a setting, recorded in
-config.yaml (dataset.protocol, dataset.reconstruction) and in each run's summary.csv:
+moves more with these choices than with the matcher, so each is an evaluation option
+(benchmarks/eval_options.py: the same matches scored again under another protocol, --eval-only
+may change it), recorded in config.yaml's evaluation block and in each run's summary.csv:
 
 - mapper: ``global`` (pycolmap.global_mapping, GLOMAP) or ``incremental``
   (pycolmap.incremental_mapping, COLMAP's; hloc's);
@@ -81,35 +82,6 @@ class ReconstructionProtocol:
         return asdict(self)
 
 
-# Upper bounds, checked before anything loads. Each mapper seed is a whole reconstruction (and its
-# verification): 10^9 of them were accepted and the kernel killed the run at 21.7 GB after matching;
-# 100 is hours on a large set already. A merge radius is a keypoint's localisation error; beyond
-# 50 px it merges distinct points of one image into one (10^9 merged every keypoint and still
-# reported every image registered).
-MAX_MAPPER_SEEDS = 100
-MAX_MERGE_PX = 50.0
-
-
-def parse_protocol(mapper=None, mapper_seeds=None, merge=None, merge_px=None, verification=None,
-                   score_model=None) -> ReconstructionProtocol:
-    """The dataset options' text as a ReconstructionProtocol; bad values in one line (DatasetError)."""
-    default = ReconstructionProtocol()
-    seeds = default.mapper_seeds if mapper_seeds is None else _whole(mapper_seeds, "--mapper-seeds", MAX_MAPPER_SEEDS)
-    return ReconstructionProtocol(_choice(mapper, MAPPERS, "--mapper", default.mapper), seeds,
-                    _choice(merge, MERGES, "--merge", default.merge), _radius(merge_px),
-                    _choice(verification, VERIFICATIONS, "--verification", default.verification),
-                    _choice(score_model, SCORE_MODELS, "--score-model", default.score_model))
-
-
-def _choice(value, choices: tuple[str, ...], flag: str, default: str) -> str:
-    if value is None:
-        return default
-    text = str(value).strip().lower()
-    if text not in choices:
-        raise DatasetError(f"{flag} must be one of {', '.join(choices)}, got {value!r}")
-    return text
-
-
 def _whole(value, flag: str, most: int | None = None) -> int:
     """A whole number >= 1 (and <= most, where given); one line naming the flag otherwise."""
     try:
@@ -121,18 +93,6 @@ def _whole(value, flag: str, most: int | None = None) -> int:
     if most is not None and k > most:
         raise DatasetError(f"{flag} must be 1..{most}, got {k}")
     return k
-
-
-def _radius(value) -> float | None:
-    if value is None:
-        return None
-    try:
-        radius = float(str(value))
-    except ValueError:
-        raise DatasetError(f"--merge-px must be a radius in pixels, got {value!r}") from None
-    if not 0 <= radius <= MAX_MERGE_PX:
-        raise DatasetError(f"--merge-px must be 0..{MAX_MERGE_PX:g} pixels, got {value}")
-    return radius
 
 
 def keypoints_are_detections(matcher: str | None) -> bool | None:
@@ -149,15 +109,17 @@ def keypoints_are_detections(matcher: str | None) -> bool | None:
     return bool(entry.keypoints_are_detections)
 
 
-def set_protocol(pairs) -> ReconstructionProtocol:
-    """The protocol a set's pairs carry (views.ViewPair.setup, as the set's options gave it; the
-    same for every pair). Pairs without one (built by hand, for the Python API) are mapped as the
-    toolkit's first sfm benchmark did: the incremental mapper once, keypoints merged exactly."""
-    for pair in pairs:
-        setup = getattr(pair, "setup", None)
-        if isinstance(setup, ReconstructionProtocol):
-            return setup
-    return ReconstructionProtocol(mapper="incremental", mapper_seeds=1, merge="exact")
+def protocol_of(ev) -> ReconstructionProtocol:
+    """The protocol of a run's evaluation settings (EvalSettings' reconstruction fields, which
+    Benchmark.resolve_eval fills from the benchmark's eval_defaults where the user gives none).
+    Settings made by hand without one (the Python API's EvalSettings()) are mapped as the toolkit's
+    first sfm benchmark did: the incremental mapper once, keypoints merged exactly."""
+    if ev.mapper is None:
+        return ReconstructionProtocol(mapper="incremental", mapper_seeds=1, merge="exact")
+    default = ReconstructionProtocol()
+    return ReconstructionProtocol(ev.mapper, ev.mapper_seeds or default.mapper_seeds, ev.merge or default.merge,
+                                  ev.merge_px, ev.verification or default.verification,
+                                  ev.score_model or default.score_model)
 
 
 def __getattr__(name: str):

@@ -38,23 +38,20 @@ from e3cm_bench.sfm.mapper import (LOG, Reconstruction, captured_log, colmap_ver
 DATABASE, PAIRS, SPARSE, CAMERAS = "database.db", "pairs.txt", "sparse", "cameras.csv"
 
 
-def settings(camera_model: str, camera_per_image: bool, merge_px: float | None, protocol=None) -> dict:
-    """What config.yaml records of the reconstruction (with the dataset; the seed is the run's):
-    COLMAP's verification and the mapper's table, sfm's own (sfm/mapper.py), the intrinsics
-    refined."""
+def settings(camera_model: str, camera_per_image: bool) -> dict:
+    """What config.yaml records of the reconstruction (with the dataset; the mapper, its seeds and the
+    merge radius are the evaluation's, the seed the run's): COLMAP's verification and each mapper's
+    table, sfm's own (sfm/mapper.py), the intrinsics refined."""
     from e3cm_bench.ground.pycolmap import pycolmap_version
 
-    mapper = protocol.mapper if protocol is not None else "incremental"
-    table = global_record(calibrated=False) if mapper == "global" else {
-        "method": "pycolmap.incremental_mapping", **incremental_record(calibrated=False)}
-    return {"pycolmap": pycolmap_version(), "verification": verification_record(), "mapper": mapper,
-            "mapper_seeds": protocol.mapper_seeds if protocol is not None else 1, mapper: table,
-            "seed": "evaluation.seed + 0..mapper_seeds-1", "camera_model": camera_model,
+    return {"pycolmap": pycolmap_version(), "verification": verification_record(),
+            "incremental": {"method": "pycolmap.incremental_mapping", **incremental_record(calibrated=False)},
+            "global": global_record(calibrated=False),
+            "seed": "evaluation.seed + 0..evaluation.mapper_seeds-1", "camera_model": camera_model,
             "cameras": "one per image" if camera_per_image else "shared by the images of one size and EXIF focal",
             "focal_init": "pycolmap.infer_camera_from_image: EXIF, else 1.2 x longer side; then "
                           "pycolmap.calibrate_view_graph (seeded) from the verified pairs",
-            "intrinsics": "refined by the mapper",
-            "merge_px": merge_px}
+            "intrinsics": "refined by the mapper"}
 
 
 def cameras_for(root: Path, names: Sequence[str], camera_model: str, camera_per_image: bool) -> dict:

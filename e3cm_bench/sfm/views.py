@@ -57,8 +57,9 @@ class ListedPair:
 class ViewPair(Pair):
     """A pair of a multi-view set, as the evaluation that maps the set needs it: the names of its
     two images in the set (the reconstruction's image names), the bag (the pair graph's connected
-    component, 0 the largest) it belongs to, and how the set is reconstructed (`setup`: the sfm
-    set's protocol.ReconstructionProtocol, or own_images.FolderSetup), the same object for every pair of a set."""
+    component, 0 the largest) it belongs to, and, for a folder of one's own images, where its images
+    lie and how their cameras are modelled (`setup`: own_images.FolderSetup), the same object for every
+    pair of a set. The reconstruction's protocol is the evaluation's (sfm/protocol.py protocol_of)."""
 
     view0: str = ""
     view1: str = ""

@@ -4,7 +4,8 @@ that two rows made under different protocols are never read as comparable withou
 What it covers (protocol_items, from the run's config.yaml): every evaluation setting (the
 protocol preset, the estimator, its thresholds and the pixels they are in, confidence,
 iterations, the RANSAC seed, repeats), the multi-view protocol where the benchmark has one
-(dataset.protocol: mapper, seeds, merge, verification, scored model), and the versions of the
+(evaluation's mapper, seeds, merge, verification, scored model; dataset.protocol in older records:
+the same items either way, so the fingerprint did not move with the block), and the versions of the
 libraries whose estimators score them (OpenCV, PoseLib, pycolmap). Not covered: what made the
 matches (the matcher, its settings and the image size it matched at: the row's method and its
 identity say them; an imported run's matches, made elsewhere, are scored under the same
@@ -21,7 +22,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping, Sequence
 
-from e3cm_bench.storage.run_config import RunConfig
+from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, RunConfig
 
 FINGERPRINT = "fingerprint"  # the summary's column
 ESTIMATOR_PACKAGES = ("opencv-python-headless", "poselib", "pycolmap")
@@ -44,10 +45,13 @@ def protocol_items(config: RunConfig | Mapping) -> dict[str, str]:
         config = RunConfig.from_dict(dict(config))
     versions = config.versions or {}
     items: dict[str, str] = {}
-    _flat("evaluation", {k: v for k, v in (config.evaluation or {}).items() if k not in INTERVAL_ONLY}, items)
-    protocol = (config.dataset or {}).get("protocol")
-    if isinstance(protocol, Mapping):  # sfm's multi-view protocol (a pose set's "protocol" is a name)
-        _flat("sfm", dict(protocol), items)
+    evaluation = {k: v for k, v in (config.evaluation or {}).items() if k not in INTERVAL_ONLY}
+    protocol = {k: evaluation.pop(k) for k in RECONSTRUCTION_FIELDS if k in evaluation}
+    _flat("evaluation", evaluation, items)
+    older = (config.dataset or {}).get("protocol")  # an older sfm record's (a pose set's "protocol" is a name)
+    protocol = dict(older) if isinstance(older, Mapping) else protocol
+    if protocol:
+        _flat("sfm", protocol, items)
     for name in ESTIMATOR_PACKAGES:
         items[f"version.{name}"] = str(versions.get(name, "not recorded"))
     return items

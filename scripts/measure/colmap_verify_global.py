@@ -22,7 +22,7 @@ from sfm_protocol_grid import evaluate_copy  # noqa: E402
 from e3cm_bench.ground.pycolmap import pycolmap_module  # noqa: E402
 from e3cm_bench.sfm import mapper as reconstruct  # noqa: E402
 
-MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": "2"}}
+MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": 2.0}}
 
 
 def planar_pairs(database: Path) -> tuple[int, int]:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+from dataclasses import asdict, replace
 from itertools import combinations, product
 from pathlib import Path
 
@@ -34,9 +35,10 @@ from e3cm_bench.pipeline.runner import run_benchmark
 from e3cm_bench.reporting.compare import compare_runs
 from e3cm_bench.reporting.runs import load_run
 from e3cm_bench.storage import RunFolder
+from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS
 
 MAPPERS = ("incremental", "global")
-MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": "2"}, "quantize": {"merge": "quantize"}}
+MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": 2.0}, "quantize": {"merge": "quantize"}}
 VERIFICATIONS = ("estimator", "colmap")
 KEEP = ("auc@5", "auc@10", "auc@20", "maa")
 FACTS = ("n_failures", "registered_images", "n_models", "mean_track_length", "mean_reprojection_error",
@@ -44,29 +46,30 @@ FACTS = ("n_failures", "registered_images", "n_models", "mean_track_length", "me
 
 
 def evaluate_copy(source: Path, target: Path, protocol: dict, seed: int = 0) -> dict:
-    """source's cached matches evaluated in `target` under `protocol` (dataset options); a
-    target already evaluated under it (its config.yaml's dataset.protocol, evaluation seed) is
-    read, not evaluated again, so that an interrupted grid resumes."""
+    """source's cached matches evaluated in `target` under `protocol` (sfm's evaluation options by
+    name, and dataset options such as the window); a target already evaluated under it (its config.yaml's evaluation block, seed included)
+    is read, not evaluated again, so that an interrupted grid resumes."""
     made, into = RunFolder(source), RunFolder(target)
-    if into.summary_path.is_file():
-        done = into.run_config()
-        wanted = get_benchmark("sfm").load_dataset(
-            done.dataset["root"], **{**{k: v for k, v in done.dataset_load["options"].items()
-                                        if k in ("scene_info", "window")}, **protocol})
-        if done.dataset.get("protocol") == wanted.protocol.record() and done.evaluation["seed"] == seed:
-            return pd.read_csv(into.summary_path).iloc[0].to_dict()
+    config = made.run_config()
+    bench = get_benchmark("sfm")
+    older = evaluation_of(config, seed=seed)
+    # the run's own protocol under the cell's (its merge radius only where the cell gives one)
+    given = {k: v for k, v in asdict(older).items() if k in RECONSTRUCTION_FIELDS and k != "merge_px"}
+    evaluation = {k: v for k, v in protocol.items() if k not in bench.option_names}  # a window is the dataset's
+    resolved = bench.resolve_eval(older.protocol, seed, {**given, **evaluation})
+    ev = replace(older, **{k: getattr(resolved, k) for k in RECONSTRUCTION_FIELDS})
+    if into.summary_path.is_file() and asdict(evaluation_of(into.run_config())) == asdict(ev):
+        return pd.read_csv(into.summary_path).iloc[0].to_dict()
     if not into.matches_path.is_file():
         target.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(made.config_path, into.config_path)
         for block in made.matches_path.parent.glob(made.matches_path.stem + "*.h5"):  # every block of the cache
             shutil.copyfile(block, into.matches_path.parent / block.name)
-    config = made.run_config()
     load = config.dataset_load
-    options = {k: v for k, v in load["options"].items() if k not in ("merge_px",)}
-    options.update(protocol)
-    bench = get_benchmark("sfm")
+    options = {**{k: v for k, v in load["options"].items() if k in bench.option_names},
+               **{k: v for k, v in protocol.items() if k in bench.option_names}}
     dataset = bench.load_dataset(load["root"], **options)
-    run_benchmark(bench, target, dataset=dataset, ev=evaluation_of(config, seed=seed), eval_only=True,
+    run_benchmark(bench, target, dataset=dataset, ev=ev, eval_only=True,
                   dataset_load={**load, "options": {k: str(v) for k, v in options.items()}})
     return pd.read_csv(into.summary_path).iloc[0].to_dict()
 
@@ -97,7 +100,7 @@ def grid(runs: Path, scratch: Path, to: Path, sets: list[str], methods: list[str
         for method in done_methods(runs, set_name, methods):
             for mapper, merge, verification in product(MAPPERS, merges, VERIFICATIONS):
                 cell = {"mapper": mapper, "merge": merge, "verification": verification}
-                protocol = {"mapper": mapper, "verification": verification, "mapper_seeds": str(seeds), **MERGES[merge]}
+                protocol = {"mapper": mapper, "verification": verification, "mapper_seeds": seeds, **MERGES[merge]}
                 target = scratch / set_name / f"{mapper}-{merge}-{verification}" / method
                 summary = evaluate_copy(runs / set_name / method, target, protocol)
                 rows.append(row_of(set_name, method, cell, summary))

@@ -60,9 +60,8 @@ def main() -> None:
 
         root = args.out / "data" / "room"
         options = {"scene_info": write_multiview(root, n_views=args.views), "window": str(args.window)}
-    if args.merge_px:
-        options["merge_px"] = str(args.merge_px)
     dataset = bench.load_dataset(root, **options)
+    ev = bench.resolve_eval(seed=0, given={"merge_px": args.merge_px} if args.merge_px else None)
     out = args.out / (args.set + (f"-merge{args.merge_px:g}" if args.merge_px else ""))
     runs = [(out / label, MethodSpec.create(backbone=BACKBONE, max_side=bench.max_side(None), seed=0, label=label,
                                             **METHODS[label]))
@@ -72,9 +71,9 @@ def main() -> None:
         from e3cm_bench.pipeline.runner import run_benchmark
 
         for run_dir, _ in runs:
-            run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=bench.resolve_eval(seed=0), eval_only=True)
+            run_benchmark(bench, run_dir, dataset=dataset, dataset_load=load, ev=ev, eval_only=True)
     else:
-        run_methods(bench, runs, dataset, ev=bench.resolve_eval(seed=0), dataset_load=load)
+        run_methods(bench, runs, dataset, ev=ev, dataset_load=load)
     write_table([run_dir for run_dir, _ in runs], out / "table", paper_rows=False, compare=False)
 
 

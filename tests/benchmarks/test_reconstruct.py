@@ -320,8 +320,9 @@ def test_verification_and_mapper_are_sfms_and_recorded(room, tmp_path):
     config = yaml.safe_load((out / "config.yaml").read_text())
     recorded = config["dataset"]["reconstruction"]
     assert recorded["verification"]["options"] == VERIFY_OPTIONS and VERIFY_OPTIONS["max_H_inlier_ratio"] == 1.0
-    assert recorded["mapper"] == "incremental" and recorded["mapper_seeds"] == 2
-    assert config["dataset_load"]["options"]["mapper"] == "incremental"
+    assert config["evaluation"]["mapper"] == "incremental" and config["evaluation"]["mapper_seeds"] == 2
+    assert config["evaluation"]["verification"] == "colmap" and config["given"]["evaluation"]["mapper_seeds"] == 2
+    assert "mapper" not in config["dataset_load"]["options"]
     per_seed = pd.read_csv(out / "per_seed.csv")
     assert list(per_seed["seed"]) == [0, 1] and (per_seed["registered_images"] == 5).all()
     assert (out / "seed-1" / "sparse" / "0").is_dir() and (out / "mapper.log").is_file()
@@ -348,19 +349,25 @@ def test_a_fragmented_reconstruction_says_so_in_one_line(six_frames, tmp_path):
     assert fragments({"n_images": 20, "largest_model_images": 20, "n_models": 1}) is None
 
 
-def test_a_record_made_before_mapper_was_an_option_still_reruns(room_run, tmp_path):
-    """A config.yaml from before --mapper and --mapper-seeds (no such keys in dataset_load) loads and
-    reruns: the folder is mapped with the default mapper, one seed."""
+@pytest.mark.parametrize("options, mapper", [({}, "global"), ({"mapper": "incremental", "mapper_seeds": "1"},
+                                                                   "incremental")])
+def test_a_record_made_before_mapper_was_an_evaluation_option_still_reruns(room_run, tmp_path, options, mapper):
+    """A config.yaml from before the mapper was an evaluation option loads and reruns: with no mapper
+    in it (before --mapper existed) the folder is mapped with the default mapper, one seed; with the
+    mapper among its dataset options (as they were recorded then), with that one."""
     out, _ = room_run
     record = yaml.safe_load((out / "config.yaml").read_text())
-    for key in ("mapper", "mapper_seeds"):
-        record["dataset_load"]["options"].pop(key, None)
+    for key in ("mapper", "mapper_seeds", "merge", "merge_px", "verification", "score_model"):
+        record["evaluation"].pop(key, None)
+    record.pop("given", None)
+    record.pop("given_digest", None)
+    record["dataset_load"]["options"].update(options)
     old = tmp_path / "old.yaml"
     old.write_text(yaml.safe_dump(record))
     result = invoke("rerun", old, "--out", tmp_path / "again")
     assert result.exit_code == 0, result.output
     summary = pd.read_csv(tmp_path / "again" / "summary.csv").iloc[0]
-    assert summary["mapper"] == "global" and summary["mapper_seeds"] == 1 and summary["registered_images"] == 5
+    assert summary["mapper"] == mapper and summary["mapper_seeds"] == 1 and summary["registered_images"] == 5
 
 
 def test_colmaps_log_goes_to_the_run_folder_not_the_terminal(six_frames, tmp_path):

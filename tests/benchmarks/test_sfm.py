@@ -144,9 +144,7 @@ def test_window_and_exhaustive_graphs(shared_data):
     window = bench.load_dataset(root, scene_info=scene_info, window="3")
     assert len(window) == 19 + 18 + 17
     assert window[0].name == "kitti00_seq/000100--000101"
-    merged = bench.load_dataset(root, scene_info=scene_info, window="1", merge_px="1.5")
-    assert merged.describe()["merge_px"] == 1.5 and merged[0].setup.merge_px == 1.5
-    for bad, match in ((dict(window="0"), "--window must be from 1 to 10000"), (dict(merge_px="-1"), "--merge-px"),
+    for bad, match in ((dict(window="0"), "--window must be from 1 to 10000"),
                        (dict(window="2", graph=scene_info), "two pair graphs")):
         with pytest.raises(DatasetError, match=match):
             bench.load_dataset(root, scene_info=scene_info, **bad)

@@ -14,11 +14,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from e3cm_bench.benchmarks import EvalSettings, get_benchmark
-from e3cm_bench.datasets.base import DatasetError
+from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.interchange import tracks
 from e3cm_bench.sfm import metrics as sfm_metrics
-from e3cm_bench.sfm.protocol import DENSE_MERGE_PX, ReconstructionProtocol, keypoints_are_detections, parse_protocol
+from e3cm_bench.sfm.benchmark import SFM
+from e3cm_bench.sfm.protocol import DENSE_MERGE_PX, ReconstructionProtocol, keypoints_are_detections, protocol_of
 from e3cm_bench.stats import compare_paired
 from helpers import invoke
 
@@ -37,18 +37,19 @@ def test_merge_default_follows_the_matchers_kind():
     assert auto.resolved(True).merge == "exact" and auto.resolved(True).merge_px == 0
     assert auto.resolved(False).merge == "radius" and auto.resolved(False).merge_px == DENSE_MERGE_PX
     assert auto.resolved(None).merge_px == DENSE_MERGE_PX  # unknown kind: the dense default
-    # --merge-px overrides the default, for either kind
-    assert parse_protocol(merge_px="1.5").resolved(True).merge_px == 1.5
-    assert parse_protocol(merge_px="0").resolved(False).merge == "exact"
-    assert parse_protocol(merge="quantize").resolved(True).merge == "quantize"
+    # --merge-px overrides the default, for either kind (the evaluation's settings, as sfm resolves them)
+    ev = SFM.resolve_eval(None, 0, {"merge_px": 1.5})
+    assert protocol_of(ev).resolved(True).merge_px == 1.5
+    assert protocol_of(SFM.resolve_eval(None, 0, {"merge_px": 0})).resolved(False).merge == "exact"
+    assert protocol_of(SFM.resolve_eval(None, 0, {"merge": "quantize"})).resolved(True).merge == "quantize"
 
 
-@pytest.mark.parametrize("option, value, flag", [("mapper", "sequential", "--mapper"), ("mapper_seeds", "0", "--mapper-seeds"),
+@pytest.mark.parametrize("option, value, flag", [("mapper", "sequential", "--mapper"), ("mapper_seeds", 0, "--mapper-seeds"),
                                                  ("merge", "near", "--merge"), ("verification", "magsac", "--verification"),
-                                                 ("score_model", "best", "--score-model"), ("merge_px", "-2", "--merge-px")])
+                                                 ("score_model", "best", "--score-model"), ("merge_px", -2, "--merge-px")])
 def test_bad_protocol_values_are_one_line(option, value, flag):
-    with pytest.raises(DatasetError, match=flag):
-        parse_protocol(**{option: value})
+    with pytest.raises(ValueError, match=flag):
+        SFM.resolve_eval(None, 0, {option: value})
 
 
 def test_quantize_merges_within_a_cell_and_the_max_error():
@@ -129,8 +130,8 @@ def incremental_run(room, tmp_path_factory) -> Path:
 
 def test_mapper_and_seeds_recorded_and_used(incremental_run):
     config = yaml.safe_load((incremental_run / "config.yaml").read_text())
-    assert config["dataset"]["protocol"]["mapper"] == "incremental"
-    assert config["dataset"]["protocol"]["mapper_seeds"] == 2
+    assert config["evaluation"]["mapper"] == "incremental" and config["given"]["evaluation"]["mapper"] == "incremental"
+    assert config["evaluation"]["mapper_seeds"] == 2 and "protocol" not in config["dataset"]
     assert config["dataset"]["reconstruction"]["global"]["method"] == "pycolmap.global_mapping"
     summary = pd.read_csv(incremental_run / "summary.csv").iloc[0]
     assert summary["mapper"] == "incremental" and summary["mapper_seeds"] == 2
@@ -185,13 +186,14 @@ def test_bags_are_reconstructed_apart(room, tmp_path):
     from e3cm_bench.matchers.sift import SiftMatcher
 
     root, scene_info = room
-    dataset = get_benchmark("sfm").load_dataset(root, scene_info=scene_info, window="1", mapper_seeds="1")
+    dataset = get_benchmark("sfm").load_dataset(root, scene_info=scene_info, window="1")
     chosen = [p for p in dataset if not p.view0.endswith("02.png")]  # 0-1-2 | 3-4-5: no pair 2-3
     for pair in chosen:
         pair.bag = 0 if pair.view0 < "images/view02.png" else 1
     matcher = SiftMatcher(4000, 0.8, False)
     matches = [matcher.match(load_image(p.image0), load_image(p.image1)) for p in chosen]
-    rows, numbers = get_benchmark("sfm").evaluate_set(chosen, matches, EvalSettings(), tmp_path)
+    ev = get_benchmark("sfm").resolve_eval(given={"mapper_seeds": 1})
+    rows, numbers = get_benchmark("sfm").evaluate_set(chosen, matches, ev, tmp_path)
     assert (tmp_path / "sfm" / "bag-0" / "database.db").is_file() and (tmp_path / "sfm" / "bag-1" / "database.db").is_file()
     with pycolmap.Database.open(str(tmp_path / "sfm" / "bag-0" / "database.db")) as db:
         assert db.num_images() == 3

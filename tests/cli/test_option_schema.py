@@ -5,10 +5,8 @@ the evaluation (eval_options.EVAL_OPTIONS, into EvalSettings), the dataset (the 
 DatasetOptions and the sample), the run (RunRequest's fields), the match stage (MatchOptions')
 and how the shards run (Scale's). Every option of a benchmark command is a key of one section,
 and every key a user sets is an option of every benchmark command: a command that lists an
-option no section declares, or a section's key no command offers, fails here. The toy options
-show docs/development.md's recipes: a method or evaluation option declared in its table is on
-every benchmark command, its help beside it, is a key of an experiment config, and reaches its
-consumer, with no other line written.
+option no section declares, or a section's key no command offers, fails here. The toy options of
+tests/pipeline/test_toy_options.py show docs/development.md's recipes end to end.
 """
 
 from __future__ import annotations
@@ -23,10 +21,10 @@ from typer.testing import CliRunner
 
 from e3cm_bench.benchmarks import BENCHMARKS, get_benchmark
 from e3cm_bench.benchmarks.base import Benchmark
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, EvalOption
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 from e3cm_bench.cli.benchmarks import Scale, benchmark_command
-from e3cm_bench.method.options import METHOD_OPTIONS, MethodOption
-from e3cm_bench.pipeline.experiments import load_experiment, method_types
+from e3cm_bench.method.options import METHOD_OPTIONS
+from e3cm_bench.pipeline.experiments import load_experiment
 from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.stage import MatchOptions
 from e3cm_bench.storage.run_config import SAMPLE_OPTIONS
@@ -53,7 +51,7 @@ def sections(bench: Benchmark) -> dict[str, set[str]]:
     names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
     return {
         "method": set(METHOD_OPTIONS),
-        "evaluation": set(EVAL_OPTIONS),
+        "evaluation": set(bench.eval_option_names),
         "dataset": {o.name for o in bench.command_options()} | set(SAMPLE_OPTIONS),
         "run": names(RunRequest) - set(API_ONLY),
         "match": names(MatchOptions) - set(API_ONLY),
@@ -84,10 +82,12 @@ def test_every_key_a_user_sets_is_an_option_of_every_benchmark_command(name):
 
 @pytest.mark.parametrize("name", sorted(EVAL_OPTIONS))
 def test_an_evaluation_option_has_its_declared_flag_and_help(name):
+    """On the command of each benchmark that takes it (EvalOption.benchmarks), on no other."""
     option = EVAL_OPTIONS[name]
-    result = CliRunner().invoke(typer_app_of(get_benchmark("hpatches")), ["hpatches", "--help"], env={"COLUMNS": "200"})
-    assert option.flag in result.output
-    assert flat(option.help.replace("\\[", "["))[:40] in flat(result.output)
+    for bench in ("hpatches", "sfm"):
+        result = CliRunner().invoke(typer_app_of(get_benchmark(bench)), [bench, "--help"], env={"COLUMNS": "200"})
+        assert (option.flag in result.output) == option.applies_to(bench), (bench, option.flag)
+        assert (flat(option.help.replace("\\[", "["))[:40] in flat(result.output)) == option.applies_to(bench)
 
 
 def test_each_evaluation_option_names_a_field_of_the_settings_and_resolve_eval_fills_it():
@@ -121,54 +121,6 @@ def typer_app_of(bench: Benchmark) -> typer.Typer:
         pass
 
     return app
-
-
-class Reached(Exception):
-    """Raised by the stand-ins below once they saw what they were handed: the run stops there."""
-
-
-@pytest.fixture
-def toys(monkeypatch):
-    """One toy method option and one toy evaluation option, declared in their tables only."""
-    method = MethodOption("toy_px", ("--toy-px",), "whole", None, "A toy method option (tests only).")
-    evaluation = EvalOption("toy_seeds", "--toy-seeds", "whole", None, "A toy evaluation option (tests only).")
-    monkeypatch.setitem(METHOD_OPTIONS, method.name, method)
-    monkeypatch.setitem(EVAL_OPTIONS, evaluation.name, evaluation)
-    return method, evaluation
-
-
-def test_a_toy_option_declared_in_its_table_is_on_the_command_and_reaches_its_reader(tmp_path, toys, monkeypatch):
-    seen = {}
-
-    def resolve_eval(self, protocol=None, seed=0, given=None):
-        seen["evaluation"] = dict(given)
-        return original(self, protocol, seed, {k: v for k, v in given.items() if k != "toy_seeds"})
-
-    def build_method(given, *args, **kwargs):
-        seen["method"] = dict(given)
-        raise Reached
-
-    original = Benchmark.resolve_eval
-    monkeypatch.setattr(Benchmark, "resolve_eval", resolve_eval)
-    monkeypatch.setattr("e3cm_bench.method.spec.build_method", build_method)
-    app = typer_app_of(get_benchmark("hpatches"))
-    text = flat(CliRunner().invoke(app, ["hpatches", "--help"], env={"COLUMNS": "200"}).output)
-    assert "--toy-px" in text and "A toy method option" in text and "--toy-seeds" in text
-    result = CliRunner().invoke(app, ["hpatches", "--root", str(tmp_path), "--out", str(tmp_path / "out"),
-                                      "--matcher", "sift", "--toy-px", "7", "--toy-seeds", "2"])
-    assert isinstance(result.exception, Reached), result.output
-    assert seen["method"]["toy_px"] == 7 and seen["evaluation"]["toy_seeds"] == 2
-
-
-def test_a_toy_method_option_is_a_key_of_an_experiment_config(tmp_path, toys, monkeypatch):
-    assert method_types()["toy_px"] == "whole"
-    config = tmp_path / "toy.yaml"
-    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "sift", "toy_px": 3}],
-                                      "evaluation": {"toy_seeds": 2}}))
-    assert load_experiment(config)["methods"][0]["toy_px"] == 3
-    config.write_text(yaml.safe_dump({"benchmark": "hpatches", "methods": [{"matcher": "sift", "toy_px": "x"}]}))
-    with pytest.raises(ValueError, match="'toy_px' must be a whole number"):
-        load_experiment(config)
 
 
 @pytest.mark.parametrize("content, words", [
@@ -218,13 +170,14 @@ def test_the_python_api_names_the_nearest_field_of_a_mistyped_keyword(tmp_path):
 
 def test_every_option_of_reconstruct_is_a_key_of_the_configuration():
     """`reconstruct` lists its options by name; each one is still a key of a section: the method's,
-    the folder set's (FolderOptions: its dataset options), the run's, the match stage's, the shards'."""
+    the folder set's (FolderOptions: its dataset options), its evaluation's (the mapper, its seeds, the
+    merge radius), the run's, the match stage's, the shards'."""
     from e3cm_bench.cli.reconstruct import reconstruct
-    from e3cm_bench.sfm.own_images import FolderOptions
+    from e3cm_bench.sfm.own_images import RECONSTRUCT, FolderOptions
 
     names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
     declared = (set(METHOD_OPTIONS) | names(FolderOptions) | names(RunRequest) | names(MatchOptions) | names(Scale)
-                | {"images"})  # the folder: the request's root
+                | set(RECONSTRUCT.eval_option_names) | {"images"})  # the folder: the request's root
     given = set(inspect.signature(inspect.unwrap(reconstruct)).parameters)
     assert given and not sorted(given - declared)
 

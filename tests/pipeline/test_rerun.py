@@ -40,6 +40,14 @@ def test_a_yaml_configured_reproduce_method_reruns(shared_data, tmp_path):
     made = invoke("reproduce", config, "--root", root, "--out", tmp_path / "exp", "--limit", 3, "--no-compare")
     assert made.exit_code == 0, made.output
     run = next(p.parent for p in (tmp_path / "exp").rglob("per_pair.csv"))
+    # the method's own `given`: its entry in the config's names (the experiment's max_side among them),
+    # which the rerun resolves to this very run (not falling back on the identity block)
+    from e3cm_bench.pipeline.rerun import rerun_request
+
+    given = yaml.safe_load((run / "config.yaml").read_text())["given"]["method"]
+    assert (given["matcher"], given["settings"], given["max_side"], given["label"]) == ("sift", {"ratio": 0.7}, 320,
+                                                                                         "sift-tight")
+    assert rerun_request(run, tmp_path / "probe").given is not None
     rerun_gives_the_same_rows(run, tmp_path / "again")
 
 
@@ -54,8 +62,8 @@ def test_an_sfm_run_on_the_kitti_frames_reruns(shared_data, kitti6, tmp_path):
                   "--matcher", "sift", "--mapper-seeds", 2, "--out", run)
     assert made.exit_code == 0, made.output
     rerun_gives_the_same_rows(run, tmp_path / "again")
-    protocol = yaml.safe_load((tmp_path / "again" / "config.yaml").read_text())["dataset"]["protocol"]
-    assert protocol["mapper_seeds"] == 2  # the dataset's options came from the record
+    evaluation = yaml.safe_load((tmp_path / "again" / "config.yaml").read_text())["evaluation"]
+    assert evaluation["mapper_seeds"] == 2  # the evaluation came from the record
 
 
 def test_a_reconstruct_run_reruns(tmp_path):
@@ -106,7 +114,7 @@ def test_an_edited_record_is_a_new_run_and_a_misspelt_key_is_refused(shared_data
     record["given"]["evaluation"] = {"ransac_pix": 1.0}
     edited.write_text(yaml.safe_dump(record))
     line = one_line_error(invoke("rerun", edited, "--out", tmp_path / "misspelt"))
-    assert "given: evaluation: 'ransac_pix' is not a evaluation option of hpatches (did you mean 'ransac_px'?)" in line
+    assert "given: evaluation: 'ransac_pix' is not an evaluation option of hpatches (did you mean 'ransac_px'?)" in line
     for part, key, nearest in (("evaluation", "homography_ransac_pix", "homography_ransac_px"),
                                ("identity", "matchr", "matcher"), (None, "evalution", "evaluation")):
         bad = yaml.safe_load((run / "config.yaml").read_text())

@@ -16,8 +16,10 @@ from e3cm_bench.pipeline.resolve import resolve_request
 @pytest.mark.parametrize("given, words", [
     ({"evaluaton": {}}, "'evaluaton' is not a section of a run's options (did you mean 'evaluation'?)"),
     ({"method": {"matchr": "sift"}}, "method: 'matchr' is not a method option of hpatches (did you mean 'matcher'?)"),
-    ({"dataset": {"ransac_px": 2}}, "dataset: 'ransac_px' is not a dataset option of hpatches; it is a evaluation option"),
-    ({"run": {"max_side": 320}}, "run: 'max_side' is not a run option of hpatches; it is a method option"),
+    ({"dataset": {"ransac_px": 2}},
+     "dataset: 'ransac_px' is not a dataset option of hpatches; it is an option of the evaluation section"),
+    ({"run": {"max_side": 320}}, "run: 'max_side' is not a run option of hpatches; it is an option of the method section"),
+    ({"evaluation": {"mapper_seeds": 3}}, "evaluation: 'mapper_seeds' is not an evaluation option of hpatches"),
     ({"dataset": {"scene_info": "x.npz"}}, "dataset: 'scene_info' is not a dataset option of hpatches"),
     ({"evaluation": {"ransac_px": -1}}, "--ransac-px must be a finite number, above 0"),
     ({"method": {"matcher": "sifft"}}, "sifft"),
@@ -30,6 +32,24 @@ def test_a_name_or_value_no_table_holds_is_one_line_before_anything_loads(given,
     with pytest.raises(ValueError, match=re.escape(words)):
         resolve_request("hpatches", full)
     assert not (tmp_path / "out").exists()
+
+
+def test_sfms_mapper_seeds_is_an_evaluation_option_and_refused_as_a_dataset_one(tmp_path):
+    """sfm's reconstruction protocol is typed evaluation options: `evaluation: {mapper_seeds: 3}` (an
+    int, as YAML gives it) is the run's evaluation, `dataset: {mapper_seeds: 3}` is refused naming its
+    section, and a word outside the option's choices is one line naming the flag."""
+    run = {"out": tmp_path / "out", "root": tmp_path}
+    request = resolve_request("sfm", {"run": run, "evaluation": {"mapper_seeds": 2, "mapper": "incremental"}})
+    assert (request.ev.mapper_seeds, request.ev.mapper, request.ev.merge) == (2, "incremental", "auto")
+    assert request.ev.record()["mapper_seeds"] == 2 and request.given["evaluation"]["mapper_seeds"] == 2
+    with pytest.raises(ValueError, match=re.escape("dataset: 'mapper_seeds' is not a dataset option of sfm; it is "
+                                                   "an option of the evaluation section")):
+        resolve_request("sfm", {"run": run, "dataset": {"mapper_seeds": 3}})
+    with pytest.raises(ValueError, match=re.escape("--mapper must be one of global, incremental, got 'glomap'")):
+        resolve_request("sfm", {"run": run, "evaluation": {"mapper": "glomap"}})
+    with pytest.raises(ValueError, match=re.escape("--mapper-seeds must be a whole number")):
+        resolve_request("sfm", {"run": run, "evaluation": {"mapper_seeds": 101}})
+    assert "mapper" not in resolve_request("hpatches", {"run": run}).ev.record()
 
 
 def test_the_python_api_and_the_command_resolve_to_one_request(shared_data, tmp_path):
