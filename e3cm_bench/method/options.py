@@ -66,7 +66,9 @@ class MethodOption(KindOf):
     benchmark or the protocol decides, or none at all).
     concerns: which matchers it changes: "all", "deep" (matchers on a backbone), "shorthand"
     (the matchers whose registry entry lists it in `shorthands`), "weights" (matchers on a
-    backbone or with a model of their own).
+    backbone or with a model of their own), "setting" (the matchers with a setting of its name:
+    build_method hands it over among the settings, --set's value first, and a matcher without
+    that setting refuses it, as it refuses an unknown --set).
     config: where an experiment config takes it: "method" (a ``methods:`` entry), "experiment"
     (the top level, every method's), "both" (the top level sets the methods' default), or ""
     (not in configs: the command line only, or as a matcher setting under ``settings:``).

@@ -224,6 +224,8 @@ def build_method(given: Mapping, benchmark=None, device: str = "cpu", available:
     deep = get_matcher(values["matcher"], allow_import=True).needs_backbone  # the user's: it may import
     settings = deep_settings(values, device, warn) if deep else {}
     settings.update(values["settings"] or {})
+    settings.update({name: values[name] for name, option in METHOD_OPTIONS.items()  # a setting by its name
+                     if option.concerns == "setting" and values[name] is not None and name not in settings})
     side, upright, resize = values["max_side"], True, "shrink"
     if benchmark is not None:
         from e3cm_bench.method.protocols import get_protocol, resolve_max_side, resolve_protocol
