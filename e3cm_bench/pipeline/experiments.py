@@ -83,14 +83,8 @@ def experiment_method(
     The default label follows the method's own backbone and estimator; a backbone forced on
     every deep method (reproduce --backbone) is appended in brackets.
     """
-    # every method option a config takes: the entry's, else the experiment's (options.config_keys)
-    taken = (set(config_keys("method")) | set(config_keys("experiment"))) - {"matcher", "label"}
-    given = {name: entry.get(name, experiment.get(name)) for name in METHOD_OPTIONS if name in taken}
-    own_backbone = given["backbone"] or DEFAULT_BACKBONE
-    if max_side_override is not None:
-        given["max_side"] = max_side_override
-    given["seed"] = int(given["seed"] or 0)
-    given["backbone"] = backbone_override or own_backbone
+    given = entry_options(entry, experiment, backbone_override, max_side_override)
+    own_backbone = entry.get("backbone", experiment.get("backbone")) or DEFAULT_BACKBONE
     spec = benchmark.resolve_method(entry["matcher"], available=available, **given)
     deep = spec.backbone is not None
     # The default label names the method's own backbone; a forced one is added in brackets.
@@ -98,6 +92,28 @@ def experiment_method(
     if backbone_override and deep and backbone_override != own_backbone:
         label = f"{label} [{backbone_override}]"
     return spec.with_label(label)
+
+
+def entry_options(entry: dict, experiment: dict, backbone_override: str | None = None,
+                  max_side_override: int | None = None) -> dict:
+    """The method options of one `methods:` entry by name (matcher and label aside): the entry's,
+    else the experiment's (options.config_keys), with reproduce's --backbone and --max-side."""
+    taken = (set(config_keys("method")) | set(config_keys("experiment"))) - {"matcher", "label"}
+    given = {name: entry.get(name, experiment.get(name)) for name in METHOD_OPTIONS if name in taken}
+    if max_side_override is not None:
+        given["max_side"] = max_side_override
+    given["seed"] = int(given["seed"] or 0)
+    given["backbone"] = backbone_override or given["backbone"] or DEFAULT_BACKBONE
+    return given
+
+
+def run_given(spec: MethodSpec, entry: dict, experiment: dict, forced: tuple, dataset: dict) -> dict:
+    """What a reproduced method's record keeps as its `given` (pipeline/resolve.py): its entry's
+    method options (the experiment's where it has none, with --backbone and --max-side) and its label,
+    the experiment's evaluation and dataset sections, so that `rerun` resolves the run from them."""
+    method = {k: v for k, v in entry_options(entry, experiment, *forced).items() if v is not None}
+    return {"method": {"matcher": entry["matcher"], **method, "label": spec.label},
+            "evaluation": dict(experiment.get("evaluation") or {}), "dataset": dict(dataset)}
 
 
 def load_experiment(path: Path) -> dict:
@@ -182,7 +198,9 @@ def reproduce(
     protocol = get_protocol(resolve_protocol(benchmark, experiment.get("protocol")), benchmark.name)
     ev = benchmark.resolve_eval(protocol.name, int(experiment.get("seed", 0)), experiment.get("evaluation") or {})
     out = Path(request.out)
-    methods, not_run = _methods(config_path, experiment, benchmark, (backbone, max_side), only, strict, console)
+    methods, not_run, entries = _methods(config_path, experiment, benchmark, (backbone, max_side), only, strict,
+                                         console)
+    givens = [run_given(m, e, experiment, (backbone, max_side), options) for m, e in zip(methods, entries)]
     save_yaml({**experiment, "runs": [m.folder for m in methods], NOT_RUN: not_run}, out / EXPERIMENT_COPY)
     load = {"root": str(Path(request.root).resolve()), "options": {k: absolute_paths(v) for k, v in options.items()},
             "skip_bad": request.skip_bad}
@@ -191,12 +209,13 @@ def reproduce(
     name, shard = experiment.get("name", config_path.stem), request.shard
     if shard is None:  # all methods in one pass over the pairs: each image's maps computed once for all
         console.rule(f"{name}: {', '.join(m.label for m in methods)}")
-        run_methods(benchmark, [(out / m.folder, m) for m in methods], dataset, dataset_load=load, ev=ev,
-                    limit=run.limit, device=run.device, options=run.options, console=console)
+        runs = [(out / m.folder, m, g) for m, g in zip(methods, givens)]
+        run_methods(benchmark, runs, dataset, dataset_load=load, ev=ev, limit=run.limit, device=run.device,
+                    options=run.options, console=console)
     else:
-        for method in methods:
+        for method, given in zip(methods, givens):
             console.rule(f"{name}: {method.label}")
-            run_benchmark(run.but(out=out / method.folder, method=method), console=console)
+            run_benchmark(run.but(out=out / method.folder, method=method, given=given), console=console)
     run_dirs = [out / m.folder for m in methods]
     if shard is not None and not all(RunFolder(d).is_run() and RunFolder(d).run_config().shards is not None
                                      for d in run_dirs):
@@ -208,10 +227,10 @@ def reproduce(
 
 def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, forced: tuple[str | None, int | None],
              only: list[str] | None, strict: bool = True, console: Console | None = None,
-             ) -> tuple[list[MethodSpec], dict]:
+             ) -> tuple[list[MethodSpec], dict, list[dict]]:
     """The methods reproduce runs: every one of the config's, or those labelled in `only`, with the
-    (backbone, max_side) `forced` on them; and {label: why} of those that cannot run here, each
-    said on the console (an error instead where `strict`, or where none can run)."""
+    (backbone, max_side) `forced` on them; {label: why} of those that cannot run here, each said on
+    the console (an error instead where `strict`, or where none can run); and the runs' entries."""
     backbone, max_side = forced
     entries = experiment["methods"]
     if only:
@@ -223,10 +242,11 @@ def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, forced: 
                 f"{config_path}: --methods {', '.join(unknown)}: no such method; it has {', '.join(labels)}"
             )
         entries = [e for e, label in zip(entries, labels) if label in only]
-    methods, not_run = [], {}
+    methods, not_run, kept = [], {}, []
     for entry in entries:
         try:
             methods.append(experiment_method(entry, experiment, benchmark, backbone, max_side))
+            kept.append(entry)
         except ValueError as exc:  # a peer without its extra or weights (load_experiment checked the rest)
             label = entry.get("label", entry["matcher"])
             if strict:
@@ -236,7 +256,7 @@ def _methods(config_path: Path, experiment: dict, benchmark: Benchmark, forced: 
             (console or Console()).print(f"not run: {label}: {exc}", markup=False, soft_wrap=True)  # one line
     if not methods:
         raise ValueError(f"{config_path}: none of its methods can run here ({', '.join(not_run)}); see above")
-    return methods, not_run
+    return methods, not_run, kept
 
 
 def _table_and_report(run_dirs: list[Path], out: Path, compare: bool, console: Console | None,

@@ -10,7 +10,7 @@ match stage, and an interrupted run resumes at the first pair missing from the c
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import pandas as pd
 from rich.console import Console
@@ -65,7 +65,8 @@ def run_benchmark(benchmark: str | Benchmark | RunRequest, out=None, method: Met
 
 def run_methods(benchmark: str | Benchmark, runs: list[tuple], dataset: PairList, *, console: Console | None = None,
                 **request) -> list[dict]:
-    """Run (or resume) several methods on the same pairs, each into its own folder (OUT, METHOD).
+    """Run (or resume) several methods on the same pairs, each into its own folder: runs holds
+    (OUT, METHOD) or (OUT, METHOD, GIVEN), GIVEN what its record keeps as given (pipeline/resolve.py).
 
     The same as one run_benchmark per method, result for result, but the pairs are matched
     in one pass (match_jobs): each image is decoded once, and passes through a backbone once
@@ -74,7 +75,7 @@ def run_methods(benchmark: str | Benchmark, runs: list[tuple], dataset: PairList
     """
     console = console or Console()
     request = RunRequest.of(benchmark, dataset=dataset, **request)
-    _check_device(request, [method for _, method in runs])
+    _check_device(request, [run[1] for run in runs])
     limit = request.limit
     console.print(f"{request.bench.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")
                   + (f"; {dataset.preamble()}" if dataset.preamble() else "")
@@ -116,7 +117,8 @@ def _run_folders(request: RunRequest, runs: list[tuple], console: Console) -> li
         n = len(request.dataset)
         check_shard_count(request.shard, min(n, request.limit) if request.limit else n)
     keep_freed_memory()  # a run's passes reuse the pages of the one before (docs/speed.md); recorded in config.yaml
-    hooks = [BenchmarkRun.of(request, out, method) for out, method in runs]
+    # (folder, method) or (folder, method, given): a reproduced method's own `given` (experiments.run_given)
+    hooks = [BenchmarkRun.of(request.but(given=run[2]) if len(run) > 2 else request, run[0], run[1]) for run in runs]
     return run_pipeline(hooks, console)
 
 
@@ -183,7 +185,7 @@ class BenchmarkRun(PairRun):
             matcher=previous.matcher,
             device=source.record.get("device", request.device) if source else request.device,
             dataset={**request.dataset.describe(), "limit": request.limit, "n_pairs_evaluated": len(self.pairs)},
-            evaluation=asdict(self.ev),
+            evaluation=self.ev.record(),
             environment=RunConfig.environment_now(),
             timing=previous.timing,
             feature_reuse=previous.feature_reuse or None,  # earlier stages' counts; add_stats adds this one's
