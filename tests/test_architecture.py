@@ -337,7 +337,7 @@ def _definitions() -> tuple[set[str], dict[str, set[str]]]:
 
 
 def _dotted_exists(name: str) -> bool:
-    """`files.FolderLock`, `e3cm_bench.register`: a module of the package, then attributes."""
+    """`locks.FolderLock`, `e3cm_bench.register`: a module of the package, then attributes."""
     parts = name.removeprefix("e3cm_bench.").split(".") if name != "e3cm_bench" else []
     for split in range(len(parts), -1, -1):
         try:
@@ -355,7 +355,7 @@ def _dotted_exists(name: str) -> bool:
 
 def doc_objects(text: str) -> list[str]:
     """The code objects a page names in backticks: `RunFolder`, `PROTOCOLS`, `run_benchmark`,
-    `RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`. Plain lowercase words
+    `RunFolder.lock`, `locks.FolderLock`, `e3cm_bench.register(...)`. Plain lowercase words
     (`import`, `demo`: commands), paths and file names are not objects."""
     found = []
     for token in re.findall(r"`([A-Za-z_][\w.]*)(?:\(\.*\))?`", text):
@@ -386,11 +386,11 @@ def test_every_object_docs_architecture_names_exists():
 
 def test_the_object_check_fails_on_a_name_that_is_gone():
     names, members = _definitions()
-    assert doc_objects("`RunFolder.lock`, `files.FolderLock`, `e3cm_bench.register(...)`, `demo`, `run/folder.py`, "
+    assert doc_objects("`RunFolder.lock`, `locks.FolderLock`, `e3cm_bench.register(...)`, `demo`, `run/folder.py`, "
                        "`NoSuchThing`, `config.yaml`") == ["NoSuchThing", "RunFolder.lock", "e3cm_bench.register",
-                                                           "files.FolderLock"]
+                                                           "locks.FolderLock"]
     assert "lock" in members["RunFolder"] and "NoSuchThing" not in names
-    assert _dotted_exists("ground.files.FolderLock") and _dotted_exists("e3cm_bench.register")
+    assert _dotted_exists("ground.locks.FolderLock") and _dotted_exists("e3cm_bench.register")
     assert not _dotted_exists("ground.files.NoSuchLock") and not _dotted_exists("nosuchmodule.x")
 
 

@@ -84,7 +84,7 @@ def run_one(request: RankRequest, matcher: str, console: Console) -> Path:
 
 def record(request: RankRequest) -> dict:
     """OUT/rank.yaml: the request and how the verdict is made (score, threshold, resampling)."""
-    from e3cm_bench.ground.files import package_versions, run_environment
+    from e3cm_bench.ground.machine import package_versions, run_environment
 
     given = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(request).items()}
     ranking = Ranking()
@@ -98,7 +98,8 @@ def record(request: RankRequest) -> dict:
 
 def rank_folder(request: RankRequest, console: Console | None = None) -> pd.DataFrame:
     """Every matcher's run (a failing one recorded), then the verdict; returns verdict.csv's table."""
-    from e3cm_bench.ground.files import FolderLock, save_yaml
+    from e3cm_bench.ground.files import save_yaml
+    from e3cm_bench.ground.locks import FolderLock
 
     from e3cm_bench.sfm.own_images import RECONSTRUCT
 

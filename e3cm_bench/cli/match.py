@@ -51,7 +51,7 @@ def match(
 ) -> None:
     """Match two images: writes OUT/matches.npz and OUT/matches.png, prints counts and stage times."""
     from e3cm_bench.ground.devices import keep_freed_memory
-    from e3cm_bench.ground.files import writable_folder
+    from e3cm_bench.ground.locks import writable_folder
     from e3cm_bench.method.spec import build_method
     from e3cm_bench.pipeline.runner import match_pair
 
@@ -103,7 +103,8 @@ def _write_and_say(result, img0, img1, H, method, matcher: str, out: Path) -> No
     from e3cm_bench.benchmarks import get_benchmark
     from e3cm_bench.datasets.base import Pair
     from e3cm_bench.pipeline.evaluate import drawn
-    from e3cm_bench.ground.files import save_npz, writable_folder
+    from e3cm_bench.ground.files import save_npz
+    from e3cm_bench.ground.locks import writable_folder
     from e3cm_bench.matchers import get_matcher
     from e3cm_bench.drawing.matches import draw_matches, save_image
 

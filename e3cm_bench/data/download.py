@@ -67,7 +67,8 @@ from e3cm_bench.data.folder import (
 )
 from e3cm_bench.datasets.sources import Part, Source
 from e3cm_bench.data.http import WatchedHTTP, WatchedHTTPS, body_range, shut, whole_length
-from e3cm_bench.ground.files import FolderLock, refuse_link, write_atomically
+from e3cm_bench.ground.files import refuse_link, write_atomically
+from e3cm_bench.ground.locks import FolderLock
 from e3cm_bench.ground.folders import remove_folder
 
 TIMEOUT_S = 60  # one read without a byte: the server is gone

@@ -67,7 +67,7 @@ def native_bf16(device: str) -> bool:
         return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
     if kind != "cpu":
         return False
-    from e3cm_bench.ground.files import BF16_FLAGS, cpu_info
+    from e3cm_bench.ground.machine import BF16_FLAGS, cpu_info
 
     flags = cpu_info()[1] or set()
     return any(flag in flags for flag in BF16_FLAGS)

@@ -98,6 +98,28 @@ RENAMED = {
 }
 
 
+# Names that moved from a module that stayed to another, the concept's own (issue 78: modules split
+# where their concepts part): (module, name) -> the module that holds it now. The old module's
+# `__getattr__` calls `moved_name` for a name it lacks.
+_MACHINE = ("PACKAGES", "ISA_VARIABLES", "CPU_FLAGS", "BF16_FLAGS", "package_versions", "cpu_info", "cpu_isa",
+            "run_environment")
+MOVED_NAMES = {
+    **{("e3cm_bench.ground.files", name): "e3cm_bench.ground.machine" for name in _MACHINE},
+    **{("e3cm_bench.ground.files", name): "e3cm_bench.ground.locks" for name in ("FolderLock", "writable_folder")},
+}
+
+
+def moved_name(module: str, name: str):
+    """The object another module now holds under `name` (MOVED_NAMES), with a DeprecationWarning
+    naming the new import; else what `renamed` gives."""
+    home = MOVED_NAMES.get((module, name))
+    if home is None:
+        return renamed(module, name)
+    warnings.warn(f"{module}.{name} moved: from {home} import {name} (the old import works until the next "
+                  "release)", DeprecationWarning, stacklevel=3)
+    return getattr(importlib.import_module(home), name)
+
+
 def renamed(module: str, name: str):
     """The object `module` now holds under the new name of `name`, with a DeprecationWarning naming
     it; an AttributeError as Python gives it for a name that was never there."""

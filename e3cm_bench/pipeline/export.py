@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from e3cm_bench.ground.files import writable_folder
+from e3cm_bench.ground.locks import writable_folder
 from e3cm_bench.benchmarks.from_record import evaluation_of, load_run_pairs
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.ground.images import load_image

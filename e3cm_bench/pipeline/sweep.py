@@ -45,11 +45,13 @@ import pandas as pd
 from e3cm_bench.benchmarks import EvalSettings
 from e3cm_bench.geometry import metrics
 from e3cm_bench.geometry.estimators import ESTIMATORS, POSE_METHODS
-from e3cm_bench.ground.files import FolderLock, refuse_link, save_yaml, write_atomically, write_csv
+from e3cm_bench.ground.files import refuse_link, save_yaml, write_atomically, write_csv
+from e3cm_bench.ground.locks import FolderLock
 from e3cm_bench.ground.matches import distinct
 from e3cm_bench.reporting.tables import sweep_markdown
 from e3cm_bench.stats.bootstrap import (BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, percentile_interval,
                                         resample_indices)
+from e3cm_bench.stats.ranking import kendall_tau, ranks
 
 UNITS = {"px": "pixels of the stored images", "mpx": "pixels of the images as matched",
          "f": "a fraction of the pair's mean focal length"}
@@ -228,23 +230,6 @@ def difference_interval(a: np.ndarray, b: np.ndarray, threshold: float, n_sample
         seeds_a, seeds_b = rng.integers(0, a.shape[1], a.shape[1]), rng.integers(0, b.shape[1], b.shape[1])
         values.append(mean_auc(b[row], threshold, seeds_b) - mean_auc(a[row], threshold, seeds_a))
     return percentile_interval(np.asarray(values), CONFIDENCE)
-
-
-def ranks(values: dict[str, float]) -> dict[str, int]:
-    """1 = the highest value; ties share the better rank."""
-    ordered = sorted(values.values(), reverse=True)
-    return {label: 1 + ordered.index(value) for label, value in values.items()}
-
-
-def kendall_tau(first: dict[str, float], second: dict[str, float]) -> tuple[float, float]:
-    """Kendall's tau-b of two cells' values of the same methods, and its p (scipy.stats)."""
-    from scipy.stats import kendalltau
-
-    labels = list(first)
-    if len(labels) < 2:
-        return float("nan"), float("nan")
-    found = kendalltau([first[k] for k in labels], [second[k] for k in labels])
-    return float(found.statistic), float(found.pvalue)
 
 
 # ------------------------------------------------------------------------------------- driver

@@ -30,7 +30,8 @@ from rich.console import Console
 from rich.markup import escape
 
 from e3cm_bench.drawing.plots import plot_cost_accuracy
-from e3cm_bench.ground.files import create_new, writable_folder, write_atomically
+from e3cm_bench.ground.files import create_new, write_atomically
+from e3cm_bench.ground.locks import writable_folder
 from e3cm_bench.reporting.drawings import choose_pairs, draw_pairs, pair_rows
 from e3cm_bench.reporting.pages import index_page, script_json, write_pair_page  # noqa: F401 - script_json: its old home
 from e3cm_bench.reporting.runs import Run, load_run

@@ -15,7 +15,7 @@ be resumed; the evaluation settings (``evaluation``) change only the metrics, an
     OUT/skipped.csv      pairs skipped for bad input;  OUT/failures.csv: pairs a matcher failed on
     OUT/viz/             match drawings (--viz)
     OUT/shards/K-of-N/   the shards of a sharded run, each a run folder of its own
-    OUT/.lock            held while a process uses the folder, removed when it is done (files.FolderLock)
+    OUT/.lock            held while a process uses the folder, removed when it is done (locks.FolderLock)
     OUT/.feature-spill/  feature maps memory could not hold, while matching
 """
 
@@ -28,7 +28,8 @@ import stat
 from pathlib import Path
 
 from e3cm_bench.storage.cache import MatchCache
-from e3cm_bench.ground.files import FolderLock, refuse_link, save_yaml
+from e3cm_bench.ground.files import refuse_link, save_yaml
+from e3cm_bench.ground.locks import FolderLock
 from e3cm_bench.ground.folders import remove_folder
 from e3cm_bench.storage.run_config import CONFIG_FILE, RunConfig
 

@@ -13,7 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from e3cm_bench.ground.files import load_yaml, package_versions, run_environment
+from e3cm_bench.ground.files import load_yaml
+from e3cm_bench.ground.machine import package_versions, run_environment
 
 # The record's file in a run folder (RunFolder.config_path names it from here).
 CONFIG_FILE = "config.yaml"
@@ -160,7 +161,7 @@ class RunConfig:
 
     @staticmethod
     def environment_now() -> dict:
-        """The environment block: CPU dispatch, threads, allocator (files.run_environment)."""
+        """The environment block: CPU dispatch, threads, allocator (machine.run_environment)."""
         from e3cm_bench.ground.devices import allocator
 
         return {**run_environment(), "allocator": allocator()}

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.ground.machine import cpu_info, cpu_isa
 from e3cm_bench.matching import pipeline
 from e3cm_bench.method.spec import MethodSpec
 

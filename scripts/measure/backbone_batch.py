@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from e3cm_bench.backbones.loading import load_backbone
-from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.ground.machine import cpu_info, cpu_isa
 
 
 def device_name(device: torch.device) -> str:

@@ -32,7 +32,7 @@ import torch
 
 from e3cm_bench.backbones.loading import load_backbone
 from e3cm_bench.ground.devices import allocator, keep_freed_memory
-from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.ground.machine import cpu_info, cpu_isa
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.apps.synth.textures import demo_homography, procedural_scene
 

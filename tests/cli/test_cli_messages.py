@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from e3cm_bench.method.protocols import get_protocol
-from e3cm_bench.ground.files import FolderLock
+from e3cm_bench.ground.locks import FolderLock
 from e3cm_bench.matchers import registry
 from e3cm_bench.matchers.names import BUILTIN_MATCHERS
 from e3cm_bench.drawing.formats import format_number

@@ -36,14 +36,14 @@ def test_auto_is_resolved_before_the_identity(monkeypatch):
 def test_the_cpu_flags_decide_native_bf16(monkeypatch, tmp_path):
     from pathlib import Path
 
-    import e3cm_bench.ground.files as files
+    import e3cm_bench.ground.machine as machine
 
     real_read_text = Path.read_text
     for flags, native in (("fpu avx2 avx512f avx512_bf16", True), ("fpu avx2 amx_bf16", True), ("fpu sse4_2 avx2", False)):
         info = tmp_path / "cpuinfo"
         info.write_text(f"processor : 0\nflags : {flags}\n")
         monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: real_read_text(info if str(self) == "/proc/cpuinfo" else self, *a, **k))
-        assert files.cpu_info()[1] == set(flags.split())
+        assert machine.cpu_info()[1] == set(flags.split())
         assert devices.native_bf16("cpu") is native
         monkeypatch.setattr(Path, "read_text", real_read_text)
 

@@ -13,7 +13,7 @@ import yaml
 
 from e3cm_bench.gate import check
 from e3cm_bench.storage.environment import parse_environment
-from e3cm_bench.ground.files import run_environment
+from e3cm_bench.ground.machine import run_environment
 from helpers import flat, invoke, one_line_error
 
 VERSIONS = {"python": "3.12.3", "e3cm-bench": "0.1.0", "torch": "2.14.1", "torchvision": "0.29.1", "numpy": "2.4.6",

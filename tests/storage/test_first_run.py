@@ -14,8 +14,8 @@ import yaml
 from rich.console import Console
 
 import e3cm_bench.backbones.loading as backbones_module
-from e3cm_bench.ground import files as files_module
-from e3cm_bench.ground.files import FolderLock
+from e3cm_bench.ground import locks as locks_module
+from e3cm_bench.ground.locks import FolderLock
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.storage import RunFolder
 from helpers import flat, invoke, one_line_error
@@ -98,7 +98,7 @@ def test_a_lock_taken_on_a_removed_file_is_taken_again(tmp_path, monkeypatch):
         calls.append(fd)
         return real_flock(fd, operation)
 
-    monkeypatch.setattr(files_module.fcntl, "flock", flock_after_the_holder_left)
+    monkeypatch.setattr(locks_module.fcntl, "flock", flock_after_the_holder_left)
     with FolderLock(tmp_path) as lock:
         assert len(calls) == 2  # the first lock was on the removed file: taken again on the new one
         held, there = os.fstat(lock._fd), os.stat(lock.path)
