@@ -60,3 +60,18 @@ def test_a_renamed_name_warns_and_leads_to_the_new_one():
         assert got is getattr(importlib.import_module(module), new)
     with pytest.raises(AttributeError, match="no attribute 'Protocl'"):
         importlib.import_module("e3cm_bench.method.protocols").Protocl
+
+
+def test_a_name_moved_to_its_concepts_module_warns_and_leads_to_it():
+    """A name moved out of a module that stayed (MOVED_NAMES: ground/files.py's lock and machine
+    facts): `from e3cm_bench.ground.files import FolderLock` still works, with a DeprecationWarning
+    naming the new import; a name never there is Python's AttributeError."""
+    from e3cm_bench.ground.moved import MOVED_NAMES
+
+    assert MOVED_NAMES
+    for (module, name), home in MOVED_NAMES.items():
+        with pytest.warns(DeprecationWarning, match=f"from {home} import {name}"):
+            got = getattr(importlib.import_module(module), name)
+        assert got is getattr(importlib.import_module(home), name)
+    with pytest.raises(AttributeError, match="no attribute 'FolderLok'"):
+        importlib.import_module("e3cm_bench.ground.files").FolderLok
