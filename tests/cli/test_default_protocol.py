@@ -36,7 +36,7 @@ def test_a_config_without_protocol_gets_the_commands_protocol(tmp_path, handed, 
                   "--max-side", 320).exit_code == 0
     assert invoke("reproduce", config, "--root", tmp_path, "--out", tmp_path / "rep").exit_code == 0
     command, reproduced = handed["command"], handed["reproduce"]
-    (_, method), = reproduced["jobs"]
+    (_, method, _), = reproduced["jobs"]  # (folder, method, given)
     # the reference's estimator (MAGSAC++) on both paths, the very same settings
     assert command["ev"].protocol == reproduced["ev"].protocol == get_benchmark(name).default_protocol == "wxbs"
     assert reproduced["ev"] == command["ev"]
