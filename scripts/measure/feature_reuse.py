@@ -8,15 +8,17 @@ Sets (the shared data, ../shared/data):
   kitti:    the 20 KITTI 00 frames of megadepth_test_1500/scene_info/kitti00_seq.npz, pair graph
             `sfm --window 2` (37 pairs), at sfm's default side (1200);
   hpatches: the shared HPatches sequences (3 x 5 pairs over 3 x 6 images), at --hpatches-side
-            (default 640: full size, about 1 MP, takes minutes a matcher on a shared CPU).
+            (default 640; 0: full size, about 1 MP, which takes minutes a matcher on a shared CPU).
 
 For each set and matcher: pipeline.stage.match_stage over the set's pairs twice, with
 MatchOptions(feature_reuse=False) (each pair extracts both its images: the path before
 two-stage matchers) and then with reuse (each image's features extracted once, kept in the
 feature cache at the default budgets); the matcher is built in each stage, and the ratio is of
 the seconds spent matching (the stage's match_seconds, build excluded) and of the stage's wall
-time. Extractions are counted by wrapping the matcher class's `features`. The two runs'
-matches are compared array for array. Prints measured figures only, with the load average
+time. Extractions are counted, and timed, by wrapping the matcher class's `features` (on CPU:
+a GPU's queued work is not waited for); the rest of the match seconds is matching the pairs,
+so `amdahl bound` = pair-by-pair s / (reused s - extraction s reused) is the speed-up reuse
+would give were extraction free. The two runs' matches are compared array for array. Prints measured figures only, with the load average
 before and after (the machine may be shared: say so beside the figures).
 """
 
@@ -55,14 +57,18 @@ def set_pairs(name: str, data: Path) -> list:
 
 
 def counted(cls) -> dict:
-    """Wrap cls.features to count its calls (once per class)."""
-    count = {"n": 0}
+    """Wrap cls.features to count its calls and add up their seconds (once per class)."""
+    count = {"n": 0, "s": 0.0}
     if getattr(cls.features, "_counted", None) is None:
         original = cls.features
 
         def features(self, image):
             features._counted["n"] += 1
-            return original(self, image)
+            t = time.perf_counter()
+            try:
+                return original(self, image)
+            finally:
+                features._counted["s"] += time.perf_counter() - t
 
         features._counted = count
         cls.features = features
@@ -83,15 +89,16 @@ def same_matches(a: Path, b: Path) -> bool:
 
 
 def stage(method: MethodSpec, pairs: list, folder: Path, device: str, reuse: bool, count: dict) -> dict:
-    count["n"] = 0
+    count["n"], count["s"] = 0, 0.0
     t = time.perf_counter()
     stats = match_stage(method, pairs, MatchCache(RunFolder(folder).matches_path), device, Console(quiet=True),
                         options=MatchOptions(feature_reuse=reuse))
     return {"wall_s": time.perf_counter() - t, "match_s": stats["match_seconds"], "extractions": count["n"],
-            "recorded": stats.get("feature_reuse", {}).get("extractions")}
+            "extraction_s": count["s"], "recorded": stats.get("feature_reuse", {}).get("extractions")}
 
 
 def measure(set_name: str, pairs: list, matcher: str, side: int | None, device: str, work: Path) -> dict:
+    load = os.getloadavg()[0]
     method = MethodSpec.create(matcher, max_side=side)
     count = counted(type(method.build(device)))
     images = {str(p.image0) for p in pairs} | {str(p.image1) for p in pairs}
@@ -99,25 +106,43 @@ def measure(set_name: str, pairs: list, matcher: str, side: int | None, device: 
     reuse = stage(method, pairs, work / f"{set_name}-{matcher}-reuse", device, True, count)
     return {"set": set_name, "matcher": matcher, "pairs": len(pairs), "images": len(images), "side": side,
             "plain": plain, "reuse": reuse, "ratio_match": plain["match_s"] / reuse["match_s"],
-            "ratio_wall": plain["wall_s"] / reuse["wall_s"],
+            "ratio_wall": plain["wall_s"] / reuse["wall_s"], "load_before": load,
+            "amdahl": plain["match_s"] / max(reuse["match_s"] - reuse["extraction_s"], 1e-9),
             "same_matches": same_matches(RunFolder(work / f"{set_name}-{matcher}-plain").matches_path,
                                          RunFolder(work / f"{set_name}-{matcher}-reuse").matches_path)}
 
 
-def write_csv(path: Path, rows: list[dict], before: tuple, after: tuple) -> None:
+COLUMNS = ["set", "matcher", "pairs", "images", "side", "extractions pair by pair", "extractions reused",
+           "pair by pair s", "reused s", "speed-up", "wall speed-up", "same matches", "load before", "load after row",
+           "extraction s pair by pair", "extraction s reused", "amdahl bound"]
+
+
+def csv_row(r: dict, after: float) -> dict:
+    values = [r["set"], r["matcher"], r["pairs"], r["images"], r["side"] or "full", r["plain"]["extractions"],
+              r["reuse"]["extractions"], round(r["plain"]["match_s"], 1), round(r["reuse"]["match_s"], 1),
+              round(r["ratio_match"], 2), round(r["ratio_wall"], 2), r["same_matches"], round(r["load_before"], 1),
+              round(after, 1), round(r["plain"]["extraction_s"], 1), round(r["reuse"]["extraction_s"], 1),
+              round(r["amdahl"], 2)]
+    return dict(zip(COLUMNS, [str(v) for v in values]))
+
+
+def write_csv(path: Path, row: dict) -> None:
+    """Put one measured row into path: it replaces the row of the same set and matcher, the
+    others stay (an earlier run's, measured another day: docs/speed.md says which is which)."""
     import csv
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    rows = list(csv.DictReader(open(path, newline=""))) if path.exists() else []
+    key = (row["set"], row["matcher"])
+    at = [i for i, r in enumerate(rows) if (r["set"], r["matcher"]) == key]
+    if at:
+        rows[at[0]] = row
+    else:
+        rows.append(row)
     with open(path, "w", newline="") as f:
-        out = csv.writer(f)
-        out.writerow(["set", "matcher", "pairs", "images", "side", "extractions pair by pair", "extractions reused",
-                      "pair by pair s", "reused s", "speed-up", "wall speed-up", "same matches", "load before",
-                      "load after row"])
-        for r in rows:
-            out.writerow([r["set"], r["matcher"], r["pairs"], r["images"], r["side"], r["plain"]["extractions"],
-                          r["reuse"]["extractions"], round(r["plain"]["match_s"], 1), round(r["reuse"]["match_s"], 1),
-                          round(r["ratio_match"], 2), round(r["ratio_wall"], 2), r["same_matches"],
-                          round(before[0], 1), round(after[0], 1)])
+        out = csv.DictWriter(f, COLUMNS, restval="")
+        out.writeheader()
+        out.writerows(rows)
 
 
 def main() -> None:
@@ -144,9 +169,11 @@ def main() -> None:
                       f"{row['plain']['extractions']:3} -> {row['reuse']['extractions']:3} (recorded "
                       f"{row['reuse']['recorded']})  match s {row['plain']['match_s']:7.1f} -> "
                       f"{row['reuse']['match_s']:7.1f}  x{row['ratio_match']:.2f}  wall x{row['ratio_wall']:.2f}  "
-                      f"same matches: {row['same_matches']}", flush=True)
+                      f"extraction s {row['plain']['extraction_s']:.1f} -> {row['reuse']['extraction_s']:.1f}  "
+                      f"amdahl bound x{row['amdahl']:.2f}  same matches: {row['same_matches']}  "
+                      f"load {row['load_before']:.1f} -> {os.getloadavg()[0]:.1f}", flush=True)
                 if args.csv:  # after each row: a run stopped part way keeps what it measured
-                    write_csv(args.csv, rows, before, os.getloadavg())
+                    write_csv(args.csv, csv_row(row, os.getloadavg()[0]))
     print(f"load average after: {os.getloadavg()}")
     if args.json:
         print(json.dumps({"rows": rows, "python": sys.version.split()[0]}))
