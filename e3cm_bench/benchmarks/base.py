@@ -16,8 +16,7 @@ import pandas as pd
 from e3cm_bench.geometry import metrics
 from e3cm_bench.datasets.base import Pair, PairList
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, check_settings
-from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS
+from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS, RECONSTRUCTION_FIELDS, check_settings
 from e3cm_bench.ground.values import DATASET_KINDS, Range, check_value
 from e3cm_bench.method.options import METHOD_OPTIONS, SEEDS
 

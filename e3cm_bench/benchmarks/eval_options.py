@@ -119,6 +119,10 @@ EVAL_OPTIONS: dict[str, EvalOption] = {o.name: o for o in (
                show_default="any", choices=("any", "largest"), benchmarks=("sfm",)),
 )}
 
+# The EvalSettings fields of a reconstruction's protocol: those of the options only some benchmarks
+# take; absent from the evaluation block of a benchmark that reconstructs nothing (EvalSettings.record).
+RECONSTRUCTION_FIELDS = tuple(option.field for option in EVAL_OPTIONS.values() if option.benchmarks)
+
 
 # What each EvalSettings field allows, kind and range (checked by check_settings, as a flag's value
 # by its EvalOption): a record's evaluation block and a protocol's table give these fields as they

@@ -9,8 +9,9 @@ from pathlib import Path
 from typing import NamedTuple
 
 from e3cm_bench.benchmarks import EvalSettings, get_benchmark
+from e3cm_bench.benchmarks.eval_options import RECONSTRUCTION_FIELDS
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
 
 
 def benchmark_of(config: RunConfig):

@@ -31,12 +31,13 @@ from pathlib import Path
 from rich.console import Console
 
 from e3cm_bench.benchmarks.base import EvalSettings
+from e3cm_bench.benchmarks.eval_options import RECONSTRUCTION_FIELDS
 from e3cm_bench.benchmarks.from_record import benchmark_of, dataset_source, evaluation_of, method_of
 from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.request import RUN_OPTIONS, RunRequest
-from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, SAMPLE_OPTIONS, RunConfig
+from e3cm_bench.storage.run_config import SAMPLE_OPTIONS, RunConfig
 
 # Top-level keys of records older versions wrote, read by nothing a rerun uses.
 LEGACY_KEYS = ("match_options",)

@@ -22,11 +22,15 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping, Sequence
 
-from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS, RunConfig
+from e3cm_bench.storage.run_config import RunConfig
 
 FINGERPRINT = "fingerprint"  # the summary's column
 ESTIMATOR_PACKAGES = ("opencv-python-headless", "poselib", "pycolmap")
 INTERVAL_ONLY = ("interval_seeds",)  # evaluation settings that change the interval, not a number
+# The evaluation settings hashed as ``sfm.*`` items: the keys older sfm records held as
+# dataset.protocol, so that a run's fingerprint did not move when they became evaluation options
+# (a fixed list: the hash's items are a format, not a copy of the option table).
+SFM_ITEMS = ("mapper", "mapper_seeds", "merge", "merge_px", "verification", "score_model")
 
 
 def _flat(prefix: str, value, out: dict) -> None:
@@ -46,7 +50,7 @@ def protocol_items(config: RunConfig | Mapping) -> dict[str, str]:
     versions = config.versions or {}
     items: dict[str, str] = {}
     evaluation = {k: v for k, v in (config.evaluation or {}).items() if k not in INTERVAL_ONLY}
-    protocol = {k: evaluation.pop(k) for k in RECONSTRUCTION_FIELDS if k in evaluation}
+    protocol = {k: evaluation.pop(k) for k in SFM_ITEMS if k in evaluation}
     _flat("evaluation", evaluation, items)
     older = (config.dataset or {}).get("protocol")  # an older sfm record's (a pose set's "protocol" is a name)
     protocol = dict(older) if isinstance(older, Mapping) else protocol

@@ -21,10 +21,6 @@ CONFIG_FILE = "config.yaml"
 # What a dataset_load's options may hold besides a benchmark's own options: --sample's draw
 # (Benchmark.load_dataset takes them among the options).
 SAMPLE_OPTIONS = ("sample", "sample_seed")
-# The evaluation fields of a reconstruction's protocol (sfm, reconstruct: sfm/protocol.py), absent
-# from the evaluation block of a benchmark that reconstructs nothing; older sfm records held them as
-# dataset.protocol (storage/fingerprint.py reads either).
-RECONSTRUCTION_FIELDS = ("mapper", "mapper_seeds", "merge", "merge_px", "verification", "score_model")
 
 
 @dataclass

@@ -29,13 +29,13 @@ from pathlib import Path
 import pandas as pd
 
 from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.benchmarks.eval_options import RECONSTRUCTION_FIELDS
 from e3cm_bench.benchmarks.from_record import evaluation_of
 from e3cm_bench.apps.demo import METHODS
 from e3cm_bench.pipeline.runner import run_benchmark
 from e3cm_bench.reporting.compare import compare_runs
 from e3cm_bench.reporting.runs import load_run
 from e3cm_bench.storage import RunFolder
-from e3cm_bench.storage.run_config import RECONSTRUCTION_FIELDS
 
 MAPPERS = ("incremental", "global")
 MERGES = {"exact": {"merge": "exact"}, "merge2": {"merge": "radius", "merge_px": 2.0}, "quantize": {"merge": "quantize"}}
