@@ -86,3 +86,15 @@ def test_items_cover_the_estimators_versions_and_the_sfm_protocol():
     assert differences(items, other) == ["version.pycolmap 4.2.1 -> 4.3.0"]
     assert protocol_notes([("x", items), ("y", items)]) == []
     assert "version.pycolmap" in protocol_notes([("x", items), ("y", other)])[0]
+
+
+def test_an_sfm_protocol_in_the_evaluation_block_hashes_as_the_older_dataset_protocol_did():
+    """sfm's reconstruction protocol moved from dataset.protocol to the evaluation block (issue 78):
+    the same settings give the same items, so a run made before and one made after share a fingerprint."""
+    protocol = {"mapper": "global", "mapper_seeds": 3, "merge": "auto", "merge_px": None, "verification": "estimator",
+                "score_model": "any"}
+    older = {"benchmark": "sfm", "evaluation": {"seed": 0, "estimator": "opencv"}, "dataset": {"protocol": protocol}}
+    newer = {"benchmark": "sfm", "evaluation": {"seed": 0, "estimator": "opencv", **protocol}, "dataset": {}}
+    assert protocol_items(newer) == protocol_items(older) and "sfm.mapper_seeds" in protocol_items(newer)
+    changed = protocol_items({**newer, "evaluation": {**newer["evaluation"], "mapper_seeds": 1}})
+    assert differences(protocol_items(newer), changed) == ["sfm.mapper_seeds 3 -> 1"]
