@@ -1,14 +1,23 @@
 """Feature reuse against the pair-by-pair path, side by side in one process: wall time of the
 match stage, extractions, and whether the matches agree.
 
-    nice python scripts/measure/feature_reuse.py [--sets kitti,hpatches] \
+    nice python scripts/measure/feature_reuse.py [--sets kitti,hpatches,yfcc] \
         [--matchers sift,xfeat,xfeat+lighterglue,aliked+lightglue,disk+lightglue] [--device cpu] [--json]
+        [--yfcc-pairs N] [--yfcc-size WxH]
 
 Sets (the shared data, ../shared/data):
   kitti:    the 20 KITTI 00 frames of megadepth_test_1500/scene_info/kitti00_seq.npz, pair graph
             `sfm --window 2` (37 pairs), at sfm's default side (1200);
   hpatches: the shared HPatches sequences (3 x 5 pairs over 3 x 6 images), at --hpatches-side
-            (default 640; 0: full size, about 1 MP, which takes minutes a matcher on a shared CPU).
+            (default 640; 0: full size, about 1 MP, which takes minutes a matcher on a shared CPU);
+  yfcc:     the real YFCC100M pair list (yfcc_test_pairs_with_gt.txt), its first scene
+            (buckingham_palace: 1000 pairs over 446 images); its photos are not in the shared data,
+            so each image is the synthetic stand-in scripts/measure/benchmark_throughput.py makes
+            (one procedural scene per scene folder, each image through its own homography, JPEG, at
+            --yfcc-size, default 640x480), at yfcc's default side. --yfcc-pairs N keeps the first N
+            pairs of the stage's own order (pipeline.pair_order.reuse_order, which keeps pairs that
+            share images together), so a block smaller than the scene still reuses images; 0: the
+            whole scene.
 
 For each set and matcher: pipeline.stage.match_stage over the set's pairs twice, with
 MatchOptions(feature_reuse=False) (each pair extracts both its images: the path before
@@ -36,24 +45,43 @@ import numpy as np
 from rich.console import Console
 
 from e3cm_bench.benchmarks import get_benchmark
+from e3cm_bench.datasets.base import Pair
 from e3cm_bench.method.protocols import resolve_max_side
 from e3cm_bench.method.spec import MethodSpec
+from e3cm_bench.pipeline.pair_order import reuse_order
 from e3cm_bench.pipeline.stage import MatchOptions, match_stage
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.storage.cache import MatchCache
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmark_throughput's YFCC stand-ins
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MATCHERS = "sift,xfeat,xfeat+lighterglue,aliked+lightglue,disk+lightglue"
 
 
-def set_pairs(name: str, data: Path) -> list:
+def set_pairs(name: str, data: Path, args, work: Path) -> list:
     if name == "kitti":
         root = data / "megadepth_test_1500"
         return get_benchmark("sfm").load_dataset(root, scene_info=root / "scene_info" / "kitti00_seq.npz",
                                                  window="2").pairs  # as the CLI passes it: sfm's --window is text
     if name == "hpatches":
         return get_benchmark("hpatches").load_dataset(data / "hpatches-sequences-release").pairs
-    raise SystemExit(f"--sets: unknown set {name!r} (kitti, hpatches)")
+    if name == "yfcc":
+        return yfcc_pairs(data / "yfcc_test_pairs_with_gt.txt", args.yfcc_pairs, args.yfcc_size, work)
+    raise SystemExit(f"--sets: unknown set {name!r} (kitti, hpatches, yfcc)")
+
+
+def yfcc_pairs(path: Path, keep: int, size: str, work: Path) -> list:
+    """The first scene of the real pair graph, on benchmark_throughput.py's stand-ins."""
+    from benchmark_throughput import read_pair_graph, stand_in
+
+    graph = read_pair_graph(path)
+    scene = graph[0][0].split("/")[0]
+    w, h = (int(v) for v in size.split("x"))
+    folder = work / "yfcc-stand-ins"
+    folder.mkdir(exist_ok=True)
+    pairs = [Pair(f"{a} {b}", stand_in(a, (w, h), folder), stand_in(b, (w, h), folder))
+             for a, b in graph if a.split("/")[0] == scene]
+    return reuse_order(pairs)[:keep] if keep else pairs
 
 
 def counted(cls) -> dict:
@@ -148,6 +176,8 @@ def write_csv(path: Path, row: dict) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sets", default="kitti,hpatches")
+    parser.add_argument("--yfcc-pairs", type=int, default=0, help="the first N pairs of the scene's stage order (0: all)")
+    parser.add_argument("--yfcc-size", default="640x480", help="the YFCC stand-ins' size")
     parser.add_argument("--matchers", default=MATCHERS)
     parser.add_argument("--hpatches-side", type=int, default=640)
     parser.add_argument("--device", default="cpu")
@@ -155,13 +185,14 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--csv", type=Path, help="also write the rows here (docs/speed.md reads results/perf/)")
     args = parser.parse_args()
-    sides = {"kitti": resolve_max_side(get_benchmark("sfm"), None), "hpatches": args.hpatches_side or None}
+    sides = {"kitti": resolve_max_side(get_benchmark("sfm"), None), "hpatches": args.hpatches_side or None,
+             "yfcc": resolve_max_side(get_benchmark("yfcc"), None)}
     rows = []
     before = os.getloadavg()
     print(f"load average before: {before}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for set_name in args.sets.split(","):
-            pairs = set_pairs(set_name, args.data)
+            pairs = set_pairs(set_name, args.data, args, Path(tmp))
             for matcher in args.matchers.split(","):
                 row = measure(set_name, pairs, matcher, sides[set_name], args.device, Path(tmp))
                 rows.append(row)
