@@ -154,7 +154,7 @@ def test_the_import_graph_reads_relative_and_lazy_imports():
     eager, every = shape.import_graph(), shape.import_graph(module_level=False)
     assert "e3cm_bench.storage" in eager["e3cm_bench.pipeline.runner"]  # from e3cm_bench.storage import RunFolder: the package
     assert "e3cm_bench.storage.folder" in eager["e3cm_bench.storage"]
-    assert "e3cm_bench.geometry.metrics" in eager["e3cm_bench.benchmarks.base"]  # from e3cm_bench.geometry import metrics
+    assert "e3cm_bench.geometry.metrics" in eager["e3cm_bench.benchmarks.eval_settings"]  # from e3cm_bench.geometry import metrics
     lazy = {(a, b) for a in every for b in every[a] - eager[a]}  # torch-free start, cycles: imports in functions
     assert len(lazy) > 50 and all(every[a] >= eager[a] for a in eager)
 

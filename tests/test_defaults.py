@@ -23,7 +23,8 @@ RESOLVERS = {
     "max_side": ("e3cm_bench/method/protocols.py", "resolve_max_side",
                  # reconstruct's side: build_method's, through the run resolver (pipeline/resolve.py)
                  ("e3cm_bench/method/spec.py", "e3cm_bench/benchmarks/base.py")),
-    "pair_timeout": ("e3cm_bench/pipeline/stage.py", "resolve_pair_timeout", ("e3cm_bench/pipeline/stage.py",)),
+    "pair_timeout": ("e3cm_bench/pipeline/match_options.py", "resolve_pair_timeout",
+                     ("e3cm_bench/pipeline/match_options.py",)),
     "pixel_origin": ("e3cm_bench/interchange/pixels.py", "resolve_origin",
                      ("e3cm_bench/pipeline/export.py", "e3cm_bench/interchange/colmap.py",
                       "e3cm_bench/interchange/gluefactory.py", "e3cm_bench/interchange/hloc.py",
@@ -169,7 +170,7 @@ def test_the_scan_sees_a_second_reading(tmp_path, default, source):
 
 def test_a_declared_pair_timeout_means_not_given():
     # the commands' option tuples and MatchOptions declare it unset: resolve_pair_timeout says what that is
-    found = places("pair_timeout", REPO, [PACKAGE / "cli" / "benchmarks.py", PACKAGE / "pipeline" / "stage.py"])
-    assert found == [("e3cm_bench/pipeline/stage.py", "resolve_pair_timeout")]
+    found = places("pair_timeout", REPO, [PACKAGE / "cli" / "benchmarks.py", PACKAGE / "pipeline" / "match_options.py"])
+    assert found == [("e3cm_bench/pipeline/match_options.py", "resolve_pair_timeout")]
     tree = ast.parse((PACKAGE / "cli" / "benchmarks.py").read_text())
     assert _parameter_defaults(tree, "pair_timeout"), "the scan no longer sees the command's --pair-timeout default"

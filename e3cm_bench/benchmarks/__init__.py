@@ -14,7 +14,8 @@ import importlib
 import pkgutil
 
 from e3cm_bench.ground.suggest import did_you_mean
-from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.benchmarks.homography import HomographyBenchmark
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 

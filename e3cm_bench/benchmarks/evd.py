@@ -32,7 +32,8 @@ from e3cm_bench.datasets.hpatches import read_homography
 from e3cm_bench.geometry.estimators import homography_geometry, load_estimator
 from e3cm_bench.geometry.two_view import warp_points
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.benchmarks.base import Benchmark, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import Benchmark, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.benchmarks.wxbs import DEFAULT_MAX_SIDE, threshold_curves_figure
 
 # The reference's np.logspace(np.log2(1.0), np.log2(20), 10, base=2.0): 1 .. 20 px.

@@ -15,7 +15,8 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.datasets.hpatches import HPatches
 from e3cm_bench.geometry.two_view import warp_points
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 
 
 @dataclass(frozen=True)

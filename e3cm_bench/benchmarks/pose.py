@@ -15,7 +15,8 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.datasets.megadepth import MegaDepth1500
 from e3cm_bench.datasets.yfcc import YFCC100M
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.method.protocols import rotation_error
 
 

@@ -33,7 +33,8 @@ from e3cm_bench.geometry.estimators import fundamental
 from e3cm_bench.geometry.two_view import to_homogeneous
 from e3cm_bench.ground.images import header_size
 from e3cm_bench.ground.matches import Matches
-from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import Benchmark, DatasetOption, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

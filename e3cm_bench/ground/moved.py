@@ -106,6 +106,10 @@ _MACHINE = ("PACKAGES", "ISA_VARIABLES", "CPU_FLAGS", "BF16_FLAGS", "package_ver
 MOVED_NAMES = {
     **{("e3cm_bench.ground.files", name): "e3cm_bench.ground.machine" for name in _MACHINE},
     **{("e3cm_bench.ground.files", name): "e3cm_bench.ground.locks" for name in ("FolderLock", "writable_folder")},
+    **{("e3cm_bench.benchmarks.base", name): "e3cm_bench.benchmarks.eval_settings"
+       for name in ("MAX_INTERVAL_SEEDS", "MAX_REPEATS")},
+    **{("e3cm_bench.pipeline.stage", name): "e3cm_bench.pipeline.match_options"
+       for name in ("ON_MATCHER_ERROR", "resolve_pair_timeout")},
 }
 
 

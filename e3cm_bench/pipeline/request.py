@@ -1,26 +1,26 @@
 """What a run is asked to do, in one value: `RunRequest`.
 
-The command line builds one (cli/benchmarks.py, cli/reconstruct.py), `reproduce` builds one per
-method from its own (pipeline/experiments.py), the Python API builds one from keywords
-(runner.run_benchmark), and a launched shard receives one (pipeline/launch.py). It travels
-unchanged to the stage that reads each field: `options` (pair_timeout among them) to the match
-stage, `ev` to the evaluate stage, the rest to the pipeline's open step. `resolve_request`
-(pipeline/resolve.py) makes one from what the user gave, by section, and keeps that in `given`. A new run option is
-one field here (or in MatchOptions), one row of the option table and its one consumer.
+`resolve_request` (pipeline/resolve.py) builds every one: from the command line's flags
+(cli/benchmarks.py, cli/reconstruct.py), `reproduce`'s per method (pipeline/experiments.py),
+the Python API's keywords (`request_from_fields`, for runner.run_benchmark); a launched shard
+receives one (pipeline/launch.py). It travels unchanged to the stage that reads each field:
+`options` (pair_timeout among them) to the match stage, `ev` to the evaluate stage, the rest to
+the pipeline's open step; `given` is what the user gave, by section, as config.yaml keeps it. A
+new run option is one field here (or in MatchOptions), one row of the option table and its one
+consumer.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from e3cm_bench.benchmarks import Benchmark, EvalSettings, get_benchmark
 from e3cm_bench.datasets.base import PairList
-from e3cm_bench.ground.suggest import did_you_mean
 from e3cm_bench.ground.values import KindOf, Range
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.shards import check_shard
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 
 
 @dataclass(frozen=True)
@@ -90,17 +90,6 @@ class RunRequest:
         its fields (the Python API, rerun)."""
         RUN_OPTIONS["limit"].check(limit)
         RUN_OPTIONS["viz"].check(viz if viz is not None else 0)
-
-    @classmethod
-    def of(cls, benchmark, out=None, method=None, **given) -> RunRequest:
-        """A request from the Python API's keywords (run_benchmark's, run_methods'): a keyword that is
-        no field is a TypeError naming it and the nearest field, as a command names the nearest flag."""
-        known = {f.name for f in fields(cls)}
-        for name in given:
-            if name not in known:
-                raise TypeError(f"{name!r} is not a field of a run's request{did_you_mean(name, known)}; "
-                                f"it has {', '.join(sorted(known))}")
-        return cls(benchmark, out, method, **given)
 
     @property
     def bench(self) -> Benchmark:

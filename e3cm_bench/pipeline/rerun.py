@@ -30,7 +30,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from e3cm_bench.benchmarks.base import EvalSettings
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.benchmarks.eval_options import RECONSTRUCTION_FIELDS
 from e3cm_bench.benchmarks.from_record import benchmark_of, dataset_source, evaluation_of, method_of
 from e3cm_bench.ground.suggest import did_you_mean

@@ -11,7 +11,8 @@
 - ``match``: how the match stage runs (pipeline/stage.py MatchOptions' fields).
 
 The benchmark commands, `reconstruct`, `rank`, `rerun` of a record that holds `given`, and the Python
-API (`resolve_request`) build their request here, so one name means one thing from the flag to the
+API (`resolve_request`; run_benchmark's and run_methods' keywords through `request_from_fields`) build
+their request here, so one name means one thing from the flag to the
 record: the run's config.yaml keeps `given` as it came (its `given` block), beside what it resolved
 to (identity, evaluation, dataset_load). An unknown section or name is one line with the nearest,
 and a name given in the wrong section names the section it belongs to.
@@ -31,7 +32,7 @@ from e3cm_bench.method.protocols import resolve_protocol
 from e3cm_bench.method import spec as method_spec
 from e3cm_bench.pipeline.request import RunRequest
 from e3cm_bench.pipeline.shards import parse_shard, shard_dir
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from e3cm_bench.storage.folder import RunFolder
 from e3cm_bench.storage.run_config import SAMPLE_OPTIONS
 
@@ -114,3 +115,27 @@ def resolve_request(benchmark: str | Benchmark, given: Mapping,
     return RunRequest(benchmark, run.get("out"), spec, root=None if root is None else Path(root),
                       dataset_options=dataset, ev=ev, limit=run.get("limit"), viz=run.get("viz") or 0, device=device,
                       shard=shard, options=options, given=None if recorded is not None else as_record(given), **flags)
+
+
+def request_from_fields(benchmark: str | Benchmark, out=None, method=None, **values) -> RunRequest:
+    """The Python API's request (run_benchmark's and run_methods' keywords: RunRequest's field
+    names), made by resolve_request as every other entry's is: the run's own names are its `run`
+    section, dataset_options its `dataset` section, options (a MatchOptions) its `match` section,
+    so they are checked by the same tables. The method (a MethodSpec) and ev (EvalSettings; None:
+    the benchmark's default protocol's, as its command has them) come already resolved and are
+    taken as they are; dataset, dataset_load and given are handed over with them. A keyword that is
+    no field is a TypeError naming the nearest, as a command names the nearest flag."""
+    known = {f.name for f in fields(RunRequest)}  # benchmark, out and method are this function's own
+    for name in values:
+        if name not in known:
+            raise TypeError(f"{name!r} is not a field of a run's request{did_you_mean(name, known)}; "
+                            f"it has {', '.join(sorted(known))}")
+    bench = get_benchmark(benchmark)
+    match, default = values.pop("options", None) or MatchOptions(), MatchOptions()
+    given = {"run": {"out": out, **{k: values.pop(k) for k in RUN_KEYS if k in values}},
+             "dataset": values.pop("dataset_options", None) or {},
+             "match": {f.name: getattr(match, f.name) for f in fields(MatchOptions)
+                       if getattr(match, f.name) != getattr(default, f.name)}}
+    ev = values.pop("ev", None) or bench.resolve_eval()
+    request = resolve_request(benchmark, given, recorded=(method, ev))
+    return request.but(**values)  # dataset, dataset_load, given: resolved values, handed over as they are

@@ -27,8 +27,10 @@ from e3cm_bench.method.spec import MethodSpec, identity_changes
 from e3cm_bench.pipeline.driver import PairRun, run_pipeline
 from e3cm_bench.pipeline.pair import match_pair
 from e3cm_bench.pipeline.request import RunRequest
+from e3cm_bench.pipeline.resolve import request_from_fields
 from e3cm_bench.pipeline.shards import check_shard_count, merge_when_complete, shard_command, shard_dir, shard_slice
-from e3cm_bench.pipeline.stage import MatchJob, MatchOptions, match_jobs
+from e3cm_bench.pipeline.match_options import MatchOptions
+from e3cm_bench.pipeline.stage import MatchJob, match_jobs
 from e3cm_bench.storage import RunConfig, RunFolder
 
 __all__ = ["MatchOptions", "RunRequest", "match_pair", "run_benchmark", "run_methods"]
@@ -48,7 +50,7 @@ def run_benchmark(benchmark: str | Benchmark | RunRequest, out=None, method: Met
     last shard to finish merges all of them into OUT (shards.merge_run).
     """
     if not isinstance(benchmark, RunRequest):
-        benchmark = RunRequest.of(benchmark, out, method, **request)
+        benchmark = request_from_fields(benchmark, out, method, **request)
     request, console = benchmark, console or Console()
     if request.method is None and not request.eval_only:
         raise ValueError("run_benchmark: a method is needed unless eval_only")
@@ -74,7 +76,7 @@ def run_methods(benchmark: str | Benchmark, runs: list[tuple], dataset: PairList
     the other fields of a RunRequest (ev, limit, viz, device, dataset_load, options).
     """
     console = console or Console()
-    request = RunRequest.of(benchmark, dataset=dataset, **request)
+    request = request_from_fields(benchmark, dataset=dataset, **request)
     _check_device(request, [run[1] for run in runs])
     limit = request.limit
     console.print(f"{request.bench.name}: {len(dataset)} pairs" + (f", limited to the first {limit}" if limit else "")

@@ -25,7 +25,8 @@ from e3cm_bench.ground.matches import Matches, distinct
 from e3cm_bench.sfm import metrics as sfm_metrics
 from e3cm_bench.sfm.dataset import MultiViewSet, SetOptions
 from e3cm_bench.sfm.protocol import ReconstructionProtocol
-from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, DatasetOption, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, DatasetOption, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.benchmarks.pose import PoseBenchmark
 
 WORKDIR = "sfm"  # the run folder's subfolder of the reconstruction

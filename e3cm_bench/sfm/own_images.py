@@ -25,7 +25,8 @@ import time
 import numpy as np
 import pandas as pd
 
-from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, EvalSettings, with_duplicates
+from e3cm_bench.benchmarks.base import DUPLICATES, Benchmark, with_duplicates
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.datasets.base import DatasetError, Pair, PairList, require_directory
 from e3cm_bench.ground.files import write_csv
 from e3cm_bench.ground.matches import Matches, distinct

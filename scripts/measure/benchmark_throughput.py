@@ -53,7 +53,8 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.ground.machine import cpu_info, cpu_isa
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.pipeline.match_options import MatchOptions
+from e3cm_bench.pipeline.stage import match_stage
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.apps.synth.textures import procedural_scene
 

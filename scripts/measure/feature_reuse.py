@@ -49,7 +49,8 @@ from e3cm_bench.datasets.base import Pair
 from e3cm_bench.method.protocols import resolve_max_side
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.pair_order import reuse_order
-from e3cm_bench.pipeline.stage import MatchOptions, match_stage
+from e3cm_bench.pipeline.match_options import MatchOptions
+from e3cm_bench.pipeline.stage import match_stage
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.storage.cache import MatchCache
 

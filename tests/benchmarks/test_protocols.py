@@ -217,7 +217,7 @@ def test_a_ransac_threshold_in_matched_pixels_is_superglues_normalised_threshold
     """SuperGlue: 1 px / mean focal of K scaled to the resized image. Ours: the threshold in stored
     pixels over the stored K's mean focal; the two normalised thresholds must agree."""
     from e3cm_bench.benchmarks import get_benchmark
-    from e3cm_bench.benchmarks.base import EvalSettings
+    from e3cm_bench.benchmarks.eval_settings import EvalSettings
     from e3cm_bench.datasets.base import Pair
     from e3cm_bench.ground.matches import Matches
 

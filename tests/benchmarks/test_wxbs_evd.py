@@ -9,7 +9,7 @@ import pytest
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.benchmarks import evd as evd_module
 from e3cm_bench.benchmarks import wxbs as wxbs_module
-from e3cm_bench.benchmarks.base import EvalSettings
+from e3cm_bench.benchmarks.eval_settings import EvalSettings
 from e3cm_bench.method.protocols import get_protocol
 from e3cm_bench.datasets.base import DatasetError
 from e3cm_bench.geometry.estimators import fundamental, homography

@@ -26,7 +26,7 @@ from e3cm_bench.cli.benchmarks import Scale, benchmark_command
 from e3cm_bench.method.options import METHOD_OPTIONS
 from e3cm_bench.pipeline.experiments import load_experiment
 from e3cm_bench.pipeline.request import RunRequest
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from e3cm_bench.storage.run_config import SAMPLE_OPTIONS
 
 from helpers import flat

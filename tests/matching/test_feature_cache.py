@@ -18,7 +18,7 @@ from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.storage import RunFolder
 from e3cm_bench.pipeline.pair import matcher_input
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from e3cm_bench.pipeline.runner import run_benchmark
 from helpers import assert_same_arrays, replay_stage
 
@@ -239,7 +239,7 @@ from pathlib import Path
 import cv2, numpy as np
 from rich.console import Console
 import e3cm_bench.pipeline.stage as stage
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from e3cm_bench.storage.cache import MatchCache
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.method.spec import MethodSpec

@@ -19,7 +19,7 @@ from e3cm_bench.matchers.base import splits
 from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.runner import run_benchmark
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from helpers import replay_stage, same_csvs
 
 REPO = Path(__file__).resolve().parents[2]

@@ -25,7 +25,8 @@ from e3cm_bench.ground.images import ImageError
 from e3cm_bench.matching import norms
 from e3cm_bench.matching.cascade import UnitPixels
 from e3cm_bench.method.spec import MethodSpec
-from e3cm_bench.pipeline.stage import MatchOptions, decoded_ahead
+from e3cm_bench.pipeline.match_options import MatchOptions
+from e3cm_bench.pipeline.stage import decoded_ahead
 from e3cm_bench.pipeline.runner import run_benchmark, run_methods
 from helpers import assert_same_arrays
 

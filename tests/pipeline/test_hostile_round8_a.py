@@ -165,7 +165,7 @@ def test_repeats_is_bounded_on_the_command_line_in_a_record_and_in_a_config(sift
     60 s timeout ran out). Now refused in one line before a pair is matched, wherever given."""
     import yaml
 
-    from e3cm_bench.benchmarks.base import MAX_REPEATS
+    from e3cm_bench.benchmarks.eval_settings import MAX_REPEATS
     from e3cm_bench.benchmarks.eval_options import EVAL_OPTIONS
 
     assert f"at most {MAX_REPEATS}" in EVAL_OPTIONS["repeats"].help

@@ -192,7 +192,7 @@ def test_the_largest_seed_leaves_room_for_the_repeats_seeds():
 
 def test_pose_confidence_out_of_range_never_reaches_the_metrics():
     """pose_confidence 5 crashed geometry/metrics.py (OpenCV's assertion) on the first pair."""
-    from e3cm_bench.benchmarks.base import EvalSettings
+    from e3cm_bench.benchmarks.eval_settings import EvalSettings
 
     with pytest.raises(ValueError, match="pose_confidence must be a finite number, above 0 and below 1, got 5"):
         EvalSettings(pose_confidence=5)

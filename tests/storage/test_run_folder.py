@@ -19,7 +19,7 @@ from e3cm_bench.datasets.sources import default_sources
 from e3cm_bench.matchers import MatcherEntry, register, unregister
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.storage import FAILED_ATTR, RunConfig, RunFolder
-from e3cm_bench.pipeline.stage import MatchOptions
+from e3cm_bench.pipeline.match_options import MatchOptions
 from helpers import flat, invoke, one_line_error
 
 SIFT = ("--matcher", "sift", "--max-side", 320)
