@@ -423,6 +423,19 @@ def test_every_method_is_made_through_the_one_path():
     assert callers("MethodSpec.create") and callers("build_method")
 
 
+
+def test_every_request_is_made_by_the_one_resolver():
+    """A RunRequest is constructed in pipeline/resolve.py only (resolve_request; the Python API's
+    keywords through request_from_fields): no `RunRequest(...)`, no `cls(...)` in request.py, and
+    the older keyword path RunRequest.of is gone; a request changes only by RunRequest.but."""
+    direct = [where for where in callers("RunRequest") if not where.startswith("pipeline/resolve.py:")]
+    assert not direct, f"RunRequest(...) outside pipeline/resolve.py: {direct}"
+    assert not callers("RunRequest.of")
+    assert any(w.startswith("benchmarks/eval_settings.py:") for w in callers("cls"))  # the scan sees cls(...)
+    assert not [w for w in callers("cls") if w.startswith("pipeline/request.py:")]
+    assert {w.split(":")[0] for w in callers("RunRequest")} == {"pipeline/resolve.py"}
+    assert callers("request_from_fields") and callers("resolve_request")
+
 # The same word naming another concept: glue-factory's MegaDepth layout, its evaluation protocol;
 # COLMAP's own geometric verification, an sfm protocol setting (--verification colmap).
 OTHER_MEANINGS = {"gluefactory": {"datasets/megadepth.py", "method/protocols.py"},
