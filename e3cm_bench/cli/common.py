@@ -207,7 +207,7 @@ def _bad_input_errors() -> tuple[type[BaseException], ...]:
     found: list[type[BaseException]] = [ValueError, FileNotFoundError, KeyError]
     for module, name in (
         ("e3cm_bench.datasets.base", "DatasetError"),
-        ("e3cm_bench.backbones.loading", "BackboneError"),
+        ("e3cm_bench.backbones.pyramid", "BackboneError"),
     ):
         cls = getattr(sys.modules.get(module), name, None)
         if cls is not None:

@@ -110,6 +110,11 @@ MOVED_NAMES = {
        for name in ("MAX_INTERVAL_SEEDS", "MAX_REPEATS")},
     **{("e3cm_bench.pipeline.stage", name): "e3cm_bench.pipeline.match_options"
        for name in ("ON_MATCHER_ERROR", "resolve_pair_timeout")},
+    **{("e3cm_bench.matchers.feature_cache", name): "e3cm_bench.matchers.spill"
+       for name in ("auto_spill_mb", "SPILL_SHARE", "SPILL_CAP_MB")},
+    **{("e3cm_bench.backbones.loading", name): "e3cm_bench.backbones.pyramid"
+       for name in ("REDUCED_DTYPES", "COPY_BAND", "channels_last", "cast_weights", "pixel_rows",
+                    "channel_first_float")},
 }
 
 

@@ -9,10 +9,11 @@ import time
 import numpy as np
 import torch
 
-from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.backbones.pyramid import Backbone
 from e3cm_bench.matchers.base import CHANNEL_ORDERS
 from e3cm_bench.matchers.base import Matcher
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
+from e3cm_bench.matchers.feature_cache import FeatureCache
+from e3cm_bench.matchers.spill import SpillStore
 
 
 def image_to_tensor(image: np.ndarray, device: torch.device | str) -> torch.Tensor:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
-from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.backbones.pyramid import Backbone
 from e3cm_bench.matching.dfm import DFMSettings, match_two_stage
 from e3cm_bench.matching.release import (
     DFM_FIXES, DFMRelease, dfm_release_final, dfm_release_stage0, dfm_release_stage1,

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.backbones.pyramid import Backbone
 from e3cm_bench.matching.pipeline import E3CMSettings, match_pyramids
 from e3cm_bench.matching.subpixel import refine_matches
 from e3cm_bench.matchers.base import Matches

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.backbones.pyramid import Backbone
 from e3cm_bench.geometry.two_view import estimate_homography, local_distortion
 from e3cm_bench.matching import ESTIMATORS
 from e3cm_bench.matching.dfm import MIN_INLIERS, DFMSettings, match_through_warp, stage0_homography

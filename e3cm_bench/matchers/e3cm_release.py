@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from e3cm_bench.backbones.loading import Backbone
+from e3cm_bench.backbones.pyramid import Backbone
 from e3cm_bench.matching.release import RATIO_AT, ReleaseCascade, level_points, release_cascade, release_levels
 from e3cm_bench.matchers.base import Matches
 from e3cm_bench.matchers.deep import DeepMatcher, level0_cosine

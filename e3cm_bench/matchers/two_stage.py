@@ -16,7 +16,8 @@ import numpy as np
 
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers.base import Features, splits
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
+from e3cm_bench.matchers.feature_cache import FeatureCache
+from e3cm_bench.matchers.spill import SpillStore
 
 
 def matcher_identity(matcher) -> str:

@@ -202,7 +202,8 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
         built = reusing(built)
     budget, batch, disk = 0.0, int(options.backbone_batch or 1), 0.0
     if any(getattr(matcher, "uses_feature_cache", False) for matcher in built):
-        from e3cm_bench.matchers.feature_cache import auto_cache_mb, auto_spill_mb
+        from e3cm_bench.matchers.feature_cache import auto_cache_mb
+        from e3cm_bench.matchers.spill import auto_spill_mb
 
         budget = auto_cache_mb(device) if options.feature_cache_mb is None else float(options.feature_cache_mb)
         if any(hasattr(matcher, "backbone") for matcher in built):
@@ -215,7 +216,7 @@ def _build_matchers(jobs: list[MatchJob], device: str, options: MatchOptions, sp
     shared = _Shared([], {}, budget, disk, batch)
     for job, matcher in zip(jobs, built):
         if budget and getattr(matcher, "uses_feature_cache", False):
-            from e3cm_bench.matchers.feature_cache import SpillStore
+            from e3cm_bench.matchers.spill import SpillStore
 
             identity = matcher.feature_identity()
             if identity not in shared.groups:

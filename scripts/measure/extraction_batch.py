@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from e3cm_bench.benchmarks import get_benchmark
-from e3cm_bench.ground.files import cpu_info, cpu_isa
+from e3cm_bench.ground.machine import cpu_info, cpu_isa
 from e3cm_bench.ground.images import load_image, resize_max_side
 from e3cm_bench.matchers.peers.common import rgb
 from e3cm_bench.matchers.peers.lightglue import reference_aliked_nms

@@ -22,7 +22,8 @@ from pathlib import Path
 import torch
 
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
+from e3cm_bench.matchers.feature_cache import FeatureCache
+from e3cm_bench.matchers.spill import SpillStore
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 
 
@@ -156,7 +157,8 @@ def default_budgets(pairs: list[Pair], images: int, spill_folder: Path) -> list[
     at spill_folder) for the backbones, sizes and precisions of the tables, pyramid sizes
     measured by each backbone (random weights; the size does not depend on them)."""
     from e3cm_bench.backbones.loading import load_backbone
-    from e3cm_bench.matchers.feature_cache import auto_cache_mb, auto_spill_mb
+    from e3cm_bench.matchers.feature_cache import auto_cache_mb
+    from e3cm_bench.matchers.spill import auto_spill_mb
 
     memory_mb, disk_mb = auto_cache_mb("cpu"), auto_spill_mb(spill_folder)
     ordered = reuse_order(pairs)

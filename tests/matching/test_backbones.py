@@ -1,4 +1,4 @@
-"""Backbones as feature pyramids (e3cm_bench.backbones.loading): shapes, truncation, weights handling."""
+"""Backbones as feature pyramids (e3cm_bench.backbones.loading, pyramid): shapes, truncation, weights handling."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from e3cm_bench.backbones import loading as backbones
+from e3cm_bench.backbones import loading as backbones, pyramid
 from e3cm_bench.backbones.loading import BACKBONES, SPECS, BackboneError, load_backbone
 
 H, W = 97, 131  # an odd size: padding to the deepest stride is exercised
@@ -75,13 +75,13 @@ def test_channel_first_float_is_the_plain_copy_bit_for_bit(dtype, monkeypatch):
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(1, 24, 37, 53, generator=gen).to(dtype).contiguous(memory_format=torch.channels_last)[0]
     assert not x.is_contiguous()
-    monkeypatch.setattr(backbones, "COPY_BAND", 3 * 24 * 53)  # 12 bands of 3 rows and 1 of 1
-    got = backbones.channel_first_float(x)
+    monkeypatch.setattr(pyramid, "COPY_BAND", 3 * 24 * 53)  # 12 bands of 3 rows and 1 of 1
+    got = pyramid.channel_first_float(x)
     assert got.dtype == torch.float32 and got.is_contiguous()
     assert torch.equal(got, x.float().contiguous())
     # A map already C-contiguous is widened as before (no copy where it is float32 already).
     flat = torch.randn(8, 5, 7, generator=gen)
-    assert backbones.channel_first_float(flat) is flat
+    assert pyramid.channel_first_float(flat) is flat
 
 
 @pytest.mark.parametrize("name,precision", [("vgg19", "bf16"), ("efficientnet_lite0", "bf16"),
@@ -90,10 +90,10 @@ def test_weights_cast_once_give_the_maps_of_casting_them_at_each_pass(name, prec
     """A reduced-precision backbone stores its convolutions' weights in that precision when it
     is built (normalisation layers stay float32); its maps are those of leaving them float32
     for autocast to cast at every pass, bit for bit."""
-    dtype = backbones.REDUCED_DTYPES[precision]
+    dtype = pyramid.REDUCED_DTYPES[precision]
     torch.manual_seed(0)
     once = load_backbone(name, pretrained=False, precision=precision)
-    monkeypatch.setattr(backbones, "cast_weights", lambda module, to: None)
+    monkeypatch.setattr(pyramid, "cast_weights", lambda module, to: None)
     torch.manual_seed(0)
     each = load_backbone(name, pretrained=False, precision=precision)
     convs = [m for m in once.modules() if isinstance(m, torch.nn.Conv2d)]
@@ -112,7 +112,7 @@ def test_channels_last_passes_give_c_contiguous_maps_equal_to_the_plain_copy(nam
     bb = load_backbone(name, pretrained=False, precision=precision)
     assert bb.memory_format == "channels_last"
     banded = bb(image)
-    monkeypatch.setattr(backbones, "_maps", lambda x: [x[i].float().contiguous() for i in range(len(x))])
+    monkeypatch.setattr(pyramid, "_maps", lambda x: [x[i].float().contiguous() for i in range(len(x))])
     plain = bb(image)
     for a, b in zip(banded, plain):
         assert a.dtype == torch.float32 and a.is_contiguous()
@@ -120,7 +120,7 @@ def test_channels_last_passes_give_c_contiguous_maps_equal_to_the_plain_copy(nam
 
 
 def test_channels_last_strides_are_those_of_a_fresh_channels_last_tensor():
-    """backbones.channels_last: an image made from an H x W x 3 array (batch stride 3), which
+    """pyramid.channels_last: an image made from an H x W x 3 array (batch stride 3), which
     torch's layout guess takes for NCHW, is copied to the strides of a fresh channels_last
     tensor; a tensor that has them already is handed back as it is."""
     from e3cm_bench.matchers.deep import image_to_tensor
@@ -129,9 +129,9 @@ def test_channels_last_strides_are_those_of_a_fresh_channels_last_tensor():
     odd = image_to_tensor(array, "cpu")
     assert odd.is_contiguous(memory_format=torch.channels_last) and odd.stride(0) == 3
     assert odd.contiguous(memory_format=torch.channels_last).stride(0) == 3  # why that is not enough
-    fixed = backbones.channels_last(odd)
+    fixed = pyramid.channels_last(odd)
     assert fixed.stride() == (3 * 16 * 32, 1, 32 * 3, 3) and torch.equal(fixed, odd)
-    assert backbones.channels_last(fixed) is fixed
+    assert pyramid.channels_last(fixed) is fixed
 
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
@@ -337,7 +337,7 @@ def test_level0_rows_are_the_pass_own_channels_last_pixels(name, precision):
         for maps, rows in zip(maps_of, rows_of):
             c, h, w = maps[0].shape
             assert rows.shape == (h * w, c) and rows.is_contiguous()
-            assert rows.dtype == (torch.float32 if precision == "fp32" else backbones.REDUCED_DTYPES[precision])
+            assert rows.dtype == (torch.float32 if precision == "fp32" else pyramid.REDUCED_DTYPES[precision])
             assert torch.equal(rows.float(), maps[0].permute(1, 2, 0).reshape(-1, c))
             # Its storage holds this image's rows alone, not the batch's output.
             assert rows.untyped_storage().nbytes() == rows.numel() * rows.element_size()
@@ -355,7 +355,7 @@ def test_a_stage_taking_over_its_input_gives_the_same_maps_bit_for_bit(name, pre
     torch.manual_seed(0)
     bb = load_backbone(name, pretrained=False, precision=precision, memory_format=memory_format)
     taken = bb(image)
-    monkeypatch.setattr(backbones, "_run_taken", lambda stage, held: stage(held.pop()))
+    monkeypatch.setattr(pyramid, "_run_taken", lambda stage, held: stage(held.pop()))
     whole = bb(image)
     assert all(torch.equal(a, b) for a, b in zip(taken, whole, strict=True))
 

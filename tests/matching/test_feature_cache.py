@@ -13,7 +13,8 @@ import yaml
 
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.storage.cache import MatchCache
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore, compact
+from e3cm_bench.matchers.feature_cache import FeatureCache, compact
+from e3cm_bench.matchers.spill import SpillStore
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.ground.images import load_image
 from e3cm_bench.storage import RunFolder

@@ -16,7 +16,8 @@ from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.ground.matches import Matches
 from e3cm_bench.matchers import Features, Matcher, MatcherEntry, build_matcher, register, unregister
 from e3cm_bench.matchers.base import splits
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
+from e3cm_bench.matchers.feature_cache import FeatureCache
+from e3cm_bench.matchers.spill import SpillStore
 from e3cm_bench.method.spec import MethodSpec
 from e3cm_bench.pipeline.runner import run_benchmark
 from e3cm_bench.pipeline.match_options import MatchOptions

@@ -9,7 +9,8 @@ from pathlib import Path
 import torch
 
 from e3cm_bench.datasets.base import Pair
-from e3cm_bench.matchers.feature_cache import FeatureCache, SpillStore
+from e3cm_bench.matchers.feature_cache import FeatureCache
+from e3cm_bench.matchers.spill import SpillStore
 from e3cm_bench.pipeline.pair_order import most_alive, reuse_order
 from helpers import replay_stage
 

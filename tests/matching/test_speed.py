@@ -18,7 +18,7 @@ import pytest
 import torch
 import yaml
 
-from e3cm_bench.backbones import loading as backbones
+from e3cm_bench.backbones import loading as backbones, pyramid
 from e3cm_bench.benchmarks import get_benchmark
 from e3cm_bench.datasets.base import Pair
 from e3cm_bench.ground.images import ImageError
@@ -167,29 +167,29 @@ def test_a_batch_of_images_gives_each_images_maps_within_rounding():
 
 
 def test_the_banded_copy_of_each_level_equals_torchs_copy(monkeypatch):
-    """backbones.channel_first_float on the real channels-last output of every stage of a bf16
+    """pyramid.channel_first_float on the real channels-last output of every stage of a bf16
     backbone whose level 0 (16 x 240 x 320, over 1M elements) takes the banded copy: the same
     C-contiguous float32 maps as torch's copy, bit for bit."""
     torch.manual_seed(0)
     backbone = backbones.load_backbone("efficientnet_lite0", pretrained=False, precision="bf16")
     assert backbone.memory_format == "channels_last"
-    outputs, maps = [], backbones._maps
+    outputs, maps = [], pyramid._maps
     monkeypatch.setattr(backbones, "_maps", lambda x: outputs.append(x[0]) or maps(x))
     backbone.forward(torch.rand(1, 3, 240, 320, generator=torch.Generator().manual_seed(0)))
     assert len(outputs) == 5 and tuple(outputs[0].shape) == (16, 240, 320) and outputs[0].dtype == torch.bfloat16
     for x in outputs:
-        copy = backbones.channel_first_float(x)
+        copy = pyramid.channel_first_float(x)
         assert copy.is_contiguous() and torch.equal(copy, x.float().contiguous())
 
 
 def test_weights_cast_once_give_the_maps_of_casting_at_every_pass(monkeypatch):
-    """backbones.cast_weights (bf16 weights stored once, when the backbone is built) against the
+    """pyramid.cast_weights (bf16 weights stored once, when the backbone is built) against the
     same random draw left in float32 and cast by autocast at every pass: the same maps, bit for bit."""
     def build(cast: bool) -> backbones.Backbone:
         torch.manual_seed(0)
         with monkeypatch.context() as m:
             if not cast:
-                m.setattr(backbones, "cast_weights", lambda module, dtype: None)
+                m.setattr(pyramid, "cast_weights", lambda module, dtype: None)
             return backbones.load_backbone("efficientnet_lite0", pretrained=False, precision="bf16")
 
     each, once = build(False), build(True)

@@ -72,7 +72,7 @@ def test_remove_folder_refuses_a_link_and_a_file_and_removes_links_inside_not_th
 
 def test_the_spill_store_makes_and_removes_its_folder_never_through_a_link(tmp_path):
     torch = pytest.importorskip("torch")
-    from e3cm_bench.matchers.feature_cache import SpillStore
+    from e3cm_bench.matchers.spill import SpillStore
 
     victim = planted(tmp_path)
     (tmp_path / "spill").symlink_to(victim / "0")
