@@ -103,7 +103,7 @@ def test_a_registered_benchmark_runs_end_to_end(toy_benchmark, tmp_path):
     csv_path, _ = write_table([out], tmp_path / "toy-table")
     table = pd.read_csv(csv_path)
     assert list(table["source"]) == ["measured"] and table["h_acc@3"].item() == summary["h_acc@3"].item()
-    with pytest.raises(ValueError, match="do not apply to toy"):
+    with pytest.raises(ValueError, match=r"dataset: .pairs. is not a dataset option of toy \(did you mean .n_pairs.\?\)"):
         eb.run_benchmark("toy", tmp_path / "o", eb.MethodSpec.create("sift"), root=data, dataset_options={"pairs": "x"})
 
 
