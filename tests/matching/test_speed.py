@@ -174,7 +174,7 @@ def test_the_banded_copy_of_each_level_equals_torchs_copy(monkeypatch):
     backbone = backbones.load_backbone("efficientnet_lite0", pretrained=False, precision="bf16")
     assert backbone.memory_format == "channels_last"
     outputs, maps = [], pyramid._maps
-    monkeypatch.setattr(backbones, "_maps", lambda x: outputs.append(x[0]) or maps(x))
+    monkeypatch.setattr(pyramid, "_maps", lambda x: outputs.append(x[0]) or maps(x))
     backbone.forward(torch.rand(1, 3, 240, 320, generator=torch.Generator().manual_seed(0)))
     assert len(outputs) == 5 and tuple(outputs[0].shape) == (16, 240, 320) and outputs[0].dtype == torch.bfloat16
     for x in outputs:
