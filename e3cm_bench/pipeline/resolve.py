@@ -31,7 +31,7 @@ from e3cm_bench.method.options import METHOD_OPTIONS, check_method_values, with_
 from e3cm_bench.method.protocols import resolve_protocol
 from e3cm_bench.method import spec as method_spec
 from e3cm_bench.pipeline.request import RunRequest
-from e3cm_bench.pipeline.shards import parse_shard, shard_dir
+from e3cm_bench.pipeline.shards import check_shard, parse_shard, shard_dir
 from e3cm_bench.pipeline.match_options import MatchOptions
 from e3cm_bench.storage.folder import RunFolder
 from e3cm_bench.storage.run_config import SAMPLE_OPTIONS
@@ -130,6 +130,8 @@ def request_from_fields(benchmark: str | Benchmark, out=None, method=None, **val
         if name not in known:
             raise TypeError(f"{name!r} is not a field of a run's request{did_you_mean(name, known)}; "
                             f"it has {', '.join(sorted(known))}")
+    if values.get("shard") is not None:  # the API's (K, N), as documented; "K/N" text is the command line's
+        check_shard(values["shard"])
     bench = get_benchmark(benchmark)
     match, default = values.pop("options", None) or MatchOptions(), MatchOptions()
     given = {"run": {"out": out, **{k: values.pop(k) for k in RUN_KEYS if k in values}},
